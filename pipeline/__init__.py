@@ -1,0 +1,30 @@
+"""3-D shape of a continuum manipulator from three calibrated cameras.
+
+Public API::
+
+    session = pipeline.load_session("path/to/session")
+    summary = pipeline.process_session(session, out_dir="recordings")
+    rec = pipeline.load_recording("recordings/session.mcap")
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from .errors import PipelineError
+from .session import Session, load_session
+
+__all__ = ["PipelineError", "Session", "load_recording", "load_session", "process_session"]
+
+
+def __getattr__(name: str) -> Any:
+    # Lazy: importing pipeline must not pull in rerun, mcap and joblib.
+    if name == "process_session":
+        from .runner import process_session
+
+        return process_session
+    if name == "load_recording":
+        from .recording import load_recording
+
+        return load_recording
+    raise AttributeError(name)

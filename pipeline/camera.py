@@ -1,0 +1,91 @@
+"""A calibrated camera: the one place that knows the projection conventions.
+
+Convention (OpenCV, "camera from world"): ``x_cam = R @ X_world + t``, with R the
+Rodrigues vector ``rotation`` and t ``translation_mm``; pixels follow OpenCV's
+distortion model (k1, k2, p1, p2, k3) and intrinsic matrix K. All lengths are
+millimetres in the world frame of calibration.toml.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """One calibrated camera.
+
+    Attributes
+    ----------
+    name : camera name; the video's file stem.
+    size_px : (width, height) of its images in pixels.
+    matrix : (3, 3) float64 intrinsic matrix K (pixels).
+    distortions : (5,) float64 OpenCV coefficients k1, k2, p1, p2, k3.
+    rotation : (3,) float64 Rodrigues vector, camera from world.
+    translation_mm : (3,) float64, camera from world, millimetres.
+    """
+
+    name: str
+    size_px: tuple[int, int]
+    matrix: FloatArray
+    distortions: FloatArray
+    rotation: FloatArray
+    translation_mm: FloatArray
+
+    @property
+    def width(self) -> int:
+        return self.size_px[0]
+
+    @property
+    def height(self) -> int:
+        return self.size_px[1]
+
+    @property
+    def camera_from_world(self) -> FloatArray:
+        """(3, 3) rotation matrix R with x_cam = R @ X_world + t."""
+        rot, _ = cv2.Rodrigues(np.asarray(self.rotation, dtype=np.float64))
+        return np.asarray(rot, dtype=np.float64)
+
+    @property
+    def center_mm(self) -> FloatArray:
+        """(3,) optical centre in the world frame: -R^T t."""
+        return -self.camera_from_world.T @ self.translation_mm
+
+    def to_camera(self, points_mm: FloatArray) -> FloatArray:
+        """(N, 3) world points -> (N, 3) camera-frame points, mm."""
+        return np.asarray(points_mm, dtype=np.float64) @ self.camera_from_world.T + self.translation_mm
+
+    def project(self, points_mm: FloatArray) -> FloatArray:
+        """(N, 3) world points (mm) -> (N, 2) float64 pixel coordinates, distortion included.
+
+        Points behind the camera get NaN.
+        """
+        pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+        if len(pts) == 0:
+            return np.zeros((0, 2))
+        px, _ = cv2.projectPoints(pts, self.rotation, self.translation_mm, self.matrix, self.distortions)
+        px = np.asarray(px, dtype=np.float64).reshape(-1, 2)
+        px[self.to_camera(pts)[:, 2] <= 0] = np.nan
+        return px
+
+    def undistort_pixels(self, pixels: FloatArray) -> FloatArray:
+        """(N, 2) distorted pixels -> (N, 2) normalised image coordinates (x/z, y/z)."""
+        pts = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
+        # Iterative undistortion with a tight criterion: the default 5 iterations
+        # leave ~0.1 px errors at the image corners with k1 ~ -0.1.
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
+        und = cv2.undistortPoints(pts, self.matrix, self.distortions, criteria=criteria)
+        return np.asarray(und, dtype=np.float64).reshape(-1, 2)
+
+    def rays(self, pixels: FloatArray) -> FloatArray:
+        """(N, 2) pixels -> (N, 3) unit ray directions in the world frame."""
+        xy = self.undistort_pixels(pixels)
+        d_cam = np.column_stack([xy, np.ones(len(xy))])
+        d_world = d_cam @ self.camera_from_world  # R^T applied to row vectors
+        return d_world / np.linalg.norm(d_world, axis=1, keepdims=True)

@@ -1,0 +1,230 @@
+"""Command line: a thin layer over the library.
+
+Each subcommand parses its arguments and calls one library function. A
+:class:`PipelineError` becomes one line on stderr and exit status 2; anything
+else is a bug and shows its traceback only with ``--debug``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from .errors import PipelineError
+
+log = logging.getLogger("pipeline")
+
+EXIT_OK, EXIT_FRAMES_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+
+
+def _frame_range(text: str) -> tuple[int, int | None]:
+    start, sep, stop = text.partition(":")
+    try:
+        lo = int(start) if start else 0
+        hi = int(stop) if stop else None
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected START:STOP (e.g. 0:300), got {text!r}") from None
+    if not sep or lo < 0 or (hi is not None and hi <= lo):
+        raise argparse.ArgumentTypeError(f"expected START:STOP with 0 <= START < STOP, got {text!r}")
+    return lo, hi
+
+
+def _cmd_process(args: argparse.Namespace) -> int:
+    from .runner import process_session
+    from .session import load_session
+
+    session = load_session(args.video_dir)
+    summary = process_session(
+        session,
+        out_dir=args.out,
+        jobs=args.jobs,
+        backend=args.backend,
+        scheduler=args.scheduler,
+        frames=args.frames,
+        images=not args.no_images,
+        force=args.force,
+        curve=args.curve,
+    )
+    return summary.exit_code
+
+
+def _cmd_synth(args: argparse.Namespace) -> int:
+    from .synth import render_session
+
+    render_session(args.out_dir, shape=args.shape, frames=args.frames, seed=args.seed, polarity=args.polarity)
+    return EXIT_OK
+
+
+def _cmd_synth_calib(args: argparse.Namespace) -> int:
+    from .synth import render_calibration_views
+
+    render_calibration_views(args.out_dir, arrangement=args.arrangement, seed=args.seed)
+    return EXIT_OK
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from .calibrate import calibrate_directory
+
+    calibrate_directory(
+        args.calib_dir,
+        args.output,
+        board=args.board,
+        square_mm=args.square_mm,
+        charuco=args.charuco,
+        shared_intrinsics=args.shared_intrinsics,
+        drop_outliers=args.drop_outliers,
+    )
+    return EXIT_OK
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from .evaluate import evaluate_recording, format_report
+
+    report = evaluate_recording(args.recording, args.ground_truth)
+    print(report.to_json() if args.json else format_report(report))
+    return EXIT_OK
+
+
+def _board(text: str) -> tuple[int, int]:
+    cols, sep, rows = text.lower().partition("x")
+    if not sep or not cols.isdigit() or not rows.isdigit():
+        raise argparse.ArgumentTypeError(f"expected COLSxROWS inner corners (e.g. 9x6), got {text!r}")
+    return int(cols), int(rows)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m pipeline",
+        description="3-D centreline of a continuum manipulator from three calibrated cameras.",
+    )
+    parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser(
+        "process",
+        help="reconstruct every frame of a session into .mcap and .rrd",
+        description="Decode the session's videos, reconstruct every frame in parallel and write "
+        "OUT/<session>.mcap and OUT/<session>.rrd. Exit 0: all frames ok or empty; "
+        "1: some frames failed; 2: bad input (nothing written).",
+    )
+    p.add_argument("video_dir", type=Path, help="session directory: calibration.toml + one video per camera")
+    p.add_argument(
+        "--out", type=Path, default=Path("recordings"), help="output directory (default: recordings)"
+    )
+    p.add_argument("--jobs", type=int, default=-1, help="parallel workers; -1 = one per core (default)")
+    p.add_argument(
+        "--backend",
+        choices=("loky", "threading", "dask"),
+        default="loky",
+        help="joblib backend: loky = local processes (default), threading, dask = a Dask cluster",
+    )
+    p.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="Dask scheduler address, e.g. tcp://host:8786 (with --backend dask)",
+    )
+    p.add_argument("--frames", type=_frame_range, metavar="START:STOP", help="process only these frames")
+    p.add_argument("--no-images", action="store_true", help="do not store camera images in the MCAP")
+    p.add_argument("--force", action="store_true", help="replace existing outputs (atomically)")
+    p.add_argument(
+        "--curve",
+        choices=("fit", "polyfit"),
+        default=None,
+        help="centreline method: fit (ours, default) or polyfit (the original method, a baseline)",
+    )
+    p.set_defaults(func=_cmd_process)
+
+    from .synth_names import SHAPES
+
+    p = sub.add_parser(
+        "synth",
+        help="render a synthetic three-camera session with ground truth",
+        description="Render a session directory (calibration.toml, three videos, session.toml, "
+        "backgrounds) of a moving tube, plus OUT_DIR/ground_truth.npz.",
+    )
+    p.add_argument("out_dir", type=Path, help="session directory to write")
+    p.add_argument("--shape", choices=SHAPES, default="bend_rotate", help="motion of the manipulator")
+    p.add_argument("--frames", type=int, default=900, help="number of frames at 30 fps (default 900)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (noise, textures)")
+    p.add_argument(
+        "--polarity",
+        choices=("dark", "bright"),
+        default="dark",
+        help="tube darker or brighter than the scene",
+    )
+    p.set_defaults(func=_cmd_synth)
+
+    p = sub.add_parser(
+        "synth-calib",
+        help="render checkerboard calibration images for the synthetic rig",
+        description="Write OUT_DIR/<camera>/intrinsics/*.png, OUT_DIR/<camera>/world.png, "
+        "OUT_DIR/board.toml and the true cameras as OUT_DIR/truth_calibration.toml.",
+    )
+    p.add_argument("out_dir", type=Path)
+    p.add_argument("--arrangement", choices=("oblique", "ninety"), default="oblique", help="camera placement")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_cmd_synth_calib)
+
+    p = sub.add_parser(
+        "calibrate",
+        help="calibrate the cameras from board images into calibration.toml",
+        description="Read CALIB_DIR/<camera>/intrinsics/* and CALIB_DIR/<camera>/world.*, calibrate "
+        "every camera into the world frame of the board in world.*, and write calibration.toml "
+        "plus a report (error table, bar chart, world axes drawn on each world image).",
+    )
+    p.add_argument("calib_dir", type=Path)
+    p.add_argument("-o", "--output", type=Path, required=True, help="calibration.toml to write")
+    p.add_argument(
+        "--board",
+        type=_board,
+        metavar="COLSxROWS",
+        help="inner corners of the chessboard (overrides board.toml)",
+    )
+    p.add_argument("--square-mm", type=float, help="square size in mm (overrides board.toml)")
+    p.add_argument(
+        "--charuco", type=_board, metavar="COLSxROWS", help="a ChArUco board of COLSxROWS squares instead"
+    )
+    p.add_argument("--shared-intrinsics", action="store_true", help="one set of intrinsics for all cameras")
+    p.add_argument(
+        "--drop-outliers", action="store_true", help="drop views whose error stands out, and recalibrate"
+    )
+    p.set_defaults(func=_cmd_calibrate)
+
+    p = sub.add_parser(
+        "evaluate",
+        help="accuracy of a recording against ground truth",
+        description="Compare the centrelines in RECORDING.mcap with GROUND_TRUTH.npz (or a session "
+        "directory holding ground_truth.npz): centreline, tip, base and length errors, jitter.",
+    )
+    p.add_argument("recording", type=Path)
+    p.add_argument("ground_truth", type=Path)
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.set_defaults(func=_cmd_evaluate)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.debug else logging.INFO,
+        format="%(levelname)s: %(message)s",
+    )
+    func: Callable[[argparse.Namespace], int] = args.func
+    try:
+        return func(args)
+    except PipelineError as exc:
+        if args.debug:
+            raise
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

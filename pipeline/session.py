@@ -1,0 +1,176 @@
+"""A session directory (VIDEO_DIR) -> a validated :class:`Session`.
+
+Every mistake a user can make in a session directory is found here, before any
+work starts, and raised as a :class:`~pipeline.errors.PipelineError` naming the
+file or camera.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .calibration_io import read_calibration
+from .camera import Camera
+from .errors import SessionError, VideoError
+from .settings import Settings, load_settings
+from .video import VIDEO_EXTENSIONS, VideoInfo, probe_video
+
+log = logging.getLogger(__name__)
+
+FPS_TOLERANCE = 1e-3
+_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
+
+
+@dataclass(frozen=True, eq=False)
+class Session:
+    """Everything needed to process one recording, validated.
+
+    cameras[i], video_paths[i] and backgrounds[i] belong together.
+    ``frame_count`` is the number of frames common to all videos.
+    """
+
+    directory: Path
+    name: str
+    cameras: tuple[Camera, ...]
+    video_paths: tuple[Path, ...]
+    backgrounds: tuple[NDArray[np.uint8] | None, ...]
+    settings: Settings
+    fps: float
+    frame_count: int
+    frame_counts: tuple[int, ...]
+
+    def timestamp_ns(self, index: int) -> int:
+        """Frame ``index``'s time: start_time + index / fps, in ns since the Unix epoch."""
+        start = self.settings.session.start_time
+        start_ns = (start - _EPOCH) // timedelta(microseconds=1) * 1000
+        return start_ns + round(index * 1e9 / self.fps)
+
+
+def load_session(directory: Path | str) -> Session:
+    """Read and validate ``directory``: calibration.toml, one video per camera, session.toml."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise SessionError(f"{directory}: no such session directory")
+    if not any(directory.iterdir()):
+        raise SessionError(f"{directory}: the session directory is empty")
+    settings = load_settings(directory / "session.toml")
+    cameras = read_calibration(directory / "calibration.toml")
+    videos = _find_videos(directory, [c.name for c in cameras])
+    infos = [probe_video(videos[c.name]) for c in cameras]
+    for cam, info in zip(cameras, infos, strict=True):
+        if (info.width, info.height) != cam.size_px:
+            raise VideoError(
+                f"{info.path}: frames are {info.width}x{info.height} but calibration.toml gives "
+                f"camera {cam.name!r} size {cam.size_px[0]}x{cam.size_px[1]}; "
+                "use the calibration of this rig and resolution"
+            )
+    fps = _common_fps(infos)
+    counts = tuple(i.frame_count for i in infos)
+    if len(set(counts)) > 1:
+        log.warning(
+            "videos differ in length (%s); processing the %d common frames",
+            ", ".join(f"{c.name}: {n}" for c, n in zip(cameras, counts, strict=True)),
+            min(counts),
+        )
+    backgrounds = tuple(_background(directory, cam) for cam in cameras)
+    if settings.silhouette.method == "background":
+        missing = [c.name for c, b in zip(cameras, backgrounds, strict=True) if b is None]
+        if missing:
+            raise SessionError(
+                f"{directory / 'background'}: silhouette method 'background' needs "
+                f"background/{missing[0]}.png (missing for camera {missing[0]!r})"
+            )
+    _check_workspace_visible(cameras, settings)
+    return Session(
+        directory=directory,
+        name=directory.resolve().name,
+        cameras=tuple(cameras),
+        video_paths=tuple(videos[c.name] for c in cameras),
+        backgrounds=backgrounds,
+        settings=settings,
+        fps=fps,
+        frame_count=min(counts),
+        frame_counts=counts,
+    )
+
+
+def _find_videos(directory: Path, names: list[str]) -> dict[str, Path]:
+    found: dict[str, Path] = {}
+    for path in sorted(directory.iterdir()):
+        if not path.is_file() or path.suffix.lower() not in VIDEO_EXTENSIONS:
+            continue
+        if path.stem not in names:
+            raise SessionError(
+                f"{path}: no camera named {path.stem!r} in calibration.toml "
+                f"(cameras: {', '.join(names)}); rename the video or add its calibration"
+            )
+        if path.stem in found:
+            raise SessionError(
+                f"{directory}: two videos for camera {path.stem!r} "
+                f"({found[path.stem].name}, {path.name}); keep one"
+            )
+        found[path.stem] = path
+    for name in names:
+        if name not in found:
+            raise SessionError(
+                f"{directory}: camera {name!r} in calibration.toml has no video ({name}.mp4, .avi or .mkv)"
+            )
+    return found
+
+
+def _common_fps(infos: list[VideoInfo]) -> float:
+    fps = infos[0].fps
+    for info in infos[1:]:
+        if not math.isclose(info.fps, fps, rel_tol=FPS_TOLERANCE):
+            raise VideoError(
+                f"{info.path}: {info.fps:g} fps but {infos[0].path.name} has {fps:g} fps; "
+                "record all cameras at the same rate"
+            )
+    return fps
+
+
+def _background(directory: Path, cam: Camera) -> NDArray[np.uint8] | None:
+    path = directory / "background" / f"{cam.name}.png"
+    if not path.exists():
+        return None
+    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise SessionError(f"{path}: cannot be read as an image")
+    if (image.shape[1], image.shape[0]) != cam.size_px:
+        raise SessionError(
+            f"{path}: is {image.shape[1]}x{image.shape[0]} but camera {cam.name!r} is "
+            f"{cam.size_px[0]}x{cam.size_px[1]}"
+        )
+    return np.ascontiguousarray(image, dtype=np.uint8)
+
+
+def _check_workspace_visible(cameras: list[Camera], settings: Settings) -> None:
+    """Every camera must see some part of the workspace, or the hull is empty by construction."""
+    ws = settings.workspace
+    lo = np.asarray(ws.origin_mm)
+    hi = lo + np.asarray(ws.size_mm)
+    # A 9^3 lattice over the box catches a camera that sees any sizeable part of it.
+    axes = [np.linspace(a, b, 9) for a, b in zip(lo, hi, strict=True)]
+    probe = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    for cam in cameras:
+        px = cam.project(probe)
+        inside = (
+            np.isfinite(px).all(axis=1)
+            & (px[:, 0] >= 0)
+            & (px[:, 0] < cam.width)
+            & (px[:, 1] >= 0)
+            & (px[:, 1] < cam.height)
+        )
+        if not inside.any():
+            raise SessionError(
+                f"camera {cam.name!r} does not see the workspace (origin {ws.origin_mm} mm, "
+                f"size {ws.size_mm} mm); check calibration.toml or [workspace] in session.toml"
+            )

@@ -1,0 +1,210 @@
+"""Typed processing settings from session.toml, validated once.
+
+Defaults reproduce the original rig: a 256 mm cube whose min corner is the world
+origin, carved at 2 mm (128^3 voxels), a fixed grey threshold of 60 on a dark
+manipulator mounted at (128, 128, 0) mm.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field, fields
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from .errors import SettingsError
+
+SILHOUETTE_METHODS = ("threshold", "otsu", "background")
+POLARITIES = ("dark", "bright")
+CURVE_METHODS = ("fit", "polyfit")
+
+# A grid is refused when its per-session tables would not fit comfortably in memory.
+MAX_GRID_BYTES = 8 * 1024**3
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """The carving box: an axis-aligned cube split into cubic voxels (world frame, mm)."""
+
+    origin_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    size_mm: tuple[float, float, float] = (256.0, 256.0, 256.0)
+    voxel_mm: float = 2.0
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """Voxels along x, y, z."""
+        nx, ny, nz = (max(1, round(s / self.voxel_mm)) for s in self.size_mm)
+        return (nx, ny, nz)
+
+    @property
+    def voxel_count(self) -> int:
+        nx, ny, nz = self.shape
+        return nx * ny * nz
+
+    def estimated_bytes(self, n_cameras: int) -> int:
+        """Memory the per-session tables need: an int32 pixel index per voxel and camera,
+        plus voxel centres (float32 x3) and a per-frame occupancy mask."""
+        return self.voxel_count * (4 * n_cameras + 12 + 1)
+
+
+@dataclass(frozen=True)
+class SilhouetteSettings:
+    method: str = "threshold"
+    threshold: int = 60
+    polarity: str = "dark"
+    # Connected blobs smaller than this (px) cannot be the manipulator and are removed.
+    min_area_px: int = 20
+
+
+@dataclass(frozen=True)
+class ManipulatorSettings:
+    base_mm: tuple[float, float, float] | None = (128.0, 128.0, 0.0)
+    radius_mm: float | None = 6.0
+
+
+@dataclass(frozen=True)
+class CenterlineSettings:
+    method: str = "fit"
+    points: int = 64
+
+
+@dataclass(frozen=True)
+class SessionInfo:
+    # Frame i is at start_time + i / fps; the Unix epoch when session.toml does not say.
+    start_time: datetime = datetime(1970, 1, 1, tzinfo=UTC)
+
+
+@dataclass(frozen=True)
+class Settings:
+    workspace: Workspace = field(default_factory=Workspace)
+    silhouette: SilhouetteSettings = field(default_factory=SilhouetteSettings)
+    manipulator: ManipulatorSettings = field(default_factory=ManipulatorSettings)
+    centerline: CenterlineSettings = field(default_factory=CenterlineSettings)
+    session: SessionInfo = field(default_factory=SessionInfo)
+
+
+_SECTIONS: dict[str, type] = {
+    "workspace": Workspace,
+    "silhouette": SilhouetteSettings,
+    "manipulator": ManipulatorSettings,
+    "centerline": CenterlineSettings,
+    "session": SessionInfo,
+}
+
+
+def load_settings(path: Path | None) -> Settings:
+    """Read session.toml (None or a missing file gives the defaults) and validate it."""
+    if path is None or not path.exists():
+        return Settings()
+    try:
+        with path.open("rb") as f:
+            data = tomllib.load(f)
+    except tomllib.TOMLDecodeError as exc:
+        raise SettingsError(f"{path}: TOML syntax error: {exc}") from None
+    except OSError as exc:
+        raise SettingsError(f"{path}: cannot read: {exc.strerror}") from None
+    return settings_from_dict(data, source=str(path))
+
+
+def settings_from_dict(data: dict[str, Any], *, source: str = "session.toml") -> Settings:
+    """Build validated :class:`Settings` from parsed TOML; raise SettingsError naming the key."""
+    _check_keys(data, _SECTIONS, source, "")
+    parts: dict[str, Any] = {}
+    for name, cls in _SECTIONS.items():
+        section = data.get(name, {})
+        if not isinstance(section, dict):
+            raise SettingsError(f"{source}: [{name}] must be a table")
+        allowed = {f.name: f for f in fields(cls)}
+        _check_keys(section, allowed, source, f"[{name}] ")
+        parts[name] = cls(**{k: _convert(source, name, k, v) for k, v in section.items()})
+    settings = Settings(**parts)
+    _validate(settings, source)
+    return settings
+
+
+def _check_keys(data: dict[str, Any], allowed: Any, source: str, where: str) -> None:
+    for key in data:
+        if key not in allowed:
+            raise SettingsError(
+                f"{source}: unknown key {where}{key!r}; allowed: {', '.join(sorted(allowed))}"
+            )
+
+
+def _number(source: str, key: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise SettingsError(f"{source}: {key} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _vector3(source: str, key: str, value: Any) -> tuple[float, float, float]:
+    if not isinstance(value, list) or len(value) != 3:
+        raise SettingsError(f"{source}: {key} must be a list of 3 numbers, got {value!r}")
+    x, y, z = (_number(source, key, v) for v in value)
+    return (x, y, z)
+
+
+def _convert(source: str, section: str, key: str, value: Any) -> Any:
+    name = f"[{section}] {key}"
+    if key in ("base_mm", "radius_mm") and value == "auto":
+        return None  # inferred from the data (see centerline / quality)
+    if key in ("origin_mm", "size_mm", "base_mm"):
+        return _vector3(source, name, value)
+    if key in ("voxel_mm", "radius_mm"):
+        return _number(source, name, value)
+    if key in ("threshold", "min_area_px", "points"):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise SettingsError(f"{source}: {name} must be an integer, got {value!r}")
+        return value
+    if key == "start_time":
+        if isinstance(value, datetime):
+            return value if value.tzinfo else value.replace(tzinfo=UTC)
+        if isinstance(value, str):
+            try:
+                parsed = datetime.fromisoformat(value)
+            except ValueError:
+                pass
+            else:
+                return parsed if parsed.tzinfo else parsed.replace(tzinfo=UTC)
+        raise SettingsError(f"{source}: {name} must be an RFC 3339 date-time, got {value!r}")
+    if not isinstance(value, str):
+        raise SettingsError(f"{source}: {name} must be a string, got {value!r}")
+    return value
+
+
+def _validate(s: Settings, source: str) -> None:
+    ws = s.workspace
+    if ws.voxel_mm <= 0:
+        raise SettingsError(f"{source}: [workspace] voxel_mm must be > 0, got {ws.voxel_mm}")
+    if min(ws.size_mm) <= 0:
+        raise SettingsError(f"{source}: [workspace] size_mm must be > 0 on every axis")
+    need = ws.estimated_bytes(3)
+    if need > MAX_GRID_BYTES:
+        nx, ny, nz = ws.shape
+        raise SettingsError(
+            f"{source}: a {nx}x{ny}x{nz} grid needs about {need / 1024**3:.1f} GiB "
+            f"(limit {MAX_GRID_BYTES / 1024**3:.0f} GiB); raise voxel_mm or shrink size_mm"
+        )
+    sil = s.silhouette
+    if sil.method not in SILHOUETTE_METHODS:
+        raise SettingsError(
+            f"{source}: [silhouette] method {sil.method!r} unknown; use one of {SILHOUETTE_METHODS}"
+        )
+    if sil.polarity not in POLARITIES:
+        raise SettingsError(
+            f"{source}: [silhouette] polarity {sil.polarity!r} unknown; use one of {POLARITIES}"
+        )
+    if not 0 <= sil.threshold <= 255:
+        raise SettingsError(f"{source}: [silhouette] threshold must be in 0-255, got {sil.threshold}")
+    if sil.min_area_px < 0:
+        raise SettingsError(f"{source}: [silhouette] min_area_px must be >= 0")
+    r = s.manipulator.radius_mm
+    if r is not None and r <= 0:
+        raise SettingsError(f"{source}: [manipulator] radius_mm must be > 0, got {r}")
+    if s.centerline.method not in CURVE_METHODS:
+        raise SettingsError(
+            f"{source}: [centerline] method {s.centerline.method!r} unknown; use one of {CURVE_METHODS}"
+        )
+    if not 4 <= s.centerline.points <= 10000:
+        raise SettingsError(f"{source}: [centerline] points must be in 4-10000")
