@@ -30,3 +30,7 @@ class VideoError(PipelineError):
 
 class OutputError(PipelineError):
     """An output cannot be written (exists, not writable, disk full)."""
+
+
+class EvaluationError(PipelineError):
+    """A recording or ground truth cannot be evaluated (missing, unreadable, mismatched)."""
