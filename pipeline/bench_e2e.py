@@ -1,0 +1,140 @@
+"""End-to-end timings for ``make bench``: the demo session, ``process`` subprocesses, decode floor.
+
+Each end-to-end run is the real command line in a fresh Python process, timed
+from process start to exit (outputs closed and renamed into place), so it
+includes imports and the per-session set-up exactly as a user pays them.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import subprocess
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+import psutil
+import tomli_w
+
+from .bench_report import EndToEndRun
+from .video import read_frames
+
+log = logging.getLogger(__name__)
+
+# How often the process tree's memory is sampled; short enough to catch the
+# set-up's peak, which lasts a fraction of a second.
+RSS_SAMPLE_S = 0.02
+
+
+def ensure_demo(directory: Path, *, frames: int) -> Path:
+    """Render the demo session into ``directory`` unless its calibration.toml exists."""
+    if not (directory / "calibration.toml").exists():
+        log.info("rendering the %d-frame demo session into %s", frames, directory)
+        cmd = [sys.executable, "-m", "pipeline", "synth", str(directory), "--frames", str(frames)]
+        subprocess.run(cmd, check=True)
+    return directory
+
+
+def _tree_rss(proc: psutil.Process) -> int:
+    """Summed RSS of ``proc`` and all its descendants, bytes (0 once it is gone)."""
+    total = 0
+    try:
+        procs = [proc, *proc.children(recursive=True)]
+    except psutil.Error:
+        return 0
+    for p in procs:
+        try:
+            total += p.memory_info().rss
+        except psutil.Error:
+            continue  # a worker that exited between listing and reading
+    return total
+
+
+def run_process(
+    session_dir: Path,
+    out_dir: Path,
+    *,
+    jobs: int,
+    frames: int,
+    voxel_mm: float,
+    label: str,
+    extra_args: tuple[str, ...] = (),
+) -> EndToEndRun:
+    """Run ``python -m pipeline process`` on ``session_dir`` and time it, start to exit.
+
+    Peak memory is the largest summed RSS of the process tree (the CLI process and
+    its loky workers) seen by sampling every RSS_SAMPLE_S. Summing RSS counts pages
+    shared between processes (libraries, memory-mapped tables) once per process, so
+    it is an upper bound on the memory actually used.
+    """
+    cmd = [
+        sys.executable,
+        "-m",
+        "pipeline",
+        "process",
+        str(session_dir),
+        "--out",
+        str(out_dir),
+        "--force",
+        "--jobs",
+        str(jobs),
+        "--frames",
+        f"0:{frames}",
+        *extra_args,
+    ]
+    log.info("timing: %s", " ".join(cmd[1:]))
+    start = time.perf_counter()
+    popen = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = psutil.Process(popen.pid)
+    peak = 0
+    while popen.poll() is None:
+        peak = max(peak, _tree_rss(proc))
+        time.sleep(RSS_SAMPLE_S)
+    wall = time.perf_counter() - start
+    stderr = popen.stderr.read().decode(errors="replace") if popen.stderr else ""
+    if popen.returncode not in (0, 1):
+        log.warning("%s exited with %d:\n%s", label, popen.returncode, stderr[-2000:])
+    return EndToEndRun(
+        label=label,
+        jobs=jobs,
+        voxel_mm=voxel_mm,
+        frames=frames,
+        wall_s=wall,
+        exit_code=int(popen.returncode),
+        peak_rss_mb=peak / 1024**2,
+    )
+
+
+def decode_floor(video_paths: tuple[Path, ...] | list[Path], *, frames: int) -> float:
+    """Seconds to only decode ``frames`` frames of every video, one after another in this process."""
+    start = time.perf_counter()
+    for path in video_paths:
+        for _ in read_frames(path, 0, frames):
+            pass
+    return time.perf_counter() - start
+
+
+def voxel_session(source: Path, target: Path, *, voxel_mm: float) -> Path:
+    """A copy of session ``source`` in ``target`` carved at ``voxel_mm``.
+
+    Videos, calibration and backgrounds are symlinked (nothing large is copied);
+    session.toml is the source's with ``[workspace] voxel_mm`` replaced.
+    """
+    target.mkdir(parents=True, exist_ok=True)
+    for path in source.iterdir():
+        if path.name in ("session.toml", "ground_truth.npz"):
+            continue
+        link = target / path.name
+        if link.is_symlink() or link.exists():
+            if link.is_dir() and not link.is_symlink():
+                shutil.rmtree(link)
+            else:
+                link.unlink()
+        link.symlink_to(path.resolve())
+    settings_path = source / "session.toml"
+    data = tomllib.loads(settings_path.read_text()) if settings_path.exists() else {}
+    data.setdefault("workspace", {})["voxel_mm"] = float(voxel_mm)
+    (target / "session.toml").write_text(tomli_w.dumps(data))
+    return target

@@ -1,0 +1,342 @@
+"""What ``make bench`` measured: the report, its targets, a Markdown table, JSON and a chart.
+
+Pure functions of a :class:`BenchReport`; nothing here measures anything, so the
+test can feed a small fake report through every output.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .bench_timing import StageStats
+
+REALTIME_FPS = 30.0
+
+# Stage names in the order of the per-frame path; the chart and table follow it.
+STAGE_ORDER = ("decode", "silhouettes", "carving", "centreline", "quality", "mcap", "rerun")
+
+
+@dataclass(frozen=True)
+class EndToEndRun:
+    """One ``python -m pipeline process`` subprocess, process start to files closed.
+
+    Attributes
+    ----------
+    label : what was run, e.g. "2 mm, 2 workers".
+    jobs : --jobs given.
+    voxel_mm : voxel size of the session processed.
+    frames : frames processed.
+    wall_s : wall time of the subprocess, seconds.
+    exit_code : its exit status (0 all frames ok or empty).
+    peak_rss_mb : peak of the summed RSS of the process tree (psutil sampling), MiB.
+    """
+
+    label: str
+    jobs: int
+    voxel_mm: float
+    frames: int
+    wall_s: float
+    exit_code: int
+    peak_rss_mb: float
+
+    @property
+    def fps(self) -> float:
+        return self.frames / self.wall_s if self.wall_s > 0 else float("nan")
+
+    @property
+    def realtime_factor(self) -> float:
+        """How many times faster than the 30 fps recording plays."""
+        return self.fps / REALTIME_FPS
+
+
+@dataclass(frozen=True)
+class ScalingRow:
+    """Carving cost at one resolution: grid set-up once per session, carve once per frame.
+
+    Attributes
+    ----------
+    label : e.g. "1 mm (256^3), 320x240".
+    grid_shape : voxels along x, y, z.
+    image_px : (width, height) of the masks.
+    setup_s : build_grid wall time, seconds.
+    carve : per-frame carve time.
+    """
+
+    label: str
+    grid_shape: tuple[int, int, int]
+    image_px: tuple[int, int]
+    setup_s: float
+    carve: StageStats
+
+
+@dataclass(frozen=True)
+class Target:
+    """One target of issue 8; ``passed`` is None when it was not measured in this run."""
+
+    name: str
+    measured: float
+    limit: float
+    unit: str
+    higher_is_better: bool = False
+
+    @property
+    def passed(self) -> bool | None:
+        if not math.isfinite(self.measured):
+            return None
+        return self.measured >= self.limit if self.higher_is_better else self.measured <= self.limit
+
+    @property
+    def verdict(self) -> str:
+        return {True: "PASS", False: "MISS", None: "not measured"}[self.passed]
+
+
+@dataclass
+class BenchReport:
+    """Everything one bench run measured (times in the units their names give).
+
+    Attributes
+    ----------
+    meta : machine, load, versions, frames and options of the run.
+    stages : ours, per-frame stage -> stats (keys from :data:`STAGE_ORDER` and extras).
+    original : the original method, per-frame stage -> stats, for the stages it does differently.
+    carving_methods : carving at 128^3 by method ("ours", "lookup gather", "brute force",
+        "original") -> per-frame stats.
+    identical_frames : frames on which ours equalled brute force voxel for voxel.
+    compared_frames : frames compared with brute force.
+    end_to_end : the ``process`` subprocess runs.
+    decode_floor_s : wall time to only decode the three videos of the whole session.
+    decode_frames : frames per video decoded for the floor.
+    scaling : carving set-up and per-frame cost by resolution.
+    """
+
+    meta: dict[str, Any] = field(default_factory=dict)
+    stages: dict[str, StageStats] = field(default_factory=dict)
+    original: dict[str, StageStats] = field(default_factory=dict)
+    carving_methods: dict[str, StageStats] = field(default_factory=dict)
+    identical_frames: int = 0
+    compared_frames: int = 0
+    end_to_end: list[EndToEndRun] = field(default_factory=list)
+    decode_floor_s: float = float("nan")
+    decode_frames: int = 0
+    scaling: list[ScalingRow] = field(default_factory=list)
+
+    def run(self, *, jobs: int, voxel_mm: float) -> EndToEndRun | None:
+        """The end-to-end run with ``jobs`` workers at ``voxel_mm``, if there was one."""
+        for r in self.end_to_end:
+            if r.jobs == jobs and math.isclose(r.voxel_mm, voxel_mm):
+                return r
+        return None
+
+
+def _wall(run: EndToEndRun | None) -> float:
+    return run.wall_s if run is not None else float("nan")
+
+
+def _ratio(a: float, b: float) -> float:
+    return a / b if b and math.isfinite(a) and math.isfinite(b) else float("nan")
+
+
+def speedup_2_over_1(report: BenchReport) -> float:
+    """Throughput of 2 workers over 1 worker at 2 mm (wall 1 worker / wall 2 workers)."""
+    return _ratio(_wall(report.run(jobs=1, voxel_mm=2.0)), _wall(report.run(jobs=2, voxel_mm=2.0)))
+
+
+def targets(report: BenchReport) -> list[Target]:
+    """Issue 8's targets against what ``report`` measured."""
+    two = report.run(jobs=2, voxel_mm=2.0)
+    fine = [r for r in report.end_to_end if math.isclose(r.voxel_mm, 1.0)]
+    carve = report.stages.get("carving", StageStats(float("nan"), float("nan"), 0))
+    peak = max((r.peak_rss_mb for r in report.end_to_end), default=float("nan"))
+    identical = (
+        float(report.identical_frames == report.compared_frames) if report.compared_frames else float("nan")
+    )
+    return [
+        Target("carve median at 128^3", carve.median_ms, 1.0, "ms"),
+        Target(
+            f"carve identical to brute force ({report.identical_frames}/{report.compared_frames} frames)",
+            identical,
+            1.0,
+            "",
+            higher_is_better=True,
+        ),
+        Target("end to end, 2 workers", _wall(two), 10.0, "s"),
+        Target("end to end / decode only", _ratio(_wall(two), report.decode_floor_s), 5.0, "x"),
+        Target("end to end at 1 mm", min((r.wall_s for r in fine), default=float("nan")), 30.0, "s"),
+        Target("peak memory", peak / 1024.0, 1.5, "GiB"),
+        Target("2 workers / 1 worker", speedup_2_over_1(report), 1.6, "x", higher_is_better=True),
+    ]
+
+
+def _f(value: float, digits: int = 2) -> str:
+    return "n/a" if not math.isfinite(value) else f"{value:.{digits}f}"
+
+
+def _stage_rows(report: BenchReport) -> list[str]:
+    names = [s for s in STAGE_ORDER if s in report.stages]
+    names += [s for s in report.stages if s not in names]
+    rows = [
+        "| stage (per frame) | ours median ms | ours p95 ms | original median ms | original / ours |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for name in names:
+        ours = report.stages[name]
+        orig = report.original.get(name)
+        orig_ms = orig.median_ms if orig else float("nan")
+        rows.append(
+            f"| {name} | {_f(ours.median_ms, 3)} | {_f(ours.p95_ms, 3)} | {_f(orig_ms, 1)} "
+            f"| {_f(_ratio(orig_ms, ours.median_ms), 0)} |"
+        )
+    return rows
+
+
+def _carving_rows(report: BenchReport) -> list[str]:
+    ours = report.carving_methods.get("ours")
+    rows = [
+        "| carving at 128^3, 3 cameras | median ms | p95 ms | frames | / ours |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for name, s in report.carving_methods.items():
+        ratio = _ratio(s.median_ms, ours.median_ms) if ours else float("nan")
+        rows.append(f"| {name} | {_f(s.median_ms, 3)} | {_f(s.p95_ms, 3)} | {s.count} | {_f(ratio, 1)} |")
+    return rows
+
+
+def _end_to_end_rows(report: BenchReport) -> list[str]:
+    rows = [
+        "| end to end (`process`, files closed) | frames | wall s | fps | x real time | peak RSS MiB |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for r in report.end_to_end:
+        status = "" if r.exit_code == 0 else f" (exit {r.exit_code})"
+        rows.append(
+            f"| {r.label}{status} | {r.frames} | {_f(r.wall_s)} | {_f(r.fps, 0)} "
+            f"| {_f(r.realtime_factor, 1)} | {_f(r.peak_rss_mb, 0)} |"
+        )
+    floor_fps = _ratio(report.decode_frames, report.decode_floor_s)
+    rows.append(
+        f"| decode only (3 videos, 1 process) | {report.decode_frames} | {_f(report.decode_floor_s)} "
+        f"| {_f(floor_fps, 0)} | {_f(floor_fps / REALTIME_FPS, 1)} | |"
+    )
+    return rows
+
+
+def _scaling_rows(report: BenchReport) -> list[str]:
+    rows = [
+        "| carving resolution | grid | masks | set-up s | carve median ms | carve p95 ms |",
+        "|---|---|---|---:|---:|---:|",
+    ]
+    for s in report.scaling:
+        grid = "x".join(str(n) for n in s.grid_shape)
+        rows.append(
+            f"| {s.label} | {grid} | {s.image_px[0]}x{s.image_px[1]} | {_f(s.setup_s)} "
+            f"| {_f(s.carve.median_ms, 3)} | {_f(s.carve.p95_ms, 3)} |"
+        )
+    return rows
+
+
+def format_table(report: BenchReport) -> str:
+    """The whole report as Markdown tables (the README quotes this)."""
+    meta = report.meta
+    head = (
+        f"Benchmark: {meta.get('session', '?')}, {meta.get('frames', '?')} frames, "
+        f"{meta.get('cpus', '?')} CPUs, load average before/after "
+        f"{meta.get('load_before', '?')} / {meta.get('load_after', '?')}"
+    )
+    two = report.run(jobs=2, voxel_mm=2.0)
+    summary = [
+        f"- end to end / decode only (2 workers): {_f(_ratio(_wall(two), report.decode_floor_s), 1)}x",
+        f"- 2 workers / 1 worker throughput: {_f(speedup_2_over_1(report))}x",
+        f"- carving identical to brute force on {report.identical_frames}/{report.compared_frames} frames",
+    ]
+    target_rows = ["| target | measured | limit | verdict |", "|---|---:|---:|---|"]
+    for t in targets(report):
+        sign = ">=" if t.higher_is_better else "<="
+        target_rows.append(
+            f"| {t.name} | {_f(t.measured)} {t.unit} | {sign} {t.limit:g} {t.unit} | {t.verdict} |"
+        )
+    blocks = [
+        [head],
+        _stage_rows(report),
+        _carving_rows(report),
+        _end_to_end_rows(report),
+        summary,
+        _scaling_rows(report),
+        target_rows,
+    ]
+    return "\n\n".join("\n".join(b) for b in blocks) + "\n"
+
+
+def _finite_or_none(value: Any) -> Any:
+    """JSON has no NaN: write null instead."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite_or_none(v) for v in value]
+    return value
+
+
+def report_dict(report: BenchReport) -> dict[str, Any]:
+    """The report as plain JSON data, derived figures (fps, ratios, targets) included."""
+    data = asdict(report)
+    for run, row in zip(report.end_to_end, data["end_to_end"], strict=True):
+        row["fps"] = run.fps
+        row["realtime_factor"] = run.realtime_factor
+    two = report.run(jobs=2, voxel_mm=2.0)
+    data["ratios"] = {
+        "end_to_end_over_decode": _ratio(_wall(two), report.decode_floor_s),
+        "workers_2_over_1": speedup_2_over_1(report),
+        "original_over_ours": {
+            k: _ratio(v.median_ms, report.stages[k].median_ms)
+            for k, v in report.original.items()
+            if k in report.stages
+        },
+    }
+    data["targets"] = [
+        {"name": t.name, "measured": t.measured, "limit": t.limit, "unit": t.unit, "verdict": t.verdict}
+        for t in targets(report)
+    ]
+    return dict(_finite_or_none(data))
+
+
+def write_json(report: BenchReport, path: Path) -> None:
+    Path(path).write_text(json.dumps(report_dict(report), indent=2) + "\n")
+
+
+def plot_report(report: BenchReport, path: Path) -> None:
+    """Bar charts (log scale): per-frame stages ours vs original; carving methods at 128^3."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [s for s in STAGE_ORDER if s in report.stages] + [
+        s for s in report.stages if s not in STAGE_ORDER
+    ]
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5), layout="constrained")
+    y = list(range(len(names)))
+    ours = [report.stages[n].median_ms for n in names]
+    orig = [report.original[n].median_ms if n in report.original else float("nan") for n in names]
+    ax1.barh([v - 0.2 for v in y], ours, height=0.4, label="ours", color="tab:blue")
+    ax1.barh([v + 0.2 for v in y], orig, height=0.4, label="original", color="tab:red")
+    ax1.set_yticks(y, names)
+    ax1.invert_yaxis()
+    ax1.set_xscale("log")
+    ax1.set_xlabel("median time per frame (ms, log scale)")
+    ax1.set_title("Per-frame stages")
+    ax1.axvline(1000.0 / REALTIME_FPS, color="grey", linestyle="--", label="real time (33 ms)")
+    ax1.legend(loc="lower right")
+
+    methods = list(report.carving_methods)
+    ax2.barh(methods, [report.carving_methods[m].median_ms for m in methods], color="tab:green")
+    ax2.invert_yaxis()
+    ax2.set_xscale("log")
+    ax2.set_xlabel("median carve time per frame (ms, log scale)")
+    ax2.set_title("Carving at 128^3, 3 cameras")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

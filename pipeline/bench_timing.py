@@ -1,0 +1,66 @@
+"""Per-frame wall-clock samples per stage, and their median / 95th percentile.
+
+Used by ``make bench`` only; the pipeline itself records its per-stage times in
+:attr:`FrameResult.timings_s`, which :meth:`StageTimer.add_timings` takes as is.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class StageStats:
+    """Summary of one stage's per-frame times.
+
+    Attributes
+    ----------
+    median_ms : median time per frame, milliseconds.
+    p95_ms : 95th percentile per frame, milliseconds.
+    count : number of per-frame samples.
+    """
+
+    median_ms: float
+    p95_ms: float
+    count: int
+
+    @classmethod
+    def from_seconds(cls, samples_s: list[float] | np.ndarray) -> StageStats:
+        """Summarise per-frame samples given in seconds (NaN statistics when there are none)."""
+        ms = np.asarray(samples_s, dtype=np.float64) * 1e3
+        if ms.size == 0:
+            return cls(float("nan"), float("nan"), 0)
+        return cls(float(np.median(ms)), float(np.percentile(ms, 95)), int(ms.size))
+
+
+class StageTimer:
+    """Collects one wall-clock sample per stage and frame (``time.perf_counter``)."""
+
+    def __init__(self) -> None:
+        self.samples_s: dict[str, list[float]] = {}
+
+    @contextmanager
+    def time(self, stage: str) -> Iterator[None]:
+        """Time the ``with`` block as one sample of ``stage``."""
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.add(stage, time.perf_counter() - start)
+
+    def add(self, stage: str, seconds: float) -> None:
+        self.samples_s.setdefault(stage, []).append(float(seconds))
+
+    def add_timings(self, timings_s: Mapping[str, float], *, prefix: str = "") -> None:
+        """Add every stage of a ``FrameResult.timings_s`` as one sample each."""
+        for stage, seconds in timings_s.items():
+            self.add(prefix + stage, seconds)
+
+    def stats(self) -> dict[str, StageStats]:
+        """Stage -> median / p95 of its samples, in the order stages were first seen."""
+        return {stage: StageStats.from_seconds(s) for stage, s in self.samples_s.items()}

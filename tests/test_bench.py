@@ -1,0 +1,120 @@
+"""make bench's plumbing: the stage timer, the report's targets, table, JSON and chart.
+
+Never a timing assertion: the numbers here are made up, and what is checked is
+how they are summarised and shown.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from pipeline.bench_e2e import voxel_session
+from pipeline.bench_report import (
+    BenchReport,
+    EndToEndRun,
+    ScalingRow,
+    format_table,
+    plot_report,
+    speedup_2_over_1,
+    targets,
+    write_json,
+)
+from pipeline.bench_timing import StageStats, StageTimer
+
+
+def test_stage_stats_are_median_and_95th_percentile_in_ms() -> None:
+    stats = StageStats.from_seconds([i / 1000 for i in range(1, 101)])  # 1..100 ms
+    assert stats.count == 100
+    assert stats.median_ms == pytest.approx(50.5)
+    # numpy's linear interpolation: 1 + 0.95 * 99 = 95.05 ms
+    assert stats.p95_ms == pytest.approx(95.05)
+    assert math.isnan(StageStats.from_seconds([]).median_ms)
+
+
+def test_stage_timer_collects_one_sample_per_block_and_frame_timings() -> None:
+    timer = StageTimer()
+    for _ in range(3):
+        with timer.time("decode"):
+            time.sleep(0.001)
+    timer.add_timings({"carving": 0.002, "centreline": 0.004})
+    stats = timer.stats()
+    assert list(stats) == ["decode", "carving", "centreline"]
+    assert stats["decode"].count == 3
+    # sleep() never returns early, so every sample is at least its 1 ms.
+    assert min(timer.samples_s["decode"]) >= 0.001
+    assert stats["centreline"].median_ms == pytest.approx(4.0)
+
+
+def test_stage_timer_records_a_sample_when_the_block_raises() -> None:
+    timer = StageTimer()
+    with pytest.raises(RuntimeError), timer.time("carving"):
+        raise RuntimeError("boom")
+    assert timer.stats()["carving"].count == 1
+
+
+def _fake_report() -> BenchReport:
+    ms = StageStats
+    return BenchReport(
+        meta={"session": "demo", "frames": 900, "cpus": 2, "load_before": 0.1, "load_after": 1.2},
+        stages={"decode": ms(0.6, 0.9, 300), "carving": ms(0.8, 1.4, 300), "centreline": ms(2.0, 3.0, 300)},
+        original={"carving": ms(8000.0, 9000.0, 10), "centreline": ms(50.0, 60.0, 10)},
+        carving_methods={"ours": ms(0.8, 1.4, 10), "brute force": ms(160.0, 170.0, 10)},
+        identical_frames=10,
+        compared_frames=10,
+        end_to_end=[
+            EndToEndRun("2 mm, 1 worker", 1, 2.0, 900, 10.0, 0, 700.0),
+            EndToEndRun("2 mm, 2 workers", 2, 2.0, 900, 7.0, 0, 1200.0),
+        ],
+        decode_floor_s=2.0,
+        decode_frames=900,
+        scaling=[ScalingRow("1 mm, 320x240", (256, 256, 256), (320, 240), 3.5, ms(4.0, 6.0, 10))],
+    )
+
+
+def test_targets_pass_and_miss_against_issue_8() -> None:
+    report = _fake_report()
+    verdicts = {t.name.split(" (")[0]: t.verdict for t in targets(report)}
+    assert verdicts["carve median at 128^3"] == "PASS"  # 0.8 <= 1 ms
+    assert verdicts["carve identical to brute force"] == "PASS"
+    assert verdicts["end to end, 2 workers"] == "PASS"  # 7 <= 10 s
+    assert verdicts["end to end / decode only"] == "PASS"  # 3.5 <= 5
+    assert verdicts["end to end at 1 mm"] == "not measured"
+    assert verdicts["peak memory"] == "PASS"  # 1200 MiB <= 1.5 GiB
+    assert verdicts["2 workers / 1 worker"] == "MISS"  # 10 s / 7 s = 1.43 < 1.6
+    assert speedup_2_over_1(report) == pytest.approx(10.0 / 7.0)
+
+
+def test_table_json_and_chart_show_the_fake_measurement(tmp_path: Path) -> None:
+    report = _fake_report()
+    table = format_table(report)
+    assert "| carving | 0.800 | 1.400 | 8000.0 | 10000 |" in table  # original / ours = 8000 / 0.8
+    assert "| 2 mm, 2 workers | 900 | 7.00 | 129 | 4.3 |" in table  # 900 / 7 s = 128.6 fps
+    assert "carving identical to brute force on 10/10 frames" in table
+
+    write_json(report, tmp_path / "bench.json")
+    data = json.loads((tmp_path / "bench.json").read_text())
+    assert data["ratios"]["workers_2_over_1"] == pytest.approx(10.0 / 7.0)
+    assert data["ratios"]["original_over_ours"]["carving"] == pytest.approx(10000.0)
+    assert data["end_to_end"][1]["fps"] == pytest.approx(900 / 7.0)
+    assert {t["verdict"] for t in data["targets"]} == {"PASS", "MISS", "not measured"}
+
+    plot_report(report, tmp_path / "bench.png")
+    assert (tmp_path / "bench.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_voxel_session_links_the_inputs_and_overrides_voxel_mm(tmp_path: Path) -> None:
+    source = tmp_path / "demo"
+    source.mkdir()
+    (source / "calibration.toml").write_text("# calibration\n")
+    (source / "cam0.mp4").write_bytes(b"video")
+    (source / "session.toml").write_text("[workspace]\nvoxel_mm = 2.0\n[silhouette]\nthreshold = 70\n")
+    target = voxel_session(source, tmp_path / "fine", voxel_mm=1.0)
+    assert (target / "cam0.mp4").is_symlink() and (target / "cam0.mp4").read_bytes() == b"video"
+    settings = tomllib.loads((target / "session.toml").read_text())
+    assert settings == {"workspace": {"voxel_mm": 1.0}, "silhouette": {"threshold": 70}}
