@@ -1,0 +1,388 @@
+"""The visual hull: exact voxel carving, coarse-to-fine, from per-session lookup tables.
+
+A voxel is occupied iff its centre projects inside the image and onto a silhouette
+pixel in EVERY camera. A centre projecting to pixel coordinates (u, v) (OpenCV: pixel
+centres at integer coordinates) falls on pixel (floor(u + 0.5), floor(v + 0.5));
+:func:`pixel_indices` is that rule, used by every carving function in the package so
+that they agree voxel for voxel.
+
+The cameras are fixed, so :func:`build_grid` projects every voxel centre once per
+session, into a voxel -> pixel lookup, and groups voxels into a two-level hierarchy:
+coarse cells of 16^3 voxels holding fine cells of 4^3 voxels. For every cell and
+camera it stores the bounding rectangle of the pixels the cell's voxel centres fall on
+(exactly, from the lookup). Per frame, :func:`carve` sums each rectangle's silhouette
+pixels with an integral image: a cell whose rectangle holds no silhouette pixel in
+some camera cannot contain an occupied voxel, so skipping it is conservative by
+construction and the result equals brute-force carving (:func:`carve_brute_force`).
+Only the voxels of surviving fine cells are looked up, and the tables are stored
+cell-major so that those voxels are contiguous.
+
+Flat voxel indices are C order over ``Workspace.shape``:
+``np.ravel_multi_index((ix, iy, iz), shape)``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .camera import Camera
+from .settings import Workspace
+
+FloatArray = NDArray[np.float64]
+IndexArray = NDArray[np.int64]
+
+# Fine cells are FINE^3 voxels; coarse cells are COARSE^3 fine cells. 4 and 4 measured
+# best at 128^3 and 256^3 for a ~6 mm tube: smaller fine cells mean more rectangle
+# tests, larger ones more voxel look-ups in the ghost regions of the hull.
+FINE = 4
+COARSE = 4
+
+
+@dataclass(frozen=True, eq=False)
+class HullGrid:
+    """Per-session carving tables: built once by :func:`build_grid`, read by :func:`carve`.
+
+    Plain NumPy attributes so that joblib memory-maps them when it ships the grid to
+    worker processes. Cells are numbered coarse-major: fine cell ``f`` lies in coarse
+    cell ``f // FINE_PER_COARSE``; voxels are numbered fine-cell-major. The grid is padded
+    to whole coarse cells; padding voxels fall outside every image.
+
+    Attributes
+    ----------
+    workspace : the carving box.
+    shape : (nx, ny, nz) voxels.
+    image_sizes : (width, height) per camera, camera order.
+    pixel_offsets : (K,) int64, start of each camera's mask in the concatenated, flattened
+        masks of one frame; one always-False sentinel pixel follows the last camera's.
+    integral_offsets : (K,) int64, likewise for the (H + 1, W + 1) integral images.
+    coarse_corners : (C, K, 4) int32 flat indices into the concatenated integral images:
+        corners (top-left, top-right, bottom-left, bottom-right) of each coarse cell's
+        pixel rectangle per camera; all 0 where the cell is outside the image.
+    fine_corners : (C * FINE_PER_COARSE, K, 4) int32, the same for fine cells.
+    voxel_pixels : (C * FINE_PER_COARSE, FINE^3, K) int32 index of each voxel's pixel in
+        the concatenated masks, the sentinel where the centre is outside the image.
+    coarse_offsets, fine_offsets, voxel_offsets : (C,), (FINE_PER_COARSE,), (FINE^3,)
+        int64; a voxel's flat grid index is the sum of its three offsets.
+    """
+
+    workspace: Workspace
+    shape: tuple[int, int, int]
+    image_sizes: tuple[tuple[int, int], ...]
+    pixel_offsets: IndexArray
+    integral_offsets: IndexArray
+    coarse_corners: NDArray[np.int32]
+    fine_corners: NDArray[np.int32]
+    voxel_pixels: NDArray[np.int32]
+    coarse_offsets: IndexArray
+    fine_offsets: IndexArray
+    voxel_offsets: IndexArray
+
+    @property
+    def sentinel(self) -> int:
+        """Index of the always-False pixel in the concatenated masks."""
+        w, h = self.image_sizes[-1]
+        return int(self.pixel_offsets[-1]) + w * h
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the tables, bytes."""
+        arrays = (self.coarse_corners, self.fine_corners, self.voxel_pixels)
+        return sum(a.nbytes for a in arrays)
+
+
+def pixel_indices(u: FloatArray, v: FloatArray, width: int, height: int) -> IndexArray:
+    """Pixel coordinates -> flat pixel index ``row * width + col``; -1 outside the image.
+
+    Parameters
+    ----------
+    u, v : float64 arrays of one shape, pixels; NaN (a point behind the camera) is outside.
+
+    Returns
+    -------
+    int64 array of that shape.
+    """
+    iu, iv, inside = _round_pixels(u, v, width, height)
+    return np.where(inside, iv * width + iu, -1).astype(np.int64)
+
+
+def _round_pixels(
+    u: FloatArray, v: FloatArray, width: int, height: int
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """The pixel rule: (floor(u + 0.5), floor(v + 0.5)) and whether it lies in the image."""
+    with np.errstate(invalid="ignore"):
+        iu = np.floor(u + 0.5)
+        iv = np.floor(v + 0.5)
+        inside = (iu >= 0) & (iu < width) & (iv >= 0) & (iv < height)
+    return iu, iv, inside
+
+
+def voxel_centers_mm(workspace: Workspace, flat_indices: IndexArray) -> NDArray[np.float32]:
+    """(P,) flat voxel indices -> (P, 3) float32 voxel centres, world frame, mm."""
+    return _centers_f64(workspace, flat_indices).astype(np.float32)
+
+
+def _centers_f64(workspace: Workspace, flat_indices: IndexArray) -> FloatArray:
+    """(P,) flat voxel indices -> (P, 3) float64 centres: origin + (i + 0.5) * voxel."""
+    ijk = np.stack(np.unravel_index(np.asarray(flat_indices, dtype=np.int64), workspace.shape), axis=1)
+    return np.asarray(workspace.origin_mm) + (ijk + 0.5) * workspace.voxel_mm
+
+
+# --------------------------------------------------------------------------- reference
+
+
+def occupied_by_projection(
+    cameras: Sequence[Camera],
+    workspace: Workspace,
+    masks: Sequence[NDArray[np.bool_]],
+    flat_indices: IndexArray,
+) -> NDArray[np.bool_]:
+    """(P,) flat voxel indices -> (P,) bool occupancy, projecting each centre with
+    :meth:`Camera.project` (cv2.projectPoints). The slow, obvious way; no lookup."""
+    _check_masks(cameras, masks)
+    centres = _centers_f64(workspace, flat_indices)
+    occupied = np.ones(len(centres), dtype=bool)
+    for cam, mask in zip(cameras, masks, strict=True):
+        px = cam.project(centres)
+        idx = pixel_indices(px[:, 0], px[:, 1], cam.width, cam.height)
+        occupied &= (idx >= 0) & np.ravel(mask)[np.maximum(idx, 0)]
+    return occupied
+
+
+def carve_brute_force(
+    cameras: Sequence[Camera],
+    workspace: Workspace,
+    masks: Sequence[NDArray[np.bool_]],
+    *,
+    chunk_voxels: int = 1 << 18,
+) -> IndexArray:
+    """Reference carving: every voxel centre projected with cv2.projectPoints, every mask tested.
+
+    Returns sorted (P,) int64 flat indices of the occupied voxels. Seconds per camera
+    at 128^3; for tests and benchmarks only.
+    """
+    found = []
+    for start in range(0, workspace.voxel_count, chunk_voxels):
+        ids = np.arange(start, min(start + chunk_voxels, workspace.voxel_count), dtype=np.int64)
+        found.append(ids[occupied_by_projection(cameras, workspace, masks, ids)])
+    return np.concatenate(found)
+
+
+# --------------------------------------------------------------------------- tables
+
+
+def build_grid(cameras: Sequence[Camera], workspace: Workspace) -> HullGrid:
+    """Project every voxel centre of ``workspace`` into every camera, once, and build the
+    coarse-to-fine tables :func:`carve` uses.
+
+    Instead of projecting 2 M points per camera with cv2.projectPoints (seconds), the
+    camera-frame coordinates are sums of three per-axis terms (the grid is regular), and
+    the distortion is applied by :meth:`Camera.normalized_to_pixels` in float64, one
+    slab of coarse cells at a time so that memory stays small at 256^3.
+    """
+    if len(cameras) < 1:
+        raise ValueError("build_grid needs at least one camera")
+    shape = workspace.shape
+    side = FINE * COARSE
+    ncx, ncy, ncz = (math.ceil(n / side) for n in shape)
+    n_coarse = (ncx, ncy, ncz)
+    fine_per_coarse = COARSE**3
+    sizes = tuple((c.width, c.height) for c in cameras)
+    pixel_offsets = np.cumsum([0] + [w * h for w, h in sizes[:-1]]).astype(np.int64)
+    integral_offsets = np.cumsum([0] + [(w + 1) * (h + 1) for w, h in sizes[:-1]]).astype(np.int64)
+    sentinel = int(pixel_offsets[-1]) + sizes[-1][0] * sizes[-1][1]
+    if sentinel >= 2**31:
+        raise ValueError("images too large for int32 pixel tables")
+
+    n_cells = ncx * ncy * ncz
+    k = len(cameras)
+    coarse_corners = np.zeros((n_cells, k, 4), dtype=np.int32)
+    fine_corners = np.zeros((n_cells * fine_per_coarse, k, 4), dtype=np.int32)
+    voxel_pixels = np.empty((n_cells * fine_per_coarse, FINE**3, k), dtype=np.int32)
+
+    # Per axis a, voxel index i = (cell * COARSE + fine) * FINE + vox as a (n_cells_a,
+    # COARSE, FINE) array; its centre coordinate and whether it is real (not padding).
+    axis_mm: list[FloatArray] = []
+    axis_real: list[NDArray[np.bool_]] = []
+    for a in range(3):
+        i = np.arange(n_coarse[a] * side).reshape(n_coarse[a], COARSE, FINE)
+        axis_mm.append(np.asarray(workspace.origin_mm[a] + (i + 0.5) * workspace.voxel_mm, np.float64))
+        axis_real.append(i < shape[a])
+    slab_cells = ncy * ncz * fine_per_coarse
+    for cx in range(ncx):
+        # Slab layout (cy, cz, fx, fy, fz, vx, vy, vz): coarse-major, then fine, then voxel.
+        real = (
+            _place(axis_real[0][cx], 0)[None, None]
+            & _place(axis_real[1], 1)[:, None]
+            & _place(axis_real[2], 2)[None, :]
+        )
+        rows = slice(cx * slab_cells, (cx + 1) * slab_cells)
+        for c, cam in enumerate(cameras):
+            w = sizes[c][0]
+            iu, iv, inside = _project_slab(cam, [axis_mm[0][cx], axis_mm[1], axis_mm[2]])
+            inside &= real
+            pix = np.where(inside, iv * w + iu + pixel_offsets[c], sentinel).astype(np.int32)
+            voxel_pixels[rows, :, c] = pix.reshape(-1, FINE**3)
+            fine_rect = _rectangles(iu, iv, inside, (slab_cells, FINE**3))
+            coarse_rect = _merge_rectangles(fine_rect, ncy * ncz)
+            fine_corners[rows, c] = _corners(fine_rect, w, int(integral_offsets[c]))
+            coarse_rows = slice(cx * ncy * ncz, (cx + 1) * ncy * ncz)
+            coarse_corners[coarse_rows, c] = _corners(coarse_rect, w, int(integral_offsets[c]))
+
+    strides = np.array([shape[1] * shape[2], shape[2], 1], dtype=np.int64)
+
+    def offsets(counts: tuple[int, int, int], step: int) -> IndexArray:
+        ijk = np.stack(np.unravel_index(np.arange(math.prod(counts)), counts), axis=1)
+        return (ijk * step) @ strides
+
+    return HullGrid(
+        workspace=workspace,
+        shape=shape,
+        image_sizes=sizes,
+        pixel_offsets=pixel_offsets,
+        integral_offsets=integral_offsets,
+        coarse_corners=coarse_corners,
+        fine_corners=fine_corners,
+        voxel_pixels=voxel_pixels,
+        coarse_offsets=offsets(n_coarse, side),
+        fine_offsets=offsets((COARSE,) * 3, FINE),
+        voxel_offsets=offsets((FINE,) * 3, 1),
+    )
+
+
+def _place(a: NDArray[Any], axis: int) -> NDArray[Any]:
+    """Reshape a per-axis (..., COARSE, FINE) array to broadcast into the slab layout
+    (cy, cz, fx, fy, fz, vx, vy, vz) along world axis ``axis`` (leading cell axes kept)."""
+    lead = a.shape[:-2]
+    fine_shape = [1, 1, 1]
+    vox_shape = [1, 1, 1]
+    fine_shape[axis] = COARSE
+    vox_shape[axis] = FINE
+    return a.reshape(*lead, *fine_shape, *vox_shape)
+
+
+def _project_slab(cam: Camera, axis_mm: list[FloatArray]) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Pixel (col, row) and inside-flag of every voxel centre of one coarse-x slab.
+
+    axis_mm : [(COARSE, FINE), (ncy, COARSE, FINE), (ncz, COARSE, FINE)] centre
+        coordinates, mm. Returns arrays of shape (ncy, ncz, C, C, C, F, F, F).
+    """
+    rot = cam.camera_from_world
+    t = np.asarray(cam.translation_mm, dtype=np.float64)
+    # x_cam = R @ (x e_x + y e_y + z e_z) + t: three small per-axis terms, broadcast-added.
+    px = _place(axis_mm[0], 0)[None, None]
+    py = _place(axis_mm[1], 1)[:, None]
+    pz = _place(axis_mm[2], 2)[None, :]
+    cam_xyz = [(t[j] + rot[j, 0] * px) + rot[j, 1] * py + rot[j, 2] * pz for j in range(3)]
+    z = cam_xyz[2]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        inv_z = 1.0 / z
+        u, v = cam.normalized_to_pixels(cam_xyz[0] * inv_z, cam_xyz[1] * inv_z)
+    iu, iv, inside = _round_pixels(u, v, cam.width, cam.height)
+    inside &= z > 0  # behind the camera: Camera.project gives NaN, i.e. outside
+    return iu, iv, inside
+
+
+def _rectangles(
+    iu: FloatArray, iv: FloatArray, inside: NDArray[np.bool_], shape: tuple[int, int]
+) -> NDArray[np.int64]:
+    """Pixel bounding box (u0, v0, u1, v1), inclusive, of each row of voxels in ``shape``;
+    u0 > u1 where the row has no voxel inside the image."""
+    big = np.int64(1 << 40)
+    inside2 = inside.reshape(shape)
+    u = iu.reshape(shape)
+    v = iv.reshape(shape)
+    u0 = np.where(inside2, u, big).min(axis=1)
+    v0 = np.where(inside2, v, big).min(axis=1)
+    u1 = np.where(inside2, u, -big).max(axis=1)
+    v1 = np.where(inside2, v, -big).max(axis=1)
+    return np.stack([u0, v0, u1, v1], axis=1).astype(np.int64)
+
+
+def _merge_rectangles(rect: NDArray[np.int64], n_groups: int) -> NDArray[np.int64]:
+    """Union bounding boxes of consecutive equal-size groups of (N, 4) rectangles."""
+    g = rect.reshape(n_groups, -1, 4)
+    return np.concatenate([g[:, :, :2].min(axis=1), g[:, :, 2:].max(axis=1)], axis=1)
+
+
+def _corners(rect: NDArray[np.int64], width: int, offset: int) -> NDArray[np.int32]:
+    """(N, 4) inclusive pixel rectangles -> (N, 4) flat integral-image indices of the corners
+    (top-left, top-right, bottom-left, bottom-right); all 0 (a zero sum) for empty ones."""
+    u0, v0, u1, v1 = rect.T
+    stride = width + 1
+    corners = np.stack(
+        [v0 * stride + u0, v0 * stride + u1 + 1, (v1 + 1) * stride + u0, (v1 + 1) * stride + u1 + 1],
+        axis=1,
+    )
+    corners += offset
+    # Index 0 is camera 0's integral-image corner, always 0: an empty rectangle sums to 0.
+    corners[u0 > u1] = 0
+    return corners.astype(np.int32)
+
+
+# --------------------------------------------------------------------------- per frame
+
+
+def carve(grid: HullGrid, masks: Sequence[NDArray[np.bool_]]) -> IndexArray:
+    """Occupied voxels of one frame, identical to :func:`carve_brute_force`.
+
+    Parameters
+    ----------
+    grid : the session's tables from :func:`build_grid`.
+    masks : one (H, W) bool silhouette per camera, camera order.
+
+    Returns
+    -------
+    (P,) int64 sorted flat indices (C order over ``grid.shape``) of occupied voxels.
+    """
+    if len(masks) != len(grid.image_sizes):
+        raise ValueError(f"carve got {len(masks)} masks for {len(grid.image_sizes)} cameras")
+    pixels = np.zeros(grid.sentinel + 1, dtype=np.bool_)  # the last one is the sentinel
+    w_last, h_last = grid.image_sizes[-1]
+    integrals = np.empty(int(grid.integral_offsets[-1]) + (w_last + 1) * (h_last + 1), dtype=np.int32)
+    for c, mask in enumerate(masks):
+        w, h = grid.image_sizes[c]
+        if mask.shape != (h, w):
+            raise ValueError(f"mask {c} has shape {mask.shape}, camera {c} images are {h}x{w}")
+        m8 = np.ascontiguousarray(mask).view(np.uint8)
+        start = int(grid.integral_offsets[c])
+        table = integrals[start : start + (w + 1) * (h + 1)].reshape(h + 1, w + 1)
+        cv2.integral(m8, sum=table, sdepth=cv2.CV_32S)
+        if table[h, w] == 0:  # an empty silhouette carves everything away
+            return np.zeros(0, dtype=np.int64)
+        pixels[grid.pixel_offsets[c] : grid.pixel_offsets[c] + w * h] = mask.ravel()
+
+    cells = np.flatnonzero(_nonempty(integrals, grid.coarse_corners))
+    per_coarse = len(grid.fine_offsets)
+    fine = (cells[:, None] * per_coarse + np.arange(per_coarse)).ravel()
+    fine = fine[_nonempty(integrals, grid.fine_corners[fine])]
+    occupied = pixels[grid.voxel_pixels[fine]].all(axis=2)
+    rows, vox = np.nonzero(occupied)
+    f = fine[rows]
+    ids = grid.coarse_offsets[f // per_coarse] + grid.fine_offsets[f % per_coarse] + grid.voxel_offsets[vox]
+    ids.sort()
+    return ids
+
+
+def _nonempty(integrals: NDArray[np.int32], corners: NDArray[np.int32]) -> NDArray[np.bool_]:
+    """(N, K, 4) rectangle corners -> (N,) True where every camera's rectangle holds a
+    silhouette pixel."""
+    g = integrals[corners]
+    sums = g[..., 0] - g[..., 1] - g[..., 2] + g[..., 3]
+    return np.asarray((sums > 0).all(axis=1))
+
+
+def _check_masks(cameras: Sequence[Camera], masks: Sequence[NDArray[np.bool_]]) -> None:
+    if len(masks) != len(cameras):
+        raise ValueError(f"got {len(masks)} masks for {len(cameras)} cameras")
+    for cam, mask in zip(cameras, masks, strict=True):
+        if mask.shape != (cam.height, cam.width):
+            raise ValueError(
+                f"mask for camera {cam.name!r} has shape {mask.shape}, expected {(cam.height, cam.width)}"
+            )

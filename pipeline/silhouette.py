@@ -1,0 +1,126 @@
+"""Silhouettes: one grey image -> a boolean foreground mask, cleaned of specks.
+
+Methods (``[silhouette] method`` in session.toml):
+
+- ``"threshold"``, the original: a fixed grey level. With polarity ``"dark"`` the
+  foreground is ``image < threshold``; with ``"bright"`` it is ``image > threshold``.
+- ``"otsu"``: the level is chosen per image by Otsu's method (cv2). Otsu always splits
+  an image in two, even one showing only background; a split whose two classes differ
+  by less than ``otsu_min_contrast`` grey levels is treated as "nothing here".
+- ``"background"``: ``|image - background| > threshold`` against an empty-scene frame.
+  Polarity plays no part: the manipulator differs from the scene whatever its shade.
+
+Clean-up: a small morphological opening (drops isolated pixels and one-pixel spurs)
+and closing (fills pinholes), then removal of connected blobs smaller than
+``min_area_px``, which cannot be the manipulator.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .settings import SilhouetteSettings
+
+# A 3x3 cross is the gentlest structuring element: it removes one-pixel noise but,
+# unlike a square, leaves the staircase edges of a thin tube's silhouette intact.
+_KERNEL = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+
+
+def extract_silhouette(
+    image: NDArray[np.uint8],
+    settings: SilhouetteSettings,
+    *,
+    background: NDArray[np.uint8] | None = None,
+    morphology: bool = True,
+    otsu_min_contrast: float = 20.0,
+) -> NDArray[np.bool_]:
+    """Foreground mask of one camera image.
+
+    Parameters
+    ----------
+    image : (H, W) uint8 grey image.
+    settings : method, threshold (grey level, or difference level for "background"),
+        polarity and min_area_px.
+    background : (H, W) uint8 empty-scene image; required by method "background".
+    morphology : apply the 3x3 opening and closing (off: threshold and speck removal only).
+    otsu_min_contrast : grey levels; an Otsu split whose class means differ by less
+        than this is taken as an empty scene.
+
+    Returns
+    -------
+    (H, W) bool, True on the manipulator. An image with nothing in it gives all False.
+    """
+    img = np.ascontiguousarray(image, dtype=np.uint8)
+    if img.ndim != 2:
+        raise ValueError(f"extract_silhouette needs an (H, W) grey image, got shape {img.shape}")
+    fg = _threshold(img, settings, background, otsu_min_contrast)
+    if morphology:
+        fg = _u8(cv2.morphologyEx(fg, cv2.MORPH_OPEN, _KERNEL))
+        fg = _u8(cv2.morphologyEx(fg, cv2.MORPH_CLOSE, _KERNEL))
+    if settings.min_area_px > 0:
+        fg = remove_small_blobs(fg, settings.min_area_px)
+    return fg.view(np.bool_)
+
+
+def remove_small_blobs(mask: NDArray[np.uint8], min_area_px: int) -> NDArray[np.uint8]:
+    """(H, W) uint8 0/1 mask without its 8-connected blobs of fewer than ``min_area_px`` pixels."""
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
+    keep = stats[:, cv2.CC_STAT_AREA] >= min_area_px
+    keep[0] = False  # label 0 is the background
+    if keep[1:].all():
+        return mask
+    return keep.view(np.uint8)[labels]
+
+
+def _threshold(
+    img: NDArray[np.uint8],
+    settings: SilhouetteSettings,
+    background: NDArray[np.uint8] | None,
+    otsu_min_contrast: float,
+) -> NDArray[np.uint8]:
+    """(H, W) uint8 0/1 raw foreground."""
+    dark = settings.polarity == "dark"
+    if settings.method == "threshold":
+        # cv2 compares with ">" (BINARY) and "<=" (BINARY_INV); "< t" is "<= t - 1".
+        if dark:
+            if settings.threshold <= 0:
+                return np.zeros_like(img)
+            _, fg = cv2.threshold(img, settings.threshold - 1, 1, cv2.THRESH_BINARY_INV)
+        else:
+            _, fg = cv2.threshold(img, settings.threshold, 1, cv2.THRESH_BINARY)
+        return _u8(fg)
+    if settings.method == "otsu":
+        mode = cv2.THRESH_BINARY_INV if dark else cv2.THRESH_BINARY
+        level, fg = cv2.threshold(img, 0, 1, mode | cv2.THRESH_OTSU)
+        if not _otsu_contrast_ok(img, level, otsu_min_contrast):
+            return np.zeros_like(img)
+        return _u8(fg)
+    if settings.method == "background":
+        if background is None:
+            raise ValueError("silhouette method 'background' needs a background image")
+        if background.shape != img.shape:
+            raise ValueError(f"background shape {background.shape} differs from the image's {img.shape}")
+        diff = cv2.absdiff(img, np.ascontiguousarray(background, dtype=np.uint8))
+        _, fg = cv2.threshold(diff, settings.threshold, 1, cv2.THRESH_BINARY)
+        return _u8(fg)
+    raise ValueError(f"unknown silhouette method {settings.method!r}")
+
+
+def _otsu_contrast_ok(img: NDArray[np.uint8], level: float, min_contrast: float) -> bool:
+    """Whether Otsu's two classes (<= level, > level) differ in mean by at least ``min_contrast``."""
+    hist = np.bincount(img.ravel(), minlength=256).astype(np.float64)
+    grey = np.arange(256, dtype=np.float64)
+    split = int(level) + 1
+    lo_n, hi_n = hist[:split].sum(), hist[split:].sum()
+    if lo_n == 0 or hi_n == 0:
+        return False
+    lo_mean = (hist[:split] @ grey[:split]) / lo_n
+    hi_mean = (hist[split:] @ grey[split:]) / hi_n
+    return bool(hi_mean - lo_mean >= min_contrast)
+
+
+def _u8(array: object) -> NDArray[np.uint8]:
+    """cv2's result as a typed uint8 array (no copy)."""
+    return np.asarray(array, dtype=np.uint8)
