@@ -174,7 +174,7 @@ def tip_jitter(tips_mm: ArrayLike, *, timestamps_s: ArrayLike | None = None) -> 
     if not step > 0:
         return float("nan")
     h_prev, h_next = h[:-1], h[1:]
-    ok = np.isfinite(x).all(axis=1)
+    ok: NDArray[np.bool_] = np.asarray(np.isfinite(x).all(axis=1))
     usable = ok[:-2] & ok[1:-1] & ok[2:] & (h_prev > 0) & (h_next > 0)
     usable &= (h_prev <= _GAP_FACTOR * step) & (h_next <= _GAP_FACTOR * step)
     if not usable.any():
@@ -216,7 +216,7 @@ def evaluate_centerlines(
         raise ValueError(f"{len(pred)} predicted frames but {len(truth)} true frames")
     frames = len(pred)
     index = np.arange(frames) if frame_indices is None else np.asarray(frame_indices).reshape(-1)
-    ok = np.isfinite(pred).all(axis=(1, 2)) if pred.shape[1] else np.zeros(frames, bool)
+    ok: NDArray[np.bool_] = np.asarray(np.isfinite(pred).all(axis=(1, 2)) & (pred.shape[1] > 0))
 
     pooled = [
         np.concatenate([centerline_distances(p, q), centerline_distances(q, p)])
@@ -366,6 +366,14 @@ def _cell(fmt: str, value: object) -> str:
     return fmt.format(value)
 
 
+def _align(row: list[str], widths: list[int]) -> list[str]:
+    # Names left-aligned, numbers right-aligned.
+    return [
+        cell.ljust(w) if i == 0 else cell.rjust(w)
+        for i, (cell, w) in enumerate(zip(row, widths, strict=True))
+    ]
+
+
 def format_report(report: EvaluationReport) -> str:
     """A plain-text table of the report (and its smoothed twin), with issue 4's targets."""
     columns = [report] if report.smoothed is None else [report, report.smoothed]
@@ -381,10 +389,7 @@ def format_report(report: EvaluationReport) -> str:
             ]
         )
     widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
-    lines = [
-        "  ".join(cell.ljust(w) if i == 0 else cell.rjust(w) for i, (cell, w) in enumerate(zip(row, widths)))
-        for row in rows
-    ]
+    lines = ["  ".join(_align(row, widths)) for row in rows]
     lines.insert(1, "-" * len(lines[0]))
     lines.insert(0, f"{report.frames} frames evaluated")
     if report.failed_indices:
