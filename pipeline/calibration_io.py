@@ -53,8 +53,13 @@ def cameras_from_dict(data: dict[str, Any], *, source: str = "calibration.toml")
 
 def _array(source: str, where: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
     try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+        arr = np.asarray(value)
+        # Text and booleans are not numbers even where numpy would convert them ("1.5", true).
+        if arr.dtype.kind not in "iufO":
+            raise TypeError(arr.dtype)
+        # Object arrays hold TOML's unbounded integers (OverflowError) or dates (TypeError).
+        arr = arr.astype(np.float64)
+    except (TypeError, ValueError, OverflowError):
         raise CalibrationError(f"{source}: {where} must be numbers of shape {shape}") from None
     if arr.shape != shape:
         raise CalibrationError(f"{source}: {where} has shape {arr.shape}, expected {shape}")
@@ -64,15 +69,17 @@ def _array(source: str, where: str, value: Any, shape: tuple[int, ...]) -> np.nd
 
 
 def _camera(source: str, key: str, table: Any) -> Camera:
+    # A quoted TOML key may hold a newline; the message must stay one line.
+    label = f"[{key}]" if key.isprintable() else f"[{key!r}]"
     if not isinstance(table, dict):
-        raise CalibrationError(f"{source}: [{key}] must be a table")
+        raise CalibrationError(f"{source}: {label} must be a table")
     missing = [k for k in REQUIRED_KEYS if k not in table]
     if missing:
-        raise CalibrationError(f"{source}: [{key}] is missing key(s) {', '.join(missing)}")
+        raise CalibrationError(f"{source}: {label} is missing key(s) {', '.join(missing)}")
     name = table["name"]
     if not isinstance(name, str) or not name:
-        raise CalibrationError(f"{source}: [{key}] name must be a non-empty string")
-    where = f"[{key}] (camera {name!r})"
+        raise CalibrationError(f"{source}: {label} name must be a non-empty string")
+    where = f"{label} (camera {name!r})"
     size = table["size"]
     if (
         not isinstance(size, list)

@@ -133,14 +133,25 @@ def _check_keys(data: dict[str, Any], allowed: Any, source: str, where: str) -> 
 
 
 def _number(source: str, key: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise SettingsError(f"{source}: {key} must be a finite number, got {value!r}")
-    return float(value)
+    try:
+        # TOML integers are unbounded: float() overflows past ~1.8e308.
+        number = float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
+    except OverflowError:
+        number = None
+    if number is None or not math.isfinite(number):
+        raise SettingsError(f"{source}: {key} must be a finite number, got {_short(value)}")
+    return number
+
+
+def _short(value: Any) -> str:
+    """``repr(value)``, cut to one readable line (a fuzzed 300-digit integer is not)."""
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def _vector3(source: str, key: str, value: Any) -> tuple[float, float, float]:
     if not isinstance(value, list) or len(value) != 3:
-        raise SettingsError(f"{source}: {key} must be a list of 3 numbers, got {value!r}")
+        raise SettingsError(f"{source}: {key} must be a list of 3 numbers, got {_short(value)}")
     x, y, z = (_number(source, key, v) for v in value)
     return (x, y, z)
 
@@ -155,7 +166,7 @@ def _convert(source: str, section: str, key: str, value: Any) -> Any:
         return _number(source, name, value)
     if key in ("threshold", "min_area_px", "points"):
         if isinstance(value, bool) or not isinstance(value, int):
-            raise SettingsError(f"{source}: {name} must be an integer, got {value!r}")
+            raise SettingsError(f"{source}: {name} must be an integer, got {_short(value)}")
         return value
     if key == "start_time":
         if isinstance(value, datetime):
@@ -167,9 +178,9 @@ def _convert(source: str, section: str, key: str, value: Any) -> Any:
                 pass
             else:
                 return parsed if parsed.tzinfo else parsed.replace(tzinfo=UTC)
-        raise SettingsError(f"{source}: {name} must be an RFC 3339 date-time, got {value!r}")
+        raise SettingsError(f"{source}: {name} must be an RFC 3339 date-time, got {_short(value)}")
     if not isinstance(value, str):
-        raise SettingsError(f"{source}: {name} must be a string, got {value!r}")
+        raise SettingsError(f"{source}: {name} must be a string, got {_short(value)}")
     return value
 
 
@@ -179,9 +190,11 @@ def _validate(s: Settings, source: str) -> None:
         raise SettingsError(f"{source}: [workspace] voxel_mm must be > 0, got {ws.voxel_mm}")
     if min(ws.size_mm) <= 0:
         raise SettingsError(f"{source}: [workspace] size_mm must be > 0 on every axis")
-    need = ws.estimated_bytes(3)
+    # Counted in floats first: a tiny voxel_mm (1e-320) makes the integer shape overflow.
+    per_axis = [s / ws.voxel_mm for s in ws.size_mm]
+    need = ws.estimated_bytes(3) if math.prod(per_axis) < 2**62 else math.inf
     if need > MAX_GRID_BYTES:
-        nx, ny, nz = ws.shape
+        nx, ny, nz = (f"{n:.6g}" for n in per_axis)
         raise SettingsError(
             f"{source}: a {nx}x{ny}x{nz} grid needs about {need / 1024**3:.1f} GiB "
             f"(limit {MAX_GRID_BYTES / 1024**3:.0f} GiB); raise voxel_mm or shrink size_mm"
@@ -196,7 +209,7 @@ def _validate(s: Settings, source: str) -> None:
             f"{source}: [silhouette] polarity {sil.polarity!r} unknown; use one of {POLARITIES}"
         )
     if not 0 <= sil.threshold <= 255:
-        raise SettingsError(f"{source}: [silhouette] threshold must be in 0-255, got {sil.threshold}")
+        raise SettingsError(f"{source}: [silhouette] threshold must be in 0-255, got {_short(sil.threshold)}")
     if sil.min_area_px < 0:
         raise SettingsError(f"{source}: [silhouette] min_area_px must be >= 0")
     r = s.manipulator.radius_mm

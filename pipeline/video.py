@@ -6,6 +6,7 @@ images and never a path.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +18,13 @@ from numpy.typing import NDArray
 from .errors import VideoError
 
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mkv", ".mov", ".m4v")
+
+# A damaged or half-copied video is reported by us, once, naming the file; OpenCV's and
+# FFmpeg's own lines ("moov atom not found", "overread 8") would bury that message and
+# repeat for every bad frame. FFmpeg reads its level when first used, so this also holds
+# in worker processes; set OPENCV_FFMPEG_LOGLEVEL yourself (e.g. 24) to see them again.
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
+cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,115 @@
+"""Shared test helpers: a tiny, valid session directory built on demand.
+
+``make_session(tmp_path, **overrides)`` writes calibration.toml (the synthetic rig's
+true cameras), one short video per camera showing a dark vertical rod on grey, and
+optionally session.toml; tests then break one thing at a time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Collection, Sequence
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+import tomli_w
+from numpy.typing import NDArray
+
+from pipeline.calibration_io import write_calibration
+from pipeline.camera import Camera
+from pipeline.synth.rig import make_rig
+
+# A rod standing on the default manipulator base (128, 128, 0) mm, 160 mm tall: inside
+# the default workspace and seen whole by every camera of the oblique rig.
+ROD_MM = np.array([[128.0, 128.0, 0.0], [128.0, 128.0, 160.0]])
+ROD_WIDTH_PX = 7
+GREY, DARK = 150, 30
+
+
+def rig_cameras(arrangement: str = "oblique") -> list[Camera]:
+    """The synthetic rig's true cameras as :class:`Camera` (Rodrigues rotation)."""
+    return [
+        Camera(
+            c.name,
+            (c.width, c.height),
+            c.K,
+            c.dist,
+            cv2.Rodrigues(c.R)[0].ravel(),
+            c.t,
+        )
+        for c in make_rig(arrangement)
+    ]
+
+
+def rod_image(cam: Camera, *, visible: bool = True) -> NDArray[np.uint8]:
+    """(H, W) uint8 grey image of the rod seen by ``cam`` (plain grey if not ``visible``)."""
+    image = np.full((cam.height, cam.width), GREY, np.uint8)
+    if visible:
+        a, b = np.round(cam.project(ROD_MM)).astype(int)
+        cv2.line(image, tuple(a.tolist()), tuple(b.tolist()), DARK, ROD_WIDTH_PX)
+    return image
+
+
+def write_video(
+    path: Path,
+    images: Sequence[NDArray[np.uint8]],
+    *,
+    fps: float = 30.0,
+    fourcc: str | None = None,
+    size: tuple[int, int] | None = None,
+) -> Path:
+    """Write grey ``images`` to ``path``: MJPG for .avi, mp4v otherwise (unless ``fourcc``).
+
+    ``size`` (width, height) is needed only when ``images`` is empty.
+    """
+    code = fourcc or ("MJPG" if path.suffix == ".avi" else "mp4v")
+    w, h = size if size is not None else (images[0].shape[1], images[0].shape[0])
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*code), fps, (w, h), isColor=False)
+    assert writer.isOpened(), f"cannot write {path} with {code}"
+    for image in images:
+        writer.write(image)
+    writer.release()
+    return path
+
+
+def build_session(
+    directory: Path,
+    *,
+    frames: int = 4,
+    fps: float | dict[str, float] = 30.0,
+    ext: str = ".avi",
+    cameras: list[Camera] | None = None,
+    frame_counts: dict[str, int] | None = None,
+    empty_frames: Collection[int] = (),
+    settings: dict[str, Any] | None = None,
+) -> Path:
+    """Write a valid session into ``directory`` (created) and return it.
+
+    Parameters
+    ----------
+    frames : frames per video (unless ``frame_counts`` names the camera).
+    fps : one rate for all videos, or camera name -> rate.
+    ext : video container, ".avi" (MJPG) or ".mp4" (mp4v).
+    cameras : calibration to write and render with; the oblique synthetic rig by default.
+    empty_frames : frame indices where the rod is out of view (plain grey images).
+    settings : session.toml contents; no session.toml when None.
+    """
+    directory.mkdir(parents=True, exist_ok=True)
+    cams = cameras if cameras is not None else rig_cameras()
+    write_calibration(directory / "calibration.toml", cams)
+    for cam in cams:
+        n = (frame_counts or {}).get(cam.name, frames)
+        rate = fps[cam.name] if isinstance(fps, dict) else fps
+        images = [rod_image(cam, visible=i not in empty_frames) for i in range(n)]
+        write_video(directory / f"{cam.name}{ext}", images, fps=rate)
+    if settings is not None:
+        (directory / "session.toml").write_text(tomli_w.dumps(settings))
+    return directory
+
+
+@pytest.fixture(scope="session")
+def make_session() -> Callable[..., Path]:
+    """Factory: ``make_session(tmp_path / "s", **overrides)``; see :func:`build_session`."""
+    return build_session
