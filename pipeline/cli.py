@@ -2,13 +2,14 @@
 
 Each subcommand parses its arguments and calls one library function. A
 :class:`PipelineError` becomes one line on stderr and exit status 2; anything
-else is a bug and shows its traceback only with ``--debug``.
+else is a bug: one line and exit status 3, its traceback only with ``--debug``.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -17,7 +18,7 @@ from .errors import PipelineError
 
 log = logging.getLogger("pipeline")
 
-EXIT_OK, EXIT_FRAMES_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+EXIT_OK, EXIT_FRAMES_FAILED, EXIT_BAD_INPUT, EXIT_INTERNAL_ERROR = 0, 1, 2, 3
 
 
 def _frame_range(text: str) -> tuple[int, int | None]:
@@ -213,17 +214,35 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=logging.DEBUG if args.debug else logging.INFO,
         format="%(levelname)s: %(message)s",
     )
+    if args.debug:
+        # FFmpeg's own diagnostics (silenced in pipeline.video) help debug a damaged video.
+        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "24")  # AV_LOG_WARNING
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         return func(args)
     except PipelineError as exc:
         if args.debug:
             raise
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:
+        # Not the user's mistake: a bug. One line by default, the traceback with --debug.
+        if args.debug:
+            raise
+        print(
+            f"internal error: {type(exc).__name__}: {_one_line(exc)} "
+            "(a bug: rerun with --debug for the traceback and report it)",
+            file=sys.stderr,
+        )
+        return EXIT_INTERNAL_ERROR
+
+
+def _one_line(exc: BaseException) -> str:
+    """The message on one line, so that scripts can grep stderr."""
+    return " ".join(str(exc).split())
 
 
 if __name__ == "__main__":
