@@ -184,15 +184,15 @@ def test_ground_truth_from_a_session_directory(tmp_path: Path) -> None:
 
 
 def test_missing_inputs_are_user_errors(tmp_path: Path) -> None:
-    with pytest.raises(EvaluationError, match="holds no ground_truth.npz"):
+    with pytest.raises(EvaluationError, match=r"holds no ground_truth\.npz"):
         load_ground_truth(tmp_path)
     with pytest.raises(EvaluationError, match="does not exist"):
         load_ground_truth(tmp_path / "nope.npz")
     (tmp_path / "bad.npz").write_text("not a zip")
-    with pytest.raises(EvaluationError, match="not a readable .npz"):
+    with pytest.raises(EvaluationError, match=r"not a readable \.npz"):
         load_ground_truth(tmp_path / "bad.npz")
     np.savez(tmp_path / "other.npz", x=np.zeros(3))
     with pytest.raises(EvaluationError, match="no 'centerlines' array"):
         load_ground_truth(tmp_path / "other.npz")
-    with pytest.raises(EvaluationError, match="missing.mcap does not exist"):
+    with pytest.raises(EvaluationError, match=r"missing\.mcap does not exist"):
         evaluate_recording(tmp_path / "missing.mcap", tmp_path / "other.npz")
