@@ -66,8 +66,13 @@ def extract_silhouette(
 
 def remove_small_blobs(mask: NDArray[np.uint8], min_area_px: int) -> NDArray[np.uint8]:
     """(H, W) uint8 0/1 mask without its 8-connected blobs of fewer than ``min_area_px`` pixels."""
-    _, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
-    keep = stats[:, cv2.CC_STAT_AREA] >= min_area_px
+    # cv2.connectedComponentsWithStats costs ~0.4 ms at 320x240, labelling alone ~25 us:
+    # label, and count areas only when there is more than one blob (rare after the opening).
+    n, labels = cv2.connectedComponents(mask, connectivity=8, ltype=cv2.CV_32S)
+    if n <= 2:
+        keep_all = n == 2 and cv2.countNonZero(mask) >= min_area_px
+        return mask if keep_all else np.zeros_like(mask)
+    keep = np.bincount(labels.ravel(), minlength=n) >= min_area_px
     keep[0] = False  # label 0 is the background
     if keep[1:].all():
         return mask
@@ -110,7 +115,7 @@ def _threshold(
 
 def _otsu_contrast_ok(img: NDArray[np.uint8], level: float, min_contrast: float) -> bool:
     """Whether Otsu's two classes (<= level, > level) differ in mean by at least ``min_contrast``."""
-    hist = np.bincount(img.ravel(), minlength=256).astype(np.float64)
+    hist = cv2.calcHist([img], [0], None, [256], [0, 256]).ravel().astype(np.float64)
     grey = np.arange(256, dtype=np.float64)
     split = int(level) + 1
     lo_n, hi_n = hist[:split].sum(), hist[split:].sum()
