@@ -1,0 +1,210 @@
+"""Read a session's MCAP back into numpy arrays for analysis.
+
+The file is read as a stream of records (never through its summary section), so a
+recording whose writer was killed mid-write is read up to its last complete chunk.
+
+Example::
+
+    rec = pipeline.load_recording("recordings/demo.mcap")
+    ok = rec.statuses == "ok"
+    tips_m = rec.centerlines_m[ok, -1]            # (F_ok, 3) tip positions, metres
+    print(rec.frame_indices[ok][:5], tips_m[:5])
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zstandard
+from mcap.exceptions import McapError
+from mcap.records import Channel, Footer, Message, Metadata, Schema
+from mcap.stream_reader import CRCValidationError, StreamReader
+from mcap_protobuf.decoder import DecoderFactory
+from numpy.typing import NDArray
+
+from .errors import PipelineError
+from .record_mcap import (
+    CENTERLINE_TOPIC,
+    METADATA_NAME,
+    METRICS_TOPIC,
+    POINTS_TOPIC,
+    SMOOTHED_TOPIC,
+)
+
+log = logging.getLogger(__name__)
+
+
+class RecordingError(PipelineError):
+    """A file is not a readable MCAP recording."""
+
+
+@dataclass(frozen=True, eq=False)
+class Recording:
+    """A session's reconstruction, as arrays (metres, world frame).
+
+    Attributes
+    ----------
+    path : the MCAP file.
+    camera_names : the cameras, in the order of the per-camera metrics.
+    timestamps_ns : (F,) int64 frame times, ns since the Unix epoch.
+    frame_indices : (F,) int64 frame indices in the session, increasing.
+    statuses : (F,) str "ok", "empty" or "failed".
+    centerlines_m : (F, N, 3) float64 curves base -> tip; NaN rows where no curve.
+    points_m : F arrays (P_i, 3) float32 of occupied voxel centres.
+    metrics : F dicts, the JSON of ``/reconstruction/metrics``.
+    smoothed_centerlines_m : (F, N, 3) float64 after temporal smoothing, or None
+        when the file has none (older run, or truncated before the end).
+    complete : False when the file ended before its footer (a truncated recording).
+    """
+
+    path: Path
+    camera_names: tuple[str, ...]
+    timestamps_ns: NDArray[np.int64]
+    frame_indices: NDArray[np.int64]
+    statuses: NDArray[np.str_]
+    centerlines_m: NDArray[np.float64]
+    points_m: list[NDArray[np.float32]]
+    metrics: list[dict[str, Any]]
+    smoothed_centerlines_m: NDArray[np.float64] | None
+    complete: bool
+
+    def __len__(self) -> int:
+        return len(self.frame_indices)
+
+
+# What a truncated or torn file raises while its records are parsed.
+_TRUNCATION_ERRORS = (
+    McapError,
+    CRCValidationError,
+    zstandard.ZstdError,
+    struct.error,
+    EOFError,
+    ValueError,
+    MemoryError,
+)
+
+
+def load_recording(path: Path | str) -> Recording:
+    """Read ``path`` (an MCAP written by the pipeline) into a :class:`Recording`."""
+    path = Path(path)
+    try:
+        with path.open("rb") as f:
+            return _read(f, path)
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read: {exc.strerror}") from None
+
+
+def _read(stream: Any, path: Path) -> Recording:
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    decoders = DecoderFactory()
+    metadata: dict[str, str] = {}
+    metrics: dict[int, tuple[int, dict[str, Any]]] = {}  # frame -> (log_time, metrics)
+    points: dict[int, NDArray[np.float32]] = {}  # log_time -> points
+    curves: dict[int, NDArray[np.float64] | None] = {}
+    smoothed: dict[int, NDArray[np.float64] | None] = {}
+    complete = False
+    # validate_crcs: a chunk cut short fails its CRC (or its decompression) and is dropped whole.
+    reader = StreamReader(stream, validate_crcs=True)
+    try:
+        for record in reader.records:
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Metadata) and record.name == METADATA_NAME:
+                metadata = dict(record.metadata)
+            elif isinstance(record, Footer):
+                complete = True
+            elif isinstance(record, Message) and record.channel_id in channels:
+                channel = channels[record.channel_id]
+                topic = channel.topic
+                if topic == METRICS_TOPIC:
+                    data = json.loads(record.data)
+                    metrics[int(data["frame"])] = (record.log_time, data)
+                    continue
+                if topic not in (POINTS_TOPIC, CENTERLINE_TOPIC, SMOOTHED_TOPIC):
+                    continue
+                decode = decoders.decoder_for(channel.message_encoding, schemas.get(channel.schema_id))
+                if decode is None:
+                    continue
+                message = decode(record.data)
+                if topic == POINTS_TOPIC:
+                    points[record.log_time] = _points_from_cloud(message)
+                elif topic == CENTERLINE_TOPIC:
+                    curves[record.log_time] = _curve_from_update(message)
+                else:
+                    smoothed[record.log_time] = _curve_from_update(message)
+    except _TRUNCATION_ERRORS as exc:
+        if not metrics and not metadata:
+            raise RecordingError(f"{path}: not a readable MCAP recording ({exc})") from None
+        log.warning(
+            "%s: truncated or damaged after frame %d; read what precedes it", path, max(metrics, default=-1)
+        )
+    if not complete:
+        log.warning("%s: no footer (the run did not finish); %d frames read", path, len(metrics))
+    return _assemble(path, metadata, metrics, points, curves, smoothed, complete)
+
+
+def _points_from_cloud(cloud: Any) -> NDArray[np.float32]:
+    """PointCloud with x, y, z float32 at offsets 0, 4, 8 -> (P, 3) float32 metres."""
+    stride = cloud.point_stride or 12
+    raw = np.frombuffer(cloud.data, dtype=np.uint8).reshape(-1, stride)
+    offsets = {f.name: f.offset for f in cloud.fields}
+    cols = [raw[:, offsets[a] : offsets[a] + 4].copy().view("<f4").ravel() for a in "xyz"]
+    return np.column_stack(cols).astype(np.float32) if len(raw) else np.zeros((0, 3), np.float32)
+
+
+def _curve_from_update(update: Any) -> NDArray[np.float64] | None:
+    """SceneUpdate with one LINE_STRIP entity -> (N, 3) float64 metres; None for a deletion."""
+    for entity in update.entities:
+        for line in entity.lines:
+            return np.array([(p.x, p.y, p.z) for p in line.points], dtype=np.float64).reshape(-1, 3)
+    return None
+
+
+def _stack(curves: dict[int, NDArray[np.float64] | None], times: list[int], n: int) -> NDArray[np.float64]:
+    out = np.full((len(times), n, 3), np.nan)
+    for row, t in enumerate(times):
+        curve = curves.get(t)
+        if curve is not None and curve.shape == (n, 3):
+            out[row] = curve
+    return out
+
+
+def _assemble(
+    path: Path,
+    metadata: dict[str, str],
+    metrics: dict[int, tuple[int, dict[str, Any]]],
+    points: dict[int, NDArray[np.float32]],
+    curves: dict[int, NDArray[np.float64] | None],
+    smoothed: dict[int, NDArray[np.float64] | None],
+    complete: bool,
+) -> Recording:
+    frames = sorted(metrics)
+    times = [metrics[i][0] for i in frames]
+    lengths = {len(c) for c in curves.values() if c is not None}
+    n = max(lengths) if lengths else int(metadata.get("centerline_points", 0))
+    if len(lengths) > 1:
+        log.warning(
+            "%s: centrelines of different lengths %s; shorter ones read as NaN", path, sorted(lengths)
+        )
+    names = tuple(n for n in metadata.get("cameras", "").split(",") if n)
+    return Recording(
+        path=path,
+        camera_names=names,
+        timestamps_ns=np.array(times, dtype=np.int64),
+        frame_indices=np.array(frames, dtype=np.int64),
+        statuses=np.array([metrics[i][1]["status"] for i in frames], dtype=np.str_),
+        centerlines_m=_stack(curves, times, n),
+        points_m=[points.get(t, np.zeros((0, 3), np.float32)) for t in times],
+        metrics=[metrics[i][1] for i in frames],
+        smoothed_centerlines_m=_stack(smoothed, times, n) if smoothed else None,
+        complete=complete,
+    )
