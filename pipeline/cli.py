@@ -48,7 +48,10 @@ def _cmd_process(args: argparse.Namespace) -> int:
         images=not args.no_images,
         force=args.force,
         curve=args.curve,
+        progress=sys.stderr.isatty(),
     )
+    for line in summary.lines():
+        print(line)
     return summary.exit_code
 
 
