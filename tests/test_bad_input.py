@@ -1,0 +1,276 @@
+"""Bad input through the CLI: exit status 2, one line naming the culprit, nothing written.
+
+Each test copies one small valid session and breaks exactly one thing in it.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import tomllib
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import tomli_w
+from conftest import build_session, rig_cameras, rod_image, write_video
+
+from pipeline.cli import EXIT_BAD_INPUT, main
+from pipeline.errors import PipelineError
+
+
+@pytest.fixture(scope="module")
+def good_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return build_session(tmp_path_factory.mktemp("good") / "session", frames=3)
+
+
+@pytest.fixture
+def session(good_session: Path, tmp_path: Path) -> Path:
+    """A fresh copy of the valid session, to break."""
+    return Path(shutil.copytree(good_session, tmp_path / "session"))
+
+
+def _process(video_dir: Path, out: Path, *extra: str) -> list[str]:
+    return ["process", str(video_dir), "--out", str(out), "--jobs", "1", "--no-images", *extra]
+
+
+def assert_rejected(video_dir: Path, capsys: pytest.CaptureFixture[str], *needles: str) -> str:
+    """Run `process` on ``video_dir``; check exit 2, one error line holding ``needles``, no output."""
+    out = video_dir.parent / "out"
+    code = main(_process(video_dir, out))
+    err = capsys.readouterr().err
+    assert code == EXIT_BAD_INPUT, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    for needle in needles:
+        assert needle in lines[0], f"{needle!r} not in {lines[0]!r}"
+    assert not out.exists() or not any(out.iterdir())
+    return lines[0]
+
+
+def _edit_toml(path: Path, edit: Callable[[dict[str, Any]], None]) -> None:
+    data = tomllib.loads(path.read_text())
+    edit(data)
+    path.write_text(tomli_w.dumps(data))
+
+
+# --- the session directory ---------------------------------------------------------
+
+
+def test_missing_video_dir(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert_rejected(tmp_path / "nowhere", capsys, "nowhere", "no such session directory")
+
+
+def test_empty_video_dir(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "empty").mkdir()
+    assert_rejected(tmp_path / "empty", capsys, "empty", "is empty")
+
+
+def test_no_calibration(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (session / "calibration.toml").unlink()
+    assert_rejected(session, capsys, "calibration.toml", "not found")
+
+
+# --- calibration.toml ------------------------------------------------------------
+
+
+def test_calibration_toml_syntax_error_shows_the_line(
+    session: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = session / "calibration.toml"
+    lines = path.read_text().splitlines()
+    lines[2] = "size = 320 x 240"  # not TOML, on line 3
+    path.write_text("\n".join(lines))
+    assert_rejected(session, capsys, "calibration.toml", "TOML syntax error", "line 3")
+
+
+def _drop_matrix(d: dict[str, Any]) -> None:
+    del d["cam_1"]["matrix"]
+
+
+def _short_translation(d: dict[str, Any]) -> None:
+    d["cam_1"]["translation"] = [1.0, 2.0]
+
+
+def _matrix_2x3(d: dict[str, Any]) -> None:
+    d["cam_1"]["matrix"] = d["cam_1"]["matrix"][:2]
+
+
+def _nan_translation(d: dict[str, Any]) -> None:
+    d["cam_1"]["translation"][0] = float("nan")
+
+
+def _inf_distortion(d: dict[str, Any]) -> None:
+    d["cam_1"]["distortions"][0] = float("inf")
+
+
+def _zero_focal(d: dict[str, Any]) -> None:
+    d["cam_1"]["matrix"][0][0] = 0.0  # singular K
+
+
+def _negative_focal(d: dict[str, Any]) -> None:
+    d["cam_1"]["matrix"][1][1] = -300.0
+
+
+def _sheared_rotation(d: dict[str, Any]) -> None:
+    d["cam_1"]["rotation"] = [[1.0, 0.2, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+
+
+def _reflection(d: dict[str, Any]) -> None:
+    d["cam_1"]["rotation"] = [[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+
+
+def _text_size(d: dict[str, Any]) -> None:
+    d["cam_1"]["size"] = ["320", "240"]
+
+
+def _duplicate_name(d: dict[str, Any]) -> None:
+    d["cam_1"]["name"] = "cam0"
+
+
+@pytest.mark.parametrize(
+    ("edit", "needles"),
+    [
+        (_drop_matrix, ("[cam_1]", "missing", "matrix")),
+        (_short_translation, ("cam1", "translation", "shape")),
+        (_matrix_2x3, ("cam1", "matrix", "shape")),
+        (_nan_translation, ("cam1", "translation", "non-finite")),
+        (_inf_distortion, ("cam1", "distortions", "non-finite")),
+        (_zero_focal, ("cam1", "matrix", "fx, fy > 0")),
+        (_negative_focal, ("cam1", "matrix", "fx, fy > 0")),
+        (_sheared_rotation, ("cam1", "rotation", "not a rotation")),
+        (_reflection, ("cam1", "rotation", "not a rotation")),
+        (_text_size, ("cam1", "size")),
+        (_duplicate_name, ("'cam0'", "more than once")),
+    ],
+    ids=lambda v: v.__name__.strip("_") if callable(v) else "",
+)
+def test_bad_camera_table(
+    session: Path,
+    capsys: pytest.CaptureFixture[str],
+    edit: Callable[[dict[str, Any]], None],
+    needles: tuple[str, ...],
+) -> None:
+    _edit_toml(session / "calibration.toml", edit)
+    assert_rejected(session, capsys, "calibration.toml", *needles)
+
+
+# --- videos against the calibration ------------------------------------------------
+
+
+def test_video_without_calibration_entry(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    shutil.copy(session / "cam0.avi", session / "cam7.avi")
+    assert_rejected(session, capsys, "cam7.avi", "no camera named 'cam7'")
+
+
+def test_camera_without_video(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (session / "cam2.avi").unlink()
+    assert_rejected(session, capsys, "camera 'cam2'", "has no video")
+
+
+def test_two_videos_for_one_camera(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    write_video(session / "cam1.mp4", [rod_image(rig_cameras()[1])] * 3)
+    assert_rejected(session, capsys, "two videos for camera 'cam1'", "cam1.avi", "cam1.mp4")
+
+
+def test_video_size_differs_from_calibration(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    write_video(session / "cam1.avi", [np.full((120, 160), 150, np.uint8)] * 3)
+    assert_rejected(session, capsys, "cam1.avi", "160x120", "320x240", "'cam1'")
+
+
+def test_fps_differs_between_videos(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    session = build_session(tmp_path / "s", frames=2, fps={"cam0": 30.0, "cam1": 25.0, "cam2": 30.0})
+    assert_rejected(session, capsys, "cam1.avi", "25 fps", "30 fps")
+
+
+def test_random_bytes_video(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (session / "cam0.avi").unlink()
+    (session / "cam0.mp4").write_bytes(np.random.default_rng(0).bytes(20_000))
+    assert_rejected(session, capsys, "cam0.mp4", "cannot be opened as a video")
+
+
+def test_zero_byte_video(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (session / "cam2.avi").write_bytes(b"")
+    assert_rejected(session, capsys, "cam2.avi", "cannot be opened as a video")
+
+
+def test_mp4_copied_half_way(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # mp4v writes its index (moov atom) last: the first half alone cannot be opened.
+    (session / "cam1.avi").unlink()
+    mp4 = write_video(session / "cam1.mp4", [rod_image(rig_cameras()[1])] * 3)
+    data = mp4.read_bytes()
+    mp4.write_bytes(data[: len(data) // 2])
+    assert_rejected(session, capsys, "cam1.mp4", "cannot be opened as a video")
+
+
+def test_video_without_frames(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    write_video(session / "cam0.avi", [], size=(320, 240))
+    assert_rejected(session, capsys, "cam0.avi")
+
+
+# --- session.toml ------------------------------------------------------------------
+
+
+def test_session_toml_syntax_error(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (session / "session.toml").write_text("[workspace]\nvoxel_mm = 2.0\nsize_mm = 256 256 256\n")
+    assert_rejected(session, capsys, "session.toml", "TOML syntax error", "line 3")
+
+
+def test_session_toml_unknown_section(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (session / "session.toml").write_text("[workspaec]\nvoxel_mm = 2.0\n")
+    assert_rejected(session, capsys, "session.toml", "'workspaec'", "workspace", "silhouette")
+
+
+def test_session_toml_unknown_key(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (session / "session.toml").write_text("[workspace]\nvoxel = 2.0\n")
+    assert_rejected(session, capsys, "session.toml", "'voxel'", "voxel_mm", "size_mm", "origin_mm")
+
+
+@pytest.mark.parametrize("voxel", [0.0, -1.0])
+def test_voxel_size_not_positive(session: Path, capsys: pytest.CaptureFixture[str], voxel: float) -> None:
+    (session / "session.toml").write_text(f"[workspace]\nvoxel_mm = {voxel}\n")
+    assert_rejected(session, capsys, "session.toml", "voxel_mm must be > 0")
+
+
+def test_grid_too_large_says_how_much_memory(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (session / "session.toml").write_text("[workspace]\nvoxel_mm = 0.1\n")
+    line = assert_rejected(session, capsys, "session.toml", "2560x2560x2560", "GiB", "voxel_mm")
+    # 2560^3 voxels x (4 bytes x 3 cameras + 13) bytes = 390.625 GiB, printed to 0.1 GiB.
+    assert "390.6 GiB" in line
+
+
+def test_workspace_not_seen_by_a_camera(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # A box 3 m to the side of the rig: every camera looks elsewhere.
+    (session / "session.toml").write_text("[workspace]\norigin_mm = [3000.0, 0.0, 0.0]\n")
+    assert_rejected(session, capsys, "does not see the workspace", "camera 'cam", "session.toml")
+
+
+# --- the CLI itself ----------------------------------------------------------------
+
+
+def test_debug_shows_the_exception(tmp_path: Path) -> None:
+    with pytest.raises(PipelineError, match="no such session directory"):
+        main(["--debug", *_process(tmp_path / "nowhere", tmp_path / "out")])
+
+
+def test_subprocess_bad_input_is_one_line_without_traceback(session: Path) -> None:
+    (session / "cam1.avi").unlink()
+    mp4 = write_video(session / "cam1.mp4", [rod_image(rig_cameras()[1])] * 3)
+    mp4.write_bytes(mp4.read_bytes()[:1000])  # copied half-way: OpenCV and FFmpeg complain natively
+    out = session.parent / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "pipeline", *_process(session, out)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert proc.returncode == EXIT_BAD_INPUT
+    assert "Traceback" not in proc.stderr
+    # Only our line: native OpenCV/FFmpeg warnings would bury it.
+    assert proc.stderr.strip().splitlines() == [proc.stderr.strip()], proc.stderr
+    assert proc.stderr.startswith("error: ") and "cam1.mp4" in proc.stderr
+    assert not out.exists()
