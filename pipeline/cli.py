@@ -58,7 +58,15 @@ def _cmd_process(args: argparse.Namespace) -> int:
 def _cmd_synth(args: argparse.Namespace) -> int:
     from .synth import render_session
 
-    render_session(args.out_dir, shape=args.shape, frames=args.frames, seed=args.seed, polarity=args.polarity)
+    render_session(
+        args.out_dir,
+        shape=args.shape,
+        frames=args.frames,
+        seed=args.seed,
+        polarity=args.polarity,
+        radius_mm=args.radius_mm,
+        arrangement=args.arrangement,
+    )
     return EXIT_OK
 
 
@@ -158,6 +166,10 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("dark", "bright"),
         default="dark",
         help="tube darker or brighter than the scene",
+    )
+    p.add_argument("--radius-mm", type=float, default=6.0, help="tube radius in mm (default 6)")
+    p.add_argument(
+        "--arrangement", choices=("oblique", "ninety"), default="oblique", help="camera placement"
     )
     p.set_defaults(func=_cmd_synth)
 
