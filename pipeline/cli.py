@@ -168,9 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="tube darker or brighter than the scene",
     )
     p.add_argument("--radius-mm", type=float, default=6.0, help="tube radius in mm (default 6)")
-    p.add_argument(
-        "--arrangement", choices=("oblique", "ninety"), default="oblique", help="camera placement"
-    )
+    p.add_argument("--arrangement", choices=("oblique", "ninety"), default="oblique", help="camera placement")
     p.set_defaults(func=_cmd_synth)
 
     p = sub.add_parser(
