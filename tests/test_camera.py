@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
 from pipeline.camera import Camera
 from pipeline.synth.rig import make_rig
@@ -29,3 +30,18 @@ def test_points_behind_the_camera_do_not_project() -> None:
     cam = _camera(1)
     behind = cam.center_mm - 100.0 * (np.array([128.0, 128, 128]) - cam.center_mm)
     assert np.isnan(cam.project(behind[None])).all()
+
+
+@pytest.mark.parametrize("n_coefficients", [4, 5, 8, 12, 14])
+def test_normalized_to_pixels_equals_cv2_project_points(n_coefficients: int) -> None:
+    rng = np.random.default_rng(n_coefficients)
+    dist = rng.normal(0.0, 0.05, n_coefficients)
+    if n_coefficients == 14:
+        dist[12:] = [0.02, -0.03]  # a tilted sensor, radians
+    base = _camera(2)
+    cam = Camera("c", base.size_px, base.matrix, dist, base.rotation, base.translation_mm)
+    points = rng.uniform(0, 256, (500, 3))
+    x_cam = cam.to_camera(points)
+    u, v = cam.normalized_to_pixels(x_cam[:, 0] / x_cam[:, 2], x_cam[:, 1] / x_cam[:, 2])
+    # Same float64 formula as OpenCV's; only the order of operations differs (~1e-13 px).
+    np.testing.assert_allclose(np.column_stack([u, v]), cam.project(points), rtol=0, atol=1e-9)
