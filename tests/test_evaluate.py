@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -196,3 +197,39 @@ def test_missing_inputs_are_user_errors(tmp_path: Path) -> None:
         load_ground_truth(tmp_path / "other.npz")
     with pytest.raises(EvaluationError, match=r"missing\.mcap does not exist"):
         evaluate_recording(tmp_path / "missing.mcap", tmp_path / "other.npz")
+
+
+# --- the README's accuracy table (pipeline.accuracy_table) ---------------------------
+
+
+def test_accuracy_table_covers_every_shape_and_an_unseen_set() -> None:
+    from pipeline.accuracy_table import default_cases
+    from pipeline.synth_names import SHAPES
+
+    cases = default_cases()
+    assert {c.shape for c in cases if not c.unseen} == set(SHAPES)
+    unseen = [c for c in cases if c.unseen]
+    assert {c.arrangement for c in unseen} == {"ninety"}
+    assert {c.radius_mm for c in unseen} == {4.0, 9.0}
+    assert "helix" in {c.shape for c in unseen} and "loop" in {c.shape for c in unseen}
+    assert len({c.name for c in cases}) == len(cases)
+
+
+def test_accuracy_table_is_markdown_with_ours_smoothed_and_polyfit() -> None:
+    from pipeline.accuracy_table import COLUMNS, Case, CaseResult, format_table, results_json
+
+    ours = dataclasses.replace(small_report(), smoothed=dataclasses.replace(small_report(), label="smoothed"))
+    results = [
+        CaseResult(Case("loop", "loop"), 5, ours, small_report()),
+        CaseResult(Case("ninety-helix-r4", "helix", "ninety", 4.0, unseen=True), 5, small_report(), None),
+    ]
+    lines = format_table(results).splitlines()
+    assert lines[1] == "|" + "---|" * len(COLUMNS)
+    first = [cell.strip() for cell in lines[2].strip("|").split("|")]
+    assert len(first) == len(COLUMNS)
+    assert first[:4] == ["loop", "oblique", "6", "0.20"]
+    assert first[7] == "1/5"  # failed / frames
+    assert first[9] == "0.20" and first[11] == "0.20"  # smoothed and polyfit means
+    second = [cell.strip() for cell in lines[3].strip("|").split("|")]
+    assert second[0] == "ninety-helix-r4 (unseen)" and second[9] == "-" and second[-1] == "-"
+    assert json.loads(results_json(results))[1]["polyfit"] is None

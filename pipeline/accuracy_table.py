@@ -1,0 +1,218 @@
+"""The README's accuracy table: every synthetic shape, plus sessions we did not tune on.
+
+Usage::
+
+    python -m pipeline.accuracy_table [--frames 60] [--out recordings/accuracy] [--jobs -1]
+
+For each case it renders a synthetic session (or reuses the one rendered before
+with the same parameters), processes it twice, with our centreline and with the
+original method's (``curve="polyfit"``, the baseline), evaluates both recordings
+against the ground truth, prints a Markdown table and writes
+OUT/accuracy.json. The "unseen" cases use what the project was not developed on:
+the other camera arrangement ("ninety"), thinner and thicker tubes (4 and 9 mm).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from .errors import PipelineError
+from .evaluate import TARGETS, EvaluationReport, evaluate_recording
+from .synth_names import SHAPES
+
+log = logging.getLogger(__name__)
+
+# Written into a case's session directory once it is completely rendered.
+_STAMP = "accuracy_case.json"
+
+
+@dataclass(frozen=True)
+class Case:
+    """One synthetic session of the table."""
+
+    name: str
+    shape: str
+    arrangement: str = "oblique"
+    radius_mm: float = 6.0
+    seed: int = 0
+    unseen: bool = False
+
+
+def default_cases() -> list[Case]:
+    """Every shape on the demo rig, then the unseen set (other rig, other tube radii)."""
+    seen = [Case(shape, shape, seed=i) for i, shape in enumerate(SHAPES)]
+    unseen = [
+        Case("ninety-helix-r4", "helix", "ninety", 4.0, seed=101, unseen=True),
+        Case("ninety-loop-r9", "loop", "ninety", 9.0, seed=102, unseen=True),
+        Case("ninety-s_curve-r4", "s_curve", "ninety", 4.0, seed=103, unseen=True),
+        Case("ninety-three_segments-r9", "three_segments", "ninety", 9.0, seed=104, unseen=True),
+    ]
+    return seen + unseen
+
+
+@dataclass(frozen=True)
+class CaseResult:
+    """A case's evaluation with our centreline and with the polyfit baseline."""
+
+    case: Case
+    frames: int
+    ours: EvaluationReport
+    polyfit: EvaluationReport | None
+
+
+def prepare_session(case: Case, root: Path, frames: int, *, jobs: int = -1) -> Path:
+    """Render ``case`` into ``root/<name>`` unless a complete identical rendering is there."""
+    from .synth import render_session
+
+    directory = root / case.name
+    wanted = {**asdict(case), "frames": frames}
+    stamp = directory / _STAMP
+    if stamp.is_file() and json.loads(stamp.read_text()) == wanted:
+        log.info("%s: reusing the rendered session", case.name)
+        return directory
+    log.info("%s: rendering %d frames", case.name, frames)
+    render_session(
+        directory,
+        shape=case.shape,
+        frames=frames,
+        seed=case.seed,
+        radius_mm=case.radius_mm,
+        arrangement=case.arrangement,
+        progress=False,
+        jobs=jobs,
+    )
+    stamp.write_text(json.dumps(wanted))
+    return directory
+
+
+def run_case(case: Case, root: Path, frames: int, *, jobs: int = -1, polyfit: bool = True) -> CaseResult:
+    """Render (or reuse), process with each centreline method, and evaluate one case."""
+    from .runner import process_session
+    from .session import load_session
+
+    directory = prepare_session(case, root / "sessions", frames, jobs=jobs)
+    session = load_session(directory)
+    reports: dict[str, EvaluationReport] = {}
+    for curve in ("fit", "polyfit") if polyfit else ("fit",):
+        out_dir = root / "runs" / curve
+        log.info("%s: processing with curve=%s", case.name, curve)
+        process_session(
+            session, out_dir=out_dir, jobs=jobs, images=False, force=True, curve=curve, progress=False
+        )
+        reports[curve] = evaluate_recording(out_dir / f"{session.name}.mcap", directory)
+    return CaseResult(case, frames, reports["fit"], reports.get("polyfit"))
+
+
+COLUMNS = (
+    "session",
+    "rig",
+    "tube r (mm)",
+    "mean (mm)",
+    "p95 (mm)",
+    "tip median (mm)",
+    "length (%)",
+    "failed",
+    "jitter ratio",
+    "smoothed mean (mm)",
+    "smoothed jitter ratio",
+    "polyfit mean (mm)",
+    "polyfit p95 (mm)",
+    "polyfit tip (mm)",
+)
+
+
+def _num(value: float, digits: int = 2) -> str:
+    return "-" if value != value else f"{value:.{digits}f}"  # NaN != NaN
+
+
+def format_table(results: Sequence[CaseResult]) -> str:
+    """The Markdown table: our figures (per frame, and smoothed when recorded), then polyfit's."""
+    rows = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    for r in results:
+        ours, smooth, base = r.ours, r.ours.smoothed, r.polyfit
+        name = f"{r.case.name} (unseen)" if r.case.unseen else r.case.name
+        cells = [
+            name,
+            r.case.arrangement,
+            f"{r.case.radius_mm:g}",
+            _num(ours.mean_mm),
+            _num(ours.p95_mm),
+            _num(ours.tip_median_mm),
+            _num(ours.length_error_pct),
+            f"{ours.failed_frames}/{ours.frames}",
+            _num(ours.jitter_ratio),
+            _num(smooth.mean_mm) if smooth else "-",
+            _num(smooth.jitter_ratio) if smooth else "-",
+            _num(base.mean_mm) if base else "-",
+            _num(base.p95_mm) if base else "-",
+            _num(base.tip_median_mm) if base else "-",
+        ]
+        rows.append("| " + " | ".join(cells) + " |")
+    targets = (
+        f"Targets (issue 4): mean <= {TARGETS['mean_mm']} mm, p95 <= {TARGETS['p95_mm']} mm, "
+        f"tip median <= {TARGETS['tip_median_mm']} mm, length <= {TARGETS['length_error_pct']} %, "
+        f"no failed frames, jitter ratio <= {TARGETS['jitter_ratio']}."
+    )
+    return "\n".join([*rows, "", targets])
+
+
+def results_json(results: Sequence[CaseResult]) -> str:
+    """Every case's full reports, as JSON."""
+    return json.dumps(
+        [
+            {
+                "case": asdict(r.case),
+                "frames": r.frames,
+                "ours": r.ours.to_dict(),
+                "polyfit": None if r.polyfit is None else r.polyfit.to_dict(),
+            }
+            for r in results
+        ],
+        indent=2,
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m pipeline.accuracy_table",
+        description="Render synthetic sessions, process them with our centreline and the original "
+        "polyfit baseline, and print the accuracy table (Markdown); writes OUT/accuracy.json.",
+    )
+    parser.add_argument("--frames", type=int, default=60, help="frames per session (default 60)")
+    parser.add_argument("--out", type=Path, default=Path("recordings/accuracy"), help="working directory")
+    parser.add_argument("--jobs", type=int, default=-1, help="parallel workers (-1: one per core)")
+    parser.add_argument("--cases", nargs="+", metavar="NAME", help="only these cases (default: all)")
+    parser.add_argument("--no-polyfit", action="store_true", help="skip the polyfit baseline")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
+
+    cases = default_cases()
+    if args.cases:
+        unknown = sorted(set(args.cases) - {c.name for c in cases})
+        if unknown:
+            parser.error(
+                f"unknown case(s) {', '.join(unknown)}; choose from {', '.join(c.name for c in cases)}"
+            )
+        cases = [c for c in cases if c.name in args.cases]
+    try:
+        results = [
+            run_case(case, args.out, args.frames, jobs=args.jobs, polyfit=not args.no_polyfit)
+            for case in cases
+        ]
+    except PipelineError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "accuracy.json").write_text(results_json(results))
+    print(format_table(results))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
