@@ -20,6 +20,7 @@ from pipeline.evaluate import (
     load_ground_truth,
     tip_jitter,
 )
+from pipeline.frame_result import FrameResult
 
 
 def line(
@@ -197,6 +198,83 @@ def test_missing_inputs_are_user_errors(tmp_path: Path) -> None:
         load_ground_truth(tmp_path / "other.npz")
     with pytest.raises(EvaluationError, match=r"missing\.mcap does not exist"):
         evaluate_recording(tmp_path / "missing.mcap", tmp_path / "other.npz")
+
+
+# --- a recording made by the runner -------------------------------------------------
+
+RUN_FRAMES = 8
+
+
+def rod_truth(index: int) -> NDArray[np.float64]:
+    """(20, 3) the true curve of frame ``index``: a vertical rod moved ``index`` mm along x."""
+    return line(20, length_mm=160.0, offset_mm=(128.0 + index, 128.0, 0.0))
+
+
+def shifted_rod(index: int, images: object, model: object) -> tuple[FrameResult, None]:
+    """Stand-in frame function: the true rod 0.5 mm off along y; frame 5 fails."""
+    if index == 5:
+        return FrameResult.failed(index, "test failure"), None
+    curve = line(16, length_mm=160.0, offset_mm=(128.0 + index, 128.5, 0.0))
+    points = curve.astype(np.float32)
+    return FrameResult(index=index, status="ok", points_mm=points, centerline_mm=curve, length_mm=160.0), None
+
+
+@pytest.fixture(scope="module")
+def partial_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A recording of frames 2..7 of an 8-frame session, and the session's ground truth."""
+    from conftest import build_session
+
+    from pipeline.runner import process_session
+    from pipeline.session import load_session
+
+    root = tmp_path_factory.mktemp("evaluate_run")
+    session_dir = build_session(root / "rod", frames=RUN_FRAMES)
+    truth = np.stack([rod_truth(i) for i in range(RUN_FRAMES)])
+    np.savez(session_dir / "ground_truth.npz", centerlines=truth, timestamps_s=np.arange(RUN_FRAMES) / 30.0)
+    process_session(
+        load_session(session_dir),
+        out_dir=root / "out",
+        jobs=1,
+        frames=(2, RUN_FRAMES),
+        images=False,
+        progress=False,
+        frame_fn=shifted_rod,
+    )
+    return root / "out" / "rod.mcap", session_dir
+
+
+def test_recording_is_matched_to_the_truth_by_frame_index(partial_run: tuple[Path, Path]) -> None:
+    recording, session_dir = partial_run
+    report = evaluate_recording(recording, session_dir)
+    assert report.frames == RUN_FRAMES - 2
+    assert report.failed_indices == (5,)
+    # Matched frame for frame, only the 0.5 mm shift remains; a frame off would add 1 mm.
+    assert report.mean_mm == pytest.approx(0.5, abs=1e-6)  # metres and back: rounding only
+    assert report.tip_median_mm == pytest.approx(0.5, abs=1e-6)
+    assert report.length_error_pct == pytest.approx(0.0, abs=1e-6)
+    # The runner smooths after the last frame: a uniform motion passes through unchanged.
+    assert report.smoothed is not None
+    assert report.smoothed.failed_indices == (5,)
+    assert report.smoothed.mean_mm == pytest.approx(0.5, abs=1e-6)
+
+
+def test_cli_evaluate_prints_the_table_and_json(
+    partial_run: tuple[Path, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    from pipeline.cli import main
+
+    recording, session_dir = partial_run
+    assert main(["evaluate", str(recording), str(session_dir / "ground_truth.npz")]) == 0
+    assert "centreline mean (mm)" in capsys.readouterr().out
+    assert main(["evaluate", str(recording), str(session_dir), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["failed_indices"] == [5]
+
+
+def test_recording_beyond_the_truth_is_a_user_error(partial_run: tuple[Path, Path], tmp_path: Path) -> None:
+    recording, _ = partial_run
+    np.savez(tmp_path / "short.npz", centerlines=np.stack([rod_truth(0)] * 4))
+    with pytest.raises(EvaluationError, match="frame 4 is beyond the ground truth's 4 frames"):
+        evaluate_recording(recording, tmp_path / "short.npz")
 
 
 # --- the README's accuracy table (pipeline.accuracy_table) ---------------------------
