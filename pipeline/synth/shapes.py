@@ -178,11 +178,22 @@ def _three_segments(p: float, length: float) -> list[Segment]:
 
 
 def _helix(p: float, length: float) -> list[Segment]:
-    # Torsion dominates curvature, so the helix axis leans only ~20 degrees off
-    # vertical: a coil of ~10 mm radius making about 1.3 turns over 250 mm.
-    kappa = _smooth(p, 0.009, 0.013) * 250.0 / length
-    tau = 0.03 * 250.0 / length
-    return [Segment(length, kappa, tau, 2.0 * math.pi * 0.5 * p)]
+    # A coil spring standing upright: a short lead-in arc tilts the tangent by the
+    # helix angle alpha, then a constant-curvature-and-torsion segment winds
+    # 1.2-1.6 turns of 14-20 mm radius around a vertical axis. A helix of turning
+    # rate w = |(tau, kappa)| and radius rho has sin(alpha) = rho * w, and its axis is
+    # vertical when its bending plane is a quarter turn from the lead-in's.
+    lead = 0.12 * length
+    coil = length - lead
+    turns = _smooth(p, 1.2, 1.6, phase=0.2)
+    rho = _smooth(p, 14.0, 20.0, rate=2.0) * length / 250.0
+    w = 2.0 * math.pi * turns / coil
+    alpha = math.asin(min(rho * w, 0.95))
+    phi = 2.0 * math.pi * 0.5 * p
+    return [
+        Segment(lead, alpha / lead, 0.0, phi),
+        Segment(coil, w * math.sin(alpha), w * math.cos(alpha), phi + math.pi / 2),
+    ]
 
 
 _SHAPES: dict[str, Callable[[float, float], list[Segment]]] = {
