@@ -419,7 +419,10 @@ def process_session(
             model, videos, names, span[0], span[1], images=images, frame_fn=frame_fn
         )
 
-    writer = _Writers(session, mcap_path, rrd_path, images=images)
+    try:
+        writer = _Writers(session, mcap_path, rrd_path, images=images)
+    except OSError as exc:  # the disk filled up before the first frame
+        raise _output_error(out_dir, exc) from None
     t0 = time.perf_counter()
     done = 0
     try:
@@ -446,16 +449,18 @@ def process_session(
         raise
     except OSError as exc:
         writer.abort()
-        if exc.errno == errno.ENOSPC:
-            raise OutputError(
-                f"{out_dir}: disk full while writing the recordings; free space and rerun"
-            ) from None
-        raise OutputError(f"{out_dir}: cannot write the recordings ({exc.strerror or exc})") from None
+        raise _output_error(out_dir, exc) from None
     except BaseException:
         writer.abort()
         raise
     wall = time.perf_counter() - t0
     return writer.summary(wall)
+
+
+def _output_error(out_dir: Path, exc: OSError) -> OutputError:
+    if exc.errno == errno.ENOSPC:
+        return OutputError(f"{out_dir}: disk full while writing the recordings; free space and rerun")
+    return OutputError(f"{out_dir}: cannot write the recordings ({exc.strerror or exc})")
 
 
 def _frame_span(session: Session, frames: tuple[int, int | None] | None) -> tuple[int, int]:
