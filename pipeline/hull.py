@@ -214,26 +214,47 @@ def build_grid(cameras: Sequence[Camera], workspace: Workspace) -> HullGrid:
         i = np.arange(n_coarse[a] * side).reshape(n_coarse[a], COARSE, FINE)
         axis_mm.append(np.asarray(workspace.origin_mm[a] + (i + 0.5) * workspace.voxel_mm, np.float64))
         axis_real.append(i < shape[a])
-    slab_cells = ncy * ncz * fine_per_coarse
+    # One chunk = one row of coarse cells along z (fixed cx, cy): its temporaries stay
+    # in cache (0.25-0.5 MB) and its fine cells are contiguous in the tables.
+    row_fine = ncz * fine_per_coarse
     for cx in range(ncx):
-        # Slab layout (cy, cz, fx, fy, fz, vx, vy, vz): coarse-major, then fine, then voxel.
-        real = (
-            _place(axis_real[0][cx], 0)[None, None]
-            & _place(axis_real[1], 1)[:, None]
-            & _place(axis_real[2], 2)[None, :]
-        )
-        rows = slice(cx * slab_cells, (cx + 1) * slab_cells)
-        for c, cam in enumerate(cameras):
-            w = sizes[c][0]
-            iu, iv, inside = _project_slab(cam, [axis_mm[0][cx], axis_mm[1], axis_mm[2]])
-            inside &= real
-            pix = np.where(inside, iv * w + iu + pixel_offsets[c], sentinel).astype(np.int32)
-            voxel_pixels[rows, :, c] = pix.reshape(-1, FINE**3)
-            fine_rect = _rectangles(iu, iv, inside, (slab_cells, FINE**3))
-            coarse_rect = _merge_rectangles(fine_rect, ncy * ncz)
-            fine_corners[rows, c] = _corners(fine_rect, w, int(integral_offsets[c]))
-            coarse_rows = slice(cx * ncy * ncz, (cx + 1) * ncy * ncz)
-            coarse_corners[coarse_rows, c] = _corners(coarse_rect, w, int(integral_offsets[c]))
+        for cy in range(ncy):
+            row = cx * ncy + cy
+            coarse_rows = slice(row * ncz, (row + 1) * ncz)
+            fine_rows = slice(row * row_fine, (row + 1) * row_fine)
+            centres = _chunk_layout(axis_mm[0][cx], axis_mm[1][cy], axis_mm[2])
+            rx, ry, rz = _chunk_layout(axis_real[0][cx], axis_real[1][cy], axis_real[2])
+            real = (rx & ry) & rz
+            for c, cam in enumerate(cameras):
+                w = sizes[c][0]
+                iu, iv, inside = _project_chunk(cam, centres)
+                inside &= real
+                outside = ~inside.reshape(FINE**3, row_fine)
+                iu = iu.reshape(FINE**3, row_fine)
+                iv = iv.reshape(FINE**3, row_fine)
+                pix = iv * w
+                pix += iu
+                pix += pixel_offsets[c]
+                pix[outside] = sentinel
+                voxel_pixels[fine_rows, :, c] = pix.T  # exact integers in float64
+                # NaN marks voxels outside the image; fmin/fmax skip them.
+                iu[outside] = np.nan
+                iv[outside] = np.nan
+                fine_rect = np.stack(
+                    [
+                        np.fmin.reduce(iu, 0),
+                        np.fmin.reduce(iv, 0),
+                        np.fmax.reduce(iu, 0),
+                        np.fmax.reduce(iv, 0),
+                    ],
+                    axis=1,
+                )
+                g = fine_rect.reshape(ncz, fine_per_coarse, 4)
+                coarse_rect = np.concatenate(
+                    [np.fmin.reduce(g[:, :, :2], 1), np.fmax.reduce(g[:, :, 2:], 1)], axis=1
+                )
+                fine_corners[fine_rows, c] = _corners(fine_rect, w, int(integral_offsets[c]))
+                coarse_corners[coarse_rows, c] = _corners(coarse_rect, w, int(integral_offsets[c]))
 
     strides = np.array([shape[1] * shape[2], shape[2], 1], dtype=np.int64)
 
@@ -256,65 +277,51 @@ def build_grid(cameras: Sequence[Camera], workspace: Workspace) -> HullGrid:
     )
 
 
-def _place(a: NDArray[Any], axis: int) -> NDArray[Any]:
-    """Reshape a per-axis (..., COARSE, FINE) array to broadcast into the slab layout
-    (cy, cz, fx, fy, fz, vx, vy, vz) along world axis ``axis`` (leading cell axes kept)."""
-    lead = a.shape[:-2]
-    fine_shape = [1, 1, 1]
-    vox_shape = [1, 1, 1]
-    fine_shape[axis] = COARSE
-    vox_shape[axis] = FINE
-    return a.reshape(*lead, *fine_shape, *vox_shape)
+def _chunk_layout(
+    x: NDArray[Any], y: NDArray[Any], z: NDArray[Any]
+) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any]]:
+    """Per-axis values of one chunk, reshaped to broadcast into its layout.
 
-
-def _project_slab(cam: Camera, axis_mm: list[FloatArray]) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
-    """Pixel (col, row) and inside-flag of every voxel centre of one coarse-x slab.
-
-    axis_mm : [(COARSE, FINE), (ncy, COARSE, FINE), (ncz, COARSE, FINE)] centre
-        coordinates, mm. Returns arrays of shape (ncy, ncz, C, C, C, F, F, F).
+    x, y : (COARSE, FINE) [fine, voxel] along the chunk's single coarse cell in x and y;
+    z : (ncz, COARSE, FINE) [cell, fine, voxel] along z. The layout is
+    (vx, vy, vz, cz, fx, fy, fz): voxel axes first, so that reducing over a fine cell's
+    voxels is an element-wise operation across contiguous rows.
     """
+    ncz = z.shape[0]
+    return (
+        x.T.reshape(FINE, 1, 1, 1, COARSE, 1, 1),
+        y.T.reshape(1, FINE, 1, 1, 1, COARSE, 1),
+        z.transpose(2, 0, 1).reshape(1, 1, FINE, ncz, 1, 1, COARSE),
+    )
+
+
+def _project_chunk(
+    cam: Camera, centres: tuple[FloatArray, FloatArray, FloatArray]
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Pixel (col, row) under the pixel rule, and inside-flag, of every voxel centre of a
+    chunk whose x, y, z coordinates are given as broadcastable per-axis arrays (mm)."""
     rot = cam.camera_from_world
     t = np.asarray(cam.translation_mm, dtype=np.float64)
-    # x_cam = R @ (x e_x + y e_y + z e_z) + t: three small per-axis terms, broadcast-added.
-    px = _place(axis_mm[0], 0)[None, None]
-    py = _place(axis_mm[1], 1)[:, None]
-    pz = _place(axis_mm[2], 2)[None, :]
-    cam_xyz = [(t[j] + rot[j, 0] * px) + rot[j, 1] * py + rot[j, 2] * pz for j in range(3)]
-    z = cam_xyz[2]
+    px, py, pz = centres
+    # x_cam = R @ (x e_x + y e_y + z e_z) + t: small per-axis terms, one full-size add each.
+    x_cam, y_cam, z_cam = ((t[j] + rot[j, 0] * px + rot[j, 1] * py) + rot[j, 2] * pz for j in range(3))
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        inv_z = 1.0 / z
-        u, v = cam.normalized_to_pixels(cam_xyz[0] * inv_z, cam_xyz[1] * inv_z)
+        inv_z = 1.0 / z_cam
+        x_cam *= inv_z
+        y_cam *= inv_z
+        u, v = cam.normalized_to_pixels(x_cam, y_cam)
     iu, iv, inside = _round_pixels(u, v, cam.width, cam.height)
-    inside &= z > 0  # behind the camera: Camera.project gives NaN, i.e. outside
+    inside &= z_cam > 0  # behind the camera: Camera.project gives NaN, i.e. outside
     return iu, iv, inside
 
 
-def _rectangles(
-    iu: FloatArray, iv: FloatArray, inside: NDArray[np.bool_], shape: tuple[int, int]
-) -> NDArray[np.int64]:
-    """Pixel bounding box (u0, v0, u1, v1), inclusive, of each row of voxels in ``shape``;
-    u0 > u1 where the row has no voxel inside the image."""
-    big = np.int64(1 << 40)
-    inside2 = inside.reshape(shape)
-    u = iu.reshape(shape)
-    v = iv.reshape(shape)
-    u0 = np.where(inside2, u, big).min(axis=1)
-    v0 = np.where(inside2, v, big).min(axis=1)
-    u1 = np.where(inside2, u, -big).max(axis=1)
-    v1 = np.where(inside2, v, -big).max(axis=1)
-    return np.stack([u0, v0, u1, v1], axis=1).astype(np.int64)
-
-
-def _merge_rectangles(rect: NDArray[np.int64], n_groups: int) -> NDArray[np.int64]:
-    """Union bounding boxes of consecutive equal-size groups of (N, 4) rectangles."""
-    g = rect.reshape(n_groups, -1, 4)
-    return np.concatenate([g[:, :, :2].min(axis=1), g[:, :, 2:].max(axis=1)], axis=1)
-
-
-def _corners(rect: NDArray[np.int64], width: int, offset: int) -> NDArray[np.int32]:
-    """(N, 4) inclusive pixel rectangles -> (N, 4) flat integral-image indices of the corners
-    (top-left, top-right, bottom-left, bottom-right); all 0 (a zero sum) for empty ones."""
-    u0, v0, u1, v1 = rect.T
+def _corners(rect: FloatArray, width: int, offset: int) -> NDArray[np.int32]:
+    """(N, 4) inclusive pixel rectangles (u0, v0, u1, v1), NaN when empty -> (N, 4) flat
+    integral-image indices of the corners (top-left, top-right, bottom-left, bottom-right);
+    all 0 (a zero sum) for empty ones."""
+    empty = np.isnan(rect[:, 0])
+    r = np.where(empty[:, None], 0.0, rect).astype(np.int64)
+    u0, v0, u1, v1 = r.T
     stride = width + 1
     corners = np.stack(
         [v0 * stride + u0, v0 * stride + u1 + 1, (v1 + 1) * stride + u0, (v1 + 1) * stride + u1 + 1],
@@ -322,7 +329,7 @@ def _corners(rect: NDArray[np.int64], width: int, offset: int) -> NDArray[np.int
     )
     corners += offset
     # Index 0 is camera 0's integral-image corner, always 0: an empty rectangle sums to 0.
-    corners[u0 > u1] = 0
+    corners[empty] = 0
     return corners.astype(np.int32)
 
 
