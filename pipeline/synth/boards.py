@@ -1,0 +1,291 @@
+"""Chessboard calibration images of the synthetic rig, rendered exactly by ray casting.
+
+Every pixel is supersampled: each sub-pixel's (distorted) position is undistorted
+into a ray of the true camera, the ray is intersected with the board plane and
+the board's texture is read there. Nothing here uses ``pipeline.camera``: this
+is the oracle ``pipeline calibrate`` is tested against.
+
+Board frame (the same as ``pipeline.boards`` and the world frame of world.png):
+inner corner (i, j) sits at (i * square, j * square, 0); z leaves the printed
+face; the square diagonally outside corner (0, 0) is black. The world board lies
+on the plane z = 0 face up with corner (0, 0) at the world origin, so board frame
+= world frame there.
+
+Folder layout written (the layout ``pipeline calibrate`` reads)::
+
+    OUT_DIR/board.toml                    type, inner_corners = [cols, rows], square_mm
+    OUT_DIR/truth_calibration.toml        the true cameras (aniposelib layout)
+    OUT_DIR/<camera>/intrinsics/NN.png    boards in varied poses, one camera at a time
+    OUT_DIR/<camera>/world.png            the board on z = 0 (absent for a camera that cannot see it)
+    OUT_DIR/<camera>/shared/NN.png        boards seen by several cameras at the same instant (same NN)
+
+In the "ninety" arrangement no board is seen by all three cameras: the world
+board is hidden from cam2 (as if by the manipulator's base) and the shared boards
+are seen by cam0+cam1 or cam1+cam2 only, so cam2 reaches the world frame through
+cam1.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+import tomli_w
+from numpy.typing import NDArray
+from tqdm import tqdm
+
+from .rig import WORKSPACE_CENTER_MM, SynthCamera, make_rig
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+SUPERSAMPLE = 4  # 4 x 4 sub-pixels: edges anti-aliased to 1/16 of a grey step
+BLACK, WHITE, BACKGROUND = 25.0, 225.0, 120.0
+NOISE_SIGMA = 1.5  # grey levels: mild sensor noise
+MARGIN_SQUARES = 0.7  # white border around the squares, in squares
+EDGE_PX = 4.0  # every board corner (margin included) stays this far inside the image
+
+# Cameras that see each shared board, and how many boards per set. "ninety": cam0
+# and cam2 face each other, so a board is only ever seen by neighbours.
+SHARED_SETS: dict[str, tuple[tuple[tuple[int, ...], int], ...]] = {
+    "oblique": (((0, 1), 4), ((1, 2), 4), ((0, 2), 4)),
+    "ninety": (((0, 1), 6), ((1, 2), 6)),
+}
+WORLD_CAMERAS: dict[str, tuple[int, ...]] = {"oblique": (0, 1, 2), "ninety": (0, 1)}
+
+
+def render_calibration_views(
+    out_dir: Path,
+    *,
+    arrangement: str = "oblique",
+    seed: int = 0,
+    board: tuple[int, int] = (9, 6),
+    square_mm: float = 20.0,
+    views: int = 15,
+    progress: bool = True,
+) -> None:
+    """Render chessboard calibration images of the true cameras of ``arrangement``.
+
+    Parameters
+    ----------
+    out_dir : folder to write (created); layout in the module docstring.
+    arrangement : "oblique" or "ninety" (see ``pipeline.synth.rig``).
+    seed : seeds the board poses and the noise; a fixed seed gives identical files.
+    board : (cols, rows) inner corners; cols + rows must be odd so that the board's
+        orientation is unambiguous.
+    square_mm : side of one square, mm.
+    views : intrinsics views per camera.
+    progress : show a progress bar.
+    """
+    cols, rows = board
+    if (cols + rows) % 2 == 0:
+        raise ValueError(f"board {cols}x{rows}: cols + rows must be odd (a 180-degree turn must show)")
+    out_dir = Path(out_dir)
+    rng = np.random.default_rng(seed)
+    cams = make_rig(arrangement)
+    rays = [_camera_rays(cam) for cam in cams]
+    jobs: list[tuple[Path, int, FloatArray, FloatArray]] = []  # (file, camera, R, t) camera from board
+
+    for ci, cam in enumerate(cams):
+        for k, (R, t) in enumerate(_intrinsic_poses(cam, rng, views, cols, rows, square_mm)):
+            jobs.append((out_dir / cam.name / "intrinsics" / f"{k:02d}.png", ci, R, t))
+    for ci in WORLD_CAMERAS[arrangement]:
+        cam = cams[ci]
+        jobs.append((out_dir / cam.name / "world.png", ci, cam.R, cam.t))
+    shared_index = 0
+    for subset, count in SHARED_SETS[arrangement]:
+        for R_w, t_w in _shared_poses(cams, subset, rng, count, cols, rows, square_mm):
+            for ci in subset:
+                cam = cams[ci]
+                path = out_dir / cam.name / "shared" / f"{shared_index:02d}.png"
+                jobs.append((path, ci, cam.R @ R_w, cam.R @ t_w + cam.t))
+            shared_index += 1
+
+    for path, ci, R, t in tqdm(jobs, desc="synth-calib", unit="image", disable=not progress):
+        image = _render(rays[ci], cams[ci], R, t, cols, rows, square_mm, rng)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(path), image)
+
+    (out_dir / "board.toml").write_text(
+        tomli_w.dumps({"type": "chessboard", "inner_corners": [cols, rows], "square_mm": float(square_mm)})
+    )
+    _write_truth(out_dir / "truth_calibration.toml", cams, arrangement)
+    log.info("wrote %d calibration images to %s", len(jobs), out_dir)
+
+
+def _write_truth(path: Path, cams: list[SynthCamera], arrangement: str) -> None:
+    doc: dict[str, object] = {}
+    for i, cam in enumerate(cams):
+        rvec, _ = cv2.Rodrigues(cam.R)
+        doc[f"cam_{i}"] = {
+            "name": cam.name,
+            "size": [cam.width, cam.height],
+            "matrix": cam.K.tolist(),
+            "distortions": cam.dist.tolist(),
+            "rotation": np.asarray(rvec, dtype=float).ravel().tolist(),
+            "translation": cam.t.tolist(),
+        }
+    doc["metadata"] = {"source": "synth-calib", "arrangement": arrangement}
+    path.write_text(tomli_w.dumps(doc))
+
+
+def _camera_rays(cam: SynthCamera) -> FloatArray:
+    """(H, W, S*S, 2) float64 normalised image coordinates (x/z, y/z) of every sub-pixel.
+
+    Pixel centres are at integer coordinates (OpenCV); sub-pixels sit on a regular
+    S x S grid inside each pixel.
+    """
+    s = SUPERSAMPLE
+    offsets = (np.arange(s) + 0.5) / s - 0.5
+    oy, ox = np.meshgrid(offsets, offsets, indexing="ij")
+    ys, xs = np.mgrid[0 : cam.height, 0 : cam.width].astype(np.float64)
+    px = np.stack(
+        [xs[:, :, None] + ox.ravel()[None, None, :], ys[:, :, None] + oy.ravel()[None, None, :]], axis=-1
+    )
+    # A tight criterion: the default (5 iterations) leaves ~0.1 px near the corners.
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+    und = cv2.undistortPoints(px.reshape(-1, 1, 2), cam.K, cam.dist, criteria=criteria)
+    return np.asarray(und, dtype=np.float64).reshape(cam.height, cam.width, s * s, 2)
+
+
+def _render(
+    rays: FloatArray,
+    cam: SynthCamera,
+    R: FloatArray,
+    t: FloatArray,
+    cols: int,
+    rows: int,
+    square_mm: float,
+    rng: np.random.Generator,
+) -> NDArray[np.uint8]:
+    """(H, W) uint8 image of the board at x_cam = R @ (u, v, 0) + t seen through ``rays``."""
+    d = np.concatenate([rays, np.ones((*rays.shape[:-1], 1))], axis=-1)  # camera-frame directions
+    normal = R[:, 2]
+    denom = d @ normal
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (normal @ t) / denom
+    hit = np.isfinite(s) & (s > 0)
+    local = (s[..., None] * d - t) @ R  # board coordinates: R^T (x_cam - t), as row vectors
+    u, v = local[..., 0] / square_mm, local[..., 1] / square_mm
+    # Squares span u in [-1, cols], v in [-1, rows] (in squares); square (-1, -1) is black.
+    on_squares = hit & (u >= -1) & (u < cols) & (v >= -1) & (v < rows)
+    on_board = (
+        hit
+        & (u >= -1 - MARGIN_SQUARES)
+        & (u < cols + MARGIN_SQUARES)
+        & (v >= -1 - MARGIN_SQUARES)
+        & (v < rows + MARGIN_SQUARES)
+    )
+    black = (np.floor(u).astype(np.int64) + np.floor(v).astype(np.int64)) % 2 == 0
+    grey = np.where(on_board, WHITE, BACKGROUND)
+    grey = np.where(on_squares & black, BLACK, grey)
+    image = grey.mean(axis=-1) + rng.normal(0.0, NOISE_SIGMA, size=(cam.height, cam.width))
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+def _board_outline(cols: int, rows: int, square_mm: float) -> FloatArray:
+    """(4, 3) float64 outer corners of the board (margin included), board frame, mm."""
+    lo_u, hi_u = -1 - MARGIN_SQUARES, cols + MARGIN_SQUARES
+    lo_v, hi_v = -1 - MARGIN_SQUARES, rows + MARGIN_SQUARES
+    return square_mm * np.array([[lo_u, lo_v, 0], [hi_u, lo_v, 0], [hi_u, hi_v, 0], [lo_u, hi_v, 0]])
+
+
+def _fully_visible(cam: SynthCamera, R: FloatArray, t: FloatArray, outline_mm: FloatArray) -> bool:
+    """Whole board inside the image (with EDGE_PX to spare) and its printed face towards the camera."""
+    pts = outline_mm @ R.T + t
+    if np.any(pts[:, 2] <= 0) or R[:, 2] @ (-(R @ outline_mm.mean(axis=0) + t)) <= 0:
+        return False
+    # The outline's straight edges bow under distortion; sample them densely.
+    dense = np.concatenate([np.linspace(a, b, 20) for a, b in zip(outline_mm, np.roll(outline_mm, -1, 0))])
+    rvec, _ = cv2.Rodrigues(R)
+    px, _ = cv2.projectPoints(dense, rvec, t, cam.K, cam.dist)
+    px = px.reshape(-1, 2)
+    return bool(
+        np.all(px >= EDGE_PX)
+        and np.all(px[:, 0] <= cam.width - 1 - EDGE_PX)
+        and np.all(px[:, 1] <= cam.height - 1 - EDGE_PX)
+    )
+
+
+def _rotation(axis: FloatArray, angle: float) -> FloatArray:
+    rot, _ = cv2.Rodrigues(np.asarray(axis, dtype=np.float64) * angle)
+    return np.asarray(rot, dtype=np.float64)
+
+
+def _intrinsic_poses(
+    cam: SynthCamera, rng: np.random.Generator, views: int, cols: int, rows: int, square_mm: float
+) -> list[tuple[FloatArray, FloatArray]]:
+    """Board poses (camera from board) spread over the image, tilted up to ~50 degrees.
+
+    The board centres cycle through the image centre, its corners and edge
+    midpoints so that the distortion at the image borders is observed.
+    """
+    outline = _board_outline(cols, rows, square_mm)
+    centre_b = np.array([(cols - 1) / 2, (rows - 1) / 2, 0.0]) * square_mm
+    # Facing the camera: board x = camera x, board y = -camera y, board z = -camera z.
+    facing = np.diag([1.0, -1.0, -1.0])
+    w, h = cam.width, cam.height
+    targets = [(0.5, 0.5), (0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0), (0.5, 0.0), (1.0, 0.5)]
+    targets += [(0.5, 1.0), (0.0, 0.5)]
+    board_width = (cols + 1 + 2 * MARGIN_SQUARES) * square_mm
+    poses: list[tuple[FloatArray, FloatArray]] = []
+    attempts = 0
+    while len(poses) < views:
+        attempts += 1
+        if attempts > 200 * views:
+            raise RuntimeError(f"{cam.name}: cannot place {views} boards in view")
+        fill = rng.uniform(0.5, 0.8)  # board width as a fraction of the image width
+        # Target 0 / 1 puts the board against the left / right (top / bottom) border.
+        tx, ty = np.clip(np.array(targets[len(poses) % len(targets)]) + rng.normal(0, 0.05, 2), 0, 1)
+        pixel = np.array([w * (fill / 2 + tx * (1 - fill)), h * (fill / 2 + ty * (1 - fill))])
+        ray = cv2.undistortPoints(pixel.reshape(1, 1, 2), cam.K, cam.dist).reshape(2)
+        direction = np.append(ray, 1.0)
+        distance = cam.K[0, 0] * board_width / (fill * w)
+        tilt_axis = np.append(rng.normal(size=2), 0.0)
+        tilt = _rotation(tilt_axis / np.linalg.norm(tilt_axis), np.radians(rng.uniform(20, 45)))
+        spin = _rotation(np.array([0.0, 0.0, 1.0]), np.radians(rng.uniform(-30, 30)))
+        R = tilt @ facing @ spin
+        t = distance * direction / np.linalg.norm(direction) - R @ centre_b
+        if _fully_visible(cam, R, t, outline):
+            poses.append((R, t))
+    return poses
+
+
+def _shared_poses(
+    cams: list[SynthCamera],
+    subset: tuple[int, ...],
+    rng: np.random.Generator,
+    count: int,
+    cols: int,
+    rows: int,
+    square_mm: float,
+) -> list[tuple[FloatArray, FloatArray]]:
+    """Board poses (world from board) fully seen by every camera in ``subset`` at once.
+
+    The board floats between the workspace centre and those cameras, facing them.
+    """
+    outline = _board_outline(cols, rows, square_mm)
+    centre_b = np.array([(cols - 1) / 2, (rows - 1) / 2, 0.0]) * square_mm
+    towards = np.mean([c.center - WORKSPACE_CENTER_MM for c in (cams[i] for i in subset)], axis=0)
+    towards = towards / np.linalg.norm(towards)
+    poses: list[tuple[FloatArray, FloatArray]] = []
+    attempts = 0
+    while len(poses) < count:
+        attempts += 1
+        if attempts > 2000 * count:
+            raise RuntimeError(f"cannot place a board seen by cameras {subset}")
+        centre = WORKSPACE_CENTER_MM + towards * rng.uniform(150, 300) + rng.normal(0, 30, 3)
+        # Facing the bisector of the directions to the cameras: equally oblique to each.
+        to_cams = [cams[i].center - centre for i in subset]
+        normal = np.sum([d / np.linalg.norm(d) for d in to_cams], axis=0) + rng.normal(0, 0.1, 3)
+        z = normal / np.linalg.norm(normal)
+        x = np.cross(rng.normal(size=3), z)
+        x /= np.linalg.norm(x)
+        R = np.stack([x, np.cross(z, x), z], axis=1)
+        t = centre - R @ centre_b
+        if all(_fully_visible(cams[i], cams[i].R @ R, cams[i].R @ t + cams[i].t, outline) for i in subset):
+            poses.append((R, t))
+    return poses
