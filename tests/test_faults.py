@@ -1,0 +1,297 @@
+"""Faults during a run: the run finishes, bad frames are data, outputs are never half-written.
+
+Most tests replace the per-frame computation (``frame_fn``) by :func:`straight_rod`,
+a cheap stand-in that returns a fixed curve, so that they exercise the runner's
+fault handling and not the reconstruction.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+import pytest
+from conftest import build_session
+from mcap.reader import make_reader
+from mcap.records import Chunk, Message
+from mcap.stream_reader import StreamReader, breakup_chunk
+
+from pipeline import runner
+from pipeline.errors import OutputError
+from pipeline.frame_result import FrameResult
+from pipeline.record_mcap import METRICS_TOPIC
+from pipeline.recording import load_recording
+from pipeline.session import load_session
+from pipeline.settings import Settings
+
+# As many points as session.toml's default, which a recording without curves falls back on.
+CURVE_POINTS = Settings().centerline.points
+
+
+def straight_rod(index: int, images: Sequence[Any], model: Any) -> tuple[FrameResult, None]:
+    """A stand-in frame function: the rod of conftest, as an "ok" result with a few points."""
+    z = np.linspace(0.0, 160.0, CURVE_POINTS)
+    curve = np.column_stack([np.full_like(z, 128.0), np.full_like(z, 128.0), z])
+    points = np.random.default_rng(index).uniform(100, 156, (POINTS_PER_FRAME, 3)).astype(np.float32)
+    return FrameResult(index=index, status="ok", points_mm=points, centerline_mm=curve, length_mm=160.0), None
+
+
+POINTS_PER_FRAME = 50
+
+
+def dies_at_frame_5(index: int, images: Sequence[Any], model: Any) -> tuple[FrameResult, None]:
+    """Kill the worker process on frame 5, as the OOM killer would; note each attempt."""
+    if index == 5:
+        marker = Path(os.environ["FAULTS_ATTEMPTS_DIR"]) / f"attempt-{os.getpid()}"
+        marker.touch()
+        os._exit(9)
+    return straight_rod(index, images, model)
+
+
+def _run(session_dir: Path, out: Path, **options: Any) -> runner.RunSummary:
+    kwargs: dict[str, Any] = {"jobs": 1, "images": False, "progress": False, "frame_fn": straight_rod}
+    kwargs.update(options)
+    return runner.process_session(load_session(session_dir), out_dir=out, **kwargs)
+
+
+def _leftovers(out: Path) -> list[str]:
+    """Temporary files a run left behind."""
+    return sorted(p.name for p in out.iterdir() if p.name.startswith("."))
+
+
+def _cut(path: Path, fraction: float) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * fraction)])
+
+
+# --- damaged videos ------------------------------------------------------------------------
+
+
+def test_avi_cut_short_fails_the_frames_past_the_cut(tmp_path: Path) -> None:
+    session = build_session(tmp_path / "cut", frames=10)
+    _cut(session / "cam1.avi", 0.55)  # the AVI header still says 10 frames
+    out = tmp_path / "out"
+    summary = _run(session, out)
+    failed = dict(summary.frames_failed)
+    assert summary.exit_code == 1
+    assert summary.frames_ok + len(failed) == 10
+    # The first frames survive the cut; from the first lost frame on, every frame is lost.
+    first = min(failed)
+    assert 0 < first < 10 and sorted(failed) == list(range(first, 10))
+    assert all("camera cam1" in reason and "truncated" in reason for reason in failed.values())
+    rec = load_recording(out / "cut.mcap")
+    assert list(rec.frame_indices) == list(range(10))
+    assert list(rec.statuses).count("failed") == len(failed)
+
+
+def test_damaged_packet_fails_frames_of_that_camera_only(tmp_path: Path) -> None:
+    session = build_session(tmp_path / "dmg", frames=10)
+    video = session / "cam2.avi"
+    data = bytearray(video.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 800] = np.random.default_rng(1).bytes(800)
+    video.write_bytes(bytes(data))
+    summary = _run(session, tmp_path / "out")
+    assert summary.frames_ok + summary.frames_empty + len(summary.frames_failed) == 10
+    assert summary.frames_failed, "damage went unnoticed"
+    assert all("camera cam2" in reason for _, reason in summary.frames_failed)
+    assert summary.exit_code == 1
+
+
+def test_videos_of_different_lengths_process_the_common_frames(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    session = build_session(tmp_path / "len", frame_counts={"cam0": 6, "cam1": 4, "cam2": 5})
+    with caplog.at_level(logging.WARNING):
+        summary = _run(session, tmp_path / "out")
+    assert "cam0: 6, cam1: 4, cam2: 5" in caplog.text
+    assert (summary.frames_ok, summary.frames_failed, summary.exit_code) == (4, [], 0)
+
+
+# --- a worker that dies ----------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_worker_that_dies_is_retried_then_its_frames_fail(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    session = build_session(tmp_path / "die", frames=24)
+    attempts = tmp_path / "attempts"
+    attempts.mkdir()
+    monkeypatch.setenv("FAULTS_ATTEMPTS_DIR", str(attempts))  # inherited by the loky workers
+    summary = _run(session, tmp_path / "out", jobs=2, backend="loky", frame_fn=dies_at_frame_5)
+    assert len(list(attempts.iterdir())) >= 2  # tried, then tried again in a fresh worker
+    failed = dict(summary.frames_failed)
+    assert 5 in failed and "worker died" in failed[5]
+    # Only the dead range is lost (ranges are 8 frames: 0-7, 8-15, 16-23).
+    assert sorted(failed) == list(range(0, 8))
+    assert summary.frames_ok == 16 and summary.exit_code == 1
+
+
+# --- outputs: existing, unwritable, disk full, interrupted -----------------------------------
+
+
+def test_existing_outputs_are_kept_without_force(tmp_path: Path) -> None:
+    session = build_session(tmp_path / "take", frames=2)
+    out = tmp_path / "out"
+    _run(session, out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    with pytest.raises(OutputError, match=r"take\.mcap: already exists; use --force"):
+        _run(session, out)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+class _Recorder:
+    """Frame function that checks, while the run goes on, that the old outputs are intact."""
+
+    def __init__(self, path: Path) -> None:
+        self.path, self.original = path, path.read_bytes()
+        self.intact: list[bool] = []
+
+    def __call__(self, index: int, images: Sequence[Any], model: Any) -> tuple[FrameResult, None]:
+        self.intact.append(self.path.read_bytes() == self.original)
+        return straight_rod(index, images, model)
+
+
+def test_force_replaces_outputs_atomically(tmp_path: Path) -> None:
+    session = build_session(tmp_path / "take", frames=3)
+    out = tmp_path / "out"
+    _run(session, out, frames=(0, 1))
+    watch = _Recorder(out / "take.mcap")
+    # Threads: the frame function runs in this process and can look at the files mid-run.
+    summary = _run(session, out, force=True, backend="threading", frame_fn=watch)
+    assert watch.intact == [True, True, True]  # the old file stayed whole until the end
+    assert summary.frames_ok == 3 and len(load_recording(out / "take.mcap")) == 3
+    assert _leftovers(out) == []
+
+
+class _Interrupt:
+    def __call__(self, index: int, images: Sequence[Any], model: Any) -> tuple[FrameResult, None]:
+        if index == 2:
+            raise KeyboardInterrupt
+        return straight_rod(index, images, model)
+
+
+def test_interrupted_force_run_leaves_old_outputs(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    session = build_session(tmp_path / "take", frames=4)
+    out = tmp_path / "out"
+    _run(session, out, frames=(0, 1))
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    with pytest.raises(KeyboardInterrupt), caplog.at_level(logging.WARNING):
+        _run(session, out, force=True, backend="threading", frame_fn=_Interrupt())
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert "interrupted after" in caplog.text and "of 4 frames" in caplog.text
+
+
+def test_output_path_under_a_file_is_an_error_before_any_work(tmp_path: Path) -> None:
+    session = build_session(tmp_path / "take", frames=2)
+    (tmp_path / "file").write_text("not a directory")
+    # Tests run as root, so chmod cannot make a directory unwritable: a path under a file can't exist.
+    with pytest.raises(OutputError, match=r"file/out: cannot create the output directory"):
+        _run(session, tmp_path / "file" / "out")
+
+
+class _FullDisk:
+    """A file object that accepts ``room`` bytes and then raises ENOSPC, like a full disk."""
+
+    def __init__(self, real: IO[bytes], room: int) -> None:
+        self.real, self.room = real, room
+
+    def write(self, data: Any) -> int:
+        if len(data) > self.room:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        self.room -= len(data)
+        return self.real.write(data)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.real, name)
+
+
+@pytest.mark.parametrize("room", [0, 2000], ids=["at-open", "mid-run"])
+def test_disk_full_is_a_clear_error_and_leaves_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, room: int
+) -> None:
+    session = build_session(tmp_path / "take", frames=6)
+    real_open = runner._open_partial
+    monkeypatch.setattr(runner, "_open_partial", lambda path: _FullDisk(real_open(path), room))
+    out = tmp_path / "out"
+    with pytest.raises(OutputError, match=r"disk full while writing the recordings; free space"):
+        _run(session, out)
+    assert list(out.iterdir()) == []
+
+
+def test_disk_full_at_rename_leaves_no_half_output(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    session = build_session(tmp_path / "take", frames=2)
+
+    def replace(src: Any, dst: Any) -> None:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(runner.os, "replace", replace)
+    out = tmp_path / "out"
+    with pytest.raises(OutputError, match="disk full"):
+        _run(session, out)
+    assert list(out.iterdir()) == []
+
+
+# --- a recording cut short --------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def big_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A real output with several zstd chunks: 40 frames of 30k points (360 kB each)."""
+    base = tmp_path_factory.mktemp("rec")
+    session = build_session(base / "rec", frames=40)
+    mp = pytest.MonkeyPatch()
+    mp.setattr(sys.modules[__name__], "POINTS_PER_FRAME", 30_000)
+    try:
+        _run(session, base / "out")
+    finally:
+        mp.undo()
+    return base / "out" / "rec.mcap"
+
+
+def _frames_by_chunk(path: Path) -> list[tuple[int, int]]:
+    """(end offset of the chunk record, frames whose metrics message it holds), in file order."""
+    with path.open("rb") as f:
+        summary = make_reader(f).get_summary()
+        assert summary is not None
+        f.seek(0)
+        chunks = [r for r in StreamReader(f, emit_chunks=True).records if isinstance(r, Chunk)]
+    indexes = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    metrics = next(c.id for c in summary.channels.values() if c.topic == METRICS_TOPIC)
+    return [
+        (
+            index.chunk_start_offset + index.chunk_length,
+            sum(isinstance(r, Message) and r.channel_id == metrics for r in breakup_chunk(chunk)),
+        )
+        for index, chunk in zip(indexes, chunks, strict=True)
+    ]
+
+
+def test_recording_cut_short_is_read_to_its_last_complete_chunk(big_recording: Path, tmp_path: Path) -> None:
+    full = load_recording(big_recording)
+    assert full.complete and len(full) == 40
+    by_chunk = _frames_by_chunk(big_recording)
+    assert len(by_chunk) >= 4, "the fixture should span several chunks"
+    data = big_recording.read_bytes()
+    ends = [end for end, _ in by_chunk]
+    # Inside the first chunk, one byte short of a chunk's end, exactly at its end, in the middle
+    # of a later chunk, and in the summary after the last chunk.
+    cuts = [ends[0] // 2, ends[1] - 1, ends[1], (ends[2] + ends[3]) // 2, len(data) - 100]
+    cut_path = tmp_path / "cut.mcap"
+    for cut in cuts:
+        cut_path.write_bytes(data[:cut])
+        expected = sum(n for end, n in by_chunk if end <= cut)
+        rec = load_recording(cut_path)
+        assert not rec.complete
+        assert len(rec) == expected, f"cut at {cut}"
+        np.testing.assert_array_equal(rec.frame_indices, full.frame_indices[:expected])
+        np.testing.assert_array_equal(rec.centerlines_m, full.centerlines_m[:expected])
+        for got, want in zip(rec.points_m, full.points_m, strict=False):
+            np.testing.assert_array_equal(got, want)
