@@ -1,0 +1,197 @@
+"""The runner: ranges, frame-accurate seeking, media, retries, and a real end-to-end run.
+
+Faults (damaged videos, interrupts, full disks, a worker that always dies) are in
+test_faults.py; here: what a normal run produces, and a worker death that a retry
+repairs.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from conftest import build_session, write_video
+
+from pipeline import runner
+from pipeline.errors import SessionError
+from pipeline.frame_result import FrameResult
+from pipeline.recording import load_recording
+from pipeline.session import load_session
+from pipeline.video import read_frames
+
+RERUN = Path(sys.executable).parent / "rerun"  # the CLI installed with rerun-sdk
+RERUN_ENV = {**os.environ, "RERUN_ANALYTICS": "off"}
+
+
+def fixed_rod(index: int, images: Sequence[Any], model: Any) -> tuple[FrameResult, list[np.ndarray]]:
+    """A stand-in frame function: a fixed curve, and the dark pixels as silhouettes."""
+    z = np.linspace(0.0, 160.0, 16)
+    curve = np.column_stack([np.full_like(z, 128.0), np.full_like(z, 128.0), z])
+    result = FrameResult(index=index, status="ok", centerline_mm=curve, length_mm=160.0, iou=(1.0, 1.0, 1.0))
+    return result, [np.asarray(im) < 100 for im in images]
+
+
+def dies_once(marker: Path, index: int, images: Sequence[Any], model: Any) -> tuple[FrameResult, Any]:
+    """Kill the worker at frame 3 the first time only (the marker remembers)."""
+    if index == 3 and not marker.exists():
+        marker.touch()
+        os._exit(9)
+    return fixed_rod(index, images, model)
+
+
+# --- ranges and the summary ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("start", "stop", "workers"), [(0, 900, 2), (5, 37, 4), (0, 3, 8), (10, 11, 1)])
+def test_frame_ranges_partition_the_frames(start: int, stop: int, workers: int) -> None:
+    ranges = runner.frame_ranges(start, stop, workers)
+    assert ranges[0][0] == start and ranges[-1][1] == stop
+    assert all(a < b for a, b in ranges)
+    assert all(b == a2 for (_, b), (a2, _) in itertools.pairwise(ranges))
+    assert max(b - a for a, b in ranges) <= runner.MAX_RANGE_FRAMES
+
+
+def test_900_frames_on_two_workers_give_several_ranges_each() -> None:
+    sizes = [b - a for a, b in runner.frame_ranges(0, 900, 2)]
+    assert len(sizes) >= 2 * 4 and max(sizes) == 100
+
+
+def test_summary_compresses_failed_frames_into_ranges() -> None:
+    failed = [(3, "x"), (4, "x"), (5, "x"), (9, "y"), (10, "x")]
+    assert runner.compress_failures(failed) == [("3-5", "x"), ("9", "y"), ("10", "x")]
+    summary = runner.RunSummary(
+        frames_ok=10,
+        frames_empty=2,
+        frames_failed=failed,
+        wall_s=2.0,
+        fps=8.5,
+        outputs=[(Path("a.mcap"), 2048)],
+    )
+    lines = summary.lines()
+    assert lines[0] == "frames: 17 processed, 10 ok, 2 empty, 5 failed"
+    assert "  failed 3-5: x" in lines and "wrote a.mcap (2.0 KiB)" in lines
+    assert summary.exit_code == 1
+
+
+# --- frame-accurate seeking ------------------------------------------------------------------
+
+N_SEEK = 60
+
+
+def _level(i: int) -> int:
+    """Frame i of the seek videos is a flat grey of this level (4 grey levels apart)."""
+    return 10 + 4 * i
+
+
+@pytest.mark.parametrize(("ext", "fourcc"), [(".avi", "MJPG"), (".mp4", "mp4v"), (".mkv", "mp4v")])
+def test_ranges_starting_mid_file_get_exactly_their_frames(tmp_path: Path, ext: str, fourcc: str) -> None:
+    images = [np.full((64, 96), _level(i), np.uint8) for i in range(N_SEEK)]
+    path = write_video(tmp_path / f"seek{ext}", images, fourcc=fourcc)
+    # Starts between and on keyframes (mp4v puts one every 12 frames), and the last frame.
+    for start in (0, 1, 11, 12, 13, 29, 47, 59):
+        stop = min(start + 5, N_SEEK)
+        got = list(read_frames(path, start, stop))
+        assert [i for i, _ in got] == list(range(start, stop))
+        for i, image in got:
+            assert image is not None, f"{ext}: frame {i} not decoded"
+            # A flat frame survives compression within ~1 level; neighbours are 4 apart.
+            assert abs(float(np.median(image)) - _level(i)) < 1.5, (
+                f"{ext}: frame {i} after seeking to {start}"
+            )
+
+
+# --- one task --------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def short_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return build_session(tmp_path_factory.mktemp("runner") / "short", frames=12, empty_frames={2})
+
+
+def test_a_task_returns_results_and_small_media_only(short_session: Path) -> None:
+    session = load_session(short_session)
+    outputs = runner.process_range(
+        session, session.video_paths, ["cam0", "cam1", "cam2"], 4, 7, images=True, frame_fn=fixed_rod
+    )
+    assert [o.result.index for o in outputs] == [4, 5, 6]
+    frames = {i: im for i, im in read_frames(session.video_paths[1], 4, 7)}
+    for out in outputs:
+        assert out.jpegs is not None and out.silhouettes_png is not None
+        assert all(isinstance(b, bytes) for b in (*out.jpegs, *out.silhouettes_png))
+        jpeg = cv2.imdecode(np.frombuffer(out.jpegs[1], np.uint8), cv2.IMREAD_GRAYSCALE)
+        # JPEG at quality 85 of a flat image with a line: a few grey levels on average.
+        assert np.abs(jpeg.astype(int) - frames[out.result.index]).mean() < 3
+        tint = cv2.imdecode(np.frombuffer(out.silhouettes_png[1], np.uint8), cv2.IMREAD_UNCHANGED)
+        assert tint.shape == (240, 320, 4)
+        np.testing.assert_array_equal(tint[..., 3] > 0, frames[out.result.index] < 100)
+    no_images = runner.process_range(
+        session, session.video_paths, ["a", "b", "c"], 0, 1, images=False, frame_fn=fixed_rod
+    )
+    assert no_images[0].jpegs is None
+
+
+def test_a_frame_function_that_raises_fails_only_that_frame(short_session: Path) -> None:
+    session = load_session(short_session)
+
+    def flaky(index: int, images: Sequence[Any], model: Any) -> tuple[FrameResult, Any]:
+        if index == 1:
+            raise ValueError("no curve through 2 points")
+        return fixed_rod(index, images, model)
+
+    outputs = runner.process_range(session, session.video_paths, ["a", "b", "c"], 0, 3, frame_fn=flaky)
+    assert [o.result.status for o in outputs] == ["ok", "failed", "ok"]
+    assert outputs[1].result.reason == "ValueError: no curve through 2 points"
+
+
+# --- whole runs with a stand-in frame function ------------------------------------------------
+
+
+def test_a_run_writes_every_frame_in_order_at_its_timestamp(short_session: Path, tmp_path: Path) -> None:
+    session = load_session(short_session)
+    summary = runner.process_session(
+        session, out_dir=tmp_path, jobs=2, frames=(3, 11), progress=False, frame_fn=fixed_rod
+    )
+    assert (summary.frames_ok, summary.frames_failed, summary.exit_code) == (8, [], 0)
+    assert [p.name for p, _ in summary.outputs] == ["short.mcap", "short.rrd"]
+    assert all(size == p.stat().st_size > 0 for p, size in summary.outputs)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["short.mcap", "short.rrd"]  # no leftovers
+    rec = load_recording(tmp_path / "short.mcap")
+    np.testing.assert_array_equal(rec.frame_indices, np.arange(3, 11))
+    assert rec.timestamps_ns.tolist() == [session.timestamp_ns(i) for i in range(3, 11)]
+    np.testing.assert_allclose(rec.centerlines_m[:, -1], [[0.128, 0.128, 0.160]] * 8, rtol=1e-12)
+    # A fixed curve is its own temporal average.
+    assert rec.smoothed_centerlines_m is not None
+    np.testing.assert_allclose(rec.smoothed_centerlines_m, rec.centerlines_m, atol=1e-12)
+
+
+def test_frames_outside_the_session_are_refused(short_session: Path, tmp_path: Path) -> None:
+    with pytest.raises(SessionError, match=r"--frames 12:20 selects no frame \(the session has 12 frames"):
+        runner.process_session(
+            load_session(short_session), out_dir=tmp_path, frames=(12, 20), frame_fn=fixed_rod
+        )
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_a_worker_that_dies_once_is_retried_and_nothing_is_lost(short_session: Path, tmp_path: Path) -> None:
+    marker = tmp_path / "died"
+    summary = runner.process_session(
+        load_session(short_session),
+        out_dir=tmp_path / "out",
+        jobs=2,
+        backend="loky",
+        images=False,
+        progress=False,
+        frame_fn=functools.partial(dies_once, marker),
+    )
+    assert marker.exists()  # the worker did die
+    assert (summary.frames_ok, summary.frames_failed, summary.exit_code) == (12, [], 0)
+    assert len(load_recording(tmp_path / "out" / "short.mcap")) == 12
