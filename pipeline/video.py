@@ -80,7 +80,7 @@ def read_frames(path: Path, start: int, stop: int) -> Iterator[tuple[int, NDArra
                 continue
             if frame.ndim == 3:
                 frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
-            yield i, frame
+            yield i, np.asarray(frame, dtype=np.uint8)  # no copy: already uint8 (typed for mypy)
     finally:
         cap.release()
 
