@@ -1,0 +1,166 @@
+"""Base -> tip ordering of a visual hull by tracking along the tube.
+
+A visual hull of a curled tube is not a tube: where two parts of the tube overlap
+in one view, the hull grows false bridges between them, and an ordering by
+geodesic distance from the base short-cuts across them. Tracking does not: it
+marches from the base in steps, and at each step takes the centroid of the hull's
+cross-section just ahead, found by a mean shift restricted to a thin slab across
+the current direction and started on the straight-ahead prediction. A bridge
+leaving the tube sideways pulls that centroid by at most a fraction of the
+radius, and the march keeps its heading through the crossing (the continuation
+with the smallest turn wins).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+FloatArray = NDArray[np.float64]
+
+# Mean-shift iterations per step: the centroid moves < 0.1 voxel after three.
+_MEAN_SHIFT_ITERATIONS = 3
+
+
+def infer_base(
+    points_mm: FloatArray, origin_mm: FloatArray, size_mm: FloatArray, *, radius_mm: float
+) -> FloatArray:
+    """Where the tube enters the workspace, when the session does not say.
+
+    The manipulator is mounted outside or on the boundary of the carving box (the
+    floor, for the original rig), so its base is the hull's end nearest a face of
+    the box: the hull point closest to any face is found, and the base is the
+    centroid of the hull points within ``radius_mm`` of that face near that
+    point, moved onto the face.
+
+    Parameters
+    ----------
+    points_mm : (P, 3) hull voxel centres, world frame, mm.
+    origin_mm, size_mm : (3,) the workspace box (min corner and size), mm.
+    radius_mm : tube radius, mm (sets the neighbourhood size).
+
+    Returns
+    -------
+    (3,) float64 base point, world frame, mm.
+    """
+    pts = np.asarray(points_mm, dtype=np.float64)
+    lo = np.asarray(origin_mm, dtype=np.float64)
+    hi = lo + np.asarray(size_mm, dtype=np.float64)
+    gaps = np.concatenate([pts - lo, hi - pts], axis=1)  # (P, 6): distance to each face
+    nearest = int(np.argmin(gaps.min(axis=1)))
+    face = int(np.argmin(gaps[nearest]))
+    axis = face % 3
+    near_face = gaps[:, face] <= gaps[nearest, face] + radius_mm
+    near_point = np.linalg.norm(pts - pts[nearest], axis=1) <= 3.0 * radius_mm
+    base = pts[near_face & near_point].mean(axis=0)
+    base[axis] = lo[axis] if face < 3 else hi[axis]
+    return base
+
+
+def track_hull(
+    points_mm: FloatArray,
+    base_mm: FloatArray,
+    *,
+    radius_mm: float,
+    voxel_mm: float,
+    step_mm: float | None = None,
+    max_length_mm: float = 2000.0,
+) -> FloatArray:
+    """March through the hull from the base to the tip.
+
+    Parameters
+    ----------
+    points_mm : (P, 3) occupied voxel centres, world frame, mm.
+    base_mm : (3,) where the tube starts, world frame, mm.
+    radius_mm : tube radius, mm: the cross-section searched at each step.
+    voxel_mm : voxel edge, mm: the slab thickness.
+    step_mm : march step (default: the larger of one voxel and half the radius).
+    max_length_mm : stop after this much curve whatever happens (a guard).
+
+    Returns
+    -------
+    (M, 3) float64 polyline ordered base -> tip, world frame, mm; starts at
+    ``base_mm``. M == 1 when the hull holds nothing near the base.
+    """
+    pts = np.asarray(points_mm, dtype=np.float64)
+    base = np.asarray(base_mm, dtype=np.float64)
+    step = step_mm if step_mm is not None else max(voxel_mm, 0.5 * radius_mm)
+    tree = cKDTree(pts)
+    # The cross-section sought: the tube's own radius plus a voxel of hull overshoot.
+    reach = radius_mm + voxel_mm
+    half_slab = max(voxel_mm, 0.5 * step)
+
+    direction = _initial_direction(pts, tree, base, reach)
+    if direction is None:
+        return base[None].copy()
+    track = [base]
+    # Revisiting means the march turned into a part of the tube already walked
+    # (a tip touching the body): the axes of two touching parts are 2 r apart.
+    revisit_mm = 1.5 * radius_mm
+    skip_recent = int(np.ceil(4.0 * radius_mm / step)) + 1
+    for _ in range(int(max_length_mm / step)):
+        here = track[-1]
+        centre = _cross_section(pts, tree, here + step * direction, direction, reach, half_slab)
+        if centre is None:
+            break
+        move = centre - here
+        if move @ direction <= 0.25 * step:
+            break  # the cross-section lies behind: the end of the tube
+        if len(track) > skip_recent:
+            earlier = np.asarray(track[:-skip_recent])
+            if np.min(np.linalg.norm(earlier - centre, axis=1)) < revisit_mm:
+                break
+        track.append(centre)
+        new_dir = move / np.linalg.norm(move)
+        # Heading = a blend of the old and the measured one: damps the voxel noise
+        # without lagging behind a bend of radius >> step.
+        blended = new_dir + 0.5 * direction
+        direction = blended / np.linalg.norm(blended)
+    return np.asarray(track)
+
+
+def _initial_direction(
+    pts: FloatArray, tree: cKDTree, base: FloatArray, reach: float
+) -> FloatArray | None:
+    """Unit direction from the base into the hull, or None if no hull is near the base."""
+    _, nearest = tree.query(base)
+    start = pts[int(nearest)]
+    idx = tree.query_ball_point(start, 3.0 * reach)
+    ahead = pts[idx].mean(axis=0) - base
+    norm = float(np.linalg.norm(ahead))
+    if norm < 1e-9:
+        return None
+    return ahead / norm
+
+
+def _cross_section(
+    pts: FloatArray,
+    tree: cKDTree,
+    predicted: FloatArray,
+    direction: FloatArray,
+    reach: float,
+    half_slab: float,
+) -> FloatArray | None:
+    """Centroid of the hull's cross-section through ``predicted`` across ``direction``.
+
+    A mean shift inside the slab |(x - predicted) . direction| <= half_slab, started
+    at the prediction and limited to ``reach`` around its current estimate, so that
+    hull material more than one tube radius away (a false bridge, another part of
+    the tube) is ignored.
+    """
+    idx = tree.query_ball_point(predicted, float(np.hypot(2.0 * reach, half_slab)))
+    if not idx:
+        return None
+    cand = pts[idx]
+    along = (cand - predicted) @ direction
+    cand = cand[np.abs(along) <= half_slab]
+    if len(cand) == 0:
+        return None
+    centre = predicted
+    for _ in range(_MEAN_SHIFT_ITERATIONS):
+        close = cand[np.linalg.norm(cand - centre, axis=1) <= reach]
+        if len(close) == 0:
+            return None
+        centre = close.mean(axis=0)
+    return np.asarray(centre)

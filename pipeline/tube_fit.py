@@ -1,0 +1,587 @@
+"""Fit a tube of radius r to the silhouettes, starting from a rough centreline.
+
+The visual hull is larger than the tube, not centred on it when the views are
+uneven, and overshoots its end. The fit corrects all three from the grey images:
+
+- Sides. At samples along the curve, each camera's grey image is read along the
+  image normal of the projected curve; the two places where it crosses half way
+  between the tube's and the background's grey level are the silhouette's edges,
+  found to a fraction of a pixel. Their midpoint is where the axis must project.
+  The per-camera 2-D offsets become one linear least-squares problem for the 3-D
+  corrections of all samples (3 unknowns per sample, a smoothness term on the
+  corrections, none along the tangent), solved a few times (Gauss-Newton).
+- Contamination. Where another part of the tube lies across or beside a sample in
+  one view (the curve's projection passes near itself: loops, crossings), that
+  camera's reading there is dropped; so is a reading whose width is not the
+  tube's. The other views, and the smoothness, carry the sample.
+- The tip. Along the end tangent, each camera's image is read on the 3-D line
+  past the tip; where it leaves the tube, minus the end cap's own extent in that
+  view, is where the tube ends. Views seeing the end nearly head-on are weighted
+  down (sin^2 of the angle between the tangent and the line of sight).
+- The radius is the median half-width of the clean readings, in mm.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import solveh_banded
+
+from .camera import Camera
+from .centerline import polyline_arclength, resample_polyline
+
+FloatArray = NDArray[np.float64]
+
+# Finite-difference step for the projection Jacobian (mm): the projection is
+# smooth on this scale, and 1e-3 mm keeps the truncation error < 1e-6 px.
+_JAC_EPS_MM = 1e-3
+# Sampling step along the image profiles (px) and along the 3-D tip line (mm).
+_PROFILE_STEP_PX = 0.25
+_TIP_STEP_MM = 0.25
+# A curve sample explains the silhouette when it is the first to cover this many
+# of its pixels in some view; samples of a false bridge own none (measured: 0 on
+# every bridge sample, >= 4 on the tube's own samples 3 mm apart).
+_MIN_OWNED_PX = 3
+# cv2 drawing takes fixed-point coordinates with this many fractional bits.
+_DRAW_SHIFT = 4
+# A reading is trusted when the tube stands out from the background by this much.
+_MIN_CONTRAST = 12.0
+# Views where the tangent is closer than this (sin of the angle) to the line of
+# sight see the tube end-on: their normal and their tip reading are unreliable.
+_MIN_SIN_VIEW = 0.3
+# A reading wider than this factor times the expected width (+1 px) is contaminated.
+_WIDTH_TOLERANCE = 1.3
+
+
+@dataclass(frozen=True, eq=False)
+class TubeFit:
+    """Result of :func:`fit_tube`.
+
+    Attributes
+    ----------
+    points_mm : (K, 3) float64 fitted axis samples, base -> tip, world frame, mm.
+    radius_mm : tube radius from the silhouette widths (median), NaN if no clean reading.
+    residual_mm : RMS distance (mm) between the observed silhouette edges and the
+        fitted tube's edges, over all clean readings; NaN if none.
+    readings : number of clean (sample, camera) readings used.
+    """
+
+    points_mm: FloatArray
+    radius_mm: float
+    residual_mm: float
+    readings: int
+
+
+def foreground_contrast(
+    image: NDArray[np.uint8], *, polarity: str, background: NDArray[np.uint8] | None = None
+) -> NDArray[np.float32]:
+    """(H, W) float32 "how much foreground" image: higher on the tube.
+
+    ``|image - background|`` when a background is given, else the grey level
+    negated for a dark tube (``polarity == "dark"``) or as is for a bright one.
+    """
+    img = image.astype(np.float32)
+    if background is not None:
+        return np.abs(img - background.astype(np.float32))
+    return (255.0 - img) if polarity == "dark" else img
+
+
+def fit_tube(
+    curve_mm: FloatArray,
+    cameras: Sequence[Camera],
+    contrasts: Sequence[NDArray[np.float32]],
+    *,
+    radius_mm: float,
+    base_fixed: bool = True,
+    spacing_mm: float = 4.0,
+    iterations: int = 4,
+    smoothness: float = 4.0,
+    cap: str = "flat",
+) -> TubeFit:
+    """Move ``curve_mm`` so that the tube around it projects onto every silhouette.
+
+    Parameters
+    ----------
+    curve_mm : (M, 3) float64 rough axis ordered base -> tip, world frame, mm.
+    cameras : the calibrated cameras, in the order of ``contrasts``.
+    contrasts : per camera (H, W) float32 from :func:`foreground_contrast`.
+    radius_mm : first guess of the tube radius, mm; re-estimated as the fit goes.
+    base_fixed : keep the first point where it is (the known mount point).
+    spacing_mm : distance between fitted samples along the curve.
+    iterations : Gauss-Newton rounds (each re-reads the images).
+    smoothness : weight of the second difference of the corrections, relative to
+        one camera's reading of one sample.
+    cap : shape of the tube's end, "hemisphere" or "flat": how far its silhouette
+        reaches past the axis' end.
+
+    Returns
+    -------
+    :class:`TubeFit`.
+    """
+    pts = np.asarray(curve_mm, dtype=np.float64)
+    radius = float(radius_mm)
+    for _ in range(iterations):
+        pts = resample_polyline(pts, _sample_count(pts, spacing_mm))
+        obs = _read_sides(pts, cameras, contrasts, radius, spacing_mm)
+        if obs.readings >= 6:
+            radius = obs.radius_mm
+            pts = pts + _solve_corrections(pts, obs, base_fixed=base_fixed, smoothness=smoothness)
+        pts = _refit_tip(pts, cameras, contrasts, radius, cap=cap)
+    pts = resample_polyline(pts, _sample_count(pts, spacing_mm))
+    obs = _read_sides(pts, cameras, contrasts, radius, spacing_mm)
+    if obs.readings == 0:
+        return TubeFit(pts, float("nan"), float("nan"), 0)
+    return TubeFit(pts, obs.radius_mm, obs.residual_mm(), obs.readings)
+
+
+def trim_unexplained_tail(
+    curve_mm: FloatArray,
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    *,
+    radius_mm: float,
+    min_pixels: int = _MIN_OWNED_PX,
+) -> FloatArray:
+    """Cut the curve after the last point that explains silhouette pixels.
+
+    Every voxel of a false bridge projects inside every silhouette, so a march that
+    runs past the tip into one is consistent with each mask; but the tube it adds
+    covers no silhouette pixel that the curve before it does not already cover.
+    Each pixel is owned by the first sample (from the base) whose disc (the tube's
+    projected radius + 0.5 px) covers it; the curve ends at the last sample owning
+    at least ``min_pixels`` pixels in some view.
+
+    Parameters
+    ----------
+    curve_mm : (M, 3) float64 ordered base -> tip, world frame, mm.
+    cameras, masks : the cameras and their (H, W) bool silhouettes.
+    radius_mm : tube radius, mm.
+
+    Returns
+    -------
+    (M', 3) float64, M' <= M: a prefix of ``curve_mm``.
+    """
+    pts = np.asarray(curve_mm, dtype=np.float64)
+    m = len(pts)
+    owned = np.zeros(m, dtype=np.int64)
+    one = 1 << _DRAW_SHIFT
+    for cam, mask in zip(cameras, masks, strict=True):
+        owner = np.zeros(mask.shape, np.int32)
+        px = cam.project(pts)
+        depth = cam.to_camera(pts)[:, 2]
+        focal = float(np.mean(np.diag(cam.matrix)[:2]))
+        ok = np.isfinite(px).all(axis=1) & (depth > 0)
+        centres = np.round(np.nan_to_num(px) * one).astype(np.int64)
+        radii = np.round((focal * radius_mm / np.where(ok, depth, 1.0) + 0.5) * one).astype(np.int64)
+        # Drawn from the tip back, so the sample nearest the base wins each pixel.
+        for k in range(m - 1, -1, -1):
+            if ok[k]:
+                cv2.circle(owner, (int(centres[k, 0]), int(centres[k, 1])), int(radii[k]), k + 1, -1,
+                           cv2.LINE_8, _DRAW_SHIFT)
+        counts = np.bincount(owner[mask], minlength=m + 1)[1:]
+        owned = np.maximum(owned, counts)
+    needed = np.nonzero(owned >= min_pixels)[0]
+    last = int(needed[-1]) if len(needed) else m - 1
+    return pts[: max(last + 1, 2)]
+
+
+def _sample_count(pts: FloatArray, spacing_mm: float) -> int:
+    length = float(polyline_arclength(pts)[-1])
+    return max(6, round(length / spacing_mm) + 1)
+
+
+def _tangents(pts: FloatArray) -> FloatArray:
+    d = np.gradient(pts, axis=0)
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+
+def _project_with_jacobian(cam: Camera, pts: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Pixels (K, 2) and the projection's Jacobian (K, 2, 3) px/mm, by finite differences."""
+    k = len(pts)
+    shifted = np.concatenate([pts] + [pts + _JAC_EPS_MM * e for e in np.eye(3)])
+    px = cam.project(shifted).reshape(4, k, 2)
+    jac = (px[1:] - px[0]) / _JAC_EPS_MM  # (3, K, 2)
+    return px[0], jac.transpose(1, 2, 0)
+
+
+def _sample_image(image: NDArray[np.float32], xy: FloatArray) -> FloatArray:
+    """Bilinear samples of ``image`` at pixel positions ``xy`` (..., 2); edge pixels repeat."""
+    shape = xy.shape[:-1]
+    flat = xy.reshape(-1, 2).astype(np.float32)
+    # cv2.remap's maps must be 2-D; a (n, 1) map reads n pixels in one call.
+    out = cv2.remap(
+        image,
+        np.ascontiguousarray(flat[:, :1]),
+        np.ascontiguousarray(flat[:, 1:]),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
+    return np.asarray(out, dtype=np.float64).reshape(shape)
+
+
+@dataclass(frozen=True, eq=False)
+class _Sides:
+    """Side readings at K samples in C cameras; (K, C) arrays unless noted, mm.
+
+    ``left``/``right`` are the silhouette's edges along the image normal (negative
+    and positive side), converted to mm at the sample; ``use`` (K, C, 2) says which
+    edges are trusted. ``rows`` (K, C, 3) maps a 3-D motion of the sample (mm) to
+    the motion of its projection along the normal (mm).
+    """
+
+    rows: FloatArray
+    left: FloatArray
+    right: FloatArray
+    use: NDArray[np.bool_]
+    radius_mm: float
+
+    @property
+    def readings(self) -> int:
+        return int(self.use.sum())
+
+    def centres(self) -> tuple[FloatArray, FloatArray]:
+        """Where each view puts the axis along its normal (mm), and the reading's weight:
+        the mid-point of two trusted edges (weight 1), or one trusted edge moved in by
+        the radius (weight 1/2: it also carries the radius' error)."""
+        both = self.use[..., 0] & self.use[..., 1]
+        centre = np.where(
+            both,
+            0.5 * (self.left + self.right),
+            np.where(self.use[..., 0], self.left + self.radius_mm, self.right - self.radius_mm),
+        )
+        weight = np.where(both, 1.0, np.where(self.use.any(axis=-1), 0.5, 0.0))
+        return centre, weight
+
+    def residual_mm(self) -> float:
+        """RMS distance of the trusted edges from the tube's edges at +-radius, mm."""
+        gaps = np.concatenate(
+            [(self.left + self.radius_mm)[self.use[..., 0]], (self.right - self.radius_mm)[self.use[..., 1]]]
+        )
+        return float(np.sqrt(np.mean(gaps**2))) if gaps.size else float("nan")
+
+
+def _read_sides(
+    pts: FloatArray,
+    cameras: Sequence[Camera],
+    contrasts: Sequence[NDArray[np.float32]],
+    radius_mm: float,
+    spacing_mm: float,
+) -> _Sides:
+    k, c = len(pts), len(cameras)
+    tangents = _tangents(pts)
+    arc = polyline_arclength(pts)
+    rows = np.zeros((k, c, 3))
+    left = np.zeros((k, c))
+    right = np.zeros((k, c))
+    use = np.zeros((k, c, 2), dtype=bool)
+    # Samples within a radius of either end see the cap, not the sides.
+    interior = (arc > radius_mm) & (arc < arc[-1] - radius_mm)
+    for j, (cam, contrast) in enumerate(zip(cameras, contrasts, strict=True)):
+        px, jac = _project_with_jacobian(cam, pts)
+        ok = np.isfinite(px).all(axis=1)
+        t_img = np.einsum("kij,kj->ki", jac, tangents)
+        t_len = np.linalg.norm(t_img, axis=1)
+        t_hat = t_img / np.maximum(t_len, 1e-12)[:, None]
+        normal = np.column_stack([-t_hat[:, 1], t_hat[:, 0]])
+        row = np.einsum("ki,kij->kj", normal, jac)  # px per mm of motion, along the normal
+        scale = np.linalg.norm(row, axis=1)  # px per mm across the tube
+        ok &= (scale > 0) & (t_len > _MIN_SIN_VIEW * scale)
+        if not ok.any():
+            continue
+        r_px = radius_mm * scale
+        reach = float(np.max(2.5 * r_px[ok] + 3.0))
+        steps = np.arange(-reach, reach + 1e-9, _PROFILE_STEP_PX)
+        where = px[:, None, :] + steps[None, :, None] * normal[:, None, :]
+        profile = _sample_image(contrast, np.nan_to_num(where))
+        lo, hi, found = _edges(profile, steps, r_px)
+        crowd = _crowded(px, t_hat, r_px, arc, 2.5 * radius_mm + spacing_mm)
+        # A trusted edge is found, uncrowded on its side, and not farther from the
+        # axis than the tube's radius allows (by 30 %, +0.5 px of edge blur).
+        limit = _WIDTH_TOLERANCE * r_px + 0.5
+        use[:, j, 0] = ok & found & ~crowd[:, 0] & (-lo < limit + np.maximum(0.0, hi))
+        use[:, j, 1] = ok & found & ~crowd[:, 1] & (hi < limit + np.maximum(0.0, -lo))
+        both = use[:, j, 0] & use[:, j, 1]
+        wide = both & (hi - lo > 2.0 * limit)
+        use[wide, j] = False
+        rows[:, j] = row / np.where(scale > 0, scale, 1.0)[:, None]
+        left[:, j] = lo / np.where(scale > 0, scale, 1.0)
+        right[:, j] = hi / np.where(scale > 0, scale, 1.0)
+    both = use[..., 0] & use[..., 1] & interior[:, None]
+    half = 0.5 * (right - left)[both]
+    radius = float(np.median(half)) if half.size >= 3 else radius_mm
+    return _Sides(rows, left, right, use, radius)
+
+
+def _edges(
+    profile: FloatArray, steps: FloatArray, r_px: FloatArray
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Sub-pixel silhouette edges on (K, S) profiles taken at offsets ``steps`` (px).
+
+    An edge is where the profile falls half way from the tube's level to the
+    background's level on that side, interpolated between samples. The levels are
+    local, because the tube is shaded and the scene textured: the background is
+    the lower quartile of the profile's outer part on that side; the tube's level
+    is first the profile's peak near the centre, then (second pass) its value one
+    pixel inside the first edge estimate, i.e. the rim's own shade.
+
+    Returns left and right offsets (px) and whether both were found.
+    """
+    k, s = profile.shape
+    rows = np.arange(k)
+    step = steps[1] - steps[0]
+    core = np.abs(steps)[None, :] <= np.maximum(1.0, 0.6 * r_px)[:, None]
+    peak_idx = np.argmax(np.where(core, profile, -np.inf), axis=1)
+    peak = profile[rows, peak_idx]
+    outer = np.abs(steps)[None, :] >= (1.5 * r_px + 2.0)[:, None]
+    found = np.ones(k, dtype=bool)
+    edges = []
+    for side in (-1, 1):
+        region = outer & (np.sign(steps)[None, :] == side)
+        bg = _lower_quartile(profile, region)
+        ok = np.isfinite(bg) & (peak - bg >= _MIN_CONTRAST)
+        bg = np.where(ok, bg, peak)
+        pos, hit = _crossing(profile, peak_idx, 0.5 * (peak + bg), side)
+        # The rim's shade, one pixel inside the first estimate (not past the peak).
+        rim_at = np.clip(pos - side / step, np.minimum(peak_idx, pos), np.maximum(peak_idx, pos))
+        rim = _interp_rows(profile, rim_at)
+        rim = np.where(rim - bg >= _MIN_CONTRAST, rim, peak)
+        pos, hit2 = _crossing(profile, peak_idx, 0.5 * (rim + bg), side)
+        found &= ok & hit & hit2
+        edges.append(steps[0] + pos * step)
+    return edges[0], edges[1], found
+
+
+def _lower_quartile(profile: FloatArray, region: NDArray[np.bool_]) -> FloatArray:
+    """(K,) lower quartile of each row of ``profile`` over ``region``; inf where empty.
+
+    The lower quartile, not the median: another part of the tube crossing the
+    outer profile raises a median but not the background's lower values."""
+    ordered = np.sort(np.where(region, profile, np.inf), axis=1)
+    count = region.sum(axis=1)
+    return np.asarray(ordered[np.arange(len(profile)), (count // 4).clip(0, profile.shape[1] - 1)])
+
+
+def _interp_rows(profile: FloatArray, at: FloatArray) -> FloatArray:
+    """Linear interpolation of each row of (K, S) ``profile`` at fractional index ``at`` (K,)."""
+    s = profile.shape[1]
+    lo = np.clip(np.floor(at).astype(np.intp), 0, s - 2)
+    frac = np.clip(at - lo, 0.0, 1.0)
+    rows = np.arange(len(at))
+    return np.asarray((1 - frac) * profile[rows, lo] + frac * profile[rows, lo + 1])
+
+
+def _crossing(
+    profile: FloatArray, start: NDArray[np.intp], level: FloatArray, side: int
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """First fractional index from ``start`` towards ``side`` (+1/-1) where each row of
+    (K, S) ``profile`` falls below ``level`` (K,), and whether it does."""
+    k, s = profile.shape
+    idx = np.arange(s)[None, :]
+    below = (profile < level[:, None]) & ((idx - start[:, None]) * side > 0)
+    hit = below.any(axis=1)
+    if side > 0:
+        j = np.argmax(below, axis=1)
+    else:
+        j = s - 1 - np.argmax(below[:, ::-1], axis=1)
+    j = np.clip(j, 1, s - 2)
+    inner = j - side
+    rows = np.arange(k)
+    a, b = profile[rows, inner], profile[rows, j]
+    frac = np.clip((a - level) / np.maximum(a - b, 1e-9), 0.0, 1.0)
+    return inner + side * frac, hit
+
+
+def _crowded(
+    px: FloatArray, t_hat: FloatArray, r_px: FloatArray, arc: FloatArray, apart_mm: float
+) -> NDArray[np.bool_]:
+    """(K, 2) whether another part of the tube (more than ``apart_mm`` away along the
+    curve) touches sample k's silhouette on its negative / positive side in this view.
+
+    Another part at image offset ``delta`` from sample k lies on k's profile line
+    when |delta . t_hat_k| is within its own radius (+1.5 px: samples are ~2 px
+    apart along it), and touches k's silhouette on one side when delta . n_k is
+    within the two radii (+2 px) on that side; a part over k's axis (within 1 px)
+    spoils both sides. Parts farther along the profile only affect the background
+    level, which the lower quartile ignores.
+    """
+    delta = px[None, :, :] - px[:, None, :]  # (K, K', 2): from sample k to sample k'
+    along = np.abs(np.einsum("kmi,ki->km", delta, t_hat))
+    normal = np.column_stack([-t_hat[:, 1], t_hat[:, 0]])
+    across = np.einsum("kmi,ki->km", delta, normal)
+    near = (np.abs(arc[:, None] - arc[None, :]) > apart_mm) & (along < r_px[None, :] + 1.5)
+    touch = r_px[:, None] + r_px[None, :] + 2.0
+    negative = near & (across < 1.0) & (across > -touch)
+    positive = near & (across > -1.0) & (across < touch)
+    return np.column_stack([negative.any(axis=1), positive.any(axis=1)])
+
+
+def _solve_corrections(pts: FloatArray, obs: _Sides, *, base_fixed: bool, smoothness: float) -> FloatArray:
+    """(K, 3) corrections: least squares over all clean readings, with smooth corrections."""
+    k = len(pts)
+    tangents = _tangents(pts)
+    centre, w = obs.centres()
+    # Normal equations, block-diagonal data part: sum_j w a a^T and sum_j w a b.
+    blocks = np.einsum("kc,kci,kcj->kij", w, obs.rows, obs.rows)
+    rhs = np.einsum("kc,kci,kc->ki", w, obs.rows, centre)
+    # Motion along the tangent is not observed by the sides: hold it (weight 1),
+    # plus a tiny damping so that a sample with no reading stays solvable.
+    blocks += tangents[:, :, None] * tangents[:, None, :] + 1e-3 * np.eye(3)
+    # The system is banded (a sample couples with the two either side of it through
+    # the second difference): store it as LAPACK's upper band, 3 * 2 + 2 above the
+    # diagonal, and solve it in O(K) instead of densely.
+    n, upper = 3 * k, 8
+    band = np.zeros((upper + 1, n))
+    idx = np.arange(k)
+    for a in range(3):
+        for b in range(a, 3):
+            band[upper + a - b, 3 * idx + b] += blocks[:, a, b]
+    if k >= 3:
+        # Second-difference penalty D^T D on each coordinate: the pentadiagonal
+        # stencil (1, -4, 6, -4, 1) inside, trimmed at the ends.
+        d2tdd = np.zeros((3, k))  # diagonals 0, 1, 2 of D^T D
+        for row in range(k - 2):
+            stencil = np.array([1.0, -2.0, 1.0])
+            for p in range(3):
+                for q in range(p, 3):
+                    d2tdd[q - p, row + q] += stencil[p] * stencil[q]
+        for off in range(3):
+            for a in range(3):
+                band[upper - 3 * off, 3 * idx[off:] + a] += smoothness * d2tdd[off, off:]
+    g = rhs.reshape(-1)
+    if base_fixed:
+        # Pin the first sample: its rows and columns become the identity.
+        for a in range(3):
+            for d in range(1, min(upper, n - 1 - a) + 1):
+                band[upper - d, a + d] = 0.0  # row a, right of the diagonal
+            band[upper - a : upper, a] = 0.0  # column a, above the diagonal
+            band[upper, a] = 1.0
+        g[:3] = 0.0
+    return np.asarray(solveh_banded(band, g)).reshape(k, 3)
+
+
+def _refit_tip(
+    pts: FloatArray,
+    cameras: Sequence[Camera],
+    contrasts: Sequence[NDArray[np.float32]],
+    radius_mm: float,
+    *,
+    cap: str,
+) -> FloatArray:
+    """Extend or trim the curve to where the views see the tube end.
+
+    The end is followed along the curve's own continuation: a parabola in arc
+    length fitted to its last few radii, so that a loop's tip is sought on the
+    loop and not on its tangent line.
+    """
+    arc = polyline_arclength(pts)
+    end, direction, bend = _end_frame(pts, arc, span_mm=max(5.0 * radius_mm, 12.0))
+    reach = 3.0 * radius_mm + 12.0
+    t = np.arange(-2.0 * radius_mm - 4.0, reach, _TIP_STEP_MM)
+    line = end + t[:, None] * direction + (0.5 * t**2)[:, None] * bend
+    # Parts of the tube away from the end can lie across the end line in a view
+    # (a loop's tip coming back to its stem): that view's reading is skipped.
+    others = pts[arc < arc[-1] - (2.5 * radius_mm + 4.0)]
+    estimates, weights = [], []
+    for cam, contrast in zip(cameras, contrasts, strict=True):
+        px, jac = _project_with_jacobian(cam, end[None])
+        if not np.isfinite(px).all():
+            continue
+        depth = float(cam.to_camera(end[None])[0, 2])
+        px_per_mm = float(np.mean(np.diag(cam.matrix)[:2])) / depth
+        sin_view = float(np.linalg.norm(jac[0] @ direction)) / px_per_mm
+        if sin_view < _MIN_SIN_VIEW:
+            continue
+        sin_view = min(sin_view, 1.0)
+        line_px = np.nan_to_num(cam.project(line))
+        profile = _sample_image(contrast, line_px)[None, :]
+        edge = _tip_edge(profile, t, radius_mm, 1.0 / (px_per_mm * sin_view))
+        if edge is None:
+            continue  # no end in sight: the tube (or another part of it) fills the line
+        if len(others):
+            # Where the tip touches another part in this view, the end line runs on
+            # through that part and leaves it at its far side: an edge lying within
+            # a tube radius of another part's axis is that part's, not the tip's.
+            edge_px = cam.project((end + edge * direction)[None])
+            gap = float(np.min(np.linalg.norm(cam.project(others) - edge_px, axis=1)))
+            if not gap > radius_mm * px_per_mm + 1.5:
+                continue
+        cos_view = np.sqrt(max(0.0, 1.0 - sin_view**2))
+        cap_mm = radius_mm / sin_view if cap == "hemisphere" else radius_mm * cos_view / sin_view
+        estimates.append(edge - cap_mm)
+        weights.append(sin_view**2)
+    if not estimates:
+        return pts
+    shift = _weighted_median(np.asarray(estimates), np.asarray(weights))
+    extension = t[(t > 0) & (t < shift)]
+    if shift >= 0:
+        ahead = np.append(extension, shift)
+        return np.vstack([pts, end + ahead[:, None] * direction + (0.5 * ahead**2)[:, None] * bend])
+    keep = arc < arc[-1] + shift
+    cut = np.interp(arc[-1] + shift, arc, np.arange(len(pts), dtype=np.float64))
+    i = int(np.floor(cut))
+    new_end = pts[i] + (cut - i) * (pts[min(i + 1, len(pts) - 1)] - pts[i])
+    return np.vstack([pts[keep], new_end])
+
+
+def _end_frame(pts: FloatArray, arc: FloatArray, *, span_mm: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Position (3,), unit tangent (3,) and curvature vector (3,) at the curve's end.
+
+    A parabola in arc length, fitted by least squares to the last ``span_mm``
+    of the curve; its curvature is capped at 1/span (a fit on a short, noisy
+    end must not curl the continuation).
+    """
+    s = arc - arc[-1]
+    sel = s >= -span_mm
+    if sel.sum() < 4:
+        sel = np.arange(len(pts)) >= len(pts) - 4
+    basis = np.column_stack([np.ones(sel.sum()), s[sel], s[sel] ** 2])
+    coef, *_ = np.linalg.lstsq(basis, pts[sel], rcond=None)
+    end, velocity, half_acc = coef
+    direction = velocity / np.linalg.norm(velocity)
+    bend = 2.0 * half_acc
+    bend -= (bend @ direction) * direction
+    size = float(np.linalg.norm(bend))
+    if size > 1.0 / span_mm:
+        bend *= 1.0 / (span_mm * size)
+    return np.asarray(end), direction, bend
+
+
+def _tip_edge(profile: FloatArray, t: FloatArray, radius_mm: float, mm_per_px: float) -> float | None:
+    """Where a (1, S) profile read along the 3-D end line at ``t`` (mm) leaves the tube, mm.
+
+    Levels as in :func:`_edges`: a first crossing half way between the tube's peak
+    and the profile's lowest decile, then half way between the rim (one pixel
+    inside) and the lower quartile of what lies past the end.
+    """
+    step = t[1] - t[0]
+    inside = np.nonzero(t <= -radius_mm)[0]
+    if len(inside) == 0:
+        return None
+    start = np.array([int(np.argmax(profile[0, inside]))])
+    peak = profile[0, start]
+    bg = np.array([np.percentile(profile[0], 10)])
+    if peak[0] - bg[0] < _MIN_CONTRAST:
+        return None
+    pos, hit = _crossing(profile, start, 0.5 * (peak + bg), 1)
+    if not hit[0]:
+        return None
+    px_steps = mm_per_px / step  # one pixel, in samples
+    beyond = profile[0, int(np.ceil(pos[0] + px_steps)) :]
+    if len(beyond):
+        bg = np.array([np.percentile(beyond, 25)])
+    rim = _interp_rows(profile, np.maximum(pos - px_steps, start.astype(np.float64)))
+    rim = np.where(rim - bg >= _MIN_CONTRAST, rim, peak)
+    pos, hit = _crossing(profile, start, 0.5 * (rim + bg), 1)
+    if not hit[0]:
+        return None
+    return float(t[0] + pos[0] * step)
+
+
+def _weighted_median(values: FloatArray, weights: FloatArray) -> float:
+    order = np.argsort(values)
+    cum = np.cumsum(weights[order])
+    return float(values[order][np.searchsorted(cum, 0.5 * cum[-1])])
