@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import OutputError, SessionError
+from .errors import OutputError, SessionError, SettingsError
 from .frame_result import FrameResult
 from .session import Session
 from .video import read_frames
@@ -44,6 +44,7 @@ MAX_RANGE_FRAMES = 100
 MIN_RANGE_FRAMES = 8
 RANGES_PER_WORKER = 4
 JPEG_QUALITY = 85
+BACKENDS = ("loky", "threading", "dask")
 # Silhouettes are drawn over the camera image in Rerun: a translucent tint (BGRA for cv2).
 _SILHOUETTE_BGRA = (255, 200, 0, 110)
 
@@ -215,16 +216,15 @@ def _effective_jobs(jobs: int) -> int:
 
 
 @contextlib.contextmanager
-def _backend(backend: str, scheduler: str | None, n_jobs: int, model: Any) -> Iterator[None]:
-    """joblib's parallel_config for ``backend``; for Dask, a client for the run."""
+def _backend(backend: str, scheduler: str | None, n_jobs: int, model: Any) -> Iterator[int]:
+    """joblib's parallel_config for ``backend``, yielding the number of workers; for Dask,
+    a client for the run (and a local cluster when no scheduler is given)."""
     import joblib
 
     if backend in ("loky", "threading"):
         with joblib.parallel_config(backend=backend, n_jobs=n_jobs):
-            yield
+            yield n_jobs
         return
-    if backend != "dask":
-        raise SessionError(f"unknown backend {backend!r}; use loky, threading or dask")
     from distributed import Client, LocalCluster
 
     cluster = None
@@ -236,7 +236,8 @@ def _backend(backend: str, scheduler: str | None, n_jobs: int, model: Any) -> It
     try:
         # The model is scattered to the workers once, not shipped with every range.
         with joblib.parallel_config(backend="dask", client=client, scatter=[model]):
-            yield
+            workers = len(client.scheduler_info().get("workers", {}))
+            yield max(1, workers)
     finally:
         client.close()
         if cluster is not None:
@@ -388,6 +389,9 @@ def process_session(
         writable, or the disk filled up; temporary files are removed.
     KeyboardInterrupt : Ctrl-C or SIGTERM, after removing temporary files.
     """
+    t0 = time.perf_counter()
+    if backend not in BACKENDS:
+        raise SettingsError(f"backend {backend!r} unknown; use one of {', '.join(BACKENDS)}")
     out_dir = Path(out_dir)
     start, stop = _frame_span(session, frames)
     mcap_path, rrd_path = _prepare_outputs(out_dir, session.name, force)
@@ -407,7 +411,6 @@ def process_session(
         model: Any = build_model(session)
     else:
         model = session  # a replacement frame function gets the session as its model
-    ranges = frame_ranges(start, stop, n_jobs)
     names = tuple(c.name for c in session.cameras)
     # Absolute paths: Dask workers may run elsewhere (with the session at the same path).
     videos = tuple(p.resolve() for p in session.video_paths)
@@ -423,14 +426,14 @@ def process_session(
         writer = _Writers(session, mcap_path, rrd_path, images=images)
     except OSError as exc:  # the disk filled up before the first frame
         raise _output_error(out_dir, exc) from None
-    t0 = time.perf_counter()
     done = 0
     try:
         with (
             _sigterm_as_interrupt(),
-            _backend(backend, scheduler, n_jobs, model),
+            _backend(backend, scheduler, n_jobs, model) as n_workers,
             _progress(stop - start, progress) as bar,
         ):
+            ranges = frame_ranges(start, stop, n_workers)
             for span, outputs in _run_ranges(ranges, call, n_jobs):
                 if isinstance(outputs, str):
                     outputs = [FrameOutput(FrameResult.failed(i, outputs), None, None) for i in range(*span)]
