@@ -62,12 +62,14 @@ class HullGrid:
     pixel_offsets : (K,) int64, start of each camera's mask in the concatenated, flattened
         masks of one frame; one always-False sentinel pixel follows the last camera's.
     integral_offsets : (K,) int64, likewise for the (H + 1, W + 1) integral images.
-    coarse_corners : (C, K, 4) int32 flat indices into the concatenated integral images:
+    coarse_corners : (K, 4, C) int32 flat indices into the concatenated integral images:
         corners (top-left, top-right, bottom-left, bottom-right) of each coarse cell's
         pixel rectangle per camera; all 0 where the cell is outside the image.
-    fine_corners : (C * FINE_PER_COARSE, K, 4) int32, the same for fine cells.
-    voxel_pixels : (C * FINE_PER_COARSE, FINE^3, K) int32 index of each voxel's pixel in
+    fine_corners : (K, 4, C * FINE_PER_COARSE) int32, the same for fine cells.
+    voxel_pixels : (K, C * FINE_PER_COARSE, FINE^3) int32 index of each voxel's pixel in
         the concatenated masks, the sentinel where the centre is outside the image.
+        Camera-major: per-camera gathers and ANDs of contiguous rows are several times
+        faster than reducing over a short camera axis.
     coarse_offsets, fine_offsets, voxel_offsets : (C,), (FINE_PER_COARSE,), (FINE^3,)
         int64; a voxel's flat grid index is the sum of its three offsets.
     """
@@ -202,9 +204,9 @@ def build_grid(cameras: Sequence[Camera], workspace: Workspace) -> HullGrid:
 
     n_cells = ncx * ncy * ncz
     k = len(cameras)
-    coarse_corners = np.zeros((n_cells, k, 4), dtype=np.int32)
-    fine_corners = np.zeros((n_cells * fine_per_coarse, k, 4), dtype=np.int32)
-    voxel_pixels = np.empty((n_cells * fine_per_coarse, FINE**3, k), dtype=np.int32)
+    coarse_corners = np.zeros((k, 4, n_cells), dtype=np.int32)
+    fine_corners = np.zeros((k, 4, n_cells * fine_per_coarse), dtype=np.int32)
+    voxel_pixels = np.empty((k, n_cells * fine_per_coarse, FINE**3), dtype=np.int32)
 
     # Per axis a, voxel index i = (cell * COARSE + fine) * FINE + vox as a (n_cells_a,
     # COARSE, FINE) array; its centre coordinate and whether it is real (not padding).
@@ -236,7 +238,7 @@ def build_grid(cameras: Sequence[Camera], workspace: Workspace) -> HullGrid:
                 pix += iu
                 pix += pixel_offsets[c]
                 pix[outside] = sentinel
-                voxel_pixels[fine_rows, :, c] = pix.T  # exact integers in float64
+                voxel_pixels[c, fine_rows] = pix.T  # exact integers in float64
                 # NaN marks voxels outside the image; fmin/fmax skip them.
                 iu[outside] = np.nan
                 iv[outside] = np.nan
@@ -253,8 +255,8 @@ def build_grid(cameras: Sequence[Camera], workspace: Workspace) -> HullGrid:
                 coarse_rect = np.concatenate(
                     [np.fmin.reduce(g[:, :, :2], 1), np.fmax.reduce(g[:, :, 2:], 1)], axis=1
                 )
-                fine_corners[fine_rows, c] = _corners(fine_rect, w, int(integral_offsets[c]))
-                coarse_corners[coarse_rows, c] = _corners(coarse_rect, w, int(integral_offsets[c]))
+                fine_corners[c, :, fine_rows] = _corners(fine_rect, w, int(integral_offsets[c])).T
+                coarse_corners[c, :, coarse_rows] = _corners(coarse_rect, w, int(integral_offsets[c])).T
 
     strides = np.array([shape[1] * shape[2], shape[2], 1], dtype=np.int64)
 
@@ -365,11 +367,13 @@ def carve(grid: HullGrid, masks: Sequence[NDArray[np.bool_]]) -> IndexArray:
             return np.zeros(0, dtype=np.int64)
         pixels[grid.pixel_offsets[c] : grid.pixel_offsets[c] + w * h] = mask.ravel()
 
-    cells = np.flatnonzero(_nonempty(integrals, grid.coarse_corners))
+    cells = np.flatnonzero(_nonempty(integrals, grid.coarse_corners, None))
     per_coarse = len(grid.fine_offsets)
     fine = (cells[:, None] * per_coarse + np.arange(per_coarse)).ravel()
-    fine = fine[_nonempty(integrals, grid.fine_corners[fine])]
-    occupied = pixels[grid.voxel_pixels[fine]].all(axis=2)
+    fine = fine[_nonempty(integrals, grid.fine_corners, fine)]
+    occupied = pixels[grid.voxel_pixels[0][fine]]
+    for table in grid.voxel_pixels[1:]:
+        occupied &= pixels[table[fine]]
     rows, vox = np.nonzero(occupied)
     f = fine[rows]
     ids = grid.coarse_offsets[f // per_coarse] + grid.fine_offsets[f % per_coarse] + grid.voxel_offsets[vox]
@@ -377,12 +381,19 @@ def carve(grid: HullGrid, masks: Sequence[NDArray[np.bool_]]) -> IndexArray:
     return ids
 
 
-def _nonempty(integrals: NDArray[np.int32], corners: NDArray[np.int32]) -> NDArray[np.bool_]:
-    """(N, K, 4) rectangle corners -> (N,) True where every camera's rectangle holds a
-    silhouette pixel."""
-    g = integrals[corners]
-    sums = g[..., 0] - g[..., 1] - g[..., 2] + g[..., 3]
-    return np.asarray((sums > 0).all(axis=1))
+def _nonempty(
+    integrals: NDArray[np.int32], corners: NDArray[np.int32], cells: IndexArray | None
+) -> NDArray[np.bool_]:
+    """(K, 4, N) rectangle corners, restricted to ``cells`` (all when None) -> True where
+    every camera's rectangle holds a silhouette pixel."""
+    ok: NDArray[np.bool_] | None = None
+    for table in corners:
+        g = integrals[table if cells is None else table[:, cells]]
+        # Rectangle sum = br - tr - bl + tl > 0, written without a subtraction chain.
+        hit = g[3] + g[0] > g[1] + g[2]
+        ok = hit if ok is None else ok & hit
+    assert ok is not None
+    return ok
 
 
 def _check_masks(cameras: Sequence[Camera], masks: Sequence[NDArray[np.bool_]]) -> None:
