@@ -10,7 +10,10 @@ from __future__ import annotations
 import errno
 import logging
 import os
+import signal
+import subprocess
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import IO, Any
@@ -295,3 +298,63 @@ def test_recording_cut_short_is_read_to_its_last_complete_chunk(big_recording: P
         np.testing.assert_array_equal(rec.centerlines_m, full.centerlines_m[:expected])
         for got, want in zip(rec.points_m, full.points_m, strict=False):
             np.testing.assert_array_equal(got, want)
+
+
+# --- SIGTERM to the command line --------------------------------------------------------------
+
+# Installed as sitecustomize in every Python process of the run (the CLI and its loky workers):
+# the CLI's process_session gets a slow stand-in frame function, so that a short session lasts
+# long enough to be stopped mid-run.
+_SLOW_RUN_HOOK = """
+import os, time
+
+def slow_frame(index, images, model):
+    from pipeline.frame_result import FrameResult
+
+    time.sleep(float(os.environ["FAULTS_FRAME_S"]))
+    return FrameResult(index=index, status="empty", reason="slow stand-in"), None
+
+if os.environ.get("FAULTS_FRAME_S"):
+    import pipeline.runner as runner
+
+    _process_session = runner.process_session
+
+    def process_session(session, **options):
+        return _process_session(session, **options, frame_fn=slow_frame)
+
+    runner.process_session = process_session
+"""
+
+
+@pytest.mark.slow
+def test_sigterm_stops_the_run_and_keeps_previous_outputs(tmp_path: Path) -> None:
+    session = build_session(tmp_path / "take", frames=60)
+    out = tmp_path / "out"
+    out.mkdir()
+    previous = {"take.mcap": b"previous mcap", "take.rrd": b"previous rrd"}
+    for name, data in previous.items():
+        (out / name).write_bytes(data)
+    hook = tmp_path / "hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(_SLOW_RUN_HOOK)
+    env = {**os.environ, "PYTHONPATH": str(hook), "FAULTS_FRAME_S": "0.2"}
+    command = [sys.executable, "-m", "pipeline", "process", str(session), "--out", str(out)]
+    proc = subprocess.Popen(
+        [*command, "--jobs", "2", "--no-images", "--force"], stderr=subprocess.PIPE, text=True, env=env
+    )
+    try:
+        # Wait until the run is under way (its temporary MCAP exists), then a little more:
+        # 60 frames of 0.2 s on 2 workers last 6 s, so the signal lands mid-run.
+        for _ in range(1200):
+            if (out / ".take.mcap.partial").exists():
+                break
+            time.sleep(0.05)
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == previous
+    assert "Traceback" not in err
+    assert "interrupted after" in err and "of 60 frames" in err
