@@ -14,6 +14,7 @@ the cone that the chunk's bounding ball subtends at the camera.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -153,58 +154,115 @@ class Tube:
         return slice(m * CHUNK_SEGMENTS, min((m + 1) * CHUNK_SEGMENTS, len(self.length)))
 
 
-def _cylinders(
-    o: NDArray[np.float64], d: NDArray[np.float64], tube: Tube, sl: slice
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Entry distance (P, S) of rays into finite cylinders ``sl`` (inf: miss), and the
-    axial coordinate of the entry point (P, S)."""
+Hits = tuple[NDArray[np.float64], NDArray[np.float64]]  # distance (P,) (inf: miss), unit normal (P, 3)
+# Which candidate surface points (..., 3) lie on the flat-ended tube.
+Keep = Callable[[NDArray[np.float64]], NDArray[np.bool_]]
+
+
+def _nearest(t: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """Per ray (row), the index and distance of the nearest of several pieces (columns)."""
+    if t.shape[1] == 0:
+        return np.zeros(len(t), np.intp), np.full(len(t), np.inf)
+    k = np.argmin(t, axis=1)
+    return k, t[np.arange(len(t)), k]
+
+
+def _unit(v: NDArray[np.float64]) -> NDArray[np.float64]:
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _cylinder_hits(o: NDArray[np.float64], d: NDArray[np.float64], tube: Tube, sl: slice, keep: Keep) -> Hits:
+    """Nearest entry into the finite cylinders of segments ``sl``; ``keep(points)``
+    (P, S, 3) -> bool says which entry points lie on the tube."""
     a, u, L, r = tube.start[sl], tube.axis[sl], tube.length[sl], tube.radius
-    w = o - a  # (S, 3): one origin for every ray
+    w = o - a  # (S, 3): every ray starts at the camera centre
     du = d @ u.T  # (P, S)
     wu = np.einsum("ij,ij->i", w, u)  # (S,)
-    dw = d @ w.T  # (P, S)
-    ww = np.einsum("ij,ij->i", w, w)
+    # |w_perp + t d_perp|^2 = r^2, with the half-b form of the quadratic.
     A = 1.0 - du * du
-    B = dw - du * wu
-    C = ww - wu * wu - r * r
+    B = d @ w.T - du * wu
+    C = np.einsum("ij,ij->i", w, w) - wu * wu - r * r
     disc = B * B - A * C
     with np.errstate(invalid="ignore", divide="ignore"):
         t = (-B - np.sqrt(disc)) / A
-        h = wu + t * du
-    ok = (disc >= 0) & (A > 1e-12) & (t > 0) & (h >= 0) & (h <= L)
-    return np.where(ok, t, np.inf), h
+        h = wu + t * du  # axial coordinate of the entry point
+        ok = (disc >= 0) & (A > 1e-12) & (t > 0) & (h >= 0) & (h <= L)
+        ok &= keep(o + t[..., None] * d[:, None, :])
+    k, t_min = _nearest(np.where(ok, t, np.inf))
+    rows = np.arange(len(d))
+    hit = o + t_min[:, None] * d
+    axis_pt = a[k] + h[rows, k][:, None] * u[k]
+    return t_min, _unit(hit - axis_pt)
 
 
-def _balls(o: NDArray[np.float64], d: NDArray[np.float64], centers: NDArray[np.float64], r: float):
-    """Entry distance (P, J) of rays into balls (inf: miss)."""
+def _ball_hits(
+    o: NDArray[np.float64], d: NDArray[np.float64], centers: NDArray[np.float64], r: float, keep: Keep
+) -> Hits:
+    """Nearest entry into balls of radius ``r`` at ``centers`` (J, 3)."""
     w = o - centers  # (J, 3)
     b = d @ w.T  # (P, J)
-    c = np.einsum("ij,ij->i", w, w) - r * r
-    disc = b * b - c
+    disc = b * b - (np.einsum("ij,ij->i", w, w) - r * r)
     with np.errstate(invalid="ignore"):
         t = -b - np.sqrt(disc)
-    return np.where((disc >= 0) & (t > 0), t, np.inf)
+        ok = (disc >= 0) & (t > 0) & keep(o + t[..., None] * d[:, None, :])
+    k, t_min = _nearest(np.where(ok, t, np.inf))
+    hit = o + t_min[:, None] * d
+    return t_min, _unit(hit - centers[k]) if len(centers) else np.zeros_like(hit)
 
 
-def _cap(
+def _cap_hits(
     o: NDArray[np.float64],
     d: NDArray[np.float64],
     center: NDArray[np.float64],
     normal: NDArray[np.float64],
     r: float,
-) -> NDArray[np.float64]:
-    """Distance (P,) of rays to a flat disc (inf: miss)."""
+) -> Hits:
+    """Hits on a flat disc of radius ``r`` (an end cap) whose outward normal is ``normal``."""
     dn = d @ normal
     with np.errstate(divide="ignore", invalid="ignore"):
         t = ((center - o) @ normal) / dn
-    hit = o + t[:, None] * d
-    ok = (np.abs(dn) > 1e-12) & (t > 0) & (np.linalg.norm(hit - center, axis=1) <= r)
-    return np.where(ok, t, np.inf)
+        hit = o + t[:, None] * d
+        ok = (np.abs(dn) > 1e-12) & (t > 0) & (np.linalg.norm(hit - center, axis=1) <= r)
+    return np.where(ok, t, np.inf), np.broadcast_to(normal, d.shape)
+
+
+def _chunk_hits(tube: Tube, m: int, o: NDArray[np.float64], d: NDArray[np.float64]) -> Hits:
+    """Nearest hit of rays ``d`` (P, 3) with chunk ``m`` of the tube (and its end caps)."""
+    sl = tube.chunk_slice(m)
+    r = tube.radius
+    clip = END_CLIP_RADII * r
+    base_pt, base_n = tube.start[0], -tube.axis[0]
+    tip_pt = tube.start[-1] + tube.axis[-1] * tube.length[-1]
+    tip_n = tube.axis[-1]
+    near_base = tube.arc_mm[sl.start] < clip
+    near_tip = tube.arc_mm[sl.stop] > tube.arc_mm[-1] - clip
+
+    def keep(points: NDArray[np.float64]) -> NDArray[np.bool_]:
+        # Near an end, an entry point beyond the end plane is not on the (flat-ended)
+        # tube; rays that cross the plane inside the tube hit the cap instead.
+        ok = np.ones(points.shape[:-1], bool)
+        if near_base:
+            ok &= (points - base_pt) @ base_n <= 1e-9
+        if near_tip:
+            ok &= (points - tip_pt) @ tip_n <= 1e-9
+        return ok
+
+    # Joint j (the end of segment j) is an interior joint for j < S - 1.
+    joints = tube.joints[sl.start : min(sl.stop, len(tube.joints))]
+    pieces = [_cylinder_hits(o, d, tube, sl, keep), _ball_hits(o, d, joints, r, keep)]
+    if near_base:
+        pieces.append(_cap_hits(o, d, base_pt, base_n, r))
+    if near_tip:
+        pieces.append(_cap_hits(o, d, tip_pt, tip_n, r))
+    k, t = _nearest(np.stack([p[0] for p in pieces], axis=1))
+    normal = np.stack([p[1] for p in pieces], axis=1)[np.arange(len(d)), k]
+    return t, normal
 
 
 def intersect(
     tube: Tube, origin_mm: NDArray[np.float64], dirs: NDArray[np.float64], candidates: list[NDArray[np.intp]]
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+) -> Hits:
     """First hit of rays with the tube.
 
     Parameters
@@ -219,64 +277,16 @@ def intersect(
     t_mm : (Q,) distance to the first hit (inf: miss).
     normal : (Q, 3) unit outward surface normal at the hit (zeros: miss).
     """
-    q = len(dirs)
-    t_best = np.full(q, np.inf)
-    normal = np.zeros((q, 3))
+    t_best = np.full(len(dirs), np.inf)
+    normal = np.zeros((len(dirs), 3))
     o = np.asarray(origin_mm, dtype=np.float64)
-    r = tube.radius
-    total = tube.arc_mm[-1]
-    base_pt, base_n = tube.start[0], -tube.axis[0]
-    tip_pt, tip_n = tube.start[-1] + tube.axis[-1] * tube.length[-1], tube.axis[-1]
-    clip = END_CLIP_RADII * r
     for m, idx in enumerate(candidates):
         if len(idx) == 0:
             continue
-        d = dirs[idx]
-        sl = tube.chunk_slice(m)
-        t_cyl, h = _cylinders(o, d, tube, sl)
-        # Interior joints of this chunk's segments: joint j sits at the end of segment j.
-        j_lo, j_hi = sl.start, min(sl.stop, len(tube.joints))
-        t_ball = _balls(o, d, tube.joints[j_lo:j_hi], r) if j_hi > j_lo else np.full((len(idx), 0), np.inf)
-        near_base = tube.arc_mm[sl.start] < clip
-        near_tip = tube.arc_mm[sl.stop] > total - clip
-        if near_base or near_tip:
-            # Cut the pieces by the end planes: a ball or cylinder entry point beyond an
-            # end plane is not on the tube (the flat cap is tested on its own below).
-            for t_piece in (t_cyl, t_ball):
-                hit = o + t_piece[..., None] * d[:, None, :]
-                with np.errstate(invalid="ignore"):
-                    beyond = ((hit - base_pt) @ base_n > 1e-9) if near_base else False
-                    beyond = beyond | (((hit - tip_pt) @ tip_n > 1e-9) if near_tip else False)
-                t_piece[beyond] = np.inf
-        k_cyl = np.argmin(t_cyl, axis=1) if t_cyl.shape[1] else np.zeros(len(idx), int)
-        tc = t_cyl[np.arange(len(idx)), k_cyl] if t_cyl.shape[1] else np.full(len(idx), np.inf)
-        k_ball = np.argmin(t_ball, axis=1) if t_ball.shape[1] else np.zeros(len(idx), int)
-        tb = t_ball[np.arange(len(idx)), k_ball] if t_ball.shape[1] else np.full(len(idx), np.inf)
-        tcap_base = _cap(o, d, base_pt, base_n, r) if near_base else np.full(len(idx), np.inf)
-        tcap_tip = _cap(o, d, tip_pt, tip_n, r) if near_tip else np.full(len(idx), np.inf)
-        options = np.stack([tc, tb, tcap_base, tcap_tip], axis=1)
-        kind = np.argmin(options, axis=1)
-        t_new = options[np.arange(len(idx)), kind]
-        better = t_new < t_best[idx]
-        if not np.any(better):
-            continue
-        sel = idx[better]
-        kind, t_new, d_sel = kind[better], t_new[better], d[better]
-        hit = o + t_new[:, None] * d_sel
-        n = np.zeros_like(hit)
-        cyl = kind == 0
-        if np.any(cyl):
-            s = sl.start + k_cyl[better][cyl]
-            axis_pt = tube.start[s] + h[better][cyl, k_cyl[better][cyl]][:, None] * tube.axis[s]
-            n[cyl] = hit[cyl] - axis_pt
-        ball = kind == 1
-        if np.any(ball):
-            n[ball] = hit[ball] - tube.joints[j_lo + k_ball[better][ball]]
-        n[kind == 2] = base_n
-        n[kind == 3] = tip_n
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
-        t_best[sel] = t_new
-        normal[sel] = n
+        t, n = _chunk_hits(tube, m, o, dirs[idx])
+        better = t < t_best[idx]
+        t_best[idx[better]] = t[better]
+        normal[idx[better]] = n[better]
     return t_best, normal
 
 
