@@ -367,33 +367,37 @@ def carve(grid: HullGrid, masks: Sequence[NDArray[np.bool_]]) -> IndexArray:
             return np.zeros(0, dtype=np.int64)
         pixels[grid.pixel_offsets[c] : grid.pixel_offsets[c] + w * h] = mask.ravel()
 
-    cells = np.flatnonzero(_nonempty(integrals, grid.coarse_corners, None))
+    # Each level keeps the cells whose rectangle holds silhouette pixels in every camera,
+    # camera by camera, so that later cameras test only what the earlier ones kept.
     per_coarse = len(grid.fine_offsets)
+    per_fine = len(grid.voxel_offsets)
+    cells = _nonempty_cells(integrals, grid.coarse_corners, np.arange(grid.coarse_corners.shape[2]))
     fine = (cells[:, None] * per_coarse + np.arange(per_coarse)).ravel()
-    fine = fine[_nonempty(integrals, grid.fine_corners, fine)]
-    occupied = pixels[grid.voxel_pixels[0][fine]]
+    fine = _nonempty_cells(integrals, grid.fine_corners, fine)
+    # Voxel slots (fine cell * per_fine + voxel) that hit the silhouette in camera 0, then
+    # in each further camera.
+    hit = np.flatnonzero(pixels[grid.voxel_pixels[0][fine]])
+    slots = fine[hit // per_fine] * per_fine + hit % per_fine
     for table in grid.voxel_pixels[1:]:
-        occupied &= pixels[table[fine]]
-    rows, vox = np.nonzero(occupied)
-    f = fine[rows]
-    ids = grid.coarse_offsets[f // per_coarse] + grid.fine_offsets[f % per_coarse] + grid.voxel_offsets[vox]
+        slots = slots[pixels[table.reshape(-1)[slots]]]
+    f, v = np.divmod(slots, per_fine)
+    ids = grid.coarse_offsets[f // per_coarse] + grid.fine_offsets[f % per_coarse] + grid.voxel_offsets[v]
     ids.sort()
     return ids
 
 
-def _nonempty(
-    integrals: NDArray[np.int32], corners: NDArray[np.int32], cells: IndexArray | None
-) -> NDArray[np.bool_]:
-    """(K, 4, N) rectangle corners, restricted to ``cells`` (all when None) -> True where
-    every camera's rectangle holds a silhouette pixel."""
-    ok: NDArray[np.bool_] | None = None
+def _nonempty_cells(
+    integrals: NDArray[np.int32], corners: NDArray[np.int32], cells: IndexArray
+) -> IndexArray:
+    """The ``cells`` whose pixel rectangle holds a silhouette pixel in every camera.
+
+    corners : (K, 4, N) int32 flat integral-image indices (see :class:`HullGrid`).
+    """
     for table in corners:
-        g = integrals[table if cells is None else table[:, cells]]
-        # Rectangle sum = br - tr - bl + tl > 0, written without a subtraction chain.
-        hit = g[3] + g[0] > g[1] + g[2]
-        ok = hit if ok is None else ok & hit
-    assert ok is not None
-    return ok
+        g = integrals[np.take(table, cells, axis=1)]
+        # Rectangle sum = br - tr - bl + tl > 0, i.e. br + tl > tr + bl.
+        cells = cells[g[3] + g[0] > g[1] + g[2]]
+    return cells
 
 
 def _check_masks(cameras: Sequence[Camera], masks: Sequence[NDArray[np.bool_]]) -> None:
