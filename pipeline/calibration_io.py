@@ -34,6 +34,8 @@ def read_calibration(path: Path) -> list[Camera]:
         ) from None
     except tomllib.TOMLDecodeError as exc:
         raise CalibrationError(f"{path}: TOML syntax error: {exc}") from None
+    except UnicodeDecodeError:
+        raise CalibrationError(f"{path}: is not UTF-8 text; save it as UTF-8") from None
     except OSError as exc:
         raise CalibrationError(f"{path}: cannot read: {exc.strerror}") from None
     return cameras_from_dict(data, source=str(path))

@@ -57,6 +57,8 @@ class Session:
 def load_session(directory: Path | str) -> Session:
     """Read and validate ``directory``: calibration.toml, one video per camera, session.toml."""
     directory = Path(directory)
+    if directory.is_file():
+        raise SessionError(f"{directory}: is a file; give the session directory that holds it")
     if not directory.is_dir():
         raise SessionError(f"{directory}: no such session directory")
     if not any(directory.iterdir()):

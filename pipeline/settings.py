@@ -103,6 +103,8 @@ def load_settings(path: Path | None) -> Settings:
             data = tomllib.load(f)
     except tomllib.TOMLDecodeError as exc:
         raise SettingsError(f"{path}: TOML syntax error: {exc}") from None
+    except UnicodeDecodeError:
+        raise SettingsError(f"{path}: is not UTF-8 text; save it as UTF-8") from None
     except OSError as exc:
         raise SettingsError(f"{path}: cannot read: {exc.strerror}") from None
     return settings_from_dict(data, source=str(path))

@@ -69,6 +69,10 @@ def test_empty_video_dir(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     assert_rejected(tmp_path / "empty", capsys, "empty", "is empty")
 
 
+def test_video_given_instead_of_its_directory(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert_rejected(session / "cam0.avi", capsys, "cam0.avi", "is a file", "session directory")
+
+
 def test_no_calibration(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (session / "calibration.toml").unlink()
     assert_rejected(session, capsys, "calibration.toml", "not found")
@@ -246,6 +250,14 @@ def test_workspace_not_seen_by_a_camera(session: Path, capsys: pytest.CaptureFix
     # A box 3 m to the side of the rig: every camera looks elsewhere.
     (session / "session.toml").write_text("[workspace]\norigin_mm = [3000.0, 0.0, 0.0]\n")
     assert_rejected(session, capsys, "does not see the workspace", "camera 'cam", "session.toml")
+
+
+def test_frames_outside_the_session(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = session.parent / "out"
+    assert main([*_process(session, out), "--frames", "10:20"]) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "--frames 10:20 selects no frame" in err and "3 frames" in err
+    assert not out.exists() or not any(out.iterdir())
 
 
 # --- the CLI itself ----------------------------------------------------------------

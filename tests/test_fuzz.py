@@ -6,7 +6,6 @@ the CLI shows a PipelineError as one line, anything else as a traceback.
 
 from __future__ import annotations
 
-import string
 from datetime import UTC, date, datetime, time
 from pathlib import Path
 from typing import Any
@@ -122,7 +121,7 @@ def test_cameras_from_dict_accepts_or_raises_pipeline_error(doc: dict[str, Any])
         assert cam.matrix.shape == (3, 3) and cam.translation_mm.shape == (3,)
 
 
-# Random TOML-ish text: fragments of real documents glued with noise, so the parser's
+# Random TOML-ish bytes (not always UTF-8): fragments of real documents glued with noise, so the parser's
 # error paths and the loaders' type checks are both reached.
 _FRAGMENTS = [
     "[workspace]\n",
@@ -145,16 +144,16 @@ _FRAGMENTS = [
     ",",
     "{a = 1}",
 ]
-toml_texts = st.lists(
-    st.sampled_from(_FRAGMENTS) | st.text(alphabet=string.printable, max_size=6), max_size=14
-).map("".join)
+toml_bytes = st.lists(
+    st.sampled_from([f.encode() for f in _FRAGMENTS]) | st.binary(max_size=6), max_size=14
+).map(b"".join)
 
 
 @FUZZ
-@given(text=toml_texts)
-def test_loaders_accept_or_raise_pipeline_error_on_random_text(tmp_path: Path, text: str) -> None:
+@given(content=toml_bytes)
+def test_loaders_accept_or_raise_pipeline_error_on_random_bytes(tmp_path: Path, content: bytes) -> None:
     path = tmp_path / "doc.toml"
-    path.write_text(text)
+    path.write_bytes(content)
     for load in (load_settings, read_calibration):
         try:
             load(path)
@@ -180,3 +179,12 @@ def test_huge_integer_in_calibration_is_a_calibration_error(value: int) -> None:
     table["translation"] = [value, 0, 0]
     with pytest.raises(PipelineError, match="translation"):
         cameras_from_dict({"cam_0": table})
+
+
+def test_utf16_file_is_named_as_not_utf8(tmp_path: Path) -> None:
+    # What some Windows editors save: found by the byte fuzzer as a UnicodeDecodeError.
+    path = tmp_path / "calibration.toml"
+    path.write_text("[cam_0]\n", encoding="utf-16")
+    for load in (load_settings, read_calibration):
+        with pytest.raises(PipelineError, match=r"calibration\.toml: is not UTF-8 text; save it as UTF-8"):
+            load(path)
