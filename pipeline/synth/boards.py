@@ -52,7 +52,7 @@ EDGE_PX = 4.0  # every board corner (margin included) stays this far inside the 
 # and cam2 face each other, so a board is only ever seen by neighbours.
 SHARED_SETS: dict[str, tuple[tuple[tuple[int, ...], int], ...]] = {
     "oblique": (((0, 1), 4), ((1, 2), 4), ((0, 2), 4)),
-    "ninety": (((0, 1), 6), ((1, 2), 6)),
+    "ninety": (((0, 1), 8), ((1, 2), 8)),
 }
 WORLD_CAMERAS: dict[str, tuple[int, ...]] = {"oblique": (0, 1, 2), "ninety": (0, 1)}
 
@@ -199,7 +199,9 @@ def _fully_visible(cam: SynthCamera, R: FloatArray, t: FloatArray, outline_mm: F
     if np.any(pts[:, 2] <= 0) or R[:, 2] @ (-(R @ outline_mm.mean(axis=0) + t)) <= 0:
         return False
     # The outline's straight edges bow under distortion; sample them densely.
-    dense = np.concatenate([np.linspace(a, b, 20) for a, b in zip(outline_mm, np.roll(outline_mm, -1, 0))])
+    dense = np.concatenate(
+        [np.linspace(a, b, 20) for a, b in zip(outline_mm, np.roll(outline_mm, -1, 0), strict=True)]
+    )
     rvec, _ = cv2.Rodrigues(R)
     px, _ = cv2.projectPoints(dense, rvec, t, cam.K, cam.dist)
     px = px.reshape(-1, 2)

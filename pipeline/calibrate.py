@@ -1,0 +1,460 @@
+"""Board images -> calibration.toml: intrinsics, a common world frame, joint refinement.
+
+Input layout (camera names come from the folder names)::
+
+    CALIB_DIR/board.toml                 optional: type, inner_corners = [cols, rows], square_mm
+    CALIB_DIR/<camera>/intrinsics/*      board images (.png .jpg) or a video of the board moving
+    CALIB_DIR/<camera>/world.png|jpg     the board lying where the world frame should be
+    CALIB_DIR/<camera>/shared/NN.png     optional: boards seen by several cameras at the same
+                                         instant (same NN); links a camera without world.png
+
+Steps: corners per image (``pipeline.boards``), intrinsics per camera
+(cv2.calibrateCamera, corners that stand out dropped), then one joint
+refinement of all cameras over every board (cv2.calibrateMultiviewExtended,
+which chains cameras through pairwise shared views), and finally the world
+frame: the board of world.png (origin at its first inner corner, z out of the
+board).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .boards import Board, detect_corners, load_board
+from .calibration_io import write_calibration
+from .camera import Camera
+from .errors import CalibrationError
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+VIDEO_EXTS = (".mp4", ".avi", ".mkv", ".mov")
+MIN_VIEWS = 5
+VIDEO_SAMPLES = 30  # frames taken, evenly spaced, from an intrinsics video
+WORLD = "world"
+MM_PER_M = 1000.0
+# A corner is dropped when its residual is this many times the camera's median
+# residual and above CORNER_FLOOR_PX: the sector detector occasionally lands a
+# corner of a steeply tilted board a pixel off, which would pull the world frame.
+CORNER_FACTOR, CORNER_FLOOR_PX = 6.0, 0.4
+
+
+@dataclass(frozen=True)
+class View:
+    """One board image of one camera: ``key`` names the instant (shared across cameras)."""
+
+    camera: str
+    key: str
+    source: str  # file (or video#frame) for messages and the report
+    corners_px: FloatArray  # (cols * rows, 2) float64, board order
+    size_px: tuple[int, int]
+
+    @property
+    def shared(self) -> bool:
+        """True for world.* and shared/NN views, which may be seen by several cameras."""
+        return not self.key.startswith("intrinsics/")
+
+    @property
+    def instant(self) -> str:
+        """The board pose this view saw: shared by the cameras of a shared view, private otherwise."""
+        return self.key if self.shared else f"{self.camera}:{self.key}"
+
+
+@dataclass(frozen=True)
+class ImageError:
+    """Mean re-projection error of one image, px."""
+
+    camera: str
+    key: str
+    source: str
+    mean_px: float
+
+
+@dataclass
+class CalibrationResult:
+    """What :func:`calibrate_directory` found; ``cameras`` are in calibration.toml's world frame."""
+
+    cameras: list[Camera]
+    image_errors: list[ImageError]
+    board: Board
+    rms_px: float
+    dropped: list[str] = field(default_factory=list)
+    outliers: list[ImageError] = field(default_factory=list)
+    report_files: list[Path] = field(default_factory=list)
+
+    def camera_mean_px(self) -> dict[str, float]:
+        """Per camera, the mean over its images of their mean re-projection error, px."""
+        return {
+            cam.name: float(np.mean([e.mean_px for e in self.image_errors if e.camera == cam.name]))
+            for cam in self.cameras
+        }
+
+
+def calibrate_directory(
+    calib_dir: Path,
+    output: Path,
+    *,
+    board: tuple[int, int] | None = None,
+    square_mm: float | None = None,
+    charuco: tuple[int, int] | None = None,
+    shared_intrinsics: bool = False,
+    drop_outliers: bool = False,
+    report_dir: Path | None = None,
+) -> CalibrationResult:
+    """Calibrate every camera of ``calib_dir`` and write ``output`` (calibration.toml) and a report.
+
+    Parameters
+    ----------
+    calib_dir : folder in the layout of the module docstring.
+    output : calibration.toml to write (aniposelib layout, mm, world frame of world.*).
+    board, square_mm : inner corners (cols, rows) and square size; override board.toml.
+    charuco : ChArUco boards are not supported yet (raises CalibrationError).
+    shared_intrinsics : one K and distortion for all cameras (identical cameras).
+    drop_outliers : drop the images whose error stands out (see ``calibrate_report``) and recalibrate.
+    report_dir : where the pictures go; default: next to ``output``.
+    """
+    from .calibrate_report import find_outliers, write_report
+
+    if charuco is not None:
+        raise CalibrationError(f"{calib_dir}: ChArUco boards are not supported yet; use a chessboard")
+    calib_dir = Path(calib_dir)
+    if not calib_dir.is_dir():
+        raise CalibrationError(f"{calib_dir}: not a folder; expected CALIB_DIR/<camera>/intrinsics/*.png")
+    the_board = load_board(calib_dir, board=board, square_mm=square_mm)
+    views = detect_directory(calib_dir, the_board)
+    result = calibrate_views(views, the_board, shared_intrinsics=shared_intrinsics)
+    outliers = find_outliers(result.image_errors)
+    if drop_outliers and outliers:
+        drop = {(e.camera, e.key) for e in outliers if e.key != WORLD}
+        log.info("dropping %d outlier image(s) and recalibrating", len(drop))
+        kept = [v for v in views if (v.camera, v.key) not in drop]
+        result = calibrate_views(kept, the_board, shared_intrinsics=shared_intrinsics)
+        result.dropped = sorted(e.source for e in outliers if e.key != WORLD)
+        outliers = find_outliers(result.image_errors)
+    result.outliers = outliers
+    metadata = {
+        "source": "pipeline calibrate",
+        "calib_dir": str(calib_dir),
+        "board": f"chessboard {the_board.cols}x{the_board.rows}, {the_board.square_mm:g} mm",
+        "rms_px": result.rms_px,
+        "mean_reprojection_error_px": result.camera_mean_px(),
+        "images": {c.name: sum(e.camera == c.name for e in result.image_errors) for c in result.cameras},
+        "dropped": result.dropped,
+    }
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    write_calibration(output, result.cameras, metadata)
+    report = Path(report_dir) if report_dir is not None else output.parent
+    result.report_files = write_report(result, calib_dir, views, report)
+    return result
+
+
+# --- reading and detecting -------------------------------------------------------------------
+
+
+def camera_dirs(calib_dir: Path) -> list[Path]:
+    """Sub-folders of ``calib_dir`` that hold a camera's images, sorted by name."""
+    dirs = sorted(
+        d
+        for d in Path(calib_dir).iterdir()
+        if d.is_dir() and ((d / "intrinsics").is_dir() or _world_file(d) is not None)
+    )
+    if len(dirs) < 2:
+        raise CalibrationError(
+            f"{calib_dir}: found {len(dirs)} camera folder(s); expected at least two "
+            "CALIB_DIR/<camera>/intrinsics/ folders"
+        )
+    return dirs
+
+
+def _world_file(cam_dir: Path) -> Path | None:
+    found = [cam_dir / f"world{ext}" for ext in IMAGE_EXTS if (cam_dir / f"world{ext}").is_file()]
+    return found[0] if found else None
+
+
+def _read_grey(path: Path) -> NDArray[np.uint8]:
+    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise CalibrationError(f"{path}: cannot read this image")
+    return np.asarray(image, dtype=np.uint8)
+
+
+def _video_frames(path: Path) -> list[tuple[str, NDArray[np.uint8]]]:
+    """Up to VIDEO_SAMPLES grey frames, evenly spaced, of an intrinsics video."""
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise CalibrationError(f"{path}: cannot open this video")
+    frames = []
+    try:
+        count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        wanted = set(np.linspace(0, max(count - 1, 0), min(VIDEO_SAMPLES, max(count, 1))).astype(int))
+        index = 0
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            if index in wanted:
+                frames.append((f"{path.name}#{index}", cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)))
+            index += 1
+    finally:
+        cap.release()
+    return frames
+
+
+def detect_directory(calib_dir: Path, board: Board) -> list[View]:
+    """Corners of every usable image of every camera of ``calib_dir``.
+
+    An intrinsics or shared image without a board is skipped with a warning;
+    a world image without one is an error (it defines the frame).
+    """
+    views: list[View] = []
+    for cam_dir in camera_dirs(calib_dir):
+        cam = cam_dir.name
+        images: list[tuple[str, str, NDArray[np.uint8]]] = []  # key, source, image
+        intr = cam_dir / "intrinsics"
+        for path in sorted(intr.iterdir()) if intr.is_dir() else []:
+            if path.suffix.lower() in IMAGE_EXTS:
+                images.append((f"intrinsics/{path.name}", str(path), _read_grey(path)))
+            elif path.suffix.lower() in VIDEO_EXTS:
+                for name, frame in _video_frames(path):
+                    images.append((f"intrinsics/{name}", str(intr / name), frame))
+        shared = cam_dir / "shared"
+        for path in sorted(shared.iterdir()) if shared.is_dir() else []:
+            if path.suffix.lower() in IMAGE_EXTS:
+                images.append((f"shared/{path.stem}", str(path), _read_grey(path)))
+        world = _world_file(cam_dir)
+        if world is not None:
+            images.append((WORLD, str(world), _read_grey(world)))
+        sizes = {(im.shape[1], im.shape[0]) for _, _, im in images}
+        if len(sizes) > 1:
+            first = images[0]
+            odd = next(src for _, src, im in images if (im.shape[1], im.shape[0]) != first[2].shape[::-1])
+            raise CalibrationError(
+                f"camera {cam!r}: images of different sizes ({first[1]} is "
+                f"{first[2].shape[1]}x{first[2].shape[0]}, {odd} is not); one camera, one size"
+            )
+        for key, source, image in images:
+            corners = detect_corners(image, board)
+            if corners is None:
+                if key == WORLD:
+                    raise CalibrationError(
+                        f"{source}: board {board.cols}x{board.rows} not found; the world image must "
+                        "show the whole board (check --board COLSxROWS)"
+                    )
+                log.warning("%s: board %dx%d not found, image skipped", source, board.cols, board.rows)
+                continue
+            views.append(View(cam, key, source, corners, (image.shape[1], image.shape[0])))
+        usable = sum(v.camera == cam for v in views)
+        if usable < MIN_VIEWS:
+            raise CalibrationError(
+                f"camera {cam!r}: board found in only {usable} image(s) of {len(images)}; "
+                f"need at least {MIN_VIEWS} (more views, whole board visible, check --board)"
+            )
+    return views
+
+
+# --- calibrating ------------------------------------------------------------------------------
+
+
+def calibrate_views(views: list[View], board: Board, *, shared_intrinsics: bool = False) -> CalibrationResult:
+    """Cameras in the world frame of the ``world`` views, from detected corners.
+
+    Parameters
+    ----------
+    views : detections of every camera (at least one camera has a ``world`` view).
+    board : the board seen.
+    shared_intrinsics : one K and distortion for all cameras.
+    """
+    names = sorted({v.camera for v in views})
+    world_cams = [n for n in names if any(v.camera == n and v.key == WORLD for v in views)]
+    if not world_cams:
+        raise CalibrationError(f"no camera has a world image; put CALIB_DIR/{names[0]}/world.png")
+    # The multiview solver expresses everything in its camera 0: use a camera that sees the world board.
+    order = [world_cams[0]] + [n for n in names if n != world_cams[0]]
+    _check_connected(views, order)
+    sizes = {n: next(v.size_px for v in views if v.camera == n) for n in order}
+    obj = board.object_points()
+    corners = _clean_corners(views, board, sizes, shared_intrinsics)
+    intrinsics = _intrinsics(views, board, sizes, corners, shared_intrinsics)
+
+    keys = sorted({v.instant for v in views})
+    by = {(v.camera, v.instant): v for v in views}
+    detection = np.zeros((len(order), len(keys)), np.uint8)
+    image_points = []
+    for ci, name in enumerate(order):
+        per_frame = []
+        for fi, key in enumerate(keys):
+            pts = np.full((board.n_corners, 2), -1.0, np.float32)  # (-1, -1): not seen
+            view = by.get((name, key))
+            if view is not None:
+                pts[:] = corners[(name, view.key)]
+                detection[ci, fi] = 1
+            per_frame.append(pts)
+        image_points.append(per_frame)
+    # Metres, not mm: the solver scales the board by its squared size, and a board
+    # in mm trips its "Pattern points are collinear" guard.
+    obj_m = [(obj / MM_PER_M).astype(np.float32)] * len(keys)
+    try:
+        rms, Ks, dists, Rs, Ts, _pairs, rvecs0, tvecs0, _ = cv2.calibrateMultiviewExtended(
+            obj_m,
+            image_points,
+            [sizes[n] for n in order],
+            detection,
+            np.full(len(order), cv2.CALIB_MODEL_PINHOLE, np.uint8),
+            [intrinsics[n][0] for n in order],
+            [intrinsics[n][1] for n in order],
+            None,
+            None,
+            flagsForIntrinsics=np.zeros(len(order), np.int32),
+            flags=cv2.CALIB_USE_INTRINSIC_GUESS,
+        )
+    except cv2.error as exc:
+        raise CalibrationError(
+            f"joint calibration failed ({exc.err}); check the shared and world views"
+        ) from None
+
+    # Board of frame f in camera 0: x0 = R0f X + t0f; camera i: xi = Ri x0 + Ti (Rs are
+    # rotation vectors, whatever the docstring says).
+    world_index = keys.index(WORLD)
+    R_w, _ = cv2.Rodrigues(np.asarray(rvecs0[world_index], np.float64))
+    t_w = np.asarray(tvecs0[world_index], np.float64).ravel() * MM_PER_M
+    cameras = []
+    for ci, name in enumerate(order):
+        R_i, _ = cv2.Rodrigues(np.asarray(Rs[ci], np.float64).reshape(3))
+        T_i = np.asarray(Ts[ci], np.float64).ravel() * MM_PER_M
+        R = R_i @ R_w  # camera from world
+        rvec, _ = cv2.Rodrigues(R)
+        cameras.append(
+            Camera(
+                name=name,
+                size_px=sizes[name],
+                matrix=np.asarray(Ks[ci], np.float64),
+                distortions=np.asarray(dists[ci], np.float64).ravel()[:5],
+                rotation=np.asarray(rvec, np.float64).ravel(),
+                translation_mm=R_i @ t_w + T_i,
+            )
+        )
+    errors = _image_errors(views, board, cameras, order, keys, rvecs0, tvecs0)
+    cameras.sort(key=lambda c: c.name)
+    return CalibrationResult(cameras=cameras, image_errors=errors, board=board, rms_px=float(rms))
+
+
+def _check_connected(views: list[View], order: list[str]) -> None:
+    """Every camera must reach the world camera through boards seen by two cameras at once."""
+    seen_by: dict[str, set[str]] = {}
+    for v in views:
+        if v.shared:
+            seen_by.setdefault(v.key, set()).add(v.camera)
+    reached, frontier = {order[0]}, [order[0]]
+    while frontier:
+        cam = frontier.pop()
+        for cams in seen_by.values():
+            if cam in cams:
+                new = cams - reached
+                reached |= new
+                frontier.extend(new)
+    for name in order:
+        if name not in reached:
+            raise CalibrationError(
+                f"camera {name!r}: no world.png, and no shared/NN image whose board a camera "
+                "linked to the world also saw; add CALIB_DIR/{name}/world.png or shared views"
+            )
+
+
+def _intrinsics(
+    views: list[View],
+    board: Board,
+    sizes: dict[str, tuple[int, int]],
+    corners: dict[tuple[str, str], FloatArray],
+    shared: bool,
+) -> dict[str, tuple[FloatArray, FloatArray]]:
+    """(K (3, 3), distortion (5,)) per camera from all its views (``corners`` per (camera, key))."""
+    obj = board.object_points().astype(np.float32)
+    groups = {"*": list(sizes)} if shared else {n: [n] for n in sizes}
+    if shared and len(set(sizes.values())) > 1:
+        raise CalibrationError("--shared-intrinsics needs every camera's images to have the same size")
+    out: dict[str, tuple[FloatArray, FloatArray]] = {}
+    for members in groups.values():
+        mine = [v for v in views if v.camera in members]
+        imgs = [corners[(v.camera, v.key)].astype(np.float32) for v in mine]
+        _, K, dist, _, _ = cv2.calibrateCamera([obj] * len(imgs), imgs, sizes[members[0]], None, None)
+        for n in members:
+            out[n] = (np.asarray(K, np.float64), np.asarray(dist, np.float64).ravel()[:5])
+    return out
+
+
+def _clean_corners(
+    views: list[View], board: Board, sizes: dict[str, tuple[int, int]], shared: bool
+) -> dict[tuple[str, str], FloatArray]:
+    """Per view, its corners with the ones that stand out replaced by a first calibration's prediction.
+
+    Replacing rather than leaving out: the multiview solver's pairwise
+    initialisation does not cope with partly seen boards, and a handful of
+    predicted corners among 54 measured ones barely weighs.
+    """
+    raw = {(v.camera, v.key): v.corners_px for v in views}
+    intrinsics = _intrinsics(views, board, sizes, raw, shared)
+    obj = board.object_points()
+    predicted, residuals = {}, {}
+    for v in views:
+        K, dist = intrinsics[v.camera]
+        _, rvec, tvec = cv2.solvePnP(obj, v.corners_px, K, dist)
+        px, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
+        predicted[(v.camera, v.key)] = px.reshape(-1, 2).astype(np.float64)
+        residuals[(v.camera, v.key)] = np.linalg.norm(predicted[(v.camera, v.key)] - v.corners_px, axis=1)
+    cleaned = {}
+    for name in sizes:
+        median = float(np.median(np.concatenate([r for (c, _), r in residuals.items() if c == name])))
+        limit = max(CORNER_FACTOR * median, CORNER_FLOOR_PX)
+        for (c, key), r in residuals.items():
+            if c == name:
+                bad = r > limit
+                cleaned[(c, key)] = np.where(bad[:, None], predicted[(c, key)], raw[(c, key)])
+                if bad.any():
+                    log.debug("%s %s: %d corner(s) replaced", c, key, int(bad.sum()))
+    return cleaned
+
+
+def _image_errors(
+    views: list[View],
+    board: Board,
+    cameras: list[Camera],
+    order: list[str],
+    keys: list[str],
+    rvecs0: list[NDArray[np.float64]],
+    tvecs0: list[NDArray[np.float64]],
+) -> list[ImageError]:
+    """Mean re-projection error of every image under the final calibration (all corners)."""
+    obj = board.object_points()
+    cams = {c.name: c for c in cameras}
+    errors = []
+    for v in views:
+        cam = cams[v.camera]
+        fi = keys.index(v.instant)
+        r0, t0 = rvecs0[fi], tvecs0[fi]
+        if r0 is None or np.asarray(r0).size != 3:
+            continue
+        # Board pose in this camera: through camera 0's board pose and the camera's pose relative to it.
+        R0, _ = cv2.Rodrigues(np.asarray(r0, np.float64))
+        x0 = obj @ R0.T + np.asarray(t0, np.float64).ravel() * MM_PER_M  # camera 0 frame, mm
+        world_from_cam0 = _world_from_cam0(cams[order[0]])
+        world = x0 @ world_from_cam0[0].T + world_from_cam0[1]
+        px = cam.project(world)
+        errors.append(
+            ImageError(v.camera, v.key, v.source, float(np.linalg.norm(px - v.corners_px, axis=1).mean()))
+        )
+    return errors
+
+
+def _world_from_cam0(cam0: Camera) -> tuple[FloatArray, FloatArray]:
+    """(R, t) with X_world = R @ x_cam0 + t."""
+    R = cam0.camera_from_world
+    return R.T, -R.T @ cam0.translation_mm
