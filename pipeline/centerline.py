@@ -13,11 +13,27 @@ Three steps, each its own module:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy.interpolate import make_lsq_spline
+
+from .camera import Camera
+from .ordering import track_hull
+from .polyline import cut_polyline, polyline_arclength, resample_polyline
+from .tube_fit import TubeFit, fit_tube, trim_unexplained_tail
+
+__all__ = [
+    "Centerline",
+    "fit_centerline",
+    "polyline_arclength",
+    "radius_from_silhouettes",
+    "resample_polyline",
+    "smooth_curve",
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -49,20 +65,6 @@ class Centerline:
     @property
     def tip_mm(self) -> FloatArray:
         return self.points_mm[-1]
-
-
-def polyline_arclength(points_mm: FloatArray) -> FloatArray:
-    """(M,) cumulative chord length along an (M, 3) polyline, starting at 0 (mm)."""
-    seg = np.linalg.norm(np.diff(points_mm, axis=0), axis=1)
-    return np.concatenate([[0.0], np.cumsum(seg)])
-
-
-def resample_polyline(points_mm: FloatArray, n_points: int) -> FloatArray:
-    """(M, 3) polyline -> (n_points, 3) points uniform in chord length (linear interpolation)."""
-    pts = np.asarray(points_mm, dtype=np.float64)
-    s = polyline_arclength(pts)
-    u = np.linspace(0.0, s[-1], n_points)
-    return np.column_stack([np.interp(u, s, pts[:, i]) for i in range(3)])
 
 
 def smooth_curve(
@@ -109,3 +111,67 @@ def smooth_curve(
     return Centerline(
         points_mm=points, tangents=tangents, curvature_per_mm=curvature, length_mm=float(dense_s[-1])
     )
+
+
+def fit_centerline(
+    points_mm: FloatArray,
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    contrasts: Sequence[NDArray[np.float32]],
+    *,
+    base_mm: FloatArray,
+    base_known: bool,
+    radius_mm: float,
+    voxel_mm: float,
+    n_points: int = 64,
+) -> tuple[Centerline, TubeFit]:
+    """The whole centreline step: hull -> ordered polyline -> tube fit -> spline.
+
+    Parameters
+    ----------
+    points_mm : (P, 3) float64 occupied voxel centres, world frame, mm.
+    cameras, masks, contrasts : per camera: the camera, its (H, W) bool silhouette
+        and (H, W) float32 foreground contrast (:func:`pipeline.tube_fit.foreground_contrast`).
+    base_mm : (3,) where the tube starts, world frame, mm.
+    base_known : the base is the session's mount point (kept fixed by the fit),
+        not an estimate.
+    radius_mm : first guess of the tube radius, mm.
+    voxel_mm : voxel edge, mm.
+    n_points : samples of the resulting curve.
+
+    Returns
+    -------
+    The :class:`Centerline` and the :class:`~pipeline.tube_fit.TubeFit` it came
+    from (radius and residual). ValueError if the hull gives no curve.
+    """
+    track = track_hull(points_mm, base_mm, radius_mm=radius_mm, voxel_mm=voxel_mm)
+    if len(track) < 3:
+        raise ValueError("the hull holds no tube near the base")
+    track = trim_unexplained_tail(track, cameras, masks, radius_mm=radius_mm)
+    # The hull of a tube overshoots its end by up to a radius (more from steep
+    # views), and the march's last steps drift in it: start the fit from before
+    # that; the fit finds the end from the images.
+    length = float(polyline_arclength(track)[-1])
+    track = cut_polyline(track, max(length - 1.5 * radius_mm - voxel_mm, 0.5 * length))
+    fit = fit_tube(track, cameras, contrasts, radius_mm=radius_mm, base_fixed=base_known)
+    return smooth_curve(fit.points_mm, n_points=n_points), fit
+
+
+def radius_from_silhouettes(
+    cameras: Sequence[Camera], masks: Sequence[NDArray[np.bool_]], centre_mm: FloatArray
+) -> float:
+    """Rough tube radius (mm) from the silhouettes' area / perimeter, NaN if none.
+
+    A long strip of width w has area ~ w L and perimeter ~ 2 L, so w/2 ~
+    area / perimeter (px), converted at the depth of ``centre_mm`` (3,). Only a
+    first guess: the tube fit measures the radius properly.
+    """
+    radii = []
+    for cam, mask in zip(cameras, masks, strict=True):
+        contours, _ = cv2.findContours(mask.view(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        perimeter = sum(cv2.arcLength(c, True) for c in contours)
+        depth = float(cam.to_camera(np.asarray(centre_mm, dtype=np.float64)[None])[0, 2])
+        if perimeter > 0 and depth > 0:
+            focal = float(np.mean(np.diag(cam.matrix)[:2]))
+            radii.append(np.count_nonzero(mask) / perimeter * depth / focal)
+    return float(np.median(radii)) if radii else float("nan")

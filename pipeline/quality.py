@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .camera import Camera
-from .centerline import resample_polyline
+from .polyline import resample_polyline
 
 FloatArray = NDArray[np.float64]
 
@@ -62,7 +62,7 @@ def tube_mask(
     for (cx, cy), r in zip(centres.tolist(), radii.tolist(), strict=True):
         cv2.circle(canvas, (cx, cy), r, 255, -1, cv2.LINE_8, _SHIFT)
     if supersample > 1:
-        canvas = cv2.resize(canvas, (w, h), interpolation=cv2.INTER_AREA)
+        return np.asarray(cv2.resize(canvas, (w, h), interpolation=cv2.INTER_AREA) > 127)
     return canvas > 127
 
 

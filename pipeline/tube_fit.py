@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 from scipy.linalg import solveh_banded
 
 from .camera import Camera
-from .centerline import polyline_arclength, resample_polyline
+from .polyline import cut_polyline, polyline_arclength, resample_polyline
 
 FloatArray = NDArray[np.float64]
 
@@ -330,7 +330,7 @@ def _edges(
 
     Returns left and right offsets (px) and whether both were found.
     """
-    k, s = profile.shape
+    k = profile.shape[0]
     rows = np.arange(k)
     step = steps[1] - steps[0]
     core = np.abs(steps)[None, :] <= np.maximum(1.0, 0.6 * r_px)[:, None]
@@ -392,7 +392,7 @@ def _crossing(
     rows = np.arange(k)
     a, b = profile[rows, inner], profile[rows, j]
     frac = np.clip((a - level) / np.maximum(a - b, 1e-9), 0.0, 1.0)
-    return inner + side * frac, hit
+    return np.asarray(inner + side * frac, dtype=np.float64), np.asarray(hit)
 
 
 def _crowded(
@@ -520,14 +520,12 @@ def _refit_tip(
     if shift >= 0:
         ahead = np.append(extension, shift)
         return np.vstack([pts, end + ahead[:, None] * direction + (0.5 * ahead**2)[:, None] * bend])
-    keep = arc < arc[-1] + shift
-    cut = np.interp(arc[-1] + shift, arc, np.arange(len(pts), dtype=np.float64))
-    i = int(np.floor(cut))
-    new_end = pts[i] + (cut - i) * (pts[min(i + 1, len(pts) - 1)] - pts[i])
-    return np.vstack([pts[keep], new_end])
+    return cut_polyline(pts, arc[-1] + shift)
 
 
-def _end_frame(pts: FloatArray, arc: FloatArray, *, span_mm: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+def _end_frame(
+    pts: FloatArray, arc: FloatArray, *, span_mm: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Position (3,), unit tangent (3,) and curvature vector (3,) at the curve's end.
 
     A parabola in arc length, fitted by least squares to the last ``span_mm``

@@ -1,0 +1,35 @@
+"""Small helpers on ordered 3-D polylines (arc length, uniform resampling)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+def polyline_arclength(points_mm: FloatArray) -> FloatArray:
+    """(M,) cumulative chord length along an (M, 3) polyline, starting at 0 (mm)."""
+    seg = np.linalg.norm(np.diff(points_mm, axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(seg)])
+
+
+def resample_polyline(points_mm: FloatArray, n_points: int) -> FloatArray:
+    """(M, 3) polyline -> (n_points, 3) points uniform in chord length (linear interpolation)."""
+    pts = np.asarray(points_mm, dtype=np.float64)
+    s = polyline_arclength(pts)
+    u = np.linspace(0.0, s[-1], n_points)
+    return np.column_stack([np.interp(u, s, pts[:, i]) for i in range(3)])
+
+
+def cut_polyline(points_mm: FloatArray, length_mm: float) -> FloatArray:
+    """The first ``length_mm`` of an (M, 3) polyline (at least its first segment's start)."""
+    pts = np.asarray(points_mm, dtype=np.float64)
+    s = polyline_arclength(pts)
+    if length_mm >= s[-1]:
+        return pts
+    keep = s < length_mm
+    at = np.interp(length_mm, s, np.arange(len(pts), dtype=np.float64))
+    i = int(np.floor(at))
+    end = pts[i] + (at - i) * (pts[min(i + 1, len(pts) - 1)] - pts[i])
+    return np.vstack([pts[keep], end])

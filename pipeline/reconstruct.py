@@ -1,0 +1,234 @@
+"""The per-frame path: images -> silhouettes -> hull -> centreline -> quality.
+
+Pure: arrays in, a :class:`~pipeline.frame_result.FrameResult` out; no logging,
+no files. A frame that cannot be reconstructed is a result with status "empty"
+or "failed" and a reason, never an exception. What never changes over a session
+(cameras, settings, the voxel grid and its lookup tables, background images) is
+a :class:`SessionModel`, built once in the parent and sent to every worker.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .camera import Camera
+from .centerline import Centerline, fit_centerline, radius_from_silhouettes, smooth_curve
+from .frame_result import FrameResult
+from .hull import HullGrid, build_grid, carve, voxel_centers_mm
+from .ordering import infer_base
+from .quality import reprojection_iou
+from .session import Session
+from .settings import Settings
+from .silhouette import extract_silhouette
+from .tube_fit import foreground_contrast
+
+# Fewer occupied voxels than this cannot hold a tube: the frame is "failed"
+# (something was seen, but no curve can come of it).
+MIN_VOXELS = 8
+# Radius used to start the search when neither session.toml nor the silhouettes give one (mm).
+_FALLBACK_RADIUS_MM = 6.0
+
+
+@dataclass(frozen=True, eq=False)
+class SessionModel:
+    """What every frame of a session shares; built once, pickled to workers."""
+
+    cameras: tuple[Camera, ...]
+    settings: Settings
+    grid: HullGrid
+    backgrounds: tuple[NDArray[np.uint8] | None, ...]
+
+
+def build_model(session: Session) -> SessionModel:
+    """The per-session model: cameras, settings, voxel grid with its lookup tables."""
+    return SessionModel(
+        cameras=session.cameras,
+        settings=session.settings,
+        grid=build_grid(session.cameras, session.settings.workspace),
+        backgrounds=session.backgrounds,
+    )
+
+
+def frame_silhouettes(
+    images: Sequence[NDArray[np.uint8]], model: SessionModel
+) -> list[NDArray[np.bool_]]:
+    """Per camera (H, W) bool silhouette of one frame's (H, W) uint8 grey images."""
+    sil = model.settings.silhouette
+    use_bg = sil.method == "background"
+    return [
+        extract_silhouette(image, sil, background=bg if use_bg else None)
+        for image, bg in zip(images, model.backgrounds, strict=True)
+    ]
+
+
+def reconstruct_frame(
+    index: int, images: Sequence[NDArray[np.uint8] | None], model: SessionModel
+) -> FrameResult:
+    """One frame, from its grey images (one per camera, None if undecodable).
+
+    = :func:`frame_silhouettes` + :func:`reconstruct_from_silhouettes`, with the
+    silhouette time recorded under "silhouette".
+    """
+    for cam, image in zip(model.cameras, images, strict=True):
+        if image is None:
+            return FrameResult.failed(index, f"frame {index}: camera {cam.name!r} image could not be decoded")
+    present = [im for im in images if im is not None]
+    start = time.perf_counter()
+    masks = frame_silhouettes(present, model)
+    elapsed = time.perf_counter() - start
+    result = reconstruct_from_silhouettes(index, present, masks, model)
+    result.timings_s["silhouette"] = elapsed
+    return result
+
+
+def reconstruct_from_silhouettes(
+    index: int,
+    images: Sequence[NDArray[np.uint8]],
+    masks: Sequence[NDArray[np.bool_]],
+    model: SessionModel,
+) -> FrameResult:
+    """Hull, centreline and quality figures of one frame from its silhouettes.
+
+    Parameters
+    ----------
+    index : frame index in the session.
+    images : per camera (H, W) uint8 grey image (the tube fit reads its edges).
+    masks : per camera (H, W) bool silhouette.
+    model : the session's model.
+
+    Returns
+    -------
+    FrameResult with status "ok", "empty" (no silhouette in some view, or no
+    occupied voxel) or "failed" (with the reason: too little hull for a curve,
+    or a numerical failure of the fit).
+    """
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    for cam, mask in zip(model.cameras, masks, strict=True):
+        if not mask.any():
+            return FrameResult(
+                index=index,
+                status="empty",
+                reason=f"frame {index}: nothing seen by camera {cam.name!r}",
+                timings_s=timings,
+            )
+    points = voxel_centers_mm(model.settings.workspace, carve(model.grid, masks))
+    timings["carve"] = time.perf_counter() - start
+    if len(points) == 0:
+        return FrameResult(
+            index=index,
+            status="empty",
+            reason=f"frame {index}: the silhouettes share no voxel of the workspace",
+            timings_s=timings,
+        )
+    if len(points) < MIN_VOXELS:
+        return FrameResult.failed(
+            index,
+            f"frame {index}: only {len(points)} occupied voxels, too few for a curve",
+            points_mm=points,
+            timings_s=timings,
+        )
+    try:
+        return _curve_and_quality(index, images, masks, points, model, timings)
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+        # Numerical trouble with this frame's data is a failed frame, not a crash.
+        return FrameResult.failed(
+            index, f"frame {index}: centreline fit failed: {exc}", points_mm=points, timings_s=timings
+        )
+
+
+def _curve_and_quality(
+    index: int,
+    images: Sequence[NDArray[np.uint8]],
+    masks: Sequence[NDArray[np.bool_]],
+    points: NDArray[np.float32],
+    model: SessionModel,
+    timings: dict[str, float],
+) -> FrameResult:
+    settings = model.settings
+    cameras = model.cameras
+    start = time.perf_counter()
+    pts = points.astype(np.float64)
+    radius_guess = settings.manipulator.radius_mm or radius_from_silhouettes(
+        cameras, masks, pts.mean(axis=0)
+    )
+    if not np.isfinite(radius_guess) or radius_guess <= 0:
+        radius_guess = _FALLBACK_RADIUS_MM
+    known = settings.manipulator.base_mm is not None
+    if settings.manipulator.base_mm is not None:
+        base = np.asarray(settings.manipulator.base_mm, dtype=np.float64)
+    else:
+        ws = settings.workspace
+        base = infer_base(
+            pts, np.asarray(ws.origin_mm), np.asarray(ws.size_mm), radius_mm=radius_guess
+        )
+    n_points = settings.centerline.points
+    if settings.centerline.method == "polyfit":
+        curve = smooth_curve(_polyfit()(pts, base if known else None, n_points=n_points), n_points=n_points)
+        radius, residual = radius_guess, float("nan")
+    else:
+        contrasts = [
+            foreground_contrast(
+                image,
+                polarity=settings.silhouette.polarity,
+                background=bg if settings.silhouette.method == "background" else None,
+            )
+            for image, bg in zip(images, model.backgrounds, strict=True)
+        ]
+        curve, fit = fit_centerline(
+            pts,
+            cameras,
+            masks,
+            contrasts,
+            base_mm=base,
+            base_known=known,
+            radius_mm=radius_guess,
+            voxel_mm=settings.workspace.voxel_mm,
+            n_points=n_points,
+        )
+        radius, residual = fit.radius_mm, fit.residual_mm
+    timings["centerline"] = time.perf_counter() - start
+    start = time.perf_counter()
+    if not np.all(np.isfinite(curve.points_mm)):
+        raise ValueError("the curve has non-finite points")
+    draw_radius = radius if np.isfinite(radius) else radius_guess
+    iou = reprojection_iou(cameras, masks, curve.points_mm, draw_radius)
+    timings["quality"] = time.perf_counter() - start
+    return _ok(index, points, curve, radius, residual, iou, timings)
+
+
+def _ok(
+    index: int,
+    points: NDArray[np.float32],
+    curve: Centerline,
+    radius: float,
+    residual: float,
+    iou: tuple[float, ...],
+    timings: dict[str, float],
+) -> FrameResult:
+    return FrameResult(
+        index=index,
+        status="ok",
+        points_mm=points,
+        centerline_mm=curve.points_mm,
+        tangents=curve.tangents,
+        curvature_per_mm=curve.curvature_per_mm,
+        length_mm=curve.length_mm,
+        radius_mm=float(radius),
+        fit_residual_mm=float(residual),
+        iou=iou,
+        timings_s=timings,
+    )
+
+
+def _polyfit() -> Callable[..., Any]:
+    """The original method's curve (a baseline), imported only when asked for."""
+    from .baseline_curve import polyfit_centerline
+
+    return polyfit_centerline
