@@ -26,6 +26,7 @@ from mcap.records import Chunk, Message
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from pipeline import runner
+from pipeline.cli import EXIT_FRAMES_FAILED, EXIT_OK, main
 from pipeline.errors import OutputError
 from pipeline.frame_result import FrameResult
 from pipeline.record_mcap import METRICS_TOPIC
@@ -115,6 +116,41 @@ def test_videos_of_different_lengths_process_the_common_frames(
         summary = _run(session, tmp_path / "out")
     assert "cam0: 6, cam1: 4, cam2: 5" in caplog.text
     assert (summary.frames_ok, summary.frames_failed, summary.exit_code) == (4, [], 0)
+
+
+# --- the real reconstruction, through the command line ----------------------------------------
+
+# 4 mm voxels: a 64^3 grid, plenty for a 7 px rod and quick to build.
+COARSE = {"workspace": {"voxel_mm": 4.0}}
+
+
+def _cli_process(session: Path, out: Path) -> int:
+    return main(["process", str(session), "--out", str(out), "--jobs", "1", "--no-images"])
+
+
+def test_manipulator_out_of_view_is_empty_not_a_crash(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    session = build_session(tmp_path / "gone", frames=4, empty_frames={1, 2}, settings=COARSE)
+    assert _cli_process(session, tmp_path / "out") == EXIT_OK
+    assert "2 ok, 2 empty, 0 failed" in capsys.readouterr().out
+    rec = load_recording(tmp_path / "out" / "gone.mcap")
+    assert list(rec.statuses) == ["ok", "empty", "empty", "ok"]
+    assert np.isnan(rec.centerlines_m[1:3]).all() and not np.isnan(rec.centerlines_m[[0, 3]]).any()
+
+
+def test_truncated_video_run_exits_1_and_names_the_frames(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    session = build_session(tmp_path / "cut", frames=8, settings=COARSE)
+    _cut(session / "cam2.avi", 0.6)
+    assert _cli_process(session, tmp_path / "out") == EXIT_FRAMES_FAILED
+    out = capsys.readouterr().out
+    rec = load_recording(tmp_path / "out" / "cut.mcap")
+    failed = np.flatnonzero(rec.statuses == "failed")
+    assert len(failed) and (rec.statuses[: failed[0]] == "ok").all()
+    span = f"{failed[0]}-{failed[-1]}" if len(failed) > 1 else f"{failed[0]}"
+    assert f"failed {span}: camera cam2: frame could not be decoded" in out
 
 
 # --- a worker that dies ----------------------------------------------------------------------
