@@ -92,13 +92,39 @@ class Camera:
         k = np.zeros(14)
         dist = np.asarray(self.distortions, dtype=np.float64).ravel()
         k[: len(dist)] = dist
-        r2 = x * x + y * y
-        xy2 = 2.0 * x * y
-        radial = 1.0 + r2 * (k[0] + r2 * (k[1] + r2 * k[4]))
+        # In-place arithmetic: this runs on millions of points per session (build_grid).
+        x2 = x * x
+        y2 = y * y
+        r2 = x2 + y2
+        radial = r2 * k[4]  # 1 + k1 r2 + k2 r4 + k3 r6, by Horner
+        radial += k[1]
+        radial *= r2
+        radial += k[0]
+        radial *= r2
+        radial += 1.0
         if k[5:8].any():  # rational model
-            radial = radial / (1.0 + r2 * (k[5] + r2 * (k[6] + r2 * k[7])))
-        xd = x * radial + k[2] * xy2 + k[3] * (r2 + 2.0 * x * x)
-        yd = y * radial + k[2] * (r2 + 2.0 * y * y) + k[3] * xy2
+            den = r2 * k[7]
+            den += k[6]
+            den *= r2
+            den += k[5]
+            den *= r2
+            den += 1.0
+            radial /= den
+        xy2 = x * y
+        xy2 *= 2.0
+        xd = x * radial
+        yd = y * radial
+        # Tangential: xd += p1 2xy + p2 (r2 + 2x^2); yd += p1 (r2 + 2y^2) + p2 2xy.
+        x2 *= 2.0
+        x2 += r2
+        x2 *= k[3]
+        xd += x2
+        y2 *= 2.0
+        y2 += r2
+        y2 *= k[2]
+        yd += y2
+        xd += k[2] * xy2
+        yd += k[3] * xy2
         if k[8:12].any():  # thin prism
             xd = xd + r2 * (k[8] + r2 * k[9])
             yd = yd + r2 * (k[10] + r2 * k[11])
@@ -111,7 +137,11 @@ class Camera:
                 w * (tilt[1, 0] * xd + tilt[1, 1] * yd + tilt[1, 2]),
             )
         m = self.matrix
-        return m[0, 0] * xd + m[0, 2], m[1, 1] * yd + m[1, 2]
+        xd *= m[0, 0]
+        xd += m[0, 2]
+        yd *= m[1, 1]
+        yd += m[1, 2]
+        return xd, yd
 
     def undistort_pixels(self, pixels: FloatArray) -> FloatArray:
         """(N, 2) distorted pixels -> (N, 2) normalised image coordinates (x/z, y/z)."""
