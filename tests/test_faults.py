@@ -1,6 +1,6 @@
 """Faults during a run: the run finishes, bad frames are data, outputs are never half-written.
 
-Most tests replace the per-frame computation (``frame_fn``) by :func:`straight_rod`,
+Most tests replace the per-frame computation (``frame_fn``) by :class:`StraightRod`,
 a cheap stand-in that returns a fixed curve, so that they exercise the runner's
 fault handling and not the reconstruction.
 """
@@ -15,6 +15,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
@@ -38,15 +39,21 @@ from pipeline.settings import Settings
 CURVE_POINTS = Settings().centerline.points
 
 
-def straight_rod(index: int, images: Sequence[Any], model: Any) -> tuple[FrameResult, None]:
-    """A stand-in frame function: the rod of conftest, as an "ok" result with a few points."""
-    z = np.linspace(0.0, 160.0, CURVE_POINTS)
-    curve = np.column_stack([np.full_like(z, 128.0), np.full_like(z, 128.0), z])
-    points = np.random.default_rng(index).uniform(100, 156, (POINTS_PER_FRAME, 3)).astype(np.float32)
-    return FrameResult(index=index, status="ok", points_mm=points, centerline_mm=curve, length_mm=160.0), None
+@dataclass(frozen=True)
+class StraightRod:
+    """A stand-in frame function: the rod of conftest, as an "ok" result with ``points`` voxels."""
+
+    points: int = 50
+
+    def __call__(self, index: int, images: Sequence[Any], model: Any) -> tuple[FrameResult, None]:
+        z = np.linspace(0.0, 160.0, CURVE_POINTS)
+        curve = np.column_stack([np.full_like(z, 128.0), np.full_like(z, 128.0), z])
+        voxels = np.random.default_rng(index).uniform(100, 156, (self.points, 3)).astype(np.float32)
+        result = FrameResult(index=index, status="ok", points_mm=voxels, centerline_mm=curve, length_mm=160.0)
+        return result, None
 
 
-POINTS_PER_FRAME = 50
+straight_rod = StraightRod()
 
 
 def dies_at_frame_5(index: int, images: Sequence[Any], model: Any) -> tuple[FrameResult, None]:
@@ -286,12 +293,7 @@ def big_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A real output with several zstd chunks: 40 frames of 30k points (360 kB each)."""
     base = tmp_path_factory.mktemp("rec")
     session = build_session(base / "rec", frames=40)
-    mp = pytest.MonkeyPatch()
-    mp.setattr(sys.modules[__name__], "POINTS_PER_FRAME", 30_000)
-    try:
-        _run(session, base / "out")
-    finally:
-        mp.undo()
+    _run(session, base / "out", frame_fn=StraightRod(points=30_000))
     return base / "out" / "rec.mcap"
 
 
