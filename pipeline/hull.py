@@ -378,13 +378,14 @@ def carve(grid: HullGrid, masks: Sequence[NDArray[np.bool_]]) -> IndexArray:
         w, h = grid.image_sizes[c]
         if mask.shape != (h, w):
             raise ValueError(f"mask {c} has shape {mask.shape}, camera {c} images are {h}x{w}")
-        m8 = np.ascontiguousarray(mask).view(np.uint8)
+        m = np.ascontiguousarray(mask, dtype=np.bool_)  # no copy for a bool mask
+        m8 = m.view(np.uint8)
         start = int(grid.integral_offsets[c])
         table = integrals[start : start + (w + 1) * (h + 1)].reshape(h + 1, w + 1)
         cv2.integral(m8, sum=table, sdepth=cv2.CV_32S)
         if table[h, w] == 0:  # an empty silhouette carves everything away
             return np.zeros(0, dtype=np.int64)
-        pixels[grid.pixel_offsets[c] : grid.pixel_offsets[c] + w * h] = mask.ravel()
+        pixels[grid.pixel_offsets[c] : grid.pixel_offsets[c] + w * h] = m.ravel()
 
     # Each level keeps the cells whose rectangle holds silhouette pixels in every camera,
     # camera by camera, so that later cameras test only what the earlier ones kept.
@@ -397,8 +398,8 @@ def carve(grid: HullGrid, masks: Sequence[NDArray[np.bool_]]) -> IndexArray:
     # in each further camera.
     hit = np.flatnonzero(pixels[grid.voxel_pixels[0][fine]])
     slots = fine[hit // per_fine] * per_fine + hit % per_fine
-    for table in grid.voxel_pixels[1:]:
-        slots = slots[pixels[table.reshape(-1)[slots]]]
+    for lookup in grid.voxel_pixels[1:]:
+        slots = slots[pixels[lookup.reshape(-1)[slots]]]
     f, v = np.divmod(slots, per_fine)
     ids = grid.coarse_offsets[f // per_coarse] + grid.fine_offsets[f % per_coarse] + grid.voxel_offsets[v]
     ids.sort()

@@ -122,6 +122,13 @@ def test_grid_survives_pickling(tube_frame) -> None:
     np.testing.assert_array_equal(carve(clone, masks), carve(grid, masks))
 
 
+def test_uint8_masks_carve_like_bool_masks(tube_frame) -> None:
+    cams, ws, masks = tube_frame
+    grid = build_grid(cams, ws)
+    as_uint8 = [m.astype(np.uint8) * 255 for m in masks]
+    np.testing.assert_array_equal(carve(grid, as_uint8), carve(grid, masks))
+
+
 def test_pixel_rule_rounds_half_up_and_rejects_outside() -> None:
     u = np.array([2.5, 2.49, -0.5, -0.51, 9.49, 9.5, np.nan, 0.0])
     v = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 4.5])
