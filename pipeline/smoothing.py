@@ -1,4 +1,4 @@
-"""Temporal smoothing of a session's centrelines: less jitter, no blur.
+"""Temporal smoothing of a session's centrelines: less jitter, no blur, outliers ignored.
 
 Each centreline point (same index = same arc-length fraction along the curve) is
 smoothed over time by a local polynomial fit, a Savitzky-Golay filter that works
@@ -10,6 +10,14 @@ drops to 0.69 of its RMS and the tip's frame-to-frame second difference (the
 jitter figure of ``evaluate``) to 0.31. Degree 4 over the same window loses 70
 times more of a 2 Hz sweep for slightly more noise reduction (0.58), and a
 Gaussian of the same noise reduction loses 700 times more.
+
+A plain least-squares fit would spread one badly reconstructed frame over its ten
+neighbours. So wrong frames are found first and left out: a frame is an outlier
+when its deviation from the fit (the RMS over its points) exceeds six times the
+median deviation (LOWESS's cut-off, Cleveland 1979), and at least ``min_outlier_mm``,
+and is the largest in its window (its neighbours deviate only because of it).
+Outliers are removed one per window at a time, refitting in between, until none
+is left. An outlier's smoothed curve is then the fit of its neighbours alone.
 
 Failed frames (NaN rows) stay NaN and are simply absent from their neighbours'
 fits. Where a fit would amplify noise instead of reducing it (the first and last
@@ -24,6 +32,9 @@ from numpy.typing import ArrayLike, NDArray
 
 FloatArray = NDArray[np.float64]
 
+# LOWESS's choice (Cleveland 1979): outliers lie beyond six median deviations.
+_CUTOFF_MEDIANS = 6.0
+
 
 def smooth_centerlines(
     centerlines_mm: ArrayLike,
@@ -31,8 +42,10 @@ def smooth_centerlines(
     *,
     half_window: int = 5,
     degree: int = 6,
+    reject_outliers: bool = True,
+    min_outlier_mm: float = 1.0,
 ) -> FloatArray:
-    """Smooth centrelines over time, point by point, with a local polynomial.
+    """Smooth centrelines over time, point by point, with a robust local polynomial.
 
     Parameters
     ----------
@@ -43,6 +56,9 @@ def smooth_centerlines(
     half_window : frames on each side of a frame that enter its fit (by index,
         so the window is the same number of frames at any frame rate).
     degree : degree of the local polynomial in time.
+    reject_outliers : find wrong frames and leave them out of their neighbours' fits.
+    min_outlier_mm : a frame closer than this to the fit (RMS over its points, mm)
+        is never an outlier, however smooth the rest is.
 
     Returns
     -------
@@ -63,22 +79,70 @@ def smooth_centerlines(
         raise ValueError("smooth_centerlines: timestamps must be strictly increasing")
 
     ok: NDArray[np.bool_] = np.asarray(np.isfinite(curves).all(axis=(1, 2)))
-    out = curves.copy()
     if not ok.any():
-        return out
+        return curves.copy()
     # Fit in units of the typical frame step: keeps the Vandermonde matrix well conditioned.
     step = float(np.median(np.diff(times))) if len(times) > 1 else 1.0
-    for f in np.flatnonzero(ok).tolist():
-        lo, hi = max(0, f - half_window), min(len(curves), f + half_window + 1)
-        neighbours = lo + np.flatnonzero(ok[lo:hi])
-        weights = _local_fit_weights((times[neighbours] - times[f]) / step, degree)
-        if weights is not None:
-            out[f] = np.tensordot(weights, curves[neighbours], axes=1)
-    return out
+    offsets = times / step
+    active = ok.copy()  # frames that enter their neighbours' fits
+    # Each pass removes at least one frame, so this bound is never what stops it.
+    for _ in range(len(curves)):
+        fitted, has_fit = _local_fits(curves, offsets, active, half_window, degree)
+        if not reject_outliers:
+            break
+        outliers = _outliers(curves, fitted, active & has_fit, half_window, min_outlier_mm)
+        if not outliers.any():
+            break
+        active &= ~outliers
+    return np.where(has_fit[:, None, None], fitted, curves)
+
+
+def _outliers(
+    curves: FloatArray, fitted: FloatArray, judged: NDArray[np.bool_], half_window: int, min_mm: float
+) -> NDArray[np.bool_]:
+    """(F,) bool: judged frames far from their fit and the farthest in their window."""
+    if not judged.any():
+        return np.zeros(len(curves), dtype=bool)
+    deviation = np.full(len(curves), -np.inf)
+    deviation[judged] = np.sqrt(np.mean(np.sum((curves[judged] - fitted[judged]) ** 2, axis=2), axis=1))
+    cutoff = max(_CUTOFF_MEDIANS * float(np.median(deviation[judged])), min_mm)
+    # Window maximum by a sliding view over the padded deviations.
+    padded = np.pad(deviation, half_window, constant_values=-np.inf)
+    window_max = np.lib.stride_tricks.sliding_window_view(padded, 2 * half_window + 1).max(axis=1)
+    return np.asarray(judged & (deviation > cutoff) & (deviation >= window_max))
+
+
+def _local_fits(
+    curves: FloatArray, offsets: FloatArray, active: NDArray[np.bool_], half_window: int, degree: int
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Each ok frame's local polynomial fit over the active frames of its window.
+
+    Parameters
+    ----------
+    curves : (F, N, 3) float64, NaN rows for failed frames (never active).
+    offsets : (F,) float64 frame times in median frame steps.
+    active : (F,) bool frames that enter the fits.
+
+    Returns
+    -------
+    fitted : (F, N, 3) float64 fit at each frame; NaN where there is no usable fit.
+    has_fit : (F,) bool, True where the frame is ok and its fit is usable.
+    """
+    frames = len(curves)
+    fitted = np.full_like(curves, np.nan)
+    has_fit = np.zeros(frames, dtype=bool)
+    for f in np.flatnonzero(np.isfinite(curves).all(axis=(1, 2))).tolist():
+        lo, hi = max(0, f - half_window), min(frames, f + half_window + 1)
+        used = lo + np.flatnonzero(active[lo:hi])
+        coeffs = _local_fit_weights(offsets[used] - offsets[f], degree)
+        if coeffs is not None:
+            fitted[f] = np.tensordot(coeffs, curves[used], axes=1)
+            has_fit[f] = True
+    return fitted, has_fit
 
 
 def _local_fit_weights(offsets: FloatArray, degree: int) -> FloatArray | None:
-    """Weights w such that w @ y is the least-squares polynomial fit to y at offset 0.
+    """Coefficients c such that c @ y is the least-squares polynomial fit to y at offset 0.
 
     Parameters
     ----------
@@ -87,15 +151,15 @@ def _local_fit_weights(offsets: FloatArray, degree: int) -> FloatArray | None:
 
     Returns
     -------
-    (K,) float64 weights, or None when the fit is not worth using: too few samples
-    to be a fit rather than an interpolation, or a noise gain sum(w**2) >= 1 (the
-    fit would pass more noise than the raw sample).
+    (K,) float64 coefficients, or None when the fit is not worth using: too few
+    samples to be a fit rather than an interpolation, or a noise gain sum(c**2) >= 1
+    (the fit would pass more noise than the raw sample).
     """
     if len(offsets) < degree + 2:
         return None
     vander = np.vander(offsets, degree + 1, increasing=True)  # (K, degree + 1)
     # Row 0 of the pseudo-inverse evaluates the fitted polynomial's constant term.
-    weights = np.linalg.pinv(vander)[0]
-    if float(weights @ weights) >= 1.0:
+    coeffs = np.linalg.pinv(vander)[0]
+    if float(coeffs @ coeffs) >= 1.0:
         return None
-    return np.asarray(weights, dtype=np.float64)
+    return np.asarray(coeffs, dtype=np.float64)

@@ -102,6 +102,23 @@ def test_failed_frames_stay_nan_and_do_not_poison_neighbours() -> None:
     assert np.abs(smoothed[ok] - truth[ok]).max() < 0.1
 
 
+def test_a_wrong_frame_is_replaced_not_spread() -> None:
+    # Frames 20 and 41 were reconstructed 15 mm off (a wrong tip, a mis-ordered loop).
+    t = times(60)
+    truth = bending_arcs(1.0 * np.sin(2 * np.pi * 0.5 * t))
+    pred = truth.copy()
+    pred[20, 8:] += [15.0, 0.0, 0.0]
+    pred[41] += [0.0, 15.0, 0.0]
+    smoothed = smooth_centerlines(pred, t)
+    # Both frames are found and left out: neighbours are untouched and the
+    # wrong frames become their neighbours' fit (exact to the filter's blur, < 0.01 mm here).
+    assert np.abs(smoothed - truth).max() < 0.1
+    plain = smooth_centerlines(pred, t, reject_outliers=False)
+    assert (
+        np.abs(plain - truth).max(axis=(1, 2))[[19, 21, 40, 42]].min() > 1.0
+    )  # what least squares alone does
+
+
 def test_all_failed_or_single_frame_pass_through() -> None:
     nan = np.full((5, 4, 3), np.nan)
     assert np.isnan(smooth_centerlines(nan, times(5))).all()
