@@ -155,19 +155,23 @@ def _one_frame(
     camera_names: Sequence[str],
     frame_fn: FrameFunction,
     encode_images: bool,
+    decode_s: float,
 ) -> FrameOutput:
-    jpegs = tuple(_encode_jpeg(im) for im in images) if encode_images else None
     missing = [name for name, im in zip(camera_names, images, strict=True) if im is None]
+    masks: Sequence[Mask] | None = None
     if missing:
         reason = f"camera {', '.join(missing)}: frame could not be decoded (video truncated or damaged)"
-        return FrameOutput(FrameResult.failed(index, reason), jpegs, None)
-    present = [im for im in images if im is not None]
-    try:
-        result, masks = frame_fn(index, present, model)
-    except Exception as exc:  # a frame's failure is data, never the end of the run
-        return FrameOutput(FrameResult.failed(index, f"{type(exc).__name__}: {exc}"), jpegs, None)
+        result = FrameResult.failed(index, reason)
+    else:
+        try:
+            result, masks = frame_fn(index, [im for im in images if im is not None], model)
+        except Exception as exc:  # a frame's failure is data, never the end of the run
+            result = FrameResult.failed(index, f"{type(exc).__name__}: {exc}")
+    t0 = time.perf_counter()
+    jpegs = tuple(_encode_jpeg(im) for im in images) if encode_images else None
     pngs = None if masks is None else tuple(_encode_silhouette(np.asarray(m, bool)) for m in masks)
-    return FrameOutput(result, jpegs, pngs)
+    timings = {"decode": decode_s, **result.timings_s, "encode": time.perf_counter() - t0}
+    return FrameOutput(dataclasses.replace(result, timings_s=timings), jpegs, pngs)
 
 
 def process_range(
@@ -184,11 +188,17 @@ def process_range(
     frame_fn = frame_fn or reconstruct_with_silhouettes
     readers = [read_frames(Path(p), start, stop) for p in video_paths]
     outputs = []
+    frames = zip(*readers, strict=True)
     try:
-        for decoded in zip(*readers, strict=True):
+        while True:
+            t0 = time.perf_counter()
+            decoded = next(frames, None)
+            if decoded is None:
+                break
             index = decoded[0][0]
-            frames = [image for _, image in decoded]
-            outputs.append(_one_frame(index, frames, model, camera_names, frame_fn, images))
+            images_ = [image for _, image in decoded]
+            decode_s = time.perf_counter() - t0
+            outputs.append(_one_frame(index, images_, model, camera_names, frame_fn, images, decode_s))
     finally:
         for reader in readers:
             close = getattr(reader, "close", None)  # release the decoders now, not at GC
@@ -456,8 +466,26 @@ def process_session(
     except BaseException:
         writer.abort()
         raise
+    finally:
+        if backend == "loky":
+            _release_loky_workers()
     wall = time.perf_counter() - t0
     return writer.summary(wall)
+
+
+def _release_loky_workers() -> None:
+    """Stop this run's worker processes.
+
+    They hold the memory-mapped model (hundreds of MB for fine grids) and would
+    otherwise idle for minutes; and a later run in the same process (another session,
+    a changed environment) should start from fresh workers, not inherit these.
+    """
+    from joblib.externals.loky import reusable_executor
+
+    executor = getattr(reusable_executor, "_executor", None)  # loky keeps one per process
+    if executor is not None:
+        with contextlib.suppress(Exception):
+            executor.shutdown(wait=True)
 
 
 def _output_error(out_dir: Path, exc: OSError) -> OutputError:
