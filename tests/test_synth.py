@@ -3,6 +3,7 @@ never against the reconstruction modules."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tomllib
 from pathlib import Path
@@ -292,10 +293,10 @@ def test_frame_renders_the_same_alone() -> None:
 
 @pytest.mark.parametrize("shape", SHAPES)
 def test_every_shape_stays_inside_workspace_and_views(shape: str) -> None:
-    cams = make_rig()
-    for frames in (900, 15):
+    for frames, arrangement in ((900, "oblique"), (15, "oblique"), (300, "ninety")):
         lines = shape_centerlines(shape, frames, base_mm=BASE_MM)
-        check_poses(lines, RADIUS_MM, cams)  # raises if any frame leaves a view or the cube
+        # Raises if any frame leaves a view or the cube.
+        check_poses(lines, RADIUS_MM, make_rig(arrangement))
         # Independently: centre points keep a radius from the cube's walls; the base is on the floor.
         assert lines[..., :2].min() >= RADIUS_MM and lines[..., :2].max() <= 256 - RADIUS_MM
         assert lines[..., 2].min() >= 0.0 and lines[..., 2].max() <= 256.0
@@ -306,6 +307,14 @@ def test_check_poses_refuses_a_tube_outside() -> None:
     lines = shape_centerlines("straight", 3, base_mm=np.array([3.0, 128.0, 0.0]))
     with pytest.raises(PipelineError, match="frame 0: the tube leaves the 256 mm workspace"):
         check_poses(lines, RADIUS_MM, cams)
+
+
+def test_check_poses_refuses_a_tube_out_of_view() -> None:
+    cam = make_rig()[0]
+    zoomed = dataclasses.replace(cam, K=cam.K * [[4.0], [4.0], [1.0]])  # 4x focal length
+    lines = shape_centerlines("straight", 3, base_mm=BASE_MM)
+    with pytest.raises(PipelineError, match="frame 0: the tube leaves the image of camera cam0"):
+        check_poses(lines, RADIUS_MM, [zoomed])
 
 
 @pytest.mark.parametrize("shape", SHAPES)
@@ -366,6 +375,20 @@ def test_helix_segment_has_constant_radius_about_its_axis() -> None:
     rel = line - on_axis
     radial = rel - (rel @ axis)[:, None] * axis
     np.testing.assert_allclose(np.linalg.norm(radial, axis=1), rho, atol=1e-9)
+
+
+def test_bright_ninety_session(tmp_path: Path) -> None:
+    render_session(tmp_path, frames=2, polarity="bright", arrangement="ninety", progress=False)
+    settings = load_settings(tmp_path / "session.toml")
+    assert (settings.silhouette.polarity, settings.silhouette.threshold) == (
+        "bright",
+        threshold_for("bright"),
+    )
+    with (tmp_path / "calibration.toml").open("rb") as f:
+        assert tomllib.load(f)["metadata"]["arrangement"] == "ninety"
+    frame = _frames(tmp_path / "cam1.mp4")[0]
+    # A light tube on a dark scene: most pixels are background, below the threshold.
+    assert np.median(frame) < threshold_for("bright") < frame.max()
 
 
 def test_bad_arguments_raise_pipeline_errors(tmp_path: Path) -> None:

@@ -40,6 +40,17 @@ def distort_normalized(camera: SynthCamera, xy: NDArray[np.float64]) -> NDArray[
     return np.stack([xd, yd], axis=1)
 
 
+def project_points(camera: SynthCamera, points_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Pixel positions of world points, (..., 3) mm -> (..., 2) px (points in front of the camera)."""
+    x_cam = points_mm @ camera.R.T + camera.t
+    xy = x_cam[..., :2] / x_cam[..., 2:3]
+    d = distort_normalized(camera, xy.reshape(-1, 2)).reshape(xy.shape)
+    K = camera.K
+    return np.stack(
+        [K[0, 0] * d[..., 0] + K[0, 1] * d[..., 1] + K[0, 2], K[1, 1] * d[..., 1] + K[1, 2]], axis=-1
+    )
+
+
 def undistort_pixels(
     camera: SynthCamera, uv_px: NDArray[np.float64], *, max_iterations: int = 100
 ) -> NDArray[np.float64]:
