@@ -1,0 +1,180 @@
+"""``make bench``: speed, side by side with the original algorithm (issue 8).
+
+``python -m pipeline.bench [--frames 900] [--quick]`` makes (or reuses) the demo
+session, then measures on this machine:
+
+- per-frame stages of ``process`` (median and 95th percentile, in process);
+- carving at 128^3 by method: ours, a plain lookup gather, brute force, the original
+  big-cube heuristic, with ours checked voxel for voxel against brute force;
+- the original's sphere-fit/polyfit centreline against ours;
+- carving set-up and per-frame cost at 1 mm voxels and 640x480 masks;
+- ``python -m pipeline process`` end to end (subprocess, start to files closed) with
+  1 and 2 workers, and at 1 mm; decode-only as the floor; peak memory of each run.
+
+It writes recordings/bench.json and recordings/bench.png and prints a Markdown
+table with PASS/MISS per target. Misses never fail the command: speed is reported,
+not asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import platform
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+
+from .bench_e2e import decode_floor, ensure_demo, run_process, voxel_session
+from .bench_report import BenchReport, format_table, plot_report, write_json
+from .session import load_session
+
+log = logging.getLogger("pipeline.bench")
+
+DEMO_DIR = Path("recordings/demo")
+DEMO_FRAMES = 900  # the demo `make process` uses; rendered once, reused
+
+
+def _evenly(items: Sequence[int], count: int) -> list[int]:
+    """Up to ``count`` items spread evenly over ``items`` (all of them if there are fewer)."""
+    if len(items) <= count:
+        return list(items)
+    picks = np.linspace(0, len(items) - 1, count).round().astype(int)
+    return [items[i] for i in picks]
+
+
+def _load() -> float:
+    return round(os.getloadavg()[0], 2)
+
+
+def run_bench(
+    demo_dir: Path,
+    *,
+    frames: int = DEMO_FRAMES,
+    stage_frames: int = 300,
+    original_frames: int = 12,
+    scaling_frames: int = 20,
+    fine_end_to_end: bool = True,
+    work_dir: Path | None = None,
+) -> BenchReport:
+    """Measure everything ``make bench`` reports on the session in ``demo_dir``.
+
+    Parameters
+    ----------
+    demo_dir : a session directory (rendered first if it has no calibration.toml).
+    frames : frames processed end to end and decoded for the floor.
+    stage_frames : frames timed stage by stage in this process.
+    original_frames : frames run through the original method and brute force (seconds each).
+    scaling_frames : frames carved at each resolution.
+    fine_end_to_end : also time ``process`` end to end at 1 mm voxels.
+    work_dir : scratch directory for outputs (a temporary one by default).
+    """
+    from .bench_stages import carving_scaling, compare_methods, time_stages
+
+    report = BenchReport()
+    report.meta = {
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "load_before": _load(),
+    }
+    ensure_demo(demo_dir, frames=DEMO_FRAMES)
+    session = load_session(demo_dir)
+    n = min(frames, session.frame_count)
+    report.meta.update(session=str(demo_dir), frames=n, fps=session.fps)
+    with tempfile.TemporaryDirectory(prefix="pipeline-bench-", dir=work_dir) as tmp_name:
+        tmp = Path(tmp_name)
+        log.info("decoding %d frames of %d videos (the floor)", n, len(session.video_paths))
+        report.decode_floor_s = decode_floor(session.video_paths, frames=n)
+        report.decode_frames = n
+
+        for jobs in (1, 2):
+            label = f"{session.settings.workspace.voxel_mm:g} mm, {jobs} worker{'s' * (jobs > 1)}"
+            report.end_to_end.append(
+                run_process(demo_dir, tmp / "out", jobs=jobs, frames=n, voxel_mm=2.0, label=label)
+            )
+        if fine_end_to_end:
+            fine = voxel_session(demo_dir, tmp / "demo_1mm", voxel_mm=1.0)
+            report.end_to_end.append(
+                run_process(fine, tmp / "out", jobs=2, frames=n, voxel_mm=1.0, label="1 mm, 2 workers")
+            )
+
+        log.info("timing the per-frame stages on %d frames", min(stage_frames, n))
+        stages = time_stages(session, tmp / "stages", frames=min(stage_frames, n))
+    report.stages = stages.timer.stats()
+    report.one_off_s = {"build_grid at 128^3": stages.setup_s, "close the recordings": stages.close_s}
+
+    # Frames with something in every view: the others carve nothing and time nothing.
+    seen = [i for i in sorted(stages.masks) if all(m.any() for m in stages.masks[i])]
+    subset = _evenly(seen, original_frames)
+    log.info("original method and brute force on %d frames (seconds each)", len(subset))
+    comparison = compare_methods(stages.model, stages.masks, all_frames=seen, original_frames=subset)
+    report.carving_methods = comparison.methods
+    report.original = comparison.original
+    report.identical_frames = comparison.identical_frames
+    report.compared_frames = comparison.compared_frames
+    report.lookup_identical_frames = comparison.lookup_identical_frames
+    report.lookup_compared_frames = comparison.lookup_compared_frames
+    same = f"{comparison.identical_frames}/{comparison.compared_frames}"
+    print(f"carving identical to brute force: {same} frames", flush=True)
+
+    log.info("carving at 1 mm and 640x480")
+    report.scaling = carving_scaling(
+        session.cameras, session.settings.workspace, stages.masks, _evenly(seen, scaling_frames)
+    )
+    report.meta["load_after"] = _load()
+    return report
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m pipeline.bench",
+        description="Speed of the pipeline, side by side with the original algorithm (issue 8).",
+    )
+    parser.add_argument("--frames", type=int, default=DEMO_FRAMES, help="frames processed end to end")
+    parser.add_argument(
+        "--quick", action="store_true", help="smoke run: 120 frames, 3 original frames, no 1 mm end to end"
+    )
+    parser.add_argument(
+        "--demo", type=Path, default=DEMO_DIR, help="session directory (default recordings/demo)"
+    )
+    parser.add_argument(
+        "--out", type=Path, default=Path("recordings"), help="where bench.json and bench.png go"
+    )
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
+    start = time.perf_counter()
+    if args.quick:
+        report = run_bench(
+            args.demo,
+            frames=min(args.frames, 120),
+            stage_frames=60,
+            original_frames=3,
+            scaling_frames=5,
+            fine_end_to_end=False,
+        )
+    else:
+        report = run_bench(args.demo, frames=args.frames)
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_json(report, args.out / "bench.json")
+    plot_report(report, args.out / "bench.png")
+    print(format_table(report))
+    print(
+        f"wrote {args.out / 'bench.json'} and {args.out / 'bench.png'} ({time.perf_counter() - start:.0f} s)"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
