@@ -138,6 +138,17 @@ def test_a_task_returns_results_and_small_media_only(short_session: Path) -> Non
     assert no_images[0].jpegs is None
 
 
+@pytest.mark.parametrize("width", [320, 13])  # 13: rows that do not fill whole bytes
+def test_silhouette_png_decodes_to_the_mask_in_its_tint(width: int) -> None:
+    mask = np.random.default_rng(width).random((24, width)) < 0.3
+    png = runner.encode_silhouette(mask)
+    bgra = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert bgra.shape == (24, width, 4)
+    r, g, b, a = runner.SILHOUETTE_RGBA
+    np.testing.assert_array_equal(bgra[mask], np.tile([b, g, r, a], (mask.sum(), 1)))
+    assert (bgra[~mask][:, 3] == 0).all()  # transparent outside the silhouette
+
+
 def test_a_frame_function_that_raises_fails_only_that_frame(short_session: Path) -> None:
     session = load_session(short_session)
 
