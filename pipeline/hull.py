@@ -154,7 +154,8 @@ def occupied_by_projection(
     for cam, mask in zip(cameras, masks, strict=True):
         px = cam.project(centres)
         idx = pixel_indices(px[:, 0], px[:, 1], cam.width, cam.height)
-        occupied &= (idx >= 0) & np.ravel(mask)[np.maximum(idx, 0)]
+        on_mask = np.ravel(np.asarray(mask, dtype=np.bool_))[np.maximum(idx, 0)]
+        occupied &= (idx >= 0) & on_mask
     return occupied
 
 

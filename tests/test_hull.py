@@ -111,7 +111,7 @@ def test_empty_silhouette_carves_nothing(tube_frame) -> None:
     grid = build_grid(cams, ws)
     empty = [masks[0], np.zeros_like(masks[1]), masks[2]]
     assert carve(grid, empty).size == 0
-    assert carve_brute_force(cams, ws, empty).size == 0
+    assert carve_brute_force(cams, COARSE_WS, empty).size == 0
 
 
 def test_grid_survives_pickling(tube_frame) -> None:
