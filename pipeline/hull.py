@@ -52,7 +52,7 @@ class HullGrid:
 
     Plain NumPy attributes so that joblib memory-maps them when it ships the grid to
     worker processes. Cells are numbered coarse-major: fine cell ``f`` lies in coarse
-    cell ``f // FINE_PER_COARSE``; voxels are numbered fine-cell-major. The grid is padded
+    cell ``f // COARSE^3``; voxels are numbered fine-cell-major. The grid is padded
     to whole coarse cells; padding voxels fall outside every image.
 
     Attributes
@@ -66,12 +66,12 @@ class HullGrid:
     coarse_corners : (K, 4, C) int32 flat indices into the concatenated integral images:
         corners (top-left, top-right, bottom-left, bottom-right) of each coarse cell's
         pixel rectangle per camera; all 0 where the cell is outside the image.
-    fine_corners : (K, 4, C * FINE_PER_COARSE) int32, the same for fine cells.
-    voxel_pixels : (K, C * FINE_PER_COARSE, FINE^3) int32 index of each voxel's pixel in
+    fine_corners : (K, 4, C * COARSE^3) int32, the same for fine cells.
+    voxel_pixels : (K, C * COARSE^3, FINE^3) int32 index of each voxel's pixel in
         the concatenated masks, the sentinel where the centre is outside the image.
         Camera-major: per-camera gathers and ANDs of contiguous rows are several times
         faster than reducing over a short camera axis.
-    coarse_offsets, fine_offsets, voxel_offsets : (C,), (FINE_PER_COARSE,), (FINE^3,)
+    coarse_offsets, fine_offsets, voxel_offsets : (C,), (COARSE^3,), (FINE^3,)
         int64; a voxel's flat grid index is the sum of its three offsets.
     """
 
