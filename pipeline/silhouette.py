@@ -55,6 +55,8 @@ def extract_silhouette(
     img = np.ascontiguousarray(image, dtype=np.uint8)
     if img.ndim != 2:
         raise ValueError(f"extract_silhouette needs an (H, W) grey image, got shape {img.shape}")
+    if img.size == 0:  # cv2 refuses 0-pixel images; nothing in it is nothing seen
+        return np.zeros(img.shape, dtype=np.bool_)
     fg = _threshold(img, settings, background, otsu_min_contrast)
     if morphology:
         fg = _u8(cv2.morphologyEx(fg, cv2.MORPH_OPEN, _KERNEL))

@@ -112,6 +112,12 @@ def test_an_empty_scene_gives_an_all_false_mask(method: str, polarity: str, valu
     assert not mask.any()
 
 
+def test_a_zero_pixel_image_gives_an_empty_mask() -> None:
+    mask = extract_silhouette(np.zeros((0, 5), np.uint8), SilhouetteSettings(method="otsu"))
+    assert mask.shape == (0, 5)
+    assert mask.dtype == np.bool_
+
+
 def test_remove_small_blobs_keeps_uint8_mask() -> None:
     mask = np.zeros((10, 10), np.uint8)
     mask[1:4, 1:4] = 1
