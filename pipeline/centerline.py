@@ -24,7 +24,7 @@ from scipy.interpolate import make_lsq_spline
 from .camera import Camera
 from .ordering import track_hull
 from .polyline import cut_polyline, polyline_arclength, resample_polyline
-from .tube_fit import TubeFit, fit_tube, trim_unexplained_tail
+from .tube_fit import TubeFit, centre_across, fit_tube, trim_unexplained_tail
 
 __all__ = [
     "Centerline",
@@ -144,7 +144,10 @@ def fit_centerline(
     The :class:`Centerline` and the :class:`~pipeline.tube_fit.TubeFit` it came
     from (radius and residual). ValueError if the hull gives no curve.
     """
-    track = track_hull(points_mm, base_mm, radius_mm=radius_mm, voxel_mm=voxel_mm)
+    def refine(point: FloatArray, direction: FloatArray) -> FloatArray | None:
+        return centre_across(point, direction, cameras, contrasts, radius_mm=radius_mm)
+
+    track = track_hull(points_mm, base_mm, radius_mm=radius_mm, voxel_mm=voxel_mm, refine=refine)
     if len(track) < 3:
         raise ValueError("the hull holds no tube near the base")
     track = trim_unexplained_tail(track, cameras, masks, radius_mm=radius_mm)

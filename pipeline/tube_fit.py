@@ -278,6 +278,51 @@ class _Sides:
         return float(np.sqrt(np.mean(gaps**2))) if gaps.size else float("nan")
 
 
+@dataclass(frozen=True, eq=False)
+class _CameraEdges:
+    """One camera's side readings at K points; lengths in mm at each point."""
+
+    px: FloatArray  # (K, 2) projected points
+    t_hat: FloatArray  # (K, 2) unit image tangents
+    r_px: FloatArray  # (K,) the radius' image size
+    rows: FloatArray  # (K, 3) d(motion along the normal, mm) / d(point, mm)
+    lo: FloatArray  # (K,) negative-side edge, mm along the normal
+    hi: FloatArray  # (K,) positive-side edge
+    ok: NDArray[np.bool_]  # (K,) both edges found in a usable view
+    limit: FloatArray  # (K,) farthest an edge may sit from the axis, mm
+
+
+def _camera_edges(
+    pts: FloatArray, tangents: FloatArray, cam: Camera, contrast: NDArray[np.float32], radius_mm: float
+) -> _CameraEdges:
+    """Read the silhouette's two edges across the tube at each point, in one view."""
+    px, jac = _project_with_jacobian(cam, pts)
+    ok = np.isfinite(px).all(axis=1)
+    t_img = np.einsum("kij,kj->ki", jac, tangents)
+    t_len = np.linalg.norm(t_img, axis=1)
+    t_hat = t_img / np.maximum(t_len, 1e-12)[:, None]
+    normal = np.column_stack([-t_hat[:, 1], t_hat[:, 0]])
+    row = np.einsum("ki,kij->kj", normal, jac)  # px per mm of motion, along the normal
+    scale = np.linalg.norm(row, axis=1)  # px per mm across the tube
+    ok &= (scale > 0) & (t_len > _MIN_SIN_VIEW * scale)
+    safe = np.where(scale > 0, scale, 1.0)
+    r_px = radius_mm * scale
+    lo = np.zeros(len(pts))
+    hi = np.zeros(len(pts))
+    if ok.any():
+        reach = float(np.max(2.5 * r_px[ok] + 3.0))
+        steps = np.arange(-reach, reach + 1e-9, _PROFILE_STEP_PX)
+        where = px[:, None, :] + steps[None, :, None] * normal[:, None, :]
+        profile = _sample_image(contrast, np.nan_to_num(where))
+        lo_px, hi_px, found = _edges(profile, steps, r_px)
+        ok &= found
+        lo, hi = lo_px / safe, hi_px / safe
+    # An edge may sit no farther from the axis than the radius allows (by 30 %,
+    # +0.5 px of edge blur).
+    limit = (_WIDTH_TOLERANCE * r_px + 0.5) / safe
+    return _CameraEdges(px, t_hat, r_px, row / safe[:, None], lo, hi, ok, limit)
+
+
 def _read_sides(
     pts: FloatArray,
     cameras: Sequence[Camera],
@@ -298,39 +343,67 @@ def _read_sides(
     interior = (arc > radius_mm) & (arc < arc[-1] - radius_mm)
     sides_seen = arc < arc[-1] - _TIP_ZONE * radius_mm
     for j, (cam, contrast) in enumerate(zip(cameras, contrasts, strict=True)):
-        px, jac = _project_with_jacobian(cam, pts)
-        ok = np.isfinite(px).all(axis=1)
-        t_img = np.einsum("kij,kj->ki", jac, tangents)
-        t_len = np.linalg.norm(t_img, axis=1)
-        t_hat = t_img / np.maximum(t_len, 1e-12)[:, None]
-        normal = np.column_stack([-t_hat[:, 1], t_hat[:, 0]])
-        row = np.einsum("ki,kij->kj", normal, jac)  # px per mm of motion, along the normal
-        scale = np.linalg.norm(row, axis=1)  # px per mm across the tube
-        ok &= (scale > 0) & (t_len > _MIN_SIN_VIEW * scale) & sides_seen
-        if not ok.any():
-            continue
-        r_px = radius_mm * scale
-        reach = float(np.max(2.5 * r_px[ok] + 3.0))
-        steps = np.arange(-reach, reach + 1e-9, _PROFILE_STEP_PX)
-        where = px[:, None, :] + steps[None, :, None] * normal[:, None, :]
-        profile = _sample_image(contrast, np.nan_to_num(where))
-        lo, hi, found = _edges(profile, steps, r_px)
-        crowd = _crowded(px, t_hat, r_px, arc, 2.5 * radius_mm + spacing_mm)
-        # A trusted edge is found, uncrowded on its side, and not farther from the
-        # axis than the tube's radius allows (by 30 %, +0.5 px of edge blur).
-        limit = _WIDTH_TOLERANCE * r_px + 0.5
-        use[:, j, 0] = ok & found & ~crowd[:, 0] & (-lo < limit + np.maximum(0.0, hi))
-        use[:, j, 1] = ok & found & ~crowd[:, 1] & (hi < limit + np.maximum(0.0, -lo))
+        e = _camera_edges(pts, tangents, cam, contrast, radius_mm)
+        ok = e.ok & sides_seen
+        crowd = _crowded(e.px, e.t_hat, e.r_px, arc, 2.5 * radius_mm + spacing_mm)
+        # A trusted edge is uncrowded on its side and within the limit of the axis
+        # (the axis being where the other edge says, if that one is further out).
+        use[:, j, 0] = ok & ~crowd[:, 0] & (-e.lo < e.limit + np.maximum(0.0, e.hi))
+        use[:, j, 1] = ok & ~crowd[:, 1] & (e.hi < e.limit + np.maximum(0.0, -e.lo))
         both = use[:, j, 0] & use[:, j, 1]
-        wide = both & (hi - lo > 2.0 * limit)
-        use[wide, j] = False
-        rows[:, j] = row / np.where(scale > 0, scale, 1.0)[:, None]
-        left[:, j] = lo / np.where(scale > 0, scale, 1.0)
-        right[:, j] = hi / np.where(scale > 0, scale, 1.0)
+        use[both & (e.hi - e.lo > 2.0 * e.limit), j] = False
+        rows[:, j], left[:, j], right[:, j] = e.rows, e.lo, e.hi
     both = use[..., 0] & use[..., 1] & interior[:, None]
     half = 0.5 * (right - left)[both]
     radius = float(np.median(half)) if half.size >= 3 else radius_mm
     return _Sides(rows, left, right, use, radius)
+
+
+def centre_across(
+    point_mm: FloatArray,
+    direction: FloatArray,
+    cameras: Sequence[Camera],
+    contrasts: Sequence[NDArray[np.float32]],
+    *,
+    radius_mm: float,
+) -> FloatArray | None:
+    """Move one point across the tube (perpendicular to ``direction``) to the axis.
+
+    For tracking through a crowded stretch of hull: each view whose silhouette
+    across the tube at the point has the tube's width (within 30 %) says where the
+    axis is along its image normal; the views' least-squares correction, limited
+    to the plane perpendicular to ``direction``, moves the point. None when no
+    view gives a clean reading.
+
+    Parameters
+    ----------
+    point_mm, direction : (3,) float64 point and unit tangent, world frame.
+    cameras, contrasts : as for :func:`fit_tube`.
+    radius_mm : tube radius, mm.
+    """
+    p = np.asarray(point_mm, dtype=np.float64)[None]
+    d = np.asarray(direction, dtype=np.float64)[None]
+    a_rows, b_vals = [], []
+    for cam, contrast in zip(cameras, contrasts, strict=True):
+        e = _camera_edges(p, d, cam, contrast, radius_mm)
+        width = float(e.hi[0] - e.lo[0])
+        offset = 0.5 * float(e.lo[0] + e.hi[0])
+        # The point is meant to be near the axis already: a reading that puts the
+        # axis more than a radius away is of some other part of the tube.
+        if e.ok[0] and 2.0 * radius_mm / _WIDTH_TOLERANCE < width < 2.0 * e.limit[0] and abs(offset) < radius_mm:
+            a_rows.append(e.rows[0])
+            b_vals.append(offset)
+    if not a_rows:
+        return None
+    # Basis of the plane across the tube: corrections along the tangent are not
+    # observed by side readings.
+    across = np.linalg.svd(d)[2][1:]  # (2, 3) orthonormal, perpendicular to d
+    a = np.asarray(a_rows) @ across.T
+    step, *_ = np.linalg.lstsq(a, np.asarray(b_vals), rcond=None)
+    move = step @ across
+    if not np.linalg.norm(move) <= radius_mm:
+        return None
+    return np.asarray(p[0] + move)
 
 
 def _edges(
