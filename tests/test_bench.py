@@ -12,7 +12,9 @@ import time
 import tomllib
 from pathlib import Path
 
+import numpy as np
 import pytest
+from conftest import build_session, rig_cameras
 
 from pipeline.bench_e2e import voxel_session
 from pipeline.bench_report import (
@@ -25,7 +27,17 @@ from pipeline.bench_report import (
     targets,
     write_json,
 )
+from pipeline.bench_stages import (
+    StageRun,
+    compare_methods,
+    lookup_gather,
+    scaled_camera,
+    time_stages,
+    upsample_masks,
+)
 from pipeline.bench_timing import StageStats, StageTimer
+from pipeline.hull import carve
+from pipeline.session import load_session
 
 
 def test_stage_stats_are_median_and_95th_percentile_in_ms() -> None:
@@ -94,6 +106,7 @@ def test_table_json_and_chart_show_the_fake_measurement(tmp_path: Path) -> None:
     report = _fake_report()
     table = format_table(report)
     assert "| carving | 0.800 | 1.400 | 8000.0 | 10000 |" in table  # original / ours = 8000 / 0.8
+    assert "| centreline | 2.000 | 3.000 | 50.0 | 25 |" in table
     assert "| 2 mm, 2 workers | 900 | 7.00 | 129 | 4.3 |" in table  # 900 / 7 s = 128.6 fps
     assert "carving identical to brute force on 10/10 frames" in table
 
@@ -118,3 +131,50 @@ def test_voxel_session_links_the_inputs_and_overrides_voxel_mm(tmp_path: Path) -
     assert (target / "cam0.mp4").is_symlink() and (target / "cam0.mp4").read_bytes() == b"video"
     settings = tomllib.loads((target / "session.toml").read_text())
     assert settings == {"workspace": {"voxel_mm": 1.0}, "silhouette": {"threshold": 70}}
+
+
+def test_scaled_camera_maps_pixels_as_nearest_upsampling_does() -> None:
+    cam = rig_cameras()[0]
+    big = scaled_camera(cam, 2)
+    points = np.random.default_rng(0).uniform(64, 192, (50, 3))
+    # Pixel centres at integers: source pixel u covers [u - 0.5, u + 0.5), its two copies
+    # cover [2u - 0.5, 2u + 1.5), centred at 2u + 0.5. Exact up to float rounding.
+    np.testing.assert_allclose(big.project(points), 2 * cam.project(points) + 0.5, atol=1e-9)
+    assert big.size_px == (2 * cam.width, 2 * cam.height)
+    mask = np.zeros((cam.height, cam.width), bool)
+    mask[10, 20] = True
+    (up,) = upsample_masks([mask], 2)
+    assert up.shape == (2 * cam.height, 2 * cam.width)
+    assert np.array_equal(np.argwhere(up), [[20, 40], [20, 41], [21, 40], [21, 41]])
+
+
+@pytest.fixture(scope="module")
+def rod_run(tmp_path_factory: pytest.TempPathFactory) -> StageRun:
+    # 8 mm voxels (32^3): brute force and the original method take milliseconds, not seconds.
+    directory = build_session(
+        tmp_path_factory.mktemp("bench") / "rod",
+        frames=4,
+        empty_frames={3},
+        settings={"workspace": {"voxel_mm": 8.0}},
+    )
+    return time_stages(load_session(directory), directory.parent / "out", frames=4)
+
+
+def test_time_stages_times_every_stage_of_every_frame(rod_run: StageRun) -> None:
+    stats = rod_run.timer.stats()
+    for stage in ("decode", "silhouettes", "encode", "mcap", "rerun", "all stages"):
+        assert stats[stage].count == 4, stage
+    assert stats["carving"].count == 3  # an empty view ends the frame before carving
+    assert sorted(rod_run.masks) == [0, 1, 2, 3]
+    assert rod_run.results[3].status == "empty"  # the rod is out of view in frame 3
+
+
+def test_lookup_gather_and_brute_force_agree_with_carve(rod_run: StageRun) -> None:
+    comparison = compare_methods(
+        rod_run.model, rod_run.masks, all_frames=[0, 1], original_frames=[0], brute_force=True
+    )
+    assert comparison.identical_frames == comparison.compared_frames == 1
+    assert comparison.lookup_identical_frames == comparison.lookup_compared_frames == 2
+    ids = lookup_gather(rod_run.model.grid, rod_run.masks[0])
+    assert len(ids) > 0 and np.array_equal(ids, carve(rod_run.model.grid, rod_run.masks[0]))
+    assert set(comparison.original) == {"carving", "centreline"}
