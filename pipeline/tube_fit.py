@@ -46,12 +46,14 @@ _TIP_STEP_MM = 0.25
 # of its pixels in some view; samples of a false bridge own none (measured: 0 on
 # every bridge sample, >= 4 on the tube's own samples 3 mm apart).
 _MIN_OWNED_PX = 3
-# The curve's last half radius has no side readings (its profiles cross the end
-# cap); it is regenerated from a parabola fitted over the 4 radii before it.
-# Measured on rendered helix / straight / three-segment sessions: this beats a
-# longer zone or a cubic (median tip 0.3-0.5 mm against 0.5-0.8 mm).
-_TIP_ZONE = 0.5
-_END_SPAN = 4.0
+# The curve's last half radius (at most _TIP_ZONE_MM) has no side readings (its
+# profiles cross the end cap); it is regenerated from a parabola fitted over the
+# _END_SPAN_MM before it. Measured on rendered helix / straight / three-segment
+# sessions: this beats a longer zone or a cubic (median tip 0.3-0.5 mm against
+# 0.5-0.8 mm); lengths in mm, not radii, because what limits the extrapolation
+# is the curve's torsion, not the tube's thickness.
+_TIP_ZONE_MM = 3.0
+_END_SPAN_MM = 24.0
 _END_DEGREE = 2
 # cv2 drawing takes fixed-point coordinates with this many fractional bits.
 _DRAW_SHIFT = 4
@@ -341,7 +343,7 @@ def _read_sides(
     # from them; and no reading at all in the tip zone, whose tangent (so its
     # profile's direction) is the least certain: see _refit_tip.
     interior = (arc > radius_mm) & (arc < arc[-1] - radius_mm)
-    sides_seen = arc < arc[-1] - _TIP_ZONE * radius_mm
+    sides_seen = arc < arc[-1] - _tip_zone(radius_mm)
     for j, (cam, contrast) in enumerate(zip(cameras, contrasts, strict=True)):
         e = _camera_edges(pts, tangents, cam, contrast, radius_mm)
         ok = e.ok & sides_seen
@@ -569,8 +571,8 @@ def _refit_tip(
     loop and not on a tangent line. That last part is regenerated from it.
     """
     arc = polyline_arclength(pts)
-    anchor = max(arc[-1] - _TIP_ZONE * radius_mm, 0.5 * arc[-1])
-    path = _end_frame(pts, arc, at_mm=anchor, span_mm=max(_END_SPAN * radius_mm, 12.0))
+    anchor = max(arc[-1] - _tip_zone(radius_mm), 0.5 * arc[-1])
+    path = _end_frame(pts, arc, at_mm=anchor, span_mm=_END_SPAN_MM)
     lead = arc[-1] - anchor  # the current end, in arc length past the anchor
     u = np.arange(lead - 2.0 * radius_mm - 4.0, lead + 3.0 * radius_mm + 12.0, _TIP_STEP_MM)
     line = path(u)
@@ -616,6 +618,11 @@ def _refit_tip(
         return cut_polyline(pts, anchor + stop)
     ahead = np.append(np.arange(2.0, stop, 2.0), stop)
     return np.vstack([cut_polyline(pts, anchor), path(ahead)])
+
+
+def _tip_zone(radius_mm: float) -> float:
+    """Length (mm) at the tip end with no side readings: see _TIP_ZONE_MM."""
+    return min(0.5 * radius_mm, _TIP_ZONE_MM)
 
 
 def _end_frame(
