@@ -315,6 +315,13 @@ def test_check_poses_refuses_a_tube_outside() -> None:
         check_poses(lines, RADIUS_MM, cams)
 
 
+def test_check_poses_refuses_a_tube_that_runs_into_itself() -> None:
+    # The loop's tip passes ~20 mm from its stem: a 12 mm radius tube would cut into it.
+    lines = shape_centerlines("loop", 3, base_mm=BASE_MM)
+    with pytest.raises(PipelineError, match="the tube runs into itself"):
+        check_poses(lines, 12.0, make_rig())
+
+
 def test_check_poses_refuses_a_tube_out_of_view() -> None:
     cam = make_rig()[0]
     zoomed = dataclasses.replace(cam, K=cam.K * [[4.0], [4.0], [1.0]])  # 4x focal length

@@ -65,7 +65,7 @@ def tube_surface_points(
 
 def check_poses(centerlines_mm: NDArray[np.float64], radius_mm: float, cameras: list[SynthCamera]) -> None:
     """Raise PipelineError unless every frame's tube lies inside the workspace cube and
-    inside every camera's image.
+    inside every camera's image, and never runs into itself.
 
     centerlines_mm : (F, N, 3) float64, world frame.
     """
@@ -80,6 +80,17 @@ def check_poses(centerlines_mm: NDArray[np.float64], radius_mm: float, cameras: 
         raise PipelineError(
             f"synthetic frame {int(np.argmax(outside))}: the tube leaves the "
             f"{WORKSPACE_SIZE_MM[0]:.0f} mm workspace; use a shorter length or a smaller radius"
+        )
+    # Self-contact: points more than 4 radii apart along the tube (farther than any of
+    # our bends can bring back within a diameter) must stay a diameter apart.
+    sub = centerlines_mm[:, ::4]
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(sub[0], axis=0), axis=1))])
+    apart = np.abs(arc[:, None] - arc[None]) > 4.0 * radius_mm
+    gaps = np.linalg.norm(sub[:, :, None] - sub[:, None], axis=-1)
+    touching = np.any(apart & (gaps < 2.0 * radius_mm), axis=(1, 2))
+    if touching.any():
+        raise PipelineError(
+            f"synthetic frame {int(np.argmax(touching))}: the tube runs into itself; use a smaller radius"
         )
     # In view: rims of every other disc (2.5 mm apart) at 12 points; the workspace
     # itself projects 30 px or more inside every image, so this sampling is ample.
@@ -171,11 +182,11 @@ def _validate(
     if polarity not in ("dark", "bright"):
         raise PipelineError(f"polarity must be 'dark' or 'bright', got {polarity!r}")
     if not 0 < radius_mm <= 20:
-        raise PipelineError(f"radius must be in (0, 20] mm, got {radius_mm}")
+        raise PipelineError(f"radius_mm must be in (0, 20] mm, got {radius_mm}")
     if arrangement not in ARRANGEMENTS:
         raise PipelineError(f"unknown arrangement {arrangement!r}; use one of {', '.join(ARRANGEMENTS)}")
     if not 50 <= length_mm <= 250:
-        raise PipelineError(f"length must be in [50, 250] mm to fit the workspace, got {length_mm}")
+        raise PipelineError(f"length_mm must be in [50, 250] mm to fit the workspace, got {length_mm}")
 
 
 def render_session(
