@@ -77,6 +77,22 @@ def test_carve_equals_brute_force_non_cubic_grid_four_cameras(seed: int) -> None
     np.testing.assert_array_equal(carve(build_grid(cams, ws), masks), expected)
 
 
+@pytest.mark.parametrize(
+    "ws",
+    [
+        Workspace((127.0, 127.0, 100.0), (2.0, 2.0, 2.0), 2.0),  # a single voxel
+        Workspace((100.0, 120.0, 50.0), (60.0, 3.0, 90.0), 3.0),  # one voxel thick
+    ],
+)
+def test_carve_equals_brute_force_on_tiny_grids_with_two_cameras(ws: Workspace) -> None:
+    cams = rig_cameras()[:2]
+    masks = [np.ones((c.height, c.width), bool) for c in cams]
+    masks[1][::3] = False  # every third row of camera 1 is background
+    expected = carve_brute_force(cams, ws, masks)
+    assert len(expected) > 0
+    np.testing.assert_array_equal(carve(build_grid(cams, ws), masks), expected)
+
+
 def test_carve_equals_brute_force_when_cameras_sit_inside_the_box() -> None:
     # Voxels behind a camera and far outside its image must never be occupied.
     ws = Workspace((-700.0, -700.0, -300.0), (1700.0, 1700.0, 1100.0), 25.0)
