@@ -40,7 +40,7 @@ FloatArray = NDArray[np.float64]
 # Spline knots every this many mm: fine enough for a loop of ~30 mm radius (the
 # cubic's error on such a circle is < 0.01 mm), coarse enough to average the
 # per-sample noise of the fit (samples are ~4 mm apart, so ~3 per knot span).
-KNOT_SPACING_MM = 12.0
+KNOT_SPACING_MM = 20.0
 # Dense evaluation factor used to invert arc length.
 _DENSE = 16
 
@@ -144,6 +144,7 @@ def fit_centerline(
     The :class:`Centerline` and the :class:`~pipeline.tube_fit.TubeFit` it came
     from (radius and residual). ValueError if the hull gives no curve.
     """
+
     def refine(point: FloatArray, direction: FloatArray) -> FloatArray | None:
         return centre_across(point, direction, cameras, contrasts, radius_mm=radius_mm)
 

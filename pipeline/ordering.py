@@ -90,16 +90,17 @@ def track_hull(
         crowded (its cross-section swells: another part of the tube or a false
         bridge joins it), the march asks this for the axis near the predicted
         point (from the images, see :func:`pipeline.tube_fit.centre_across`)
-        instead of trusting the hull's centroid; None: coast on the current
-        curvature.
+        instead of trusting the hull's centroid (used when it returns None).
 
     Returns
     -------
     (M, 3) float64 polyline ordered base -> tip, world frame, mm; starts at
     ``base_mm``. M == 1 when the hull holds nothing near the base.
     """
-    pts = np.asarray(points_mm, dtype=np.float64)
+    pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
     base = np.asarray(base_mm, dtype=np.float64)
+    if len(pts) == 0:
+        return base[None].copy()
     step = step_mm if step_mm is not None else max(voxel_mm, 0.5 * radius_mm)
     tree = cKDTree(pts)
     # The cross-section sought: the tube's own radius plus a voxel of hull overshoot.
@@ -114,7 +115,6 @@ def track_hull(
     # (a tip touching the body): the axes of two touching parts are 2 r apart.
     revisit_mm = 1.5 * radius_mm
     skip_recent = int(np.ceil(4.0 * radius_mm / step)) + 1
-    turn = np.eye(3)  # the heading's rotation per step, from the last clear steps
     counts: list[int] = []  # cross-section sizes of the first clear steps
     for _ in range(int(max_length_mm / step)):
         here = track[-1]
@@ -123,19 +123,10 @@ def track_hull(
         if len(section) == 0:
             break
         # Where the hull swells past its usual cross-section, another part of the
-        # tube or a false bridge joins it: a centroid would be dragged sideways,
-        # so the march coasts through on its current curvature instead.
+        # tube or a false bridge joins it and a centroid would be dragged sideways:
+        # the images say where the axis is, if ``refine`` can read them.
         crowded = len(counts) >= _BASELINE_STEPS and len(section) > _CROWDED * float(np.median(counts))
-        centre = None
-        if crowded and refine is not None:
-            centre = refine(predicted, direction)
-        if crowded and centre is None:
-            # No better evidence: coast on the current curvature while hull remains.
-            if not np.any(np.linalg.norm(section - predicted, axis=1) <= reach):
-                break
-            track.append(predicted)
-            direction = turn @ direction
-            continue
+        centre = refine(predicted, direction) if crowded and refine is not None else None
         if centre is None:
             centre = _mean_shift(section, predicted, reach)
         if centre is None:
@@ -154,27 +145,11 @@ def track_hull(
         # Heading = a blend of the old and the measured one: damps the voxel noise
         # without lagging behind a bend of radius >> step.
         blended = new_dir + 0.5 * direction
-        blended /= np.linalg.norm(blended)
-        turn = _rotation_between(direction, blended)
-        direction = blended
+        direction = blended / np.linalg.norm(blended)
     return np.asarray(track)
 
 
-def _rotation_between(a: FloatArray, b: FloatArray) -> FloatArray:
-    """(3, 3) rotation taking unit vector ``a`` to unit vector ``b`` about a x b."""
-    axis = np.cross(a, b)
-    sin = float(np.linalg.norm(axis))
-    cos = float(a @ b)
-    if sin < 1e-12:
-        return np.eye(3)
-    k = axis / sin
-    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + sin * kx + (1.0 - cos) * (kx @ kx)
-
-
-def _initial_direction(
-    pts: FloatArray, tree: cKDTree, base: FloatArray, reach: float
-) -> FloatArray | None:
+def _initial_direction(pts: FloatArray, tree: cKDTree, base: FloatArray, reach: float) -> FloatArray | None:
     """Unit direction from the base into the hull, or None if no hull is near the base."""
     _, nearest = tree.query(base)
     start = pts[int(nearest)]

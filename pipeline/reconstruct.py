@@ -55,9 +55,7 @@ def build_model(session: Session) -> SessionModel:
     )
 
 
-def frame_silhouettes(
-    images: Sequence[NDArray[np.uint8]], model: SessionModel
-) -> list[NDArray[np.bool_]]:
+def frame_silhouettes(images: Sequence[NDArray[np.uint8]], model: SessionModel) -> list[NDArray[np.bool_]]:
     """Per camera (H, W) bool silhouette of one frame's (H, W) uint8 grey images."""
     sil = model.settings.silhouette
     use_bg = sil.method == "background"
@@ -155,9 +153,7 @@ def _curve_and_quality(
     cameras = model.cameras
     start = time.perf_counter()
     pts = points.astype(np.float64)
-    radius_guess = settings.manipulator.radius_mm or radius_from_silhouettes(
-        cameras, masks, pts.mean(axis=0)
-    )
+    radius_guess = settings.manipulator.radius_mm or radius_from_silhouettes(cameras, masks, pts.mean(axis=0))
     if not np.isfinite(radius_guess) or radius_guess <= 0:
         radius_guess = _FALLBACK_RADIUS_MM
     known = settings.manipulator.base_mm is not None
@@ -165,9 +161,7 @@ def _curve_and_quality(
         base = np.asarray(settings.manipulator.base_mm, dtype=np.float64)
     else:
         ws = settings.workspace
-        base = infer_base(
-            pts, np.asarray(ws.origin_mm), np.asarray(ws.size_mm), radius_mm=radius_guess
-        )
+        base = infer_base(pts, np.asarray(ws.origin_mm), np.asarray(ws.size_mm), radius_mm=radius_guess)
     n_points = settings.centerline.points
     if settings.centerline.method == "polyfit":
         curve = smooth_curve(_polyfit()(pts, base if known else None, n_points=n_points), n_points=n_points)

@@ -392,7 +392,11 @@ def centre_across(
         offset = 0.5 * float(e.lo[0] + e.hi[0])
         # The point is meant to be near the axis already: a reading that puts the
         # axis more than a radius away is of some other part of the tube.
-        if e.ok[0] and 2.0 * radius_mm / _WIDTH_TOLERANCE < width < 2.0 * e.limit[0] and abs(offset) < radius_mm:
+        if (
+            e.ok[0]
+            and 2.0 * radius_mm / _WIDTH_TOLERANCE < width < 2.0 * e.limit[0]
+            and abs(offset) < radius_mm
+        ):
             a_rows.append(e.rows[0])
             b_vals.append(offset)
     if not a_rows:
