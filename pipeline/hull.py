@@ -223,6 +223,7 @@ def build_grid(cameras: Sequence[Camera], workspace: Workspace) -> HullGrid:
         i = np.arange(n_coarse[a] * side).reshape(n_coarse[a], COARSE, FINE)
         axis_mm.append(np.asarray(workspace.origin_mm[a] + (i + 0.5) * workspace.voxel_mm, np.float64))
         axis_real.append(i < shape[a])
+    poses = [(cam.camera_from_world, np.asarray(cam.translation_mm, dtype=np.float64)) for cam in cameras]
     # One chunk = one row of coarse cells along z (fixed cx, cy): its temporaries stay
     # in cache (0.25-0.5 MB) and its fine cells are contiguous in the tables.
     row_fine = ncz * fine_per_coarse
@@ -233,31 +234,12 @@ def build_grid(cameras: Sequence[Camera], workspace: Workspace) -> HullGrid:
             fine_rows = slice(row * row_fine, (row + 1) * row_fine)
             centres = _chunk_layout(axis_mm[0][cx], axis_mm[1][cy], axis_mm[2])
             rx, ry, rz = _chunk_layout(axis_real[0][cx], axis_real[1][cy], axis_real[2])
-            real = (rx & ry) & rz
+            real = ((rx & ry) & rz).reshape(FINE**3, row_fine)
             for c, cam in enumerate(cameras):
                 w = sizes[c][0]
-                iu, iv, inside = _project_chunk(cam, centres)
-                inside &= real
-                outside = ~inside.reshape(FINE**3, row_fine)
-                iu = iu.reshape(FINE**3, row_fine)
-                iv = iv.reshape(FINE**3, row_fine)
-                pix = iv * w
-                pix += iu
-                pix += pixel_offsets[c]
-                pix[outside] = sentinel
-                voxel_pixels[c, fine_rows] = pix.T  # exact integers in float64
-                # NaN marks voxels outside the image; fmin/fmax skip them.
-                iu[outside] = np.nan
-                iv[outside] = np.nan
-                fine_rect = np.stack(
-                    [
-                        np.fmin.reduce(iu, 0),
-                        np.fmin.reduce(iv, 0),
-                        np.fmax.reduce(iu, 0),
-                        np.fmax.reduce(iv, 0),
-                    ],
-                    axis=1,
-                )
+                iu, iv, inside = _project_chunk(cam, *poses[c], centres)
+                pix, fine_rect = _chunk_tables(iu, iv, inside & real, w, int(pixel_offsets[c]), sentinel)
+                voxel_pixels[c, fine_rows] = pix
                 g = fine_rect.reshape(ncz, fine_per_coarse, 4)
                 coarse_rect = np.concatenate(
                     [np.fmin.reduce(g[:, :, :2], 1), np.fmax.reduce(g[:, :, 2:], 1)], axis=1
@@ -319,16 +301,18 @@ def _chunk_layout(
 
 
 def _project_chunk(
-    cam: Camera, centres: tuple[FloatArray, FloatArray, FloatArray]
+    cam: Camera, rot: FloatArray, t: FloatArray, centres: tuple[FloatArray, FloatArray, FloatArray]
 ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
     """Pixel (col, row) under the pixel rule, and inside-flag, of every voxel centre of a
-    chunk whose x, y, z coordinates are given as broadcastable per-axis arrays (mm)."""
-    rot = cam.camera_from_world
-    t = np.asarray(cam.translation_mm, dtype=np.float64)
+    chunk whose x, y, z coordinates are given as broadcastable per-axis arrays (mm).
+
+    rot, t : the camera's (3, 3) camera_from_world and (3,) translation, mm. Returns
+    (FINE^3, fine cells) arrays: voxel-major, see :func:`_chunk_layout`.
+    """
     px, py, pz = centres
-    # x_cam = R @ (x e_x + y e_y + z e_z) + t: small per-axis terms, one full-size add each.
-    # order="C": the broadcast would otherwise pick a strided layout, and every later
-    # reshape would copy.
+    # x_cam = R @ (x e_x + y e_y + z e_z) + t: small per-axis terms, one full-size add
+    # each. order="C": the broadcast would otherwise pick a strided layout, and every
+    # later reshape would copy.
     x_cam, y_cam, z_cam = (
         np.add(t[j] + rot[j, 0] * px + rot[j, 1] * py, rot[j, 2] * pz, order="C") for j in range(3)
     )
@@ -339,7 +323,35 @@ def _project_chunk(
         u, v = cam.normalized_to_pixels(x_cam, y_cam)
     iu, iv, inside = _round_pixels(u, v, cam.width, cam.height)
     inside &= z_cam > 0  # behind the camera: Camera.project gives NaN, i.e. outside
-    return iu, iv, inside
+    n = FINE**3
+    return iu.reshape(n, -1), iv.reshape(n, -1), inside.reshape(n, -1)
+
+
+def _chunk_tables(
+    iu: FloatArray, iv: FloatArray, inside: NDArray[np.bool_], width: int, offset: int, sentinel: int
+) -> tuple[NDArray[np.int32], FloatArray]:
+    """One camera's tables for one chunk, from its (FINE^3, F) pixel columns, rows and
+    inside-flags (voxel-major).
+
+    Returns
+    -------
+    pixels : (F, FINE^3) int32 index into the concatenated masks (``offset`` = this
+        camera's start), ``sentinel`` where outside the image.
+    rect : (F, 4) float64 inclusive pixel rectangle (u0, v0, u1, v1) of each fine cell,
+        NaN where none of its voxels is inside the image.
+    """
+    outside = ~inside
+    pix = iv * width
+    pix += iu
+    pix += offset
+    pix[outside] = sentinel
+    # NaN marks voxels outside the image; fmin/fmax skip them.
+    iu[outside] = np.nan
+    iv[outside] = np.nan
+    rect = np.stack(
+        [np.fmin.reduce(iu, 0), np.fmin.reduce(iv, 0), np.fmax.reduce(iu, 0), np.fmax.reduce(iv, 0)], axis=1
+    )
+    return pix.T.astype(np.int32), rect  # pix holds exact integers in float64
 
 
 def _corners(rect: FloatArray, width: int, offset: int) -> NDArray[np.int32]:
