@@ -22,6 +22,7 @@ import struct
 import sys
 import time
 import uuid
+import warnings
 import zlib
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -543,6 +544,24 @@ def _progress(total: int, enabled: bool) -> Iterator[Any]:
         bar.close()
 
 
+def _check_rrd_complete(partial: Path, final: Path) -> None:
+    """Rerun writes from a background thread and reports a full disk only in its log:
+    read the file's footer back before giving it its final name."""
+    try:
+        from rerun.chunk import RrdReader
+    except ImportError:  # rerun-sdk without its [catalog] extra: trust the writer
+        return
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "no footer" is said again by the error below
+        try:
+            RrdReader(partial).store()
+        except (RuntimeError, ValueError, OSError) as exc:
+            raise OutputError(
+                f"{final}: the Rerun recording could not be written completely (disk full?); "
+                f"free space and rerun ({' '.join(str(exc).split())[:200]})"
+            ) from None
+
+
 class _Writers:
     """The MCAP and Rerun writers of one run, their temporary files, and the tallies."""
 
@@ -624,6 +643,7 @@ class _Writers:
         self.rerun.finish()
         self._stream.flush()
         self._stream.disconnect()
+        _check_rrd_complete(_partial(self.rrd_path), self.rrd_path)
         for path in (self.mcap_path, self.rrd_path):
             os.replace(_partial(path), path)
 

@@ -24,7 +24,7 @@ import pytest
 from conftest import build_session, write_video
 
 from pipeline import runner
-from pipeline.errors import SessionError
+from pipeline.errors import OutputError, SessionError
 from pipeline.frame_result import FrameResult
 from pipeline.recording import load_recording
 from pipeline.session import load_session
@@ -192,6 +192,18 @@ def test_frames_outside_the_session_are_refused(short_session: Path, tmp_path: P
             load_session(short_session), out_dir=tmp_path, frames=(12, 20), frame_fn=fixed_rod
         )
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_rrd_cut_short_is_not_given_its_final_name(short_session: Path, tmp_path: Path) -> None:
+    runner.process_session(
+        load_session(short_session), out_dir=tmp_path, backend="threading", progress=False, frame_fn=fixed_rod
+    )
+    rrd = tmp_path / "short.rrd"
+    runner._check_rrd_complete(rrd, rrd)  # a finished file passes
+    cut = tmp_path / ".cut.rrd.partial"
+    cut.write_bytes(rrd.read_bytes()[: rrd.stat().st_size * 9 // 10])
+    with pytest.raises(OutputError, match=r"final\.rrd: the Rerun recording could not be written completely"):
+        runner._check_rrd_complete(cut, tmp_path / "final.rrd")
 
 
 @pytest.mark.slow
