@@ -93,6 +93,20 @@ def test_carve_equals_brute_force_on_tiny_grids_with_two_cameras(ws: Workspace) 
     np.testing.assert_array_equal(carve(build_grid(cams, ws), masks), expected)
 
 
+def test_carve_equals_brute_force_with_every_distortion_term() -> None:
+    # Rational, thin-prism and tilted-sensor terms all go through Camera.normalized_to_pixels.
+    cams = rig_cameras()
+    dist = np.array(
+        [-0.2, 0.05, 0.002, -0.001, 0.01, 0.02, -0.01, 0.005, 1e-3, -1e-3, 2e-3, 5e-4, 0.01, -0.02]
+    )
+    c = cams[1]
+    cams[1] = Camera(c.name, c.size_px, c.matrix, dist, c.rotation, c.translation_mm)
+    masks = _random_masks(cams, 21, blobs=12)
+    expected = carve_brute_force(cams, COARSE_WS, masks)
+    assert len(expected) > 0
+    np.testing.assert_array_equal(carve(build_grid(cams, COARSE_WS), masks), expected)
+
+
 def test_carve_equals_brute_force_when_cameras_sit_inside_the_box() -> None:
     # Voxels behind a camera and far outside its image must never be occupied.
     ws = Workspace((-700.0, -700.0, -300.0), (1700.0, 1700.0, 1100.0), 25.0)
