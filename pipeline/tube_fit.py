@@ -608,7 +608,7 @@ def _refit_tip(
             # through that part and leaves it at its far side: an edge lying within
             # a tube radius of another part's axis is that part's, not the tip's.
             at = np.interp(edge + lead, u, np.arange(len(u), dtype=np.float64))
-            edge_px = line_px[int(round(at))]
+            edge_px = line_px[round(at)]
             gap = float(np.min(np.linalg.norm(others_px - edge_px, axis=1)))
             if not gap > radius_mm * px_per_mm + 1.5:
                 continue

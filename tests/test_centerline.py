@@ -163,7 +163,7 @@ def test_smooth_curve_of_a_straight_line_has_zero_curvature() -> None:
     np.testing.assert_allclose(geom.curvature_per_mm, 0.0, atol=1e-9)
     np.testing.assert_allclose(geom.tangents, np.tile([0.0, 0.0, 1.0], (16, 1)), atol=1e-12)
     assert geom.length_mm == pytest.approx(100.0, rel=1e-9)
-    np.testing.assert_allclose(geom.tip_mm, BASE + [0, 0, 100.0], atol=1e-9)
+    np.testing.assert_allclose(geom.tip_mm, BASE + np.array([0.0, 0.0, 100.0]), atol=1e-9)
 
 
 def test_smooth_curve_rejects_a_single_point() -> None:
@@ -175,5 +175,5 @@ def test_cut_polyline_keeps_the_first_part() -> None:
     line = _straight(100.0)
     cut = cut_polyline(line, 40.0)
     assert polyline_arclength(cut)[-1] == pytest.approx(40.0)
-    np.testing.assert_allclose(cut[-1], BASE + [0, 0, 40.0])
+    np.testing.assert_allclose(cut[-1], BASE + np.array([0.0, 0.0, 40.0]))
     assert cut_polyline(line, 500.0) is not None and len(cut_polyline(line, 500.0)) == len(line)

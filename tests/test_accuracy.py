@@ -1,0 +1,111 @@
+"""End to end accuracy on rendered sessions: issue 4's targets, per shape.
+
+Each session is rendered by the synthetic renderer (the independent oracle), read
+back through load_session / read_frames (so video compression is included), and
+every frame goes through build_model / reconstruct_frame. The frames of a short
+session sweep one whole motion cycle, so 12 frames show 12 different poses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.evaluate import centerline_distances, polyline_length
+from pipeline.reconstruct import build_model, reconstruct_frame
+from pipeline.session import load_session
+from pipeline.synth import render_session
+from pipeline.video import read_frames
+
+FRAMES = 12
+
+# Issue 4's targets: mean and p95 of the symmetric centreline distance (mm),
+# median tip error (mm), mean length error (%), failed frames.
+MEAN_MM, P95_MM, TIP_MM, LENGTH_PCT = 0.4, 1.0, 1.0, 1.0
+
+
+@dataclass(frozen=True)
+class Accuracy:
+    mean_mm: float
+    p95_mm: float
+    tip_median_mm: float
+    length_pct: float
+    failed: int
+
+
+def _measure(directory: Path) -> Accuracy:
+    session = load_session(directory)
+    model = build_model(session)
+    truth = np.load(directory / "ground_truth.npz")["centerlines"]
+    streams = [read_frames(p, 0, session.frame_count) for p in session.video_paths]
+    dists, tips, lengths, failed = [], [], [], 0
+    for index in range(session.frame_count):
+        images = [next(s)[1] for s in streams]
+        result = reconstruct_frame(index, images, model)
+        if result.status != "ok" or result.centerline_mm is None:
+            failed += 1
+            continue
+        true = truth[index]
+        curve = result.centerline_mm
+        dists.append(np.concatenate([centerline_distances(curve, true), centerline_distances(true, curve)]))
+        tips.append(np.linalg.norm(curve[-1] - true[-1]))
+        lengths.append(100.0 * abs(result.length_mm - polyline_length(true)) / polyline_length(true))
+    every = np.concatenate(dists)
+    return Accuracy(
+        float(every.mean()),
+        float(np.percentile(every, 95)),
+        float(np.median(tips)),
+        float(np.mean(lengths)),
+        failed,
+    )
+
+
+SESSIONS = {
+    "bend_rotate": {"shape": "bend_rotate"},
+    "s_curve": {"shape": "s_curve"},
+    "straight": {"shape": "straight"},
+    "three_segments": {"shape": "three_segments"},
+    "helix": {"shape": "helix"},
+    # Sessions unlike the demo: the other camera placement, thicker and thinner tubes.
+    "unseen_helix_ninety_r9": {"shape": "helix", "arrangement": "ninety", "radius_mm": 9.0},
+    "unseen_bend_ninety_r4": {"shape": "bend_rotate", "arrangement": "ninety", "radius_mm": 4.0, "seed": 5},
+    "loop": {"shape": "loop"},
+}
+
+# The loop (the tip coming back within a diameter or two of its stem, crossing it
+# in the views) is not yet at the targets: the hull merges the tip with the stem
+# and the march can follow the false bridge. See the centreline report.
+KNOWN_SHORT = {"loop"}
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("accuracy")
+    out = {}
+    for name, kwargs in SESSIONS.items():
+        directory = root / name
+        render_session(directory, frames=FRAMES, progress=False, jobs=1, **kwargs)  # type: ignore[arg-type]
+        out[name] = directory
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "name",
+    [
+        pytest.param(n, marks=pytest.mark.xfail(reason="loop: not yet at the targets", strict=False))
+        if n in KNOWN_SHORT
+        else n
+        for n in SESSIONS
+    ],
+)
+def test_accuracy_targets(name: str, rendered: dict[str, Path]) -> None:
+    acc = _measure(rendered[name])
+    assert acc.failed == 0
+    assert acc.mean_mm <= MEAN_MM, acc
+    assert acc.p95_mm <= P95_MM, acc
+    assert acc.tip_median_mm <= TIP_MM, acc
+    assert acc.length_pct <= LENGTH_PCT, acc
