@@ -380,7 +380,13 @@ def _smooth(centerlines_mm: NDArray[np.float64], times_s: NDArray[np.float64]) -
         from .smoothing import smooth_centerlines
     except ImportError:
         return None
-    return np.asarray(smooth_centerlines(centerlines_mm, times_s), dtype=np.float64)
+    try:
+        return np.asarray(smooth_centerlines(centerlines_mm, times_s), dtype=np.float64)
+    except Exception as exc:  # the per-frame results are safe: lose the extra, not the run
+        log.warning(
+            "temporal smoothing failed (%s: %s); no smoothed centrelines logged", type(exc).__name__, exc
+        )
+        return None
 
 
 # -- the run ---------------------------------------------------------------------------------
