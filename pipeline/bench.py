@@ -70,7 +70,7 @@ def run_bench(
     *,
     frames: int = DEMO_FRAMES,
     stage_frames: int = 300,
-    original_frames: int = 12,
+    original_frames: int = 10,
     scaling_frames: int = 20,
     fine_end_to_end: bool = True,
     work_dir: Path | None = None,
@@ -156,6 +156,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--quick", action="store_true", help="smoke run: 120 frames, 3 original frames, no 1 mm end to end"
     )
     parser.add_argument(
+        "--original-frames",
+        type=int,
+        default=None,
+        help="frames run through the original method and brute force (default 10, 3 with --quick)",
+    )
+    parser.add_argument(
         "--demo", type=Path, default=DEMO_DIR, help="session directory (default recordings/demo)"
     )
     parser.add_argument(
@@ -173,12 +179,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.demo,
             frames=min(args.frames, 120),
             stage_frames=60,
-            original_frames=3,
+            original_frames=args.original_frames or 3,
             scaling_frames=5,
             fine_end_to_end=False,
         )
     else:
-        report = run_bench(args.demo, frames=args.frames)
+        report = run_bench(args.demo, frames=args.frames, original_frames=args.original_frames or 10)
     args.out.mkdir(parents=True, exist_ok=True)
     write_json(report, args.out / "bench.json")
     plot_report(report, args.out / "bench.png")
