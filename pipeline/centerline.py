@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.interpolate import make_lsq_spline
+from scipy.interpolate import BSpline, make_lsq_spline
 
 from .camera import Camera
 from .ordering import track_hull
@@ -83,22 +83,12 @@ def smooth_curve(
     :class:`Centerline` with N points. The ends are held (weighted 100x) so the
     curve starts and stops where the polyline does.
     """
-    pts = np.asarray(polyline_mm, dtype=np.float64)
-    s = polyline_arclength(pts)
-    keep = np.concatenate([[True], np.diff(s) > 1e-9])  # repeated points break the spline
-    pts, s = pts[keep], s[keep]
+    pts, s = _distinct(polyline_mm)
     total = float(s[-1])
-    if len(pts) < 2 or total <= 0:
-        raise ValueError("smooth_curve needs at least two distinct points")
-    k = min(3, len(pts) - 1)
-    # At least k + 1 data points per knot span (Schoenberg-Whitney, with room).
-    n_inner = int(min(total / knot_spacing_mm, (len(pts) - k - 1) / 2.0))
-    inner = np.linspace(0.0, total, n_inner + 2)[1:-1] if n_inner > 0 else np.zeros(0)
-    knots = np.concatenate([np.zeros(k + 1), inner, np.full(k + 1, total)])
     weights = np.ones(len(s))
     weights[[0, -1]] = 100.0
-    spline = make_lsq_spline(s, pts, knots, k=k, w=weights)
-
+    spline = _lsq_spline(pts, s, weights, knot_spacing_mm)
+    k = spline.k
     dense_u = np.linspace(0.0, total, _DENSE * max(n_points, len(pts)))
     dense_s = polyline_arclength(spline(dense_u))
     u = np.interp(np.linspace(0.0, dense_s[-1], n_points), dense_s, dense_u)
@@ -111,6 +101,52 @@ def smooth_curve(
     return Centerline(
         points_mm=points, tangents=tangents, curvature_per_mm=curvature, length_mm=float(dense_s[-1])
     )
+
+
+def _distinct(polyline_mm: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Points (M, 3) without repeats (they break a spline) and their arc length (M,)."""
+    pts = np.asarray(polyline_mm, dtype=np.float64)
+    s = polyline_arclength(pts)
+    keep = np.concatenate([[True], np.diff(s) > 1e-9])
+    pts, s = pts[keep], s[keep]
+    if len(pts) < 2 or s[-1] <= 0:
+        raise ValueError("smooth_curve needs at least two distinct points")
+    return pts, s
+
+
+def _lsq_spline(pts: FloatArray, s: FloatArray, weights: FloatArray, knot_spacing_mm: float) -> BSpline:
+    """Weighted least-squares cubic B-spline x(s), knots every ``knot_spacing_mm``."""
+    total = float(s[-1])
+    k = min(3, len(pts) - 1)
+    # At least k + 1 data points per knot span (Schoenberg-Whitney, with room).
+    n_inner = int(min(total / knot_spacing_mm, (np.count_nonzero(weights) - k - 1) / 2.0))
+    inner = np.linspace(0.0, total, n_inner + 2)[1:-1] if n_inner > 0 else np.zeros(0)
+    knots = np.concatenate([np.zeros(k + 1), inner, np.full(k + 1, total)])
+    return make_lsq_spline(s, pts, knots, k=k, w=weights)
+
+
+def robust_track(
+    track_mm: FloatArray, *, knot_spacing_mm: float = 15.0, outlier_mm: float = 2.5, rounds: int = 3
+) -> FloatArray:
+    """A march's polyline with its sideways excursions removed, (M, 3) -> (M', 3).
+
+    Where the hull is crowded the march can wander a few mm off the axis for a
+    few steps before the images pull it back. A spline fitted to the track, then
+    refitted without the points farther than ``outlier_mm`` from it (``rounds``
+    times), follows the axis through such excursions; the result is that spline
+    sampled every ~2 mm, ends included.
+    """
+    pts, s = _distinct(track_mm)
+    weights = np.ones(len(s))
+    weights[[0, -1]] = 10.0
+    for _ in range(rounds):
+        spline = _lsq_spline(pts, s, weights, knot_spacing_mm)
+        far = np.linalg.norm(spline(s) - pts, axis=1) > outlier_mm
+        far[[0, -1]] = False
+        if np.count_nonzero(~far) < 8:
+            break
+        weights = np.where(far, 0.0, weights)
+    return np.asarray(spline(np.linspace(0.0, s[-1], max(int(s[-1] / 2.0), 2) + 1)))
 
 
 def fit_centerline(
@@ -157,6 +193,8 @@ def fit_centerline(
     # that; the fit finds the end from the images.
     length = float(polyline_arclength(track)[-1])
     track = cut_polyline(track, max(length - 1.5 * radius_mm - voxel_mm, 0.5 * length))
+    if len(track) >= 8:
+        track = robust_track(track)
     fit = fit_tube(track, cameras, contrasts, radius_mm=radius_mm, base_fixed=base_known)
     return smooth_curve(fit.points_mm, n_points=n_points), fit
 

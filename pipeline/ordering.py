@@ -28,7 +28,7 @@ _MEAN_SHIFT_ITERATIONS = 3
 # Measured on a rendered loop: a clear tube gives 54-60 points at 2 mm voxels,
 # the junction of a tip with its stem 70-290.
 _BASELINE_STEPS = 4
-_CROWDED = 1.12
+_CROWDED = 1.3
 
 
 def infer_base(

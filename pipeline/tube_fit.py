@@ -57,6 +57,8 @@ _END_SPAN_MM = 24.0
 _END_DEGREE = 2
 # cv2 drawing takes fixed-point coordinates with this many fractional bits.
 _DRAW_SHIFT = 4
+# How far from the rough curve (in radii) the first round seeks the tube's peak.
+_FIRST_CORE = 1.6
 # A reading is trusted when the tube stands out from the background by this much.
 _MIN_CONTRAST = 12.0
 # Views where the tangent is closer than this (sin of the angle) to the line of
@@ -133,9 +135,12 @@ def fit_tube(
     """
     pts = np.asarray(curve_mm, dtype=np.float64)
     radius = float(radius_mm)
-    for _ in range(iterations):
+    for i in range(iterations):
         pts = resample_polyline(pts, _sample_count(pts, spacing_mm))
-        obs = _read_sides(pts, cameras, contrasts, radius, spacing_mm)
+        # The first round looks for the tube's peak within 1.6 radii of the
+        # rough curve (the march may be a few mm off in crowded hull), later
+        # rounds within 0.6 (the curve is on the tube by then).
+        obs = _read_sides(pts, cameras, contrasts, radius, spacing_mm, core=_FIRST_CORE if i == 0 else 0.6)
         if obs.readings >= 6:
             radius = obs.radius_mm
             pts = pts + _solve_corrections(pts, obs, base_fixed=base_fixed, smoothness=smoothness)
@@ -295,7 +300,13 @@ class _CameraEdges:
 
 
 def _camera_edges(
-    pts: FloatArray, tangents: FloatArray, cam: Camera, contrast: NDArray[np.float32], radius_mm: float
+    pts: FloatArray,
+    tangents: FloatArray,
+    cam: Camera,
+    contrast: NDArray[np.float32],
+    radius_mm: float,
+    *,
+    core: float = 0.6,
 ) -> _CameraEdges:
     """Read the silhouette's two edges across the tube at each point, in one view."""
     px, jac = _project_with_jacobian(cam, pts)
@@ -316,7 +327,7 @@ def _camera_edges(
         steps = np.arange(-reach, reach + 1e-9, _PROFILE_STEP_PX)
         where = px[:, None, :] + steps[None, :, None] * normal[:, None, :]
         profile = _sample_image(contrast, np.nan_to_num(where))
-        lo_px, hi_px, found = _edges(profile, steps, r_px)
+        lo_px, hi_px, found = _edges(profile, steps, r_px, core=core)
         ok &= found
         lo, hi = lo_px / safe, hi_px / safe
     # An edge may sit no farther from the axis than the radius allows (by 30 %,
@@ -331,6 +342,8 @@ def _read_sides(
     contrasts: Sequence[NDArray[np.float32]],
     radius_mm: float,
     spacing_mm: float,
+    *,
+    core: float = 0.6,
 ) -> _Sides:
     k, c = len(pts), len(cameras)
     tangents = _tangents(pts)
@@ -345,7 +358,7 @@ def _read_sides(
     interior = (arc > radius_mm) & (arc < arc[-1] - radius_mm)
     sides_seen = arc < arc[-1] - _tip_zone(radius_mm)
     for j, (cam, contrast) in enumerate(zip(cameras, contrasts, strict=True)):
-        e = _camera_edges(pts, tangents, cam, contrast, radius_mm)
+        e = _camera_edges(pts, tangents, cam, contrast, radius_mm, core=core)
         ok = e.ok & sides_seen
         crowd = _crowded(e.px, e.t_hat, e.r_px, arc, 2.5 * radius_mm + spacing_mm)
         # A trusted edge is uncrowded on its side and within the limit of the axis
@@ -413,7 +426,7 @@ def centre_across(
 
 
 def _edges(
-    profile: FloatArray, steps: FloatArray, r_px: FloatArray
+    profile: FloatArray, steps: FloatArray, r_px: FloatArray, *, core: float = 0.6
 ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
     """Sub-pixel silhouette edges on (K, S) profiles taken at offsets ``steps`` (px).
 
@@ -429,8 +442,8 @@ def _edges(
     k = profile.shape[0]
     rows = np.arange(k)
     step = steps[1] - steps[0]
-    core = np.abs(steps)[None, :] <= np.maximum(1.0, 0.6 * r_px)[:, None]
-    peak_idx = np.argmax(np.where(core, profile, -np.inf), axis=1)
+    near = np.abs(steps)[None, :] <= np.maximum(1.0, core * r_px)[:, None]
+    peak_idx = np.argmax(np.where(near, profile, -np.inf), axis=1)
     peak = profile[rows, peak_idx]
     outer = np.abs(steps)[None, :] >= (1.5 * r_px + 2.0)[:, None]
     found = np.ones(k, dtype=bool)
