@@ -302,38 +302,69 @@ class _CameraEdges:
 def _camera_edges(
     pts: FloatArray,
     tangents: FloatArray,
-    cam: Camera,
-    contrast: NDArray[np.float32],
+    cameras: Sequence[Camera],
+    contrasts: Sequence[NDArray[np.float32]],
     radius_mm: float,
     *,
     core: float = 0.6,
-) -> _CameraEdges:
-    """Read the silhouette's two edges across the tube at each point, in one view."""
-    px, jac = _project_with_jacobian(cam, pts)
-    ok = np.isfinite(px).all(axis=1)
-    t_img = np.einsum("kij,kj->ki", jac, tangents)
-    t_len = np.linalg.norm(t_img, axis=1)
-    t_hat = t_img / np.maximum(t_len, 1e-12)[:, None]
-    normal = np.column_stack([-t_hat[:, 1], t_hat[:, 0]])
-    row = np.einsum("ki,kij->kj", normal, jac)  # px per mm of motion, along the normal
-    scale = np.linalg.norm(row, axis=1)  # px per mm across the tube
-    ok &= (scale > 0) & (t_len > _MIN_SIN_VIEW * scale)
-    safe = np.where(scale > 0, scale, 1.0)
-    r_px = radius_mm * scale
-    lo = np.zeros(len(pts))
-    hi = np.zeros(len(pts))
-    if ok.any():
-        reach = float(np.max(2.5 * r_px[ok] + 3.0))
+) -> list[_CameraEdges]:
+    """Read the silhouette's two edges across the tube at each point, in each view.
+
+    The profiles of all views share one set of offsets, so that the edge search
+    runs once over all of them (it is a dozen numpy calls: per call, not per
+    element, is what costs).
+    """
+    geometry = []
+    for cam in cameras:
+        px, jac = _project_with_jacobian(cam, pts)
+        ok = np.isfinite(px).all(axis=1)
+        t_img = np.einsum("kij,kj->ki", jac, tangents)
+        t_len = np.linalg.norm(t_img, axis=1)
+        t_hat = t_img / np.maximum(t_len, 1e-12)[:, None]
+        normal = np.column_stack([-t_hat[:, 1], t_hat[:, 0]])
+        row = np.einsum("ki,kij->kj", normal, jac)  # px per mm of motion, along the normal
+        scale = np.linalg.norm(row, axis=1)  # px per mm across the tube
+        ok &= (scale > 0) & (t_len > _MIN_SIN_VIEW * scale)
+        geometry.append((px, t_hat, normal, row, scale, ok))
+    k = len(pts)
+    scales = np.concatenate([g[4] for g in geometry])
+    usable = np.concatenate([g[5] for g in geometry])
+    r_px = radius_mm * scales
+    lo = np.zeros(len(scales))
+    hi = np.zeros(len(scales))
+    found = np.zeros(len(scales), dtype=bool)
+    if usable.any():
+        reach = float(np.max(2.5 * r_px[usable] + 3.0))
         steps = np.arange(-reach, reach + 1e-9, _PROFILE_STEP_PX)
-        where = px[:, None, :] + steps[None, :, None] * normal[:, None, :]
-        profile = _sample_image(contrast, np.nan_to_num(where))
-        lo_px, hi_px, found = _edges(profile, steps, r_px, core=core)
-        ok &= found
-        lo, hi = lo_px / safe, hi_px / safe
-    # An edge may sit no farther from the axis than the radius allows (by 30 %,
-    # +0.5 px of edge blur).
-    limit = (_WIDTH_TOLERANCE * r_px + 0.5) / safe
-    return _CameraEdges(px, t_hat, r_px, row / safe[:, None], lo, hi, ok, limit)
+        profiles = np.concatenate(
+            [
+                _sample_image(
+                    contrast, np.nan_to_num(px[:, None, :] + steps[None, :, None] * normal[:, None, :])
+                )
+                for contrast, (px, _, normal, _, _, _) in zip(contrasts, geometry, strict=True)
+            ]
+        )
+        lo, hi, found = _edges(profiles, steps, r_px, core=core)
+    out = []
+    for j, (px, t_hat, _, row, scale, ok) in enumerate(geometry):
+        part = slice(j * k, (j + 1) * k)
+        safe = np.where(scale > 0, scale, 1.0)
+        # An edge may sit no farther from the axis than the radius allows (by 30 %,
+        # +0.5 px of edge blur).
+        limit = (_WIDTH_TOLERANCE * r_px[part] + 0.5) / safe
+        out.append(
+            _CameraEdges(
+                px,
+                t_hat,
+                r_px[part],
+                row / safe[:, None],
+                lo[part] / safe,
+                hi[part] / safe,
+                ok & found[part],
+                limit,
+            )
+        )
+    return out
 
 
 def _read_sides(
@@ -357,8 +388,7 @@ def _read_sides(
     # profile's direction) is the least certain: see _refit_tip.
     interior = (arc > radius_mm) & (arc < arc[-1] - radius_mm)
     sides_seen = arc < arc[-1] - _tip_zone(radius_mm)
-    for j, (cam, contrast) in enumerate(zip(cameras, contrasts, strict=True)):
-        e = _camera_edges(pts, tangents, cam, contrast, radius_mm, core=core)
+    for j, e in enumerate(_camera_edges(pts, tangents, cameras, contrasts, radius_mm, core=core)):
         ok = e.ok & sides_seen
         crowd = _crowded(e.px, e.t_hat, e.r_px, arc, 2.5 * radius_mm + spacing_mm)
         # A trusted edge is uncrowded on its side and within the limit of the axis
@@ -399,8 +429,7 @@ def centre_across(
     p = np.asarray(point_mm, dtype=np.float64)[None]
     d = np.asarray(direction, dtype=np.float64)[None]
     a_rows, b_vals = [], []
-    for cam, contrast in zip(cameras, contrasts, strict=True):
-        e = _camera_edges(p, d, cam, contrast, radius_mm)
+    for e in _camera_edges(p, d, cameras, contrasts, radius_mm):
         width = float(e.hi[0] - e.lo[0])
         offset = 0.5 * float(e.lo[0] + e.hi[0])
         # The point is meant to be near the axis already: a reading that puts the
@@ -445,7 +474,8 @@ def _edges(
     near = np.abs(steps)[None, :] <= np.maximum(1.0, core * r_px)[:, None]
     peak_idx = np.argmax(np.where(near, profile, -np.inf), axis=1)
     peak = profile[rows, peak_idx]
-    outer = np.abs(steps)[None, :] >= (1.5 * r_px + 2.0)[:, None]
+    dist = np.abs(steps)[None, :]
+    outer = (dist >= (1.5 * r_px + 2.0)[:, None]) & (dist <= (2.5 * r_px + 3.0)[:, None])
     found = np.ones(k, dtype=bool)
     edges = []
     for side in (-1, 1):
