@@ -101,7 +101,7 @@ def track_hull(
     base = np.asarray(base_mm, dtype=np.float64)
     if len(pts) == 0:
         return base[None].copy()
-    step = step_mm if step_mm is not None else max(voxel_mm, 0.5 * radius_mm)
+    step = step_mm if step_mm is not None else max(voxel_mm, 0.75 * radius_mm)
     tree = cKDTree(pts)
     # The cross-section sought: the tube's own radius plus a voxel of hull overshoot.
     reach = radius_mm + voxel_mm

@@ -109,7 +109,7 @@ def fit_tube(
     radius_mm: float,
     base_fixed: bool = True,
     spacing_mm: float = 4.0,
-    iterations: int = 4,
+    iterations: int = 3,
     smoothness: float = 0.5,
     cap: str = "flat",
 ) -> TubeFit:
