@@ -40,7 +40,7 @@ FloatArray = NDArray[np.float64]
 # smooth on this scale, and 1e-3 mm keeps the truncation error < 1e-6 px.
 _JAC_EPS_MM = 1e-3
 # Sampling step along the image profiles (px) and along the 3-D tip line (mm).
-_PROFILE_STEP_PX = 0.25
+_PROFILE_STEP_PX = 0.5
 _TIP_STEP_MM = 0.25
 # A curve sample explains the silhouette when it is the first to cover this many
 # of its pixels in some view; samples of a false bridge own none (measured: 0 on
