@@ -48,6 +48,7 @@ MIN_RANGE_FRAMES = 8
 RANGES_PER_WORKER = 4
 JPEG_QUALITY = 85
 BACKENDS = ("loky", "threading", "dask")
+DASK_CONNECT_TIMEOUT_S = 10
 # Silhouettes are drawn over the camera image in Rerun: a translucent tint (RGBA).
 SILHOUETTE_RGBA = (0, 200, 255, 110)
 
@@ -262,7 +263,13 @@ def _backend(backend: str, scheduler: str | None, n_jobs: int, model: Any) -> It
 
     cluster = None
     if scheduler:
-        client = Client(scheduler)
+        try:
+            client = Client(scheduler, timeout=DASK_CONNECT_TIMEOUT_S)
+        except OSError as exc:  # refused, unreachable, timed out
+            raise SettingsError(
+                f"cannot reach the Dask scheduler at {scheduler} ({exc}); "
+                "check --scheduler and that the scheduler is running"
+            ) from None
     else:
         cluster = LocalCluster(n_workers=n_jobs, threads_per_worker=1, processes=True)
         client = Client(cluster)

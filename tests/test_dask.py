@@ -56,3 +56,14 @@ def test_dask_cluster_run_equals_the_local_run(cluster: object, tmp_path: Path) 
         return [{k: v for k, v in m.items() if k != "timings_s"} for m in metrics]
 
     assert without_timings(a.metrics) == without_timings(b.metrics)
+
+
+def test_an_unreachable_scheduler_is_a_clear_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from pipeline import runner
+    from pipeline.errors import PipelineError
+
+    monkeypatch.setattr(runner, "DASK_CONNECT_TIMEOUT_S", 1)  # a refused port needs no 10 s
+    session = load_session(build_session(tmp_path / "s", frames=2))
+    with pytest.raises(PipelineError, match=r"cannot reach the Dask scheduler at tcp://127\.0\.0\.1:9 "):
+        process_session(session, out_dir=tmp_path / "out", backend="dask", scheduler="tcp://127.0.0.1:9")
+    assert list((tmp_path / "out").iterdir()) == []  # nothing written, no temporary file left
