@@ -56,7 +56,7 @@ class EvaluationReport:
     ----------
     label : what was evaluated ("per-frame", "smoothed", ...).
     frames : number of frames evaluated.
-    failed_frames : frames without a centreline (NaN rows).
+    failed_frames : frames without a centreline (NaN rows: status failed or empty).
     failed_indices : their frame indices.
     mean_mm, p95_mm : mean and 95th percentile of the symmetric centreline
         distance, pooled over both directions and every ok frame.

@@ -12,12 +12,16 @@ times more of a 2 Hz sweep for slightly more noise reduction (0.58), and a
 Gaussian of the same noise reduction loses 700 times more.
 
 A plain least-squares fit would spread one badly reconstructed frame over its ten
-neighbours. So wrong frames are found first and left out: a frame is an outlier
-when its deviation from the fit (the RMS over its points) exceeds six times the
-median deviation (LOWESS's cut-off, Cleveland 1979), and at least ``min_outlier_mm``,
-and is the largest in its window (its neighbours deviate only because of it).
-Outliers are removed one per window at a time, refitting in between, until none
-is left. An outlier's smoothed curve is then the fit of its neighbours alone.
+neighbours. So wrong frames are found first and left out: in a wider window
+(+-8 frames, so that a few wrong frames in a row still leave enough good ones), a
+frame is an outlier when its deviation from the fit (the RMS over its points)
+exceeds six times the median deviation (LOWESS's cut-off, Cleveland 1979), kept
+between ``min_outlier_mm`` and ``max_outlier_mm``, and is the largest in its window
+(its neighbours deviate only because of it). Outliers are removed one per window
+at a time, refitting in between, until none is left. An outlier's smoothed curve
+is then the fit of its neighbours alone. Where most frames are wrong (a pose the
+reconstruction fails on for a while), too few are left to fit and the frames
+stay as reconstructed: smoothing does no harm there.
 
 Failed frames (NaN rows) stay NaN and are simply absent from their neighbours'
 fits. Where a fit would amplify noise instead of reducing it (the first and last
@@ -43,7 +47,9 @@ def smooth_centerlines(
     half_window: int = 5,
     degree: int = 6,
     reject_outliers: bool = True,
+    outlier_half_window: int = 8,
     min_outlier_mm: float = 1.0,
+    max_outlier_mm: float = 3.0,
 ) -> FloatArray:
     """Smooth centrelines over time, point by point, with a robust local polynomial.
 
@@ -57,8 +63,13 @@ def smooth_centerlines(
         so the window is the same number of frames at any frame rate).
     degree : degree of the local polynomial in time.
     reject_outliers : find wrong frames and leave them out of their neighbours' fits.
+    outlier_half_window : half-width of the window in which outliers are sought
+        (wider than the smoothing window: a few wrong frames in a row still leave
+        enough good ones around them).
     min_outlier_mm : a frame closer than this to the fit (RMS over its points, mm)
         is never an outlier, however smooth the rest is.
+    max_outlier_mm : a frame farther than this from the fit is always an outlier,
+        however wrong the rest is.
 
     Returns
     -------
@@ -84,28 +95,70 @@ def smooth_centerlines(
     # Fit in units of the typical frame step: keeps the Vandermonde matrix well conditioned.
     step = float(np.median(np.diff(times))) if len(times) > 1 else 1.0
     offsets = times / step
-    active = ok.copy()  # frames that enter their neighbours' fits
-    # Each pass removes at least one frame, so this bound is never what stops it.
-    for _ in range(len(curves)):
-        fitted, has_fit = _local_fits(curves, offsets, active, half_window, degree)
-        if not reject_outliers:
-            break
-        outliers = _outliers(curves, fitted, active & has_fit, half_window, min_outlier_mm)
-        if not outliers.any():
-            break
-        active &= ~outliers
+    active = (
+        _inliers(curves, offsets, ok, outlier_half_window, degree, (min_outlier_mm, max_outlier_mm))
+        if reject_outliers
+        else ok
+    )
+    fitted, has_fit = _local_fits(curves, offsets, active, half_window, degree)
+    # An outlier with too few inliers around it for the narrow window takes the wide
+    # one, even if that fit passes up to twice the noise's RMS (gain 4): an outlier is
+    # at least min_outlier_mm off, several times the reconstruction's noise. Only
+    # between inliers, though: a high-degree polynomial extrapolates wildly.
+    lacking = ok & ~active & ~has_fit
+    if lacking.any():
+        wide, has_wide = _local_fits(curves, offsets, active, outlier_half_window, degree, max_gain=4.0)
+        fill = lacking & has_wide & _surrounded(active, outlier_half_window, degree // 2 + 1)
+        fitted[fill], has_fit[fill] = wide[fill], True
     return np.where(has_fit[:, None, None], fitted, curves)
 
 
+def _surrounded(active: NDArray[np.bool_], half_window: int, count: int) -> NDArray[np.bool_]:
+    """(F,) bool: frames with at least ``count`` active frames on each side within the window."""
+    cum = np.concatenate([[0], np.cumsum(active)])
+    idx = np.arange(len(active))
+    before = cum[idx] - cum[np.maximum(idx - half_window, 0)]
+    after = cum[np.minimum(idx + half_window + 1, len(active))] - cum[idx + 1]
+    return np.asarray((before >= count) & (after >= count))
+
+
+def _inliers(
+    curves: FloatArray,
+    offsets: FloatArray,
+    ok: NDArray[np.bool_],
+    half_window: int,
+    degree: int,
+    cutoff_mm: tuple[float, float],
+) -> NDArray[np.bool_]:
+    """(F,) bool: the ok frames left once outliers are removed, one per window per pass.
+
+    ``cutoff_mm`` : (smallest, largest) deviation cut-off, mm.
+    """
+    active = ok.copy()
+    # Each pass removes at least one frame, so this bound is never what stops it.
+    for _ in range(len(curves)):
+        fitted, has_fit = _local_fits(curves, offsets, active, half_window, degree)
+        outliers = _outliers(curves, fitted, active & has_fit, half_window, cutoff_mm)
+        if not outliers.any():
+            break
+        active &= ~outliers
+    return active
+
+
 def _outliers(
-    curves: FloatArray, fitted: FloatArray, judged: NDArray[np.bool_], half_window: int, min_mm: float
+    curves: FloatArray,
+    fitted: FloatArray,
+    judged: NDArray[np.bool_],
+    half_window: int,
+    cutoff_mm: tuple[float, float],
 ) -> NDArray[np.bool_]:
     """(F,) bool: judged frames far from their fit and the farthest in their window."""
     if not judged.any():
         return np.zeros(len(curves), dtype=bool)
     deviation = np.full(len(curves), -np.inf)
     deviation[judged] = np.sqrt(np.mean(np.sum((curves[judged] - fitted[judged]) ** 2, axis=2), axis=1))
-    cutoff = max(_CUTOFF_MEDIANS * float(np.median(deviation[judged])), min_mm)
+    min_mm, max_mm = cutoff_mm
+    cutoff = min(max(_CUTOFF_MEDIANS * float(np.median(deviation[judged])), min_mm), max_mm)
     # Window maximum by a sliding view over the padded deviations.
     padded = np.pad(deviation, half_window, constant_values=-np.inf)
     window_max = np.lib.stride_tricks.sliding_window_view(padded, 2 * half_window + 1).max(axis=1)
@@ -113,7 +166,13 @@ def _outliers(
 
 
 def _local_fits(
-    curves: FloatArray, offsets: FloatArray, active: NDArray[np.bool_], half_window: int, degree: int
+    curves: FloatArray,
+    offsets: FloatArray,
+    active: NDArray[np.bool_],
+    half_window: int,
+    degree: int,
+    *,
+    max_gain: float = 1.0,
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Each ok frame's local polynomial fit over the active frames of its window.
 
@@ -122,6 +181,7 @@ def _local_fits(
     curves : (F, N, 3) float64, NaN rows for failed frames (never active).
     offsets : (F,) float64 frame times in median frame steps.
     active : (F,) bool frames that enter the fits.
+    max_gain : largest usable noise gain (see :func:`_local_fit_weights`).
 
     Returns
     -------
@@ -134,32 +194,33 @@ def _local_fits(
     for f in np.flatnonzero(np.isfinite(curves).all(axis=(1, 2))).tolist():
         lo, hi = max(0, f - half_window), min(frames, f + half_window + 1)
         used = lo + np.flatnonzero(active[lo:hi])
-        coeffs = _local_fit_weights(offsets[used] - offsets[f], degree)
+        coeffs = _local_fit_weights(offsets[used] - offsets[f], degree, max_gain=max_gain)
         if coeffs is not None:
             fitted[f] = np.tensordot(coeffs, curves[used], axes=1)
             has_fit[f] = True
     return fitted, has_fit
 
 
-def _local_fit_weights(offsets: FloatArray, degree: int) -> FloatArray | None:
+def _local_fit_weights(offsets: FloatArray, degree: int, *, max_gain: float = 1.0) -> FloatArray | None:
     """Coefficients c such that c @ y is the least-squares polynomial fit to y at offset 0.
 
     Parameters
     ----------
     offsets : (K,) float64 sample times relative to the evaluated one, in frame steps.
     degree : polynomial degree.
+    max_gain : largest usable noise gain sum(c**2); 1 means the fit must pass less
+        noise than the raw sample.
 
     Returns
     -------
     (K,) float64 coefficients, or None when the fit is not worth using: too few
-    samples to be a fit rather than an interpolation, or a noise gain sum(c**2) >= 1
-    (the fit would pass more noise than the raw sample).
+    samples to be a fit rather than an interpolation, or a noise gain >= max_gain.
     """
     if len(offsets) < degree + 2:
         return None
     vander = np.vander(offsets, degree + 1, increasing=True)  # (K, degree + 1)
     # Row 0 of the pseudo-inverse evaluates the fitted polynomial's constant term.
     coeffs = np.linalg.pinv(vander)[0]
-    if float(coeffs @ coeffs) >= 1.0:
+    if float(coeffs @ coeffs) >= max_gain:
         return None
     return np.asarray(coeffs, dtype=np.float64)
