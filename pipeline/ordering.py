@@ -13,6 +13,8 @@ with the smallest turn wins).
 
 from __future__ import annotations
 
+import math
+import statistics
 from collections.abc import Callable
 
 import numpy as np
@@ -112,14 +114,17 @@ def track_hull(
     direction = _initial_direction(pts, tree, base, reach)
     if direction is None:
         return base[None].copy()
-    track = [base]
+    limit = int(max_length_mm / step)
+    track = np.empty((limit + 1, 3))
+    track[0] = base
+    n = 1
     # Revisiting means the march turned into a part of the tube already walked
     # (a tip touching the body): the axes of two touching parts are 2 r apart.
-    revisit_mm = 1.5 * radius_mm
+    revisit_sq = (1.5 * radius_mm) ** 2
     skip_recent = int(np.ceil(4.0 * radius_mm / step)) + 1
     counts: list[int] = []  # cross-section sizes of the last clear steps
-    for _ in range(int(max_length_mm / step)):
-        here = track[-1]
+    for _ in range(limit):
+        here = track[n - 1]
         predicted = here + step * direction
         section = _slab(pts, tree, predicted, direction, reach, half_slab)
         if len(section) == 0:
@@ -127,7 +132,7 @@ def track_hull(
         # Where the hull swells past its usual cross-section, another part of the
         # tube or a false bridge joins it and a centroid would be dragged sideways:
         # the images say where the axis is, if ``refine`` can read them.
-        crowded = len(counts) >= _BASELINE_STEPS and len(section) > _CROWDED * float(np.median(counts))
+        crowded = len(counts) >= _BASELINE_STEPS and len(section) > _CROWDED * statistics.median(counts)
         centre = refine(predicted, direction) if crowded and refine is not None else None
         if centre is None:
             centre = _mean_shift(section, predicted, reach)
@@ -136,21 +141,21 @@ def track_hull(
         move = centre - here
         if move @ direction <= 0.25 * step:
             break  # the cross-section lies behind: the end of the tube
-        if len(track) > skip_recent:
-            earlier = np.asarray(track[:-skip_recent])
-            if np.min(np.linalg.norm(earlier - centre, axis=1)) < revisit_mm:
+        if n > skip_recent:
+            gap = track[: n - skip_recent] - centre
+            if np.einsum("ij,ij->i", gap, gap).min() < revisit_sq:
                 break
         if not crowded:
             # A running baseline: an inclined tube fills more voxels per slab
             # than one along a grid axis (measured 65-75 against 56).
             counts = [*counts[-2 * _BASELINE_STEPS + 1 :], len(section)]
-        track.append(centre)
-        new_dir = move / np.linalg.norm(move)
+        track[n] = centre
+        n += 1
         # Heading = a blend of the old and the measured one: damps the voxel noise
         # without lagging behind a bend of radius >> step.
-        blended = new_dir + 0.5 * direction
-        direction = blended / np.linalg.norm(blended)
-    return np.asarray(track)
+        blended = move / math.sqrt(move @ move) + 0.5 * direction
+        direction = blended / math.sqrt(blended @ blended)
+    return track[:n].copy()
 
 
 def _initial_direction(pts: FloatArray, tree: cKDTree, base: FloatArray, reach: float) -> FloatArray | None:
@@ -187,9 +192,11 @@ def _mean_shift(section: FloatArray, start: FloatArray, reach: float) -> FloatAr
     around its current estimate, so that hull material more than a tube radius
     away (a false bridge, another part of the tube) is ignored."""
     centre = start
+    reach_sq = reach * reach
     for _ in range(_MEAN_SHIFT_ITERATIONS):
-        close = section[np.linalg.norm(section - centre, axis=1) <= reach]
+        gap = section - centre
+        close = section[np.einsum("ij,ij->i", gap, gap) <= reach_sq]
         if len(close) == 0:
             return None
-        centre = close.mean(axis=0)
+        centre = close.sum(axis=0) / len(close)
     return np.asarray(centre)

@@ -39,10 +39,9 @@ def _s_curve(length: float = 180.0) -> FloatArray:
 
 
 def _helix() -> FloatArray:
+    """1.5 turns of radius 25 mm and pitch 40 mm, starting at the base."""
     t = np.linspace(0.0, 3 * np.pi, 600)
-    stem = np.column_stack([np.zeros(60), np.zeros(60), np.linspace(0.0, 30.0, 60)])
-    coil = np.column_stack([25 * np.cos(t) - 25, 25 * np.sin(t), 30 + 40 * t / (2 * np.pi)])
-    return BASE + np.vstack([stem[:-1], coil])
+    return BASE + np.column_stack([25 * np.cos(t) - 25, 25 * np.sin(t), 40 * t / (2 * np.pi)])
 
 
 def _loop() -> FloatArray:
@@ -81,9 +80,12 @@ def test_track_recovers_the_tube_axis_from_base_to_tip(name: str) -> None:
     # Centroids of voxelised cross-sections sit within a quarter voxel of the axis
     # (measured 0.04-0.22 mm mean on these shapes); 0.5 mm leaves room.
     assert dist.mean() < 0.5
-    # The helix and loop join their stems at a corner, which the march rounds off
-    # by up to a voxel; elsewhere it stays within ~0.5 mm.
-    assert dist.max() < 2.5
+    # Within a voxel everywhere (the mean shift's centroid lags a little on the
+    # tightest bends, 25-30 mm radius here) once under way; the first steps leave
+    # the base on a heading estimated from the hull near it, which is ~10 degrees
+    # off for the helix (it leaves the floor at 75 degrees).
+    assert dist[3:].max() < 2.0
+    assert dist.max() < 3.0
     np.testing.assert_array_equal(track[0], BASE)
     # Base -> tip: the nearest point of the truth advances along it.
     _, nearest = cKDTree(curve).query(track)
