@@ -61,6 +61,8 @@ def write_report(
             log.info("camera %s has no world image: no world-axes picture", cam.name)
             continue
         image = cv2.imread(world.source, cv2.IMREAD_COLOR)
+        if image is None:  # read once already for detection; only a file removed since gets here
+            continue
         length = 3 * result.board.square_mm
         # Camera from world straight from calibration.toml: the axes land on the board
         # only if the world frame is where the user meant it.
