@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .centerline import resample_polyline
+from .polyline import resample_polyline
 
 FloatArray = NDArray[np.float64]
 

@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import EvaluationError
+from .polyline import polyline_arclength
 
 log = logging.getLogger(__name__)
 
@@ -141,8 +142,7 @@ def centerline_distances(a_mm: ArrayLike, b_mm: ArrayLike) -> FloatArray:
 
 def polyline_length(points_mm: ArrayLike) -> float:
     """Length (mm) of the polyline through ``points_mm`` : (N, 3) float64, mm."""
-    p = np.asarray(points_mm, dtype=np.float64)
-    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+    return float(polyline_arclength(np.asarray(points_mm, dtype=np.float64))[-1])
 
 
 def tip_jitter(tips_mm: ArrayLike, *, timestamps_s: ArrayLike | None = None) -> float:
