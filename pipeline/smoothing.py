@@ -27,6 +27,12 @@ Failed frames (NaN rows) stay NaN and are simply absent from their neighbours'
 fits. Where a fit would amplify noise instead of reducing it (the first and last
 frames, or beside long gaps, where the window is one-sided), the frame is left
 as reconstructed.
+
+Smoothing runs after the last frame (``[centerline] smooth`` in session.toml, on
+by default: on the synthetic shapes it lowered the mean, p95, tip error and tip
+jitter wherever the per-frame curves were mostly right, and changed nothing
+measurable where they were mostly wrong). The smoothed curves are logged beside
+the per-frame ones, never instead of them.
 """
 
 from __future__ import annotations
