@@ -41,6 +41,17 @@ _TIP_RGB = (255, 40, 40)
 _HULL_RGB = (150, 150, 150)
 _CURVE_RADIUS_MM = 1.5
 _HULL_RADIUS_FRACTION = 0.4  # of a voxel edge: points that nearly touch read as a solid
+# Pixel conventions: OpenCV (the calibration, Camera.project) puts (0, 0) at the centre of
+# the top-left pixel; Rerun's image space at its top-left corner (an image spans [0, W] x
+# [0, H]). Pixel coordinates and the principal point shift by half a pixel into Rerun.
+OPENCV_TO_RERUN_PX = 0.5
+
+
+def rerun_intrinsics(camera: Camera) -> NDArray[np.float64]:
+    """(3, 3) K with the principal point in Rerun's pixel convention."""
+    k = np.array(camera.matrix, dtype=np.float64)
+    k[:2, 2] += OPENCV_TO_RERUN_PX
+    return k
 
 
 def camera_path(name: str) -> str:
@@ -148,7 +159,7 @@ class RerunRecorder:
             rec.log(
                 image_path(cam.name),
                 rr.Pinhole(
-                    image_from_camera=cam.matrix,
+                    image_from_camera=rerun_intrinsics(cam),
                     resolution=[cam.width, cam.height],
                     camera_xyz=rr.ViewCoordinates.RDF,
                     image_plane_distance=60.0,
@@ -198,7 +209,7 @@ class RerunRecorder:
             )
             rec.log("world/tip", rr.Points3D([curve[-1]], radii=3.0, colors=[_TIP_RGB]))
             for cam in self._cameras:
-                pixels = cam.project(curve)
+                pixels = cam.project(curve) + OPENCV_TO_RERUN_PX
                 pixels = pixels[np.isfinite(pixels).all(axis=1)]
                 rec.log(
                     f"{image_path(cam.name)}/centerline",

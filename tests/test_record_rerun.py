@@ -108,8 +108,9 @@ def test_the_reprojected_centreline_uses_the_camera_model(rrd: Path) -> None:
     table = _table(rrd, f"/world/cameras/{cam.name}/image/centerline")
     rows = dict(zip(_column(table, "frame"), _column(table, "LineStrips2D:strips"), strict=True))
     (strip,) = rows[5]
-    # Distortion included: the same pixels as Camera.project, to float32 precision.
-    np.testing.assert_allclose(np.array(strip), cam.project(_curve(5)), atol=1e-3)
+    # Distortion included: Camera.project's pixels, moved from OpenCV's pixel-centre origin
+    # to Rerun's pixel-corner origin, to float32 precision.
+    np.testing.assert_allclose(np.array(strip), cam.project(_curve(5)) + 0.5, atol=1e-3)
 
 
 def test_cameras_are_logged_once_as_world_from_camera(rrd: Path) -> None:
@@ -122,7 +123,8 @@ def test_cameras_are_logged_once_as_world_from_camera(rrd: Path) -> None:
         np.testing.assert_allclose(np.reshape(mat, (3, 3)).T, cam.camera_from_world.T, atol=1e-6)
         pinhole = _table(rrd, f"/world/cameras/{cam.name}/image", index=None)
         (k,) = _column(pinhole, "Pinhole:image_from_camera")
-        np.testing.assert_allclose(np.reshape(k, (3, 3)).T, cam.matrix, rtol=1e-6)
+        expected_k = cam.matrix + np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])  # principal point moved
+        np.testing.assert_allclose(np.reshape(k, (3, 3)).T, expected_k, rtol=1e-6)
         assert _column(pinhole, "Pinhole:resolution") == [[[320.0, 240.0]]]  # one row, one instance
 
 
