@@ -186,6 +186,29 @@ def test_a_run_writes_every_frame_in_order_at_its_timestamp(short_session: Path,
     np.testing.assert_allclose(rec.smoothed_centerlines_m, rec.centerlines_m, atol=1e-12)
 
 
+class _WatchOutputs:
+    """Frame function that notes, mid-run, which files exist in the output directory."""
+
+    def __init__(self, out: Path) -> None:
+        self.out, self.seen = out, []
+
+    def __call__(self, index: int, images: Sequence[Any], model: Any) -> tuple[FrameResult, Any]:
+        self.seen.append(sorted(p.name for p in self.out.iterdir()))
+        return fixed_rod(index, images, model)
+
+
+def test_outputs_exist_only_under_temporary_names_until_the_run_ends(
+    short_session: Path, tmp_path: Path
+) -> None:
+    watch = _WatchOutputs(tmp_path)
+    # Threads: the frame function runs in this process and can look at the directory mid-run.
+    runner.process_session(
+        load_session(short_session), out_dir=tmp_path, backend="threading", progress=False, frame_fn=watch
+    )
+    assert watch.seen and all(names == [".short.mcap.partial", ".short.rrd.partial"] for names in watch.seen)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["short.mcap", "short.rrd"]
+
+
 def test_frames_outside_the_session_are_refused(short_session: Path, tmp_path: Path) -> None:
     with pytest.raises(SessionError, match=r"--frames 12:20 selects no frame \(the session has 12 frames"):
         runner.process_session(
