@@ -648,12 +648,11 @@ def _refit_tip(
             continue  # no end in sight: the tube (or another part of it) fills the line
         if len(others):
             # Where the tip touches another part in this view, the end line runs on
-            # through that part and leaves it at its far side: an edge lying within
-            # a tube radius of another part's axis is that part's, not the tip's.
-            at = np.interp(edge + lead, u, np.arange(len(u), dtype=np.float64))
-            edge_px = line_px[round(at)]
-            gap = float(np.min(np.linalg.norm(others_px - edge_px, axis=1)))
-            if not gap > radius_mm * px_per_mm + 1.5:
+            # through that part and leaves it at its far side: a reading whose line,
+            # from the current end to the edge found, passes over another part's
+            # axis (within its radius, + 1 px for the samples' spacing) is skipped.
+            read = line_px[(u >= min(lead, lead + edge)) & (u <= lead + max(edge, 0.0))]
+            if len(read) and _min_distance(others_px, read) < radius_mm * px_per_mm + 1.0:
                 continue
         cos_view = np.sqrt(max(0.0, 1.0 - sin_view**2))
         cap_mm = radius_mm / sin_view if cap == "hemisphere" else radius_mm * cos_view / sin_view
@@ -670,6 +669,12 @@ def _refit_tip(
 def _tip_zone(radius_mm: float) -> float:
     """Length (mm) at the tip end with no side readings: see _TIP_ZONE_MM."""
     return min(0.5 * radius_mm, _TIP_ZONE_MM)
+
+
+def _min_distance(a: FloatArray, b: FloatArray) -> float:
+    """Smallest distance between a point of (A, 2) ``a`` and a point of (B, 2) ``b``."""
+    gap = a[:, None, :] - b[None, :, :]
+    return float(np.sqrt(np.einsum("abi,abi->ab", gap, gap).min()))
 
 
 def _end_frame(
