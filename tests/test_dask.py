@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -27,7 +28,7 @@ def cluster() -> Iterator[object]:
 @pytest.mark.slow
 def test_dask_cluster_run_equals_the_local_run(cluster: object, tmp_path: Path) -> None:
     session = load_session(build_session(tmp_path / "dask", frames=10, empty_frames={4}))
-    options = {"images": False, "progress": False}
+    options: dict[str, Any] = {"images": False, "progress": False}
     local = process_session(session, out_dir=tmp_path / "loky", jobs=2, backend="loky", **options)
     remote = process_session(
         session,

@@ -71,6 +71,7 @@ def test_arrays_hold_the_written_frames_in_metres(written: tuple[Path, list[Fram
             assert rec.statuses[r.index] == "failed"
             assert rec.metrics[r.index]["reason"] == "worker died twice"
             continue
+        assert r.centerline_mm is not None
         # Centrelines travel as float64: exact up to the mm -> m multiplication.
         np.testing.assert_allclose(rec.centerlines_m[r.index], r.centerline_mm / 1000, rtol=1e-15)
         # Points travel as float32 metres: 7 significant digits.

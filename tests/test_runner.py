@@ -125,15 +125,16 @@ def test_a_task_returns_results_and_small_media_only(short_session: Path) -> Non
         session, session.video_paths, ["cam0", "cam1", "cam2"], 4, 7, images=True, frame_fn=fixed_rod
     )
     assert [o.result.index for o in outputs] == [4, 5, 6]
-    frames = {i: im for i, im in read_frames(session.video_paths[1], 4, 7)}
+    frames = {i: im for i, im in read_frames(session.video_paths[1], 4, 7) if im is not None}
     for out in outputs:
         assert out.jpegs is not None and out.silhouettes_png is not None
         assert all(isinstance(b, bytes) for b in (*out.jpegs, *out.silhouettes_png))
         jpeg = cv2.imdecode(np.frombuffer(out.jpegs[1], np.uint8), cv2.IMREAD_GRAYSCALE)
+        assert jpeg is not None
         # JPEG at quality 85 of a flat image with a line: a few grey levels on average.
         assert np.abs(jpeg.astype(int) - frames[out.result.index]).mean() < 3
         tint = cv2.imdecode(np.frombuffer(out.silhouettes_png[1], np.uint8), cv2.IMREAD_UNCHANGED)
-        assert tint.shape == (240, 320, 4)
+        assert tint is not None and tint.shape == (240, 320, 4)
         np.testing.assert_array_equal(tint[..., 3] > 0, frames[out.result.index] < 100)
     no_images = runner.process_range(
         session, session.video_paths, ["a", "b", "c"], 0, 1, images=False, frame_fn=fixed_rod
@@ -146,7 +147,7 @@ def test_silhouette_png_decodes_to_the_mask_in_its_tint(width: int) -> None:
     mask = np.random.default_rng(width).random((24, width)) < 0.3
     png = runner.encode_silhouette(mask)
     bgra = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
-    assert bgra.shape == (24, width, 4)
+    assert bgra is not None and bgra.shape == (24, width, 4)
     r, g, b, a = runner.SILHOUETTE_RGBA
     np.testing.assert_array_equal(bgra[mask], np.tile([b, g, r, a], (mask.sum(), 1)))
     assert (bgra[~mask][:, 3] == 0).all()  # transparent outside the silhouette
@@ -190,7 +191,8 @@ class _WatchOutputs:
     """Frame function that notes, mid-run, which files exist in the output directory."""
 
     def __init__(self, out: Path) -> None:
-        self.out, self.seen = out, []
+        self.out = out
+        self.seen: list[list[str]] = []
 
     def __call__(self, index: int, images: Sequence[Any], model: Any) -> tuple[FrameResult, Any]:
         self.seen.append(sorted(p.name for p in self.out.iterdir()))
