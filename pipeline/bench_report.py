@@ -176,16 +176,14 @@ def targets(report: BenchReport) -> list[Target]:
     carve = report.carving_methods.get(OURS) or report.stages.get("carving")
     carve_ms = carve.median_ms if carve else float("nan")
     peak = max((r.peak_rss_mb for r in report.end_to_end), default=float("nan"))
-    identical = (
-        float(report.identical_frames == report.compared_frames) if report.compared_frames else float("nan")
-    )
+    identical = _ratio(100.0 * report.identical_frames, report.compared_frames)
     return [
         Target("carve median at 128^3", carve_ms, 1.0, "ms"),
         Target(
             f"carve identical to brute force ({report.identical_frames}/{report.compared_frames} frames)",
             identical,
-            1.0,
-            "",
+            100.0,
+            "%",
             higher_is_better=True,
         ),
         Target("end to end, 2 workers", _wall(two), 10.0, "s"),
@@ -378,7 +376,7 @@ def plot_report(report: BenchReport, path: Path) -> None:
     ax1.set_xlabel("median time per frame (ms, log scale)")
     ax1.set_title("Per-frame stages")
     ax1.axvline(1000.0 / REALTIME_FPS, color="grey", linestyle="--", label="real time (33 ms)")
-    ax1.legend(loc="lower right")
+    ax1.legend(loc="upper right", fontsize="small")
 
     methods = list(report.carving_methods)
     ax2.barh(methods, [report.carving_methods[m].median_ms for m in methods], color="tab:green")
