@@ -139,7 +139,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="Dask scheduler address, e.g. tcp://host:8786 (with --backend dask)",
     )
     p.add_argument("--frames", type=_frame_range, metavar="START:STOP", help="process only these frames")
-    p.add_argument("--no-images", action="store_true", help="do not store the camera images (JPEG) in the .mcap and .rrd: smaller, faster files")
+    p.add_argument(
+        "--no-images",
+        action="store_true",
+        help="do not store the camera images (JPEG) in the .mcap and .rrd: smaller, faster files",
+    )
     p.add_argument("--force", action="store_true", help="replace existing outputs (atomically)")
     p.add_argument(
         "--curve",
