@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from .bench_e2e import decode_floor, ensure_demo, run_process, voxel_session
-from .bench_report import BenchReport, format_table, plot_report, write_json
+from .bench_report import STAGE_ORDER, BenchReport, format_table, plot_report, write_json
 from .bench_timing import StageStats
 from .session import load_session
 
@@ -120,7 +120,9 @@ def run_bench(
 
         log.info("timing the per-frame stages on %d frames", min(stage_frames, n))
         stages = time_stages(session, tmp / "stages", frames=min(stage_frames, n))
-    report.stages = stages.timer.stats()
+    stats = stages.timer.stats()
+    order = [s for s in STAGE_ORDER if s in stats] + [s for s in stats if s not in STAGE_ORDER]
+    report.stages = {name: stats[name] for name in order}
     report.one_off_s = {"build_grid at 128^3": stages.setup_s, "close the recordings": stages.close_s}
 
     # Frames with something in every view: the others carve nothing and time nothing.
