@@ -1,7 +1,8 @@
 """Fit a tube of radius r to the silhouettes, starting from a rough centreline.
 
 The visual hull is larger than the tube, not centred on it when the views are
-uneven, and overshoots its end. The fit corrects all three from the grey images:
+uneven, and overshoots its end. The fit corrects all three from the grey images
+(read by :mod:`pipeline.profiles`):
 
 - Sides. At samples along the curve, each camera's grey image is read along the
   image normal of the projected curve; the two places where it crosses half way
@@ -14,16 +15,14 @@ uneven, and overshoots its end. The fit corrects all three from the grey images:
   one view (the curve's projection passes near itself: loops, crossings), that
   camera's reading there is dropped; so is a reading whose width is not the
   tube's. The other views, and the smoothness, carry the sample.
-- The tip. Along the end tangent, each camera's image is read on the 3-D line
-  past the tip; where it leaves the tube, minus the end cap's own extent in that
-  view, is where the tube ends. Views seeing the end nearly head-on are weighted
-  down (sin^2 of the angle between the tangent and the line of sight).
+- The tip: after each round the curve is extended or trimmed to where the views
+  see the tube end (:mod:`pipeline.tube_tip`).
 - The radius is the median half-width of the clean readings, in mm.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -32,38 +31,22 @@ from numpy.typing import NDArray
 from scipy.linalg import solveh_banded
 
 from .camera import Camera
-from .polyline import cut_polyline, polyline_arclength, resample_polyline
+from .polyline import polyline_arclength, resample_polyline
+from .profiles import project_with_jacobian, sample_image, side_edges
+from .tube_tip import MIN_SIN_VIEW, refit_tip, tip_zone
 
 FloatArray = NDArray[np.float64]
 
-# Finite-difference step for the projection Jacobian (mm): the projection is
-# smooth on this scale, and 1e-3 mm keeps the truncation error < 1e-6 px.
-_JAC_EPS_MM = 1e-3
-# Sampling step along the image profiles (px) and along the 3-D tip line (mm).
+# Sampling step along the image profiles (px).
 _PROFILE_STEP_PX = 0.5
-_TIP_STEP_MM = 0.25
 # A curve sample explains the silhouette when it is the first to cover this many
 # of its pixels in some view; samples of a false bridge own none (measured: 0 on
 # every bridge sample, >= 4 on the tube's own samples 3 mm apart).
 _MIN_OWNED_PX = 3
-# The curve's last half radius (at most _TIP_ZONE_MM) has no side readings (its
-# profiles cross the end cap); it is regenerated from a parabola fitted over the
-# _END_SPAN_MM before it. Measured on rendered helix / straight / three-segment
-# sessions: this beats a longer zone or a cubic (median tip 0.3-0.5 mm against
-# 0.5-0.8 mm); lengths in mm, not radii, because what limits the extrapolation
-# is the curve's torsion, not the tube's thickness.
-_TIP_ZONE_MM = 3.0
-_END_SPAN_MM = 24.0
-_END_DEGREE = 2
 # cv2 drawing takes fixed-point coordinates with this many fractional bits.
 _DRAW_SHIFT = 4
 # How far from the rough curve (in radii) the first round seeks the tube's peak.
 _FIRST_CORE = 1.6
-# A reading is trusted when the tube stands out from the background by this much.
-_MIN_CONTRAST = 12.0
-# Views where the tangent is closer than this (sin of the angle) to the line of
-# sight see the tube end-on: their normal and their tip reading are unreliable.
-_MIN_SIN_VIEW = 0.3
 # A reading wider than this factor times the expected width (+1 px) is contaminated.
 _WIDTH_TOLERANCE = 1.3
 
@@ -144,7 +127,7 @@ def fit_tube(
         if obs.readings >= 6:
             radius = obs.radius_mm
             pts = pts + _solve_corrections(pts, obs, base_fixed=base_fixed, smoothness=smoothness)
-        pts = _refit_tip(pts, cameras, contrasts, radius, cap=cap)
+        pts = refit_tip(pts, cameras, contrasts, radius, cap=cap)
     pts = resample_polyline(pts, _sample_count(pts, spacing_mm))
     obs = _read_sides(pts, cameras, contrasts, radius, spacing_mm)
     if obs.readings == 0:
@@ -220,30 +203,6 @@ def _tangents(pts: FloatArray) -> FloatArray:
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
 
-def _project_with_jacobian(cam: Camera, pts: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Pixels (K, 2) and the projection's Jacobian (K, 2, 3) px/mm, by finite differences."""
-    k = len(pts)
-    shifted = np.concatenate([pts] + [pts + _JAC_EPS_MM * e for e in np.eye(3)])
-    px = cam.project(shifted).reshape(4, k, 2)
-    jac = (px[1:] - px[0]) / _JAC_EPS_MM  # (3, K, 2)
-    return px[0], jac.transpose(1, 2, 0)
-
-
-def _sample_image(image: NDArray[np.float32], xy: FloatArray) -> FloatArray:
-    """Bilinear samples of ``image`` at pixel positions ``xy`` (..., 2); edge pixels repeat."""
-    shape = xy.shape[:-1]
-    flat = xy.reshape(-1, 2).astype(np.float32)
-    # cv2.remap's maps must be 2-D; a (n, 1) map reads n pixels in one call.
-    out = cv2.remap(
-        image,
-        np.ascontiguousarray(flat[:, :1]),
-        np.ascontiguousarray(flat[:, 1:]),
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE,
-    )
-    return np.asarray(out, dtype=np.float64).reshape(shape)
-
-
 @dataclass(frozen=True, eq=False)
 class _Sides:
     """Side readings at K samples in C cameras; (K, C) arrays unless noted, mm.
@@ -316,7 +275,7 @@ def _camera_edges(
     """
     geometry = []
     for cam in cameras:
-        px, jac = _project_with_jacobian(cam, pts)
+        px, jac = project_with_jacobian(cam, pts)
         ok = np.isfinite(px).all(axis=1)
         t_img = np.einsum("kij,kj->ki", jac, tangents)
         t_len = np.linalg.norm(t_img, axis=1)
@@ -324,7 +283,7 @@ def _camera_edges(
         normal = np.column_stack([-t_hat[:, 1], t_hat[:, 0]])
         row = np.einsum("ki,kij->kj", normal, jac)  # px per mm of motion, along the normal
         scale = np.linalg.norm(row, axis=1)  # px per mm across the tube
-        ok &= (scale > 0) & (t_len > _MIN_SIN_VIEW * scale)
+        ok &= (scale > 0) & (t_len > MIN_SIN_VIEW * scale)
         geometry.append((px, t_hat, normal, row, scale, ok))
     k = len(pts)
     scales = np.concatenate([g[4] for g in geometry])
@@ -338,13 +297,13 @@ def _camera_edges(
         steps = np.arange(-reach, reach + 1e-9, _PROFILE_STEP_PX)
         profiles = np.concatenate(
             [
-                _sample_image(
+                sample_image(
                     contrast, np.nan_to_num(px[:, None, :] + steps[None, :, None] * normal[:, None, :])
                 )
                 for contrast, (px, _, normal, _, _, _) in zip(contrasts, geometry, strict=True)
             ]
         )
-        lo, hi, found = _edges(profiles, steps, r_px, core=core)
+        lo, hi, found = side_edges(profiles, steps, r_px, core=core)
     out = []
     for j, (px, t_hat, _, row, scale, ok) in enumerate(geometry):
         part = slice(j * k, (j + 1) * k)
@@ -385,9 +344,9 @@ def _read_sides(
     use = np.zeros((k, c, 2), dtype=bool)
     # Samples within a radius of either end see the cap, not the sides: no radius
     # from them; and no reading at all in the tip zone, whose tangent (so its
-    # profile's direction) is the least certain: see _refit_tip.
+    # profile's direction) is the least certain: see refit_tip.
     interior = (arc > radius_mm) & (arc < arc[-1] - radius_mm)
-    sides_seen = arc < arc[-1] - _tip_zone(radius_mm)
+    sides_seen = arc < arc[-1] - tip_zone(radius_mm)
     for j, e in enumerate(_camera_edges(pts, tangents, cameras, contrasts, radius_mm, core=core)):
         ok = e.ok & sides_seen
         crowd = _crowded(e.px, e.t_hat, e.r_px, arc, 2.5 * radius_mm + spacing_mm)
@@ -452,86 +411,6 @@ def centre_across(
     if not np.linalg.norm(move) <= radius_mm:
         return None
     return np.asarray(p[0] + move)
-
-
-def _edges(
-    profile: FloatArray, steps: FloatArray, r_px: FloatArray, *, core: float = 0.6
-) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
-    """Sub-pixel silhouette edges on (K, S) profiles taken at offsets ``steps`` (px).
-
-    An edge is where the profile falls half way from the tube's level to the
-    background's level on that side, interpolated between samples. The levels are
-    local, because the tube is shaded and the scene textured: the background is
-    the lower quartile of the profile's outer part on that side; the tube's level
-    is first the profile's peak near the centre, then (second pass) its value one
-    pixel inside the first edge estimate, i.e. the rim's own shade.
-
-    Returns left and right offsets (px) and whether both were found.
-    """
-    k = profile.shape[0]
-    rows = np.arange(k)
-    step = steps[1] - steps[0]
-    near = np.abs(steps)[None, :] <= np.maximum(1.0, core * r_px)[:, None]
-    peak_idx = np.argmax(np.where(near, profile, -np.inf), axis=1)
-    peak = profile[rows, peak_idx]
-    dist = np.abs(steps)[None, :]
-    outer = (dist >= (1.5 * r_px + 2.0)[:, None]) & (dist <= (2.5 * r_px + 3.0)[:, None])
-    found = np.ones(k, dtype=bool)
-    edges = []
-    for side in (-1, 1):
-        region = outer & (np.sign(steps)[None, :] == side)
-        bg = _lower_quartile(profile, region)
-        ok = np.isfinite(bg) & (peak - bg >= _MIN_CONTRAST)
-        bg = np.where(ok, bg, peak)
-        pos, hit = _crossing(profile, peak_idx, 0.5 * (peak + bg), side)
-        # The rim's shade, one pixel inside the first estimate (not past the peak).
-        rim_at = np.clip(pos - side / step, np.minimum(peak_idx, pos), np.maximum(peak_idx, pos))
-        rim = _interp_rows(profile, rim_at)
-        rim = np.where(rim - bg >= _MIN_CONTRAST, rim, peak)
-        pos, hit2 = _crossing(profile, peak_idx, 0.5 * (rim + bg), side)
-        found &= ok & hit & hit2
-        edges.append(steps[0] + pos * step)
-    return edges[0], edges[1], found
-
-
-def _lower_quartile(profile: FloatArray, region: NDArray[np.bool_]) -> FloatArray:
-    """(K,) lower quartile of each row of ``profile`` over ``region``; inf where empty.
-
-    The lower quartile, not the median: another part of the tube crossing the
-    outer profile raises a median but not the background's lower values."""
-    ordered = np.sort(np.where(region, profile, np.inf), axis=1)
-    count = region.sum(axis=1)
-    return np.asarray(ordered[np.arange(len(profile)), (count // 4).clip(0, profile.shape[1] - 1)])
-
-
-def _interp_rows(profile: FloatArray, at: FloatArray) -> FloatArray:
-    """Linear interpolation of each row of (K, S) ``profile`` at fractional index ``at`` (K,)."""
-    s = profile.shape[1]
-    lo = np.clip(np.floor(at).astype(np.intp), 0, s - 2)
-    frac = np.clip(at - lo, 0.0, 1.0)
-    rows = np.arange(len(at))
-    return np.asarray((1 - frac) * profile[rows, lo] + frac * profile[rows, lo + 1])
-
-
-def _crossing(
-    profile: FloatArray, start: NDArray[np.intp], level: FloatArray, side: int
-) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """First fractional index from ``start`` towards ``side`` (+1/-1) where each row of
-    (K, S) ``profile`` falls below ``level`` (K,), and whether it does."""
-    k, s = profile.shape
-    idx = np.arange(s)[None, :]
-    below = (profile < level[:, None]) & ((idx - start[:, None]) * side > 0)
-    hit = below.any(axis=1)
-    if side > 0:
-        j = np.argmax(below, axis=1)
-    else:
-        j = s - 1 - np.argmax(below[:, ::-1], axis=1)
-    j = np.clip(j, 1, s - 2)
-    inner = j - side
-    rows = np.arange(k)
-    a, b = profile[rows, inner], profile[rows, j]
-    frac = np.clip((a - level) / np.maximum(a - b, 1e-9), 0.0, 1.0)
-    return np.asarray(inner + side * frac, dtype=np.float64), np.asarray(hit)
 
 
 def _crowded(
@@ -600,139 +479,3 @@ def _solve_corrections(pts: FloatArray, obs: _Sides, *, base_fixed: bool, smooth
             band[upper, a] = 1.0
         g[:3] = 0.0
     return np.asarray(solveh_banded(band, g)).reshape(k, 3)
-
-
-def _refit_tip(
-    pts: FloatArray,
-    cameras: Sequence[Camera],
-    contrasts: Sequence[NDArray[np.float32]],
-    radius_mm: float,
-    *,
-    cap: str,
-) -> FloatArray:
-    """Extend or trim the curve to where the views see the tube end.
-
-    The end is sought along the curve's own continuation: a parabola in arc
-    length fitted to the measured part before the last half radius (which has no
-    side readings, see :func:`_read_sides`), so that a loop's tip is sought on the
-    loop and not on a tangent line. That last part is regenerated from it.
-    """
-    arc = polyline_arclength(pts)
-    anchor = max(arc[-1] - _tip_zone(radius_mm), 0.5 * arc[-1])
-    path = _end_frame(pts, arc, at_mm=anchor, span_mm=_END_SPAN_MM)
-    lead = arc[-1] - anchor  # the current end, in arc length past the anchor
-    u = np.arange(lead - 2.0 * radius_mm - 4.0, lead + 3.0 * radius_mm + 12.0, _TIP_STEP_MM)
-    line = path(u)
-    end = path(np.array([lead]))[0]
-    end_dir = path(np.array([lead + 0.5]))[0] - path(np.array([lead - 0.5]))[0]
-    end_dir /= np.linalg.norm(end_dir)
-    # Parts of the tube away from the end can lie across the end line in a view
-    # (a loop's tip coming back to its stem): that view's reading is skipped.
-    others = pts[arc < arc[-1] - (2.5 * radius_mm + 4.0)]
-    probe = np.concatenate([line, others, end + _JAC_EPS_MM * np.eye(3), end[None]])
-    estimates, weights = [], []
-    for cam, contrast in zip(cameras, contrasts, strict=True):
-        px = cam.project(probe)
-        line_px, others_px = px[: len(u)], px[len(u) : len(u) + len(others)]
-        end_px, jac = px[-1], (px[-4:-1] - px[-1]).T / _JAC_EPS_MM  # (2,), (2, 3)
-        if not np.isfinite(line_px).all():
-            continue
-        depth = float(cam.to_camera(end[None])[0, 2])
-        px_per_mm = float(np.mean(np.diag(cam.matrix)[:2])) / depth
-        sin_view = min(float(np.linalg.norm(jac @ end_dir)) / px_per_mm, 1.0)
-        if sin_view < _MIN_SIN_VIEW or not np.isfinite(end_px).all():
-            continue
-        profile = _sample_image(contrast, line_px)[None, :]
-        edge = _tip_edge(profile, u - lead, radius_mm, 1.0 / (px_per_mm * sin_view))
-        if edge is None:
-            continue  # no end in sight: the tube (or another part of it) fills the line
-        if len(others):
-            # Where the tip touches another part in this view, the end line runs on
-            # through that part and leaves it at its far side: a reading whose line,
-            # from the current end to the edge found, passes over another part's
-            # axis (within its radius, + 1 px for the samples' spacing) is skipped.
-            read = line_px[(u >= min(lead, lead + edge)) & (u <= lead + max(edge, 0.0))]
-            if len(read) and _min_distance(others_px, read) < radius_mm * px_per_mm + 1.0:
-                continue
-        cos_view = np.sqrt(max(0.0, 1.0 - sin_view**2))
-        cap_mm = radius_mm / sin_view if cap == "hemisphere" else radius_mm * cos_view / sin_view
-        estimates.append(edge - cap_mm)
-        weights.append(sin_view**2)
-    shift = _weighted_median(np.asarray(estimates), np.asarray(weights)) if estimates else 0.0
-    stop = lead + shift
-    if stop <= 0:
-        return cut_polyline(pts, anchor + stop)
-    ahead = np.append(np.arange(2.0, stop, 2.0), stop)
-    return np.vstack([cut_polyline(pts, anchor), path(ahead)])
-
-
-def _tip_zone(radius_mm: float) -> float:
-    """Length (mm) at the tip end with no side readings: see _TIP_ZONE_MM."""
-    return min(0.5 * radius_mm, _TIP_ZONE_MM)
-
-
-def _min_distance(a: FloatArray, b: FloatArray) -> float:
-    """Smallest distance between a point of (A, 2) ``a`` and a point of (B, 2) ``b``."""
-    gap = a[:, None, :] - b[None, :, :]
-    return float(np.sqrt(np.einsum("abi,abi->ab", gap, gap).min()))
-
-
-def _end_frame(
-    pts: FloatArray, arc: FloatArray, *, at_mm: float, span_mm: float
-) -> Callable[[FloatArray], FloatArray]:
-    """The curve's continuation past arc length ``at_mm``: u (mm, (U,)) -> (U, 3) points.
-
-    A polynomial of degree ``_END_DEGREE`` in arc length, fitted by least squares
-    to the ``span_mm`` of the curve before ``at_mm``; fewer samples give a lower
-    degree. (A helix's torsion makes a parabola drift ~0.4 mm over 6 mm of
-    extrapolation, which is why only half a radius is extrapolated.)
-    """
-    s = arc - at_mm
-    sel = (s >= -span_mm) & (s <= 0.0)
-    if sel.sum() < 4:
-        sel = np.zeros(len(s), dtype=bool)
-        sel[np.argsort(np.abs(s))[:4]] = True
-    degree = int(min(_END_DEGREE, sel.sum() - 2))
-    coef, *_ = np.linalg.lstsq(np.vander(s[sel], degree + 1, increasing=True), pts[sel], rcond=None)
-
-    def path(u: FloatArray) -> FloatArray:
-        return np.asarray(np.vander(np.atleast_1d(u), degree + 1, increasing=True) @ coef)
-
-    return path
-
-
-def _tip_edge(profile: FloatArray, t: FloatArray, radius_mm: float, mm_per_px: float) -> float | None:
-    """Where a (1, S) profile read along the 3-D end line at ``t`` (mm) leaves the tube, mm.
-
-    Levels as in :func:`_edges`: a first crossing half way between the tube's peak
-    and the profile's lowest decile, then half way between the rim (one pixel
-    inside) and the lower quartile of what lies past the end.
-    """
-    step = t[1] - t[0]
-    inside = np.nonzero(t <= -radius_mm)[0]  # t: mm past the current end
-    if len(inside) == 0:
-        return None
-    start = np.array([int(np.argmax(profile[0, inside]))])
-    peak = profile[0, start]
-    bg = np.array([np.percentile(profile[0], 10)])
-    if peak[0] - bg[0] < _MIN_CONTRAST:
-        return None
-    pos, hit = _crossing(profile, start, 0.5 * (peak + bg), 1)
-    if not hit[0]:
-        return None
-    px_steps = mm_per_px / step  # one pixel, in samples
-    beyond = profile[0, int(np.ceil(pos[0] + px_steps)) :]
-    if len(beyond):
-        bg = np.array([np.percentile(beyond, 25)])
-    rim = _interp_rows(profile, np.maximum(pos - px_steps, start.astype(np.float64)))
-    rim = np.where(rim - bg >= _MIN_CONTRAST, rim, peak)
-    pos, hit = _crossing(profile, start, 0.5 * (rim + bg), 1)
-    if not hit[0]:
-        return None
-    return float(t[0] + pos[0] * step)
-
-
-def _weighted_median(values: FloatArray, weights: FloatArray) -> float:
-    order = np.argsort(values)
-    cum = np.cumsum(weights[order])
-    return float(values[order][np.searchsorted(cum, 0.5 * cum[-1])])

@@ -1,0 +1,157 @@
+"""Reading the grey images along lines: across the tube (its two edges) and along it (its end).
+
+Sub-pixel edges come from the grey levels, not the masks: an edge is where a
+profile crosses half way between the tube's and the background's local levels,
+interpolated between samples. Also the projection's Jacobian, by finite differences.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .camera import Camera
+
+FloatArray = NDArray[np.float64]
+
+# Finite-difference step for the projection Jacobian (mm): the projection is
+# smooth on this scale, and 1e-3 mm keeps the truncation error < 1e-6 px.
+JAC_EPS_MM = 1e-3
+# A reading is trusted when the tube stands out from the background by this much.
+MIN_CONTRAST = 12.0
+
+
+def project_with_jacobian(cam: Camera, pts: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Pixels (K, 2) and the projection's Jacobian (K, 2, 3) px/mm, by finite differences."""
+    k = len(pts)
+    shifted = np.concatenate([pts] + [pts + JAC_EPS_MM * e for e in np.eye(3)])
+    px = cam.project(shifted).reshape(4, k, 2)
+    jac = (px[1:] - px[0]) / JAC_EPS_MM  # (3, K, 2)
+    return px[0], jac.transpose(1, 2, 0)
+
+
+def sample_image(image: NDArray[np.float32], xy: FloatArray) -> FloatArray:
+    """Bilinear samples of ``image`` at pixel positions ``xy`` (..., 2); edge pixels repeat."""
+    shape = xy.shape[:-1]
+    flat = xy.reshape(-1, 2).astype(np.float32)
+    # cv2.remap's maps must be 2-D; a (n, 1) map reads n pixels in one call.
+    out = cv2.remap(
+        image,
+        np.ascontiguousarray(flat[:, :1]),
+        np.ascontiguousarray(flat[:, 1:]),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
+    return np.asarray(out, dtype=np.float64).reshape(shape)
+
+
+def side_edges(
+    profile: FloatArray, steps: FloatArray, r_px: FloatArray, *, core: float = 0.6
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Sub-pixel silhouette edges on (K, S) profiles taken at offsets ``steps`` (px).
+
+    An edge is where the profile falls half way from the tube's level to the
+    background's level on that side, interpolated between samples. The levels are
+    local, because the tube is shaded and the scene textured: the background is
+    the lower quartile of the profile's outer part on that side; the tube's level
+    is first the profile's peak near the centre, then (second pass) its value one
+    pixel inside the first edge estimate, i.e. the rim's own shade.
+
+    Returns left and right offsets (px) and whether both were found.
+    """
+    k = profile.shape[0]
+    rows = np.arange(k)
+    step = steps[1] - steps[0]
+    near = np.abs(steps)[None, :] <= np.maximum(1.0, core * r_px)[:, None]
+    peak_idx = np.argmax(np.where(near, profile, -np.inf), axis=1)
+    peak = profile[rows, peak_idx]
+    dist = np.abs(steps)[None, :]
+    outer = (dist >= (1.5 * r_px + 2.0)[:, None]) & (dist <= (2.5 * r_px + 3.0)[:, None])
+    found = np.ones(k, dtype=bool)
+    edges = []
+    for side in (-1, 1):
+        region = outer & (np.sign(steps)[None, :] == side)
+        bg = lower_quartile(profile, region)
+        ok = np.isfinite(bg) & (peak - bg >= MIN_CONTRAST)
+        bg = np.where(ok, bg, peak)
+        pos, hit = crossing(profile, peak_idx, 0.5 * (peak + bg), side)
+        # The rim's shade, one pixel inside the first estimate (not past the peak).
+        rim_at = np.clip(pos - side / step, np.minimum(peak_idx, pos), np.maximum(peak_idx, pos))
+        rim = interp_rows(profile, rim_at)
+        rim = np.where(rim - bg >= MIN_CONTRAST, rim, peak)
+        pos, hit2 = crossing(profile, peak_idx, 0.5 * (rim + bg), side)
+        found &= ok & hit & hit2
+        edges.append(steps[0] + pos * step)
+    return edges[0], edges[1], found
+
+
+def lower_quartile(profile: FloatArray, region: NDArray[np.bool_]) -> FloatArray:
+    """(K,) lower quartile of each row of ``profile`` over ``region``; inf where empty.
+
+    The lower quartile, not the median: another part of the tube crossing the
+    outer profile raises a median but not the background's lower values."""
+    ordered = np.sort(np.where(region, profile, np.inf), axis=1)
+    count = region.sum(axis=1)
+    return np.asarray(ordered[np.arange(len(profile)), (count // 4).clip(0, profile.shape[1] - 1)])
+
+
+def interp_rows(profile: FloatArray, at: FloatArray) -> FloatArray:
+    """Linear interpolation of each row of (K, S) ``profile`` at fractional index ``at`` (K,)."""
+    s = profile.shape[1]
+    lo = np.clip(np.floor(at).astype(np.intp), 0, s - 2)
+    frac = np.clip(at - lo, 0.0, 1.0)
+    rows = np.arange(len(at))
+    return np.asarray((1 - frac) * profile[rows, lo] + frac * profile[rows, lo + 1])
+
+
+def crossing(
+    profile: FloatArray, start: NDArray[np.intp], level: FloatArray, side: int
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """First fractional index from ``start`` towards ``side`` (+1/-1) where each row of
+    (K, S) ``profile`` falls below ``level`` (K,), and whether it does."""
+    k, s = profile.shape
+    idx = np.arange(s)[None, :]
+    below = (profile < level[:, None]) & ((idx - start[:, None]) * side > 0)
+    hit = below.any(axis=1)
+    if side > 0:
+        j = np.argmax(below, axis=1)
+    else:
+        j = s - 1 - np.argmax(below[:, ::-1], axis=1)
+    j = np.clip(j, 1, s - 2)
+    inner = j - side
+    rows = np.arange(k)
+    a, b = profile[rows, inner], profile[rows, j]
+    frac = np.clip((a - level) / np.maximum(a - b, 1e-9), 0.0, 1.0)
+    return np.asarray(inner + side * frac, dtype=np.float64), np.asarray(hit)
+
+
+def end_edge(profile: FloatArray, t: FloatArray, radius_mm: float, mm_per_px: float) -> float | None:
+    """Where a (1, S) profile read along the 3-D end line at ``t`` (mm) leaves the tube, mm.
+
+    Levels as in :func:`side_edges`: a first crossing half way between the tube's peak
+    and the profile's lowest decile, then half way between the rim (one pixel
+    inside) and the lower quartile of what lies past the end.
+    """
+    step = t[1] - t[0]
+    inside = np.nonzero(t <= -radius_mm)[0]  # t: mm past the current end
+    if len(inside) == 0:
+        return None
+    start = np.array([int(np.argmax(profile[0, inside]))])
+    peak = profile[0, start]
+    bg = np.array([np.percentile(profile[0], 10)])
+    if peak[0] - bg[0] < MIN_CONTRAST:
+        return None
+    pos, hit = crossing(profile, start, 0.5 * (peak + bg), 1)
+    if not hit[0]:
+        return None
+    px_steps = mm_per_px / step  # one pixel, in samples
+    beyond = profile[0, int(np.ceil(pos[0] + px_steps)) :]
+    if len(beyond):
+        bg = np.array([np.percentile(beyond, 25)])
+    rim = interp_rows(profile, np.maximum(pos - px_steps, start.astype(np.float64)))
+    rim = np.where(rim - bg >= MIN_CONTRAST, rim, peak)
+    pos, hit = crossing(profile, start, 0.5 * (rim + bg), 1)
+    if not hit[0]:
+        return None
+    return float(t[0] + pos[0] * step)

@@ -1,0 +1,142 @@
+"""The tube's end: extend or trim the fitted curve to where the views see the tip.
+
+The end is sought along the curve's own continuation (a parabola in arc length
+fitted to the measured part just before the end), each view reads where its grey
+image leaves the tube along that line, and the end cap's own extent in that view
+is taken off. Views seeing the end nearly head-on are weighted down, and a view
+where the end line crosses another part of the tube (a loop's tip coming back to
+its stem) is skipped.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .camera import Camera
+from .polyline import cut_polyline, polyline_arclength
+from .profiles import JAC_EPS_MM, end_edge, sample_image
+
+FloatArray = NDArray[np.float64]
+
+# Sampling step along the 3-D end line (mm).
+_TIP_STEP_MM = 0.25
+# Views where the tangent is closer than this (sin of the angle) to the line of
+# sight see the tube end-on: their normal and their tip reading are unreliable.
+MIN_SIN_VIEW = 0.3
+# The curve's last half radius (at most _TIP_ZONE_MM) has no side readings (its
+# profiles cross the end cap); it is regenerated from a parabola fitted over the
+# _END_SPAN_MM before it. Measured on rendered helix / straight / three-segment
+# sessions: this beats a longer zone or a cubic (median tip 0.3-0.5 mm against
+# 0.5-0.8 mm); lengths in mm, not radii, because what limits the extrapolation
+# is the curve's torsion, not the tube's thickness.
+_TIP_ZONE_MM = 3.0
+_END_SPAN_MM = 24.0
+_END_DEGREE = 2
+
+
+def refit_tip(
+    pts: FloatArray,
+    cameras: Sequence[Camera],
+    contrasts: Sequence[NDArray[np.float32]],
+    radius_mm: float,
+    *,
+    cap: str,
+) -> FloatArray:
+    """Extend or trim the curve to where the views see the tube end.
+
+    The end is sought along the curve's own continuation: a parabola in arc
+    length fitted to the measured part before the last half radius (which has no
+    side readings, see :func:`_read_sides`), so that a loop's tip is sought on the
+    loop and not on a tangent line. That last part is regenerated from it.
+    """
+    arc = polyline_arclength(pts)
+    anchor = max(arc[-1] - tip_zone(radius_mm), 0.5 * arc[-1])
+    path = _end_frame(pts, arc, at_mm=anchor, span_mm=_END_SPAN_MM)
+    lead = arc[-1] - anchor  # the current end, in arc length past the anchor
+    u = np.arange(lead - 2.0 * radius_mm - 4.0, lead + 3.0 * radius_mm + 12.0, _TIP_STEP_MM)
+    line = path(u)
+    end = path(np.array([lead]))[0]
+    end_dir = path(np.array([lead + 0.5]))[0] - path(np.array([lead - 0.5]))[0]
+    end_dir /= np.linalg.norm(end_dir)
+    # Parts of the tube away from the end can lie across the end line in a view
+    # (a loop's tip coming back to its stem): that view's reading is skipped.
+    others = pts[arc < arc[-1] - (2.5 * radius_mm + 4.0)]
+    probe = np.concatenate([line, others, end + JAC_EPS_MM * np.eye(3), end[None]])
+    estimates, weights = [], []
+    for cam, contrast in zip(cameras, contrasts, strict=True):
+        px = cam.project(probe)
+        line_px, others_px = px[: len(u)], px[len(u) : len(u) + len(others)]
+        end_px, jac = px[-1], (px[-4:-1] - px[-1]).T / JAC_EPS_MM  # (2,), (2, 3)
+        if not np.isfinite(line_px).all():
+            continue
+        depth = float(cam.to_camera(end[None])[0, 2])
+        px_per_mm = float(np.mean(np.diag(cam.matrix)[:2])) / depth
+        sin_view = min(float(np.linalg.norm(jac @ end_dir)) / px_per_mm, 1.0)
+        if sin_view < MIN_SIN_VIEW or not np.isfinite(end_px).all():
+            continue
+        profile = sample_image(contrast, line_px)[None, :]
+        edge = end_edge(profile, u - lead, radius_mm, 1.0 / (px_per_mm * sin_view))
+        if edge is None:
+            continue  # no end in sight: the tube (or another part of it) fills the line
+        if len(others):
+            # Where the tip touches another part in this view, the end line runs on
+            # through that part and leaves it at its far side: a reading whose line,
+            # from the current end to the edge found, passes over another part's
+            # axis (within its radius, + 1 px for the samples' spacing) is skipped.
+            read = line_px[(u >= min(lead, lead + edge)) & (u <= lead + max(edge, 0.0))]
+            if len(read) and _min_distance(others_px, read) < radius_mm * px_per_mm + 1.0:
+                continue
+        cos_view = np.sqrt(max(0.0, 1.0 - sin_view**2))
+        cap_mm = radius_mm / sin_view if cap == "hemisphere" else radius_mm * cos_view / sin_view
+        estimates.append(edge - cap_mm)
+        weights.append(sin_view**2)
+    shift = _weighted_median(np.asarray(estimates), np.asarray(weights)) if estimates else 0.0
+    stop = lead + shift
+    if stop <= 0:
+        return cut_polyline(pts, anchor + stop)
+    ahead = np.append(np.arange(2.0, stop, 2.0), stop)
+    return np.vstack([cut_polyline(pts, anchor), path(ahead)])
+
+
+def tip_zone(radius_mm: float) -> float:
+    """Length (mm) at the tip end with no side readings: see _TIP_ZONE_MM."""
+    return min(0.5 * radius_mm, _TIP_ZONE_MM)
+
+
+def _min_distance(a: FloatArray, b: FloatArray) -> float:
+    """Smallest distance between a point of (A, 2) ``a`` and a point of (B, 2) ``b``."""
+    gap = a[:, None, :] - b[None, :, :]
+    return float(np.sqrt(np.einsum("abi,abi->ab", gap, gap).min()))
+
+
+def _end_frame(
+    pts: FloatArray, arc: FloatArray, *, at_mm: float, span_mm: float
+) -> Callable[[FloatArray], FloatArray]:
+    """The curve's continuation past arc length ``at_mm``: u (mm, (U,)) -> (U, 3) points.
+
+    A polynomial of degree ``_END_DEGREE`` in arc length, fitted by least squares
+    to the ``span_mm`` of the curve before ``at_mm``; fewer samples give a lower
+    degree. (A helix's torsion makes a parabola drift ~0.4 mm over 6 mm of
+    extrapolation, which is why only half a radius is extrapolated.)
+    """
+    s = arc - at_mm
+    sel = (s >= -span_mm) & (s <= 0.0)
+    if sel.sum() < 4:
+        sel = np.zeros(len(s), dtype=bool)
+        sel[np.argsort(np.abs(s))[:4]] = True
+    degree = int(min(_END_DEGREE, sel.sum() - 2))
+    coef, *_ = np.linalg.lstsq(np.vander(s[sel], degree + 1, increasing=True), pts[sel], rcond=None)
+
+    def path(u: FloatArray) -> FloatArray:
+        return np.asarray(np.vander(np.atleast_1d(u), degree + 1, increasing=True) @ coef)
+
+    return path
+
+
+def _weighted_median(values: FloatArray, weights: FloatArray) -> float:
+    order = np.argsort(values)
+    cum = np.cumsum(weights[order])
+    return float(values[order][np.searchsorted(cum, 0.5 * cum[-1])])
