@@ -33,6 +33,8 @@ _MEAN_SHIFT_ITERATIONS = 2
 # the junction of a tip with its stem 70-290.
 _BASELINE_STEPS = 4
 _CROWDED = 1.3
+# Steps looked ahead (beyond the next) across a gap before the march stops.
+_LOOK_AHEAD_STEPS = 2
 
 
 def infer_base(
@@ -125,22 +127,20 @@ def track_hull(
     counts: list[int] = []  # cross-section sizes of the last clear steps
     for _ in range(limit):
         here = track[n - 1]
-        predicted = here + step * direction
-        section = _slab(pts, tree, predicted, direction, reach, half_slab)
-        if len(section) == 0:
+        found = _step(pts, tree, here, direction, step, reach, half_slab, counts, refine)
+        if found is None:
+            # A gap in the hull (a thin view, a crossing) or a bad heading: look a
+            # few steps further straight ahead before calling it the tip. Running
+            # on too far is harmless: trim_unexplained_tail cuts what explains no
+            # silhouette pixel.
+            for ahead in range(2, _LOOK_AHEAD_STEPS + 2):
+                found = _step(pts, tree, here, direction, ahead * step, reach, half_slab, counts, refine)
+                if found is not None:
+                    break
+        if found is None:
             break
-        # Where the hull swells past its usual cross-section, another part of the
-        # tube or a false bridge joins it and a centroid would be dragged sideways:
-        # the images say where the axis is, if ``refine`` can read them.
-        crowded = len(counts) >= _BASELINE_STEPS and len(section) > _CROWDED * statistics.median(counts)
-        centre = refine(predicted, direction) if crowded and refine is not None else None
-        if centre is None:
-            centre = _mean_shift(section, predicted, reach)
-        if centre is None:
-            break
+        centre, crowded, size = found
         move = centre - here
-        if move @ direction <= 0.25 * step:
-            break  # the cross-section lies behind: the end of the tube
         if n > skip_recent:
             gap = track[: n - skip_recent] - centre
             if np.einsum("ij,ij->i", gap, gap).min() < revisit_sq:
@@ -148,7 +148,7 @@ def track_hull(
         if not crowded:
             # A running baseline: an inclined tube fills more voxels per slab
             # than one along a grid axis (measured 65-75 against 56).
-            counts = [*counts[-2 * _BASELINE_STEPS + 1 :], len(section)]
+            counts = [*counts[-2 * _BASELINE_STEPS + 1 :], size]
         track[n] = centre
         n += 1
         # Heading = a blend of the old and the measured one: damps the voxel noise
@@ -156,6 +156,35 @@ def track_hull(
         blended = move / math.sqrt(move @ move) + 0.5 * direction
         direction = blended / math.sqrt(blended @ blended)
     return track[:n].copy()
+
+
+def _step(
+    pts: FloatArray,
+    tree: cKDTree,
+    here: FloatArray,
+    direction: FloatArray,
+    step: float,
+    reach: float,
+    half_slab: float,
+    counts: list[int],
+    refine: Callable[[FloatArray, FloatArray], FloatArray | None] | None,
+) -> tuple[FloatArray, bool, int] | None:
+    """The axis ``step`` mm ahead: (centre, crowded, cross-section size), or None
+    when the hull has no cross-section there or it lies behind ``here``."""
+    predicted = here + step * direction
+    section = _slab(pts, tree, predicted, direction, reach, half_slab)
+    if len(section) == 0:
+        return None
+    # Where the hull swells past its usual cross-section, another part of the
+    # tube or a false bridge joins it and a centroid would be dragged sideways:
+    # the images say where the axis is, if ``refine`` can read them.
+    crowded = len(counts) >= _BASELINE_STEPS and len(section) > _CROWDED * statistics.median(counts)
+    centre = refine(predicted, direction) if crowded and refine is not None else None
+    if centre is None:
+        centre = _mean_shift(section, predicted, reach)
+    if centre is None or (centre - here) @ direction <= 0.25 * step:
+        return None
+    return centre, crowded, len(section)
 
 
 def _initial_direction(pts: FloatArray, tree: cKDTree, base: FloatArray, reach: float) -> FloatArray | None:
