@@ -24,7 +24,9 @@ log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
-UPSAMPLE = 3  # corners are searched again on a 3x up-sampled crop around the board
+# Corners are searched again on an up-sampled crop around the board, by 3 for
+# squares under 25 px, 2 under 40 px; larger squares are localised well as they are.
+UPSAMPLE_BELOW_PX = ((25.0, 3), (40.0, 2))
 
 
 @dataclass(frozen=True)
@@ -115,7 +117,7 @@ def detect_corners(image: NDArray[np.uint8], board: Board) -> FloatArray | None:
 
 
 def _refine_upsampled(image: NDArray[np.uint8], coarse_px: FloatArray, board: Board) -> FloatArray | None:
-    """Corners found again in the board's neighbourhood up-sampled UPSAMPLE times (cubic).
+    """Corners found again in the board's neighbourhood up-sampled (cubic); None if not needed or lost.
 
     The sector detector localises corners of small, tilted, anti-aliased squares
     poorly at native resolution: on exact 320x240 renders its corners are 0.09 px
@@ -124,10 +126,12 @@ def _refine_upsampled(image: NDArray[np.uint8], coarse_px: FloatArray, board: Bo
     moves the corners of a frontal board from 0.012 px to 0.085 px off. Only a
     crop around the board is up-sampled, to keep the cost near one native search.
     """
-    k = UPSAMPLE
     spacing = float(
         np.median(np.linalg.norm(np.diff(coarse_px.reshape(board.rows, board.cols, 2), axis=1), axis=-1))
     )
+    k = next((factor for limit, factor in UPSAMPLE_BELOW_PX if spacing < limit), 1)
+    if k == 1:
+        return None
     pad = 2.0 * spacing + 4.0
     h, w = image.shape
     x0 = int(max(0, np.floor(coarse_px[:, 0].min() - pad)))

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from joblib import Parallel, delayed
 from numpy.typing import NDArray
 
 from .boards import Board, detect_corners, load_board
@@ -247,8 +248,11 @@ def detect_directory(calib_dir: Path, board: Board) -> list[View]:
                 f"camera {cam!r}: images of different sizes ({first[1]} is "
                 f"{first[2].shape[1]}x{first[2].shape[0]}, {odd} is not); one camera, one size"
             )
-        for key, source, image in images:
-            corners = detect_corners(image, board)
+        # Threads: OpenCV releases the GIL, and images are independent.
+        found = Parallel(n_jobs=-1, prefer="threads")(
+            delayed(detect_corners)(im, board) for _, _, im in images
+        )
+        for (key, source, image), corners in zip(images, found, strict=True):
             if corners is None:
                 if key == WORLD:
                     raise CalibrationError(
@@ -372,7 +376,7 @@ def _check_connected(views: list[View], order: list[str]) -> None:
         if name not in reached:
             raise CalibrationError(
                 f"camera {name!r}: no world.png, and no shared/NN image whose board a camera "
-                "linked to the world also saw; add CALIB_DIR/{name}/world.png or shared views"
+                f"linked to the world also saw; add CALIB_DIR/{name}/world.png or shared views"
             )
 
 

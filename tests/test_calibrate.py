@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.boards import Board, detect_corners
-from pipeline.calibrate import CalibrationResult, calibrate_directory
+from pipeline.boards import Board, detect_corners, load_board
+from pipeline.calibrate import CalibrationResult, calibrate_directory, calibrate_views, detect_directory
 from pipeline.calibrate_report import format_table
 from pipeline.calibration_io import read_calibration
 from pipeline.errors import CalibrationError
@@ -98,7 +98,7 @@ def _copy(src: Path, tmp_path: Path) -> Path:
 def test_missing_world_without_link_is_named(small_rig, tmp_path) -> None:
     root = _copy(small_rig, tmp_path)
     (root / "cam1" / "world.png").unlink()
-    with pytest.raises(CalibrationError, match="camera 'cam1': no world.png"):
+    with pytest.raises(CalibrationError, match=r"camera 'cam1': no world\.png"):
         calibrate_directory(root, tmp_path / "c.toml")
 
 
@@ -126,7 +126,7 @@ def test_inconsistent_image_sizes(small_rig, tmp_path) -> None:
 
 
 def test_wrong_board_size_is_named(small_rig, tmp_path) -> None:
-    with pytest.raises(CalibrationError, match="board 8x5 not found|looks the same"):
+    with pytest.raises(CalibrationError, match=r"board 8x5 not found"):
         calibrate_directory(small_rig, tmp_path / "c.toml", board=(8, 5), square_mm=25.0)
 
 
@@ -143,47 +143,49 @@ def test_drop_outliers_removes_a_foreign_view(small_rig, tmp_path) -> None:
 
 @pytest.mark.skipif(not STEREO.is_dir(), reason="real stereo images not available")
 def test_real_stereo_pairs_agree_with_opencv_stereo(tmp_path) -> None:
+    """25 real pairs: pair 01 is the world view, the others shared views of both cameras."""
     root = tmp_path / "stereo"
     for side in ("left", "right"):
         (root / side / "shared").mkdir(parents=True)
         (root / side / "world.jpg").symlink_to(STEREO / f"{side}01.jpg")
         for i in range(2, 26):
             (root / side / "shared" / f"{i:02d}.jpg").symlink_to(STEREO / f"{side}{i:02d}.jpg")
-    result = calibrate_directory(root, tmp_path / "calibration.toml", board=(9, 6), square_mm=24.0)
+    board = load_board(root, board=(9, 6), square_mm=24.0)
+    views = detect_directory(root, board)
+    result = calibrate_views(views, board)
     means = result.camera_mean_px()
     assert means["left"] <= 0.3 and means["right"] <= 0.3  # issue 7 target for real images
     left, right = result.cameras
     R_rel = right.camera_from_world @ left.camera_from_world.T
     t_rel = right.translation_mm - R_rel @ left.translation_mm
 
-    board = Board(9, 6, 24.0)
-    obj = board.object_points().astype(np.float32)
-    pts: dict[str, list[np.ndarray]] = {"left": [], "right": []}
-    for i in range(1, 26):
-        found = [
-            detect_corners(cv2.imread(str(STEREO / f"{s}{i:02d}.jpg"), cv2.IMREAD_GRAYSCALE), board)
-            for s in ("left", "right")
-        ]
-        if found[0] is not None and found[1] is not None:
-            pts["left"].append(found[0].astype(np.float32))
-            pts["right"].append(found[1].astype(np.float32))
+    # OpenCV's stereo calibration of the same detections (pairs seen by both cameras).
+    by = {(v.camera, v.key): v.corners_px.astype(np.float32) for v in views}
+    keys = sorted(k for c, k in by if c == "left" and ("right", k) in by)
+    obj = [board.object_points().astype(np.float32)] * len(keys)
+    pts_l = [by[("left", k)] for k in keys]
+    pts_r = [by[("right", k)] for k in keys]
     size = (640, 512)
-    _, K1, D1, _, _ = cv2.calibrateCamera([obj] * len(pts["left"]), pts["left"], size, None, None)
-    _, K2, D2, _, _ = cv2.calibrateCamera([obj] * len(pts["right"]), pts["right"], size, None, None)
-    _, K1, D1, K2, D2, R, T, *_ = cv2.stereoCalibrate(
-        [obj] * len(pts["left"]),
-        pts["left"],
-        pts["right"],
-        K1,
-        D1,
-        K2,
-        D2,
-        size,
-        flags=cv2.CALIB_USE_INTRINSIC_GUESS,
-    )
-    # Same detections and the same model, two optimisers: they should agree far
-    # below the rig's own uncertainty; 1 % baseline, 0.2 degrees, 0.5 % focal length.
-    assert abs(np.linalg.norm(t_rel) / np.linalg.norm(T) - 1) < 0.01
-    assert _angle_deg(R_rel, R) < 0.2
+    K1 = cv2.calibrateCamera(obj, pts_l, size, None, None)[1]
+    K2 = cv2.calibrateCamera(obj, pts_r, size, None, None)[1]
+    # Independent intrinsics (k3 free, no corner cleaning): focal lengths within 0.5 %,
+    # the issue's own intrinsics tolerance.
     assert abs(left.matrix[0, 0] / K1[0, 0] - 1) < 0.005
     assert abs(right.matrix[0, 0] / K2[0, 0] - 1) < 0.005
+    # Extrinsics with our intrinsics held fixed: the same problem solved by
+    # cv2.stereoCalibrate. Both minimise the same re-projection error, so they
+    # should meet far below the rig's uncertainty: 0.5 % baseline, 0.05 degrees.
+    rms, *_, R, T, _, _ = cv2.stereoCalibrate(
+        obj,
+        pts_l,
+        pts_r,
+        left.matrix,
+        left.distortions,
+        right.matrix,
+        right.distortions,
+        size,
+        flags=cv2.CALIB_FIX_INTRINSIC,
+    )
+    assert rms < 0.3
+    assert abs(np.linalg.norm(t_rel) / np.linalg.norm(T) - 1) < 0.005
+    assert _angle_deg(R_rel, R) < 0.05
