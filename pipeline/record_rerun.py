@@ -183,13 +183,12 @@ class RerunRecorder:
         self._set_time(result.index, time_ns)
         for i, cam in enumerate(self._cameras):
             base = image_path(cam.name)
-            if jpegs is not None and jpegs[i]:
-                rec.log(f"{base}/jpeg", rr.EncodedImage(contents=jpegs[i], media_type="image/jpeg"))
-            if silhouettes_png is not None and silhouettes_png[i]:
-                rec.log(
-                    f"{base}/silhouette",
-                    rr.EncodedImage(contents=silhouettes_png[i], media_type="image/png", draw_order=1.0),
-                )
+            # A frame without an image or silhouette clears the previous one rather than
+            # leaving it on screen under this frame's time.
+            if jpegs is not None:
+                self._log_encoded(f"{base}/jpeg", jpegs[i], "image/jpeg", draw_order=0.0)
+            png = silhouettes_png[i] if silhouettes_png is not None else b""
+            self._log_encoded(f"{base}/silhouette", png, "image/png", draw_order=1.0)
         voxel = self._workspace.voxel_mm
         rec.log(
             "world/hull",
@@ -216,6 +215,12 @@ class RerunRecorder:
                     rr.LineStrips2D([pixels], radii=1.0, colors=[_CENTERLINE_RGB], draw_order=2.0),
                 )
         self._series.add(result.index, time_ns, self._scalars(result))
+
+    def _log_encoded(self, path: str, data: bytes, media_type: str, *, draw_order: float) -> None:
+        if data:
+            self._rec.log(path, rr.EncodedImage(contents=data, media_type=media_type, draw_order=draw_order))
+        else:
+            self._rec.log(path, rr.Clear(recursive=False))
 
     def _scalars(self, result: FrameResult) -> dict[str, float]:
         values: dict[str, float] = {"plots/voxels": float(result.voxel_count)}

@@ -57,7 +57,8 @@ def rrd(tmp_path_factory: pytest.TempPathFactory) -> Path:
     jpeg = cv2.imencode(".jpg", np.full((240, 320), 90, np.uint8))[1].tobytes()
     png = cv2.imencode(".png", np.zeros((240, 320, 4), np.uint8))[1].tobytes()
     for i in range(N_FRAMES):
-        recorder.write_frame(_result(i), T0_NS + i * DT_NS, jpegs=[jpeg] * 3, silhouettes_png=[png] * 3)
+        silhouettes = None if i == EMPTY else [png] * 3  # as when a frame has no silhouettes
+        recorder.write_frame(_result(i), T0_NS + i * DT_NS, jpegs=[jpeg] * 3, silhouettes_png=silhouettes)
     smoothed = np.stack([_curve(i) + 1.0 for i in range(N_FRAMES)])
     smoothed[EMPTY] = np.nan
     recorder.write_smoothed(smoothed, list(range(N_FRAMES)), [T0_NS + i * DT_NS for i in range(N_FRAMES)])
@@ -144,3 +145,10 @@ def test_smoothed_centreline_has_its_own_entity(rrd: Path) -> None:
     rows = dict(zip(_column(table, "frame"), _column(table, "LineStrips3D:strips"), strict=True))
     np.testing.assert_allclose(np.array(rows[0][0]), _curve(0) + 1.0, atol=1e-4)
     assert not rows.get(EMPTY)
+
+
+def test_a_frame_without_silhouettes_clears_the_previous_ones(rrd: Path) -> None:
+    table = _table(rrd, "/world/cameras/cam2/image/silhouette")
+    blobs = dict(zip(_column(table, "frame"), _column(table, "EncodedImage:blob"), strict=True))
+    # A Clear reads back as a row with no instance: nothing shown at that frame.
+    assert len(blobs[EMPTY - 1]) == 1 and len(blobs[EMPTY]) == 0 and len(blobs[EMPTY + 1]) == 1
