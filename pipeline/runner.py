@@ -427,7 +427,9 @@ def process_session(
     force : replace existing outputs (atomically, at the end of the run).
     curve : centreline method, overriding session.toml ("fit" or "polyfit").
     progress : show a progress bar on stderr.
-    frame_fn : replaces the per-frame computation (tests, experiments); must be picklable.
+    frame_fn : replaces the per-frame computation (tests, experiments): called as
+        ``frame_fn(index, images, session)`` and returning (FrameResult, silhouettes or
+        None); must be picklable (a module-level function or a partial of one).
 
     Raises
     ------
