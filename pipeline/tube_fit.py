@@ -437,6 +437,18 @@ def _crowded(
     return np.column_stack([negative.any(axis=1), positive.any(axis=1)])
 
 
+def _second_difference_gram(k: int) -> FloatArray:
+    """(3, k) diagonals 0, 1, 2 of D^T D, D the (k-2, k) second difference;
+    entry [d, j] is (D^T D)[j - d, j]."""
+    stencil = np.array([1.0, -2.0, 1.0])
+    out = np.zeros((3, k))
+    rows = np.arange(k - 2)
+    for p in range(3):
+        for q in range(p, 3):
+            np.add.at(out[q - p], rows + q, stencil[p] * stencil[q])
+    return out
+
+
 def _solve_corrections(pts: FloatArray, obs: _Sides, *, base_fixed: bool, smoothness: float) -> FloatArray:
     """(K, 3) corrections: least squares over all clean readings, with smooth corrections."""
     k = len(pts)
@@ -460,12 +472,7 @@ def _solve_corrections(pts: FloatArray, obs: _Sides, *, base_fixed: bool, smooth
     if k >= 3:
         # Second-difference penalty D^T D on each coordinate: the pentadiagonal
         # stencil (1, -4, 6, -4, 1) inside, trimmed at the ends.
-        d2tdd = np.zeros((3, k))  # diagonals 0, 1, 2 of D^T D
-        for row in range(k - 2):
-            stencil = np.array([1.0, -2.0, 1.0])
-            for p in range(3):
-                for q in range(p, 3):
-                    d2tdd[q - p, row + q] += stencil[p] * stencil[q]
+        d2tdd = _second_difference_gram(k)  # diagonals 0, 1, 2 of D^T D
         for off in range(3):
             for a in range(3):
                 band[upper - 3 * off, 3 * idx[off:] + a] += smoothness * d2tdd[off, off:]
