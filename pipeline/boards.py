@@ -110,6 +110,11 @@ def detect_corners(image: NDArray[np.uint8], board: Board) -> FloatArray | None:
     # EXHAUSTIVE: small boards (squares of ~5 px at 320x240) are otherwise missed.
     found, corners = cv2.findChessboardCornersSB(image, board.pattern_size, flags=cv2.CALIB_CB_EXHAUSTIVE)
     if not found:
+        # ACCURACY searches an up-sampled image: slower, but finds some boards seen
+        # at a grazing angle (squares ~4 px tall) that the native search misses.
+        flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+        found, corners = cv2.findChessboardCornersSB(image, board.pattern_size, flags=flags)
+    if not found:
         return None
     coarse = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
     fine = _refine_upsampled(image, coarse, board)

@@ -66,7 +66,7 @@ def test_output_toml_and_report(synth) -> None:
 def test_world_axes_land_on_the_board(synth) -> None:
     """The world origin projects onto the first inner corner detected in world.png."""
     root, result = synth
-    board = Board(9, 6, 25.0)
+    board = load_board(root)
     for cam in result.cameras:
         world = root / cam.name / "world.png"
         if not world.is_file():
@@ -127,7 +127,7 @@ def test_inconsistent_image_sizes(small_rig, tmp_path) -> None:
 
 def test_wrong_board_size_is_named(small_rig, tmp_path) -> None:
     with pytest.raises(CalibrationError, match=r"board 8x5 not found"):
-        calibrate_directory(small_rig, tmp_path / "c.toml", board=(8, 5), square_mm=25.0)
+        calibrate_directory(small_rig, tmp_path / "c.toml", board=(8, 5), square_mm=20.0)
 
 
 def test_drop_outliers_removes_a_foreign_view(small_rig, tmp_path) -> None:

@@ -68,7 +68,7 @@ def render_calibration_views(
     arrangement: str = "oblique",
     seed: int = 0,
     board: tuple[int, int] = (9, 6),
-    square_mm: float = 25.0,
+    square_mm: float = 20.0,
     views: int = 15,
     progress: bool = True,
 ) -> None:
