@@ -141,5 +141,7 @@ def test_a_session_directory_round_trip(tmp_path: Path, make_session: Callable[.
     # found within about a pixel (~2 mm at this range), its radius is ~3.5 px.
     assert centerline_distances(first.centerline_mm, ROD_MM).mean() < 1.0
     assert second.status == "empty"
-    masks = frame_silhouettes([f[0][1] for f in frames], model)
+    decoded = [f[0][1] for f in frames]
+    assert all(im is not None for im in decoded)
+    masks = frame_silhouettes([im for im in decoded if im is not None], model)
     assert all(m.dtype == bool and m.any() for m in masks)
