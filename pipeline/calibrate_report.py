@@ -16,9 +16,10 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 # An image stands out when its error exceeds the camera's median by 3 robust
-# standard deviations (1.4826 MAD) AND by half the median: on clean renders the
-# MAD is tiny and the first test alone would flag ordinary views.
-MAD_FACTOR, MIN_EXCESS = 3.0, 0.5
+# standard deviations (1.4826 MAD), by half the median AND by 0.1 px: on clean
+# images the MAD is tiny and the first test alone would flag ordinary views, while
+# a tenth of a pixel is below what matters for the reconstruction.
+MAD_FACTOR, MIN_EXCESS, MIN_EXCESS_PX = 3.0, 0.5, 0.1
 
 
 def find_outliers(errors: Sequence[ImageError]) -> list[ImageError]:
@@ -29,7 +30,7 @@ def find_outliers(errors: Sequence[ImageError]) -> list[ImageError]:
         values = np.array([e.mean_px for e in mine])
         median = float(np.median(values))
         mad = 1.4826 * float(np.median(np.abs(values - median)))
-        limit = median + max(MAD_FACTOR * mad, MIN_EXCESS * median)
+        limit = median + max(MAD_FACTOR * mad, MIN_EXCESS * median, MIN_EXCESS_PX)
         out += [e for e in mine if e.mean_px > limit]
     return out
 

@@ -79,8 +79,9 @@ def _cmd_synth_calib(args: argparse.Namespace) -> int:
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     from .calibrate import calibrate_directory
+    from .calibrate_report import format_table
 
-    calibrate_directory(
+    result = calibrate_directory(
         args.calib_dir,
         args.output,
         board=args.board,
@@ -89,6 +90,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         shared_intrinsics=args.shared_intrinsics,
         drop_outliers=args.drop_outliers,
     )
+    print(format_table(result))
+    print(f"wrote {args.output}; pictures: {', '.join(str(p) for p in result.report_files)}")
     return EXIT_OK
 
 
