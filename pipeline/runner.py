@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 from .errors import OutputError, SessionError, SettingsError
 from .frame_result import FrameResult
 from .session import Session
+from .smoothing import smooth_centerlines
 from .video import read_frames
 
 log = logging.getLogger(__name__)
@@ -384,10 +385,6 @@ def _sigterm_as_interrupt() -> Iterator[None]:
 
 def _smooth(centerlines_mm: NDArray[np.float64], times_s: NDArray[np.float64]) -> NDArray[np.float64] | None:
     try:
-        from .smoothing import smooth_centerlines
-    except ImportError:
-        return None
-    try:
         return np.asarray(smooth_centerlines(centerlines_mm, times_s), dtype=np.float64)
     except Exception as exc:  # the per-frame results are safe: lose the extra, not the run
         log.warning(
@@ -646,7 +643,8 @@ class _Writers:
 
     def finish(self) -> None:
         """Smoothing, footers, then the renames that make the outputs appear."""
-        smoothed = self._smoothed() if self.frames else None
+        wanted = self.frames and self.session.settings.centerline.smooth
+        smoothed = self._smoothed() if wanted else None
         if smoothed is not None:
             self.mcap.write_smoothed(smoothed, self.times_ns)
             self.rerun.write_smoothed(smoothed, self.frames, self.times_ns)
