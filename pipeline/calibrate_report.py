@@ -92,7 +92,9 @@ def _bar_chart(result: CalibrationResult, path: Path) -> Path:
         mean = result.camera_mean_px()[cam]
         ax.axhline(mean, color="k", linestyle="--", linewidth=1, label=f"mean {mean:.3f} px")
         ax.set_ylabel(f"{cam}\npx")
-        ax.set_xticks(range(len(mine)), [e.key.split("/")[-1] for e in mine], rotation=90, fontsize=6)
+        # "i03" = intrinsics/03.png, "s03" = shared/03, "world"
+        labels = [e.key.replace("intrinsics/", "i").replace("shared/", "s").rsplit(".", 1)[0] for e in mine]
+        ax.set_xticks(range(len(mine)), labels, rotation=90, fontsize=6)
         ax.legend(loc="upper right", fontsize=7)
     axes[0, 0].set_title("Mean re-projection error per image")
     fig.tight_layout()

@@ -126,7 +126,8 @@ def test_inconsistent_image_sizes(small_rig, tmp_path) -> None:
 
 
 def test_wrong_board_size_is_named(small_rig, tmp_path) -> None:
-    with pytest.raises(CalibrationError, match=r"board 8x5 not found"):
+    # A sub-board is found in a few images at most: named as too few views, pointing at --board.
+    with pytest.raises(CalibrationError, match=r"board (8x5 not found|found in only .*check --board)"):
         calibrate_directory(small_rig, tmp_path / "c.toml", board=(8, 5), square_mm=20.0)
 
 
