@@ -8,8 +8,8 @@ Input layout (camera names come from the folder names)::
     CALIB_DIR/<camera>/shared/NN.png     optional: boards seen by several cameras at the same
                                          instant (same NN); links a camera without world.png
 
-Steps: corners per image (``pipeline.boards``), intrinsics per camera
-(cv2.calibrateCamera, corners that stand out dropped), then one joint
+Steps: corners per image (``pipeline.calibration_views``), intrinsics per camera
+(cv2.calibrateCamera; corners that stand out replaced by its prediction), then one joint
 refinement of all cameras over every board (cv2.calibrateMultiviewExtended,
 which chains cameras through pairwise shared views), and finally the world
 frame: the board of world.png (origin at its first inner corner, z out of the
@@ -24,11 +24,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from joblib import Parallel, delayed
 from numpy.typing import NDArray
 
-from .boards import Board, detect_corners, load_board
+from .boards import Board, load_board
 from .calibration_io import write_calibration
+from .calibration_views import WORLD, View, detect_directory
 from .camera import Camera
 from .errors import CalibrationError
 
@@ -36,41 +36,11 @@ log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
-IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-VIDEO_EXTS = (".mp4", ".avi", ".mkv", ".mov")
-MIN_VIEWS = 5
-VIDEO_SAMPLES = 30  # frames taken, evenly spaced, from an intrinsics video
-WORLD = "world"
 MM_PER_M = 1000.0
-# k3 fixed at 0: for the mild lenses of this rig it is not observable from ~15
-# views and trades off against focal length and principal point (measured on
-# synth-calib renders: orientation error 0.26 -> 0.13 degrees on one camera).
-INTRINSIC_FLAGS = cv2.CALIB_FIX_K3
 # A corner is dropped when its residual is this many times the camera's median
 # residual and above CORNER_FLOOR_PX: the sector detector occasionally lands a
 # corner of a steeply tilted board a pixel off, which would pull the world frame.
 CORNER_FACTOR, CORNER_FLOOR_PX = 6.0, 0.4
-
-
-@dataclass(frozen=True)
-class View:
-    """One board image of one camera: ``key`` names the instant (shared across cameras)."""
-
-    camera: str
-    key: str
-    source: str  # file (or video#frame) for messages and the report
-    corners_px: FloatArray  # (cols * rows, 2) float64, board order
-    size_px: tuple[int, int]
-
-    @property
-    def shared(self) -> bool:
-        """True for world.* and shared/NN views, which may be seen by several cameras."""
-        return not self.key.startswith("intrinsics/")
-
-    @property
-    def instant(self) -> str:
-        """The board pose this view saw: shared by the cameras of a shared view, private otherwise."""
-        return self.key if self.shared else f"{self.camera}:{self.key}"
 
 
 @dataclass(frozen=True)
@@ -160,118 +130,6 @@ def calibrate_directory(
     report = Path(report_dir) if report_dir is not None else output.parent
     result.report_files = write_report(result, calib_dir, views, report)
     return result
-
-
-# --- reading and detecting -------------------------------------------------------------------
-
-
-def camera_dirs(calib_dir: Path) -> list[Path]:
-    """Sub-folders of ``calib_dir`` that hold a camera's images, sorted by name."""
-    dirs = sorted(
-        d
-        for d in Path(calib_dir).iterdir()
-        if d.is_dir() and ((d / "intrinsics").is_dir() or _world_file(d) is not None)
-    )
-    if len(dirs) < 2:
-        raise CalibrationError(
-            f"{calib_dir}: found {len(dirs)} camera folder(s); expected at least two "
-            "CALIB_DIR/<camera>/intrinsics/ folders"
-        )
-    return dirs
-
-
-def _world_file(cam_dir: Path) -> Path | None:
-    found = [cam_dir / f"world{ext}" for ext in IMAGE_EXTS if (cam_dir / f"world{ext}").is_file()]
-    return found[0] if found else None
-
-
-def _read_grey(path: Path) -> NDArray[np.uint8]:
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        raise CalibrationError(f"{path}: cannot read this image")
-    return np.asarray(image, dtype=np.uint8)
-
-
-def _video_frames(path: Path) -> list[tuple[str, NDArray[np.uint8]]]:
-    """Up to VIDEO_SAMPLES grey frames, evenly spaced, of an intrinsics video."""
-    cap = cv2.VideoCapture(str(path))
-    if not cap.isOpened():
-        raise CalibrationError(f"{path}: cannot open this video")
-    frames = []
-    try:
-        count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-        wanted = set(np.linspace(0, max(count - 1, 0), min(VIDEO_SAMPLES, max(count, 1))).astype(int))
-        index = 0
-        while True:
-            ok, frame = cap.read()
-            if not ok:
-                break
-            if index in wanted:
-                frames.append(
-                    (f"{path.name}#{index}", np.asarray(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY), np.uint8))
-                )
-            index += 1
-    finally:
-        cap.release()
-    return frames
-
-
-def detect_directory(calib_dir: Path, board: Board) -> list[View]:
-    """Corners of every usable image of every camera of ``calib_dir``.
-
-    An intrinsics or shared image without a board is skipped with a warning;
-    a world image without one is an error (it defines the frame).
-    """
-    views: list[View] = []
-    for cam_dir in camera_dirs(calib_dir):
-        cam = cam_dir.name
-        images: list[tuple[str, str, NDArray[np.uint8]]] = []  # key, source, image
-        intr = cam_dir / "intrinsics"
-        for path in sorted(intr.iterdir()) if intr.is_dir() else []:
-            if path.suffix.lower() in IMAGE_EXTS:
-                images.append((f"intrinsics/{path.name}", str(path), _read_grey(path)))
-            elif path.suffix.lower() in VIDEO_EXTS:
-                for name, frame in _video_frames(path):
-                    images.append((f"intrinsics/{name}", str(intr / name), frame))
-        shared = cam_dir / "shared"
-        for path in sorted(shared.iterdir()) if shared.is_dir() else []:
-            if path.suffix.lower() in IMAGE_EXTS:
-                images.append((f"shared/{path.stem}", str(path), _read_grey(path)))
-        world = _world_file(cam_dir)
-        if world is not None:
-            images.append((WORLD, str(world), _read_grey(world)))
-        sizes = {(im.shape[1], im.shape[0]) for _, _, im in images}
-        if len(sizes) > 1:
-            first = images[0]
-            odd = next(src for _, src, im in images if (im.shape[1], im.shape[0]) != first[2].shape[::-1])
-            raise CalibrationError(
-                f"camera {cam!r}: images of different sizes ({first[1]} is "
-                f"{first[2].shape[1]}x{first[2].shape[0]}, {odd} is not); one camera, one size"
-            )
-        # Threads: OpenCV releases the GIL, and images are independent.
-        found = Parallel(n_jobs=-1, prefer="threads")(
-            delayed(detect_corners)(im, board) for _, _, im in images
-        )
-        for (key, source, image), corners in zip(images, found, strict=True):
-            if corners is None:
-                if key == WORLD:
-                    raise CalibrationError(
-                        f"{source}: board {board.cols}x{board.rows} not found; the world image must "
-                        "show the whole board (check --board COLSxROWS)"
-                    )
-                log.warning("%s: board %dx%d not found, image skipped", source, board.cols, board.rows)
-                continue
-            views.append(View(cam, key, source, corners, (image.shape[1], image.shape[0])))
-        usable = sum(v.camera == cam for v in views)
-        if usable < MIN_VIEWS:
-            raise CalibrationError(
-                f"camera {cam!r}: board found in only {usable} image(s) of {len(images)}; "
-                f"need at least {MIN_VIEWS} (more views, whole board visible, check --board)"
-            )
-    return views
-
-
-# --- calibrating ------------------------------------------------------------------------------
 
 
 def calibrate_views(views: list[View], board: Board, *, shared_intrinsics: bool = False) -> CalibrationResult:
@@ -396,9 +254,7 @@ def _intrinsics(
     for members in groups.values():
         mine = [v for v in views if v.camera in members]
         imgs = [corners[(v.camera, v.key)].astype(np.float32) for v in mine]
-        _, K, dist, _, _ = cv2.calibrateCamera(
-            [obj] * len(imgs), imgs, sizes[members[0]], None, None, flags=INTRINSIC_FLAGS
-        )
+        _, K, dist, _, _ = cv2.calibrateCamera([obj] * len(imgs), imgs, sizes[members[0]], None, None)
         for n in members:
             out[n] = (np.asarray(K, np.float64), np.asarray(dist, np.float64).ravel()[:5])
     return out
