@@ -142,6 +142,31 @@ def test_drop_outliers_removes_a_foreign_view(small_rig, tmp_path) -> None:
     assert dropped.camera_mean_px()["cam0"] < kept.camera_mean_px()["cam0"]
 
 
+def test_shared_intrinsics_give_one_camera_matrix(small_rig, tmp_path) -> None:
+    result = calibrate_directory(small_rig, tmp_path / "c.toml", shared_intrinsics=True)
+    cam0, cam1 = result.cameras
+    np.testing.assert_array_equal(cam0.matrix, cam1.matrix)
+    np.testing.assert_array_equal(cam0.distortions, cam1.distortions)
+
+
+def test_intrinsics_from_a_video(small_rig, tmp_path) -> None:
+    """A video of the board in intrinsics/ is sampled frame by frame."""
+    root = _copy(small_rig, tmp_path)
+    images = sorted((root / "cam1" / "intrinsics").glob("*.png"))
+    writer = cv2.VideoWriter(
+        str(root / "cam1" / "intrinsics" / "board.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 5, (320, 240)
+    )
+    for path in images:
+        writer.write(cv2.imread(str(path)))
+        path.unlink()
+    writer.release()
+    result = calibrate_directory(root, tmp_path / "c.toml")
+    keys = [e.key for e in result.image_errors if e.camera == "cam1"]
+    assert [k for k in keys if k.startswith("intrinsics/")] == [f"intrinsics/board.avi#{i}" for i in range(6)]
+    # Motion-JPEG at OpenCV's default quality costs some accuracy, well within the 0.2 px target.
+    assert result.camera_mean_px()["cam1"] < 0.2
+
+
 @pytest.mark.skipif(not STEREO.is_dir(), reason="real stereo images not available")
 def test_real_stereo_pairs_agree_with_opencv_stereo(tmp_path) -> None:
     """25 real pairs: pair 01 is the world view, the others shared views of both cameras."""
