@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import statistics
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,6 +34,8 @@ _MEAN_SHIFT_ITERATIONS = 2
 # the junction of a tip with its stem 70-290.
 _BASELINE_STEPS = 4
 _CROWDED = 1.3
+# Clear steps whose turns are averaged into the course a coasting march keeps.
+_TURN_STEPS = 3
 # Steps looked ahead (beyond the next) across a gap before the march stops.
 _LOOK_AHEAD_STEPS = 2
 
@@ -82,6 +85,44 @@ def track_hull(
     max_length_mm: float = 2000.0,
     refine: Callable[[FloatArray, FloatArray], FloatArray | None] | None = None,
 ) -> FloatArray:
+    """March through the hull from the base to the tip: :func:`march_hull`'s polyline."""
+    return march_hull(
+        points_mm,
+        base_mm,
+        radius_mm=radius_mm,
+        voxel_mm=voxel_mm,
+        step_mm=step_mm,
+        max_length_mm=max_length_mm,
+        refine=refine,
+    ).points_mm
+
+
+@dataclass(frozen=True, eq=False)
+class March:
+    """Result of :func:`march_hull`.
+
+    Attributes
+    ----------
+    points_mm : (M, 3) float64 polyline ordered base -> tip, world frame, mm.
+    crowded : (M,) bool, whether the hull's cross-section was crowded (swollen
+        past its usual size) at each point: where the march had to choose.
+    """
+
+    points_mm: FloatArray
+    crowded: NDArray[np.bool_]
+
+
+def march_hull(
+    points_mm: FloatArray,
+    base_mm: FloatArray,
+    *,
+    radius_mm: float,
+    voxel_mm: float,
+    step_mm: float | None = None,
+    max_length_mm: float = 2000.0,
+    refine: Callable[[FloatArray, FloatArray], FloatArray | None] | None = None,
+    coast: bool = False,
+) -> March:
     """March through the hull from the base to the tip.
 
     Parameters
@@ -97,16 +138,20 @@ def track_hull(
         bridge joins it), the march asks this for the axis near the predicted
         point (from the images, see :func:`pipeline.tube_fit.centre_across`)
         instead of trusting the hull's centroid (used when it returns None).
+    coast : where the hull is crowded, keep going on the curve's own course (the
+        last step's turn repeated) instead of asking ``refine`` or the hull: the
+        other hypothesis at a crossing, where whatever the hull offers may belong
+        to another part of the tube.
 
     Returns
     -------
-    (M, 3) float64 polyline ordered base -> tip, world frame, mm; starts at
-    ``base_mm``. M == 1 when the hull holds nothing near the base.
+    :class:`March`; its polyline starts at ``base_mm``, and has one point when the
+    hull holds nothing near the base.
     """
     pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
     base = np.asarray(base_mm, dtype=np.float64)
     if len(pts) == 0:
-        return base[None].copy()
+        return March(base[None].copy(), np.zeros(1, dtype=bool))
     step = step_mm if step_mm is not None else max(voxel_mm, 0.75 * radius_mm)
     tree = cKDTree(pts)
     # The cross-section sought: the tube's own radius plus a voxel of hull overshoot.
@@ -115,10 +160,13 @@ def track_hull(
 
     direction = _initial_direction(pts, tree, base, reach)
     if direction is None:
-        return base[None].copy()
+        return March(base[None].copy(), np.zeros(1, dtype=bool))
     limit = int(max_length_mm / step)
     track = np.empty((limit + 1, 3))
     track[0] = base
+    crowded_at = np.zeros(limit + 1, dtype=bool)
+    turn: FloatArray | None = None  # the change of heading per step, recently
+    turns: list[FloatArray] = []
     n = 1
     # Revisiting means the march turned into a part of the tube already walked
     # (a tip touching the body): the axes of two touching parts are 2 r apart.
@@ -128,6 +176,12 @@ def track_hull(
     for _ in range(limit):
         here = track[n - 1]
         found = _step(pts, tree, here, direction, step, reach, half_slab, counts, refine)
+        course = None
+        if coast and found is not None and found[1] and turn is not None:
+            # On course: the heading turned by the last clear steps' turn, one step on.
+            course = direction + turn
+            course /= math.sqrt(course @ course)
+            found = (here + step * course, True, found[2])
         if found is None:
             # A gap in the hull (a thin view, a crossing) or a bad heading: look a
             # few steps further straight ahead before calling it the tip. Running
@@ -150,12 +204,19 @@ def track_hull(
             # than one along a grid axis (measured 65-75 against 56).
             counts = [*counts[-2 * _BASELINE_STEPS + 1 :], size]
         track[n] = centre
+        crowded_at[n] = crowded
         n += 1
         # Heading = a blend of the old and the measured one: damps the voxel noise
         # without lagging behind a bend of radius >> step.
         blended = move / math.sqrt(move @ move) + 0.5 * direction
-        direction = blended / math.sqrt(blended @ blended)
-    return track[:n].copy()
+        blended /= math.sqrt(blended @ blended)
+        if course is not None:
+            blended = course
+        elif not crowded:
+            turns = [*turns[-_TURN_STEPS + 1 :], blended - direction]
+            turn = np.mean(turns, axis=0)
+        direction = blended
+    return March(track[:n].copy(), crowded_at[:n].copy())
 
 
 def _step(

@@ -95,6 +95,7 @@ def fit_tube(
     iterations: int = 3,
     smoothness: float = 0.5,
     cap: str = "flat",
+    masks: Sequence[NDArray[np.bool_]] | None = None,
 ) -> TubeFit:
     """Move ``curve_mm`` so that the tube around it projects onto every silhouette.
 
@@ -111,6 +112,9 @@ def fit_tube(
         one camera's reading of one sample.
     cap : shape of the tube's end, "hemisphere" or "flat": how far its silhouette
         reaches past the axis' end.
+    masks : per camera (H, W) bool silhouettes, if known: they let a view whose
+        end is hidden in another part of the tube still place it (see
+        :func:`pipeline.tube_tip.refit_tip`).
 
     Returns
     -------
@@ -127,7 +131,7 @@ def fit_tube(
         if obs.readings >= 6:
             radius = obs.radius_mm
             pts = pts + _solve_corrections(pts, obs, base_fixed=base_fixed, smoothness=smoothness)
-        pts = refit_tip(pts, cameras, contrasts, radius, cap=cap)
+        pts = refit_tip(pts, cameras, contrasts, radius, cap=cap, masks=masks)
     pts = resample_polyline(pts, _sample_count(pts, spacing_mm))
     obs = _read_sides(pts, cameras, contrasts, radius, spacing_mm)
     if obs.readings == 0:

@@ -12,12 +12,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from .camera import Camera
 from .polyline import cut_polyline, polyline_arclength
 from .profiles import JAC_EPS_MM, end_edge, sample_image
+from .quality import tube_mask
 
 FloatArray = NDArray[np.float64]
 
@@ -35,6 +37,14 @@ MIN_SIN_VIEW = 0.3
 _TIP_ZONE_MM = 3.0
 _END_SPAN_MM = 24.0
 _END_DEGREE = 2
+# Reading the end from a view's pixels (see _end_by_pixels): discs every
+# _PIXEL_STEP_MM along the end line; fewer than _MIN_PIXELS silhouette pixels of
+# its own say nothing. Such a reading weighs _PIXEL_WEIGHT times an edge reading.
+_PIXEL_STEP_MM = 0.5
+_MIN_PIXELS = 4
+_PIXEL_WEIGHT = 0.5
+# cv2 drawing takes fixed-point coordinates with this many fractional bits.
+_DRAW_SHIFT = 4
 
 
 def refit_tip(
@@ -44,6 +54,7 @@ def refit_tip(
     radius_mm: float,
     *,
     cap: str,
+    masks: Sequence[NDArray[np.bool_]] | None = None,
 ) -> FloatArray:
     """Extend or trim the curve to where the views see the tube end.
 
@@ -66,7 +77,7 @@ def refit_tip(
     others = pts[arc < arc[-1] - (2.5 * radius_mm + 4.0)]
     probe = np.concatenate([line, others, end + JAC_EPS_MM * np.eye(3), end[None]])
     estimates, weights = [], []
-    for cam, contrast in zip(cameras, contrasts, strict=True):
+    for view, (cam, contrast) in enumerate(zip(cameras, contrasts, strict=True)):
         px = cam.project(probe)
         line_px, others_px = px[: len(u)], px[len(u) : len(u) + len(others)]
         end_px, jac = px[-1], (px[-4:-1] - px[-1]).T / JAC_EPS_MM  # (2,), (2, 3)
@@ -77,28 +88,81 @@ def refit_tip(
         sin_view = min(float(np.linalg.norm(jac @ end_dir)) / px_per_mm, 1.0)
         if sin_view < MIN_SIN_VIEW or not np.isfinite(end_px).all():
             continue
+        cos_view = np.sqrt(max(0.0, 1.0 - sin_view**2))
         profile = sample_image(contrast, line_px)[None, :]
         edge = end_edge(profile, u - lead, radius_mm, 1.0 / (px_per_mm * sin_view))
-        if edge is None:
-            continue  # no end in sight: the tube (or another part of it) fills the line
-        if len(others):
-            # Where the tip touches another part in this view, the end line runs on
-            # through that part and leaves it at its far side: a reading whose line,
-            # from the current end to the edge found, passes over another part's
-            # axis (within its radius, + 1 px for the samples' spacing) is skipped.
+        # Where the tip touches another part in this view, the end line runs on
+        # through that part and leaves it at its far side: a reading whose line,
+        # from the current end to the edge found, passes over another part's axis
+        # (within its radius, + 1 px for the samples' spacing) is not the end's.
+        if edge is not None and len(others):
             read = line_px[(u >= min(lead, lead + edge)) & (u <= lead + max(edge, 0.0))]
             if len(read) and _min_distance(others_px, read) < radius_mm * px_per_mm + 1.0:
-                continue
-        cos_view = np.sqrt(max(0.0, 1.0 - sin_view**2))
-        cap_mm = radius_mm / sin_view if cap == "hemisphere" else radius_mm * cos_view / sin_view
-        estimates.append(edge - cap_mm)
-        weights.append(sin_view**2)
+                edge = None
+        if edge is not None:
+            cap_mm = radius_mm / sin_view if cap == "hemisphere" else radius_mm * cos_view / sin_view
+            estimates.append(edge - cap_mm)
+            weights.append(sin_view**2)
+        elif masks is not None:
+            # No end in sight along the line: the silhouette pixels that only
+            # the end can explain say where it is, if any do.
+            stop = _end_by_pixels(cam, masks[view], cut_polyline(pts, anchor), path, lead, radius_mm)
+            if stop is not None:
+                # A disc centred on the axis' end reaches r past it, a flat
+                # end's outline r cos / sin (along the line, in mm): the
+                # difference, in mm along the line.
+                extra = 0.0 if cap == "hemisphere" else radius_mm * (1.0 - cos_view) / sin_view
+                estimates.append(stop + extra - lead)
+                weights.append(_PIXEL_WEIGHT * sin_view**2)
     shift = _weighted_median(np.asarray(estimates), np.asarray(weights)) if estimates else 0.0
     stop = lead + shift
     if stop <= 0:
         return cut_polyline(pts, anchor + stop)
     ahead = np.append(np.arange(2.0, stop, 2.0), stop)
     return np.vstack([cut_polyline(pts, anchor), path(ahead)])
+
+
+def _end_by_pixels(
+    cam: Camera,
+    mask: NDArray[np.bool_],
+    body_mm: FloatArray,
+    path: Callable[[FloatArray], FloatArray],
+    lead: float,
+    radius_mm: float,
+) -> float | None:
+    """Where the end is along ``path`` (mm past the anchor), read from one view's pixels.
+
+    The tube of the curve up to the anchor (``body_mm``, (B, 3)) is drawn; then
+    discs along the end line, from the anchor on, each owning the pixels no
+    nearer disc (nor the body) covers. The end is where the count of owned
+    silhouette pixels minus owned background pixels peaks: past it a disc adds
+    only background. None when no disc adds a silhouette pixel (the end hides
+    in another part of the tube in this view).
+    """
+    u = np.arange(0.0, lead + 3.0 * radius_mm + 12.0, _PIXEL_STEP_MM)
+    line = path(u)
+    depth = cam.to_camera(line)[:, 2]
+    px = cam.project(line)
+    if not (np.isfinite(px).all() and (depth > radius_mm).all()):
+        return None
+    focal = float(np.mean(np.diag(cam.matrix)[:2]))
+    w, h = cam.size_px
+    owner = np.zeros((h, w), np.int32)
+    one = 1 << _DRAW_SHIFT
+    centres = np.round(px * one).astype(np.int64)
+    radii = np.round((focal * radius_mm / depth - 0.5) * one).astype(np.int64)
+    # Drawn from the far end back, so the disc nearest the anchor wins each pixel.
+    for k in range(len(u) - 1, -1, -1):
+        cv2.circle(
+            owner, (int(centres[k, 0]), int(centres[k, 1])), int(radii[k]), k + 1, -1, cv2.LINE_8, _DRAW_SHIFT
+        )
+    owner[tube_mask(cam, body_mm, radius_mm)] = 0
+    inside = np.bincount(owner[mask], minlength=len(u) + 1)[1:]
+    outside = np.bincount(owner[~mask], minlength=len(u) + 1)[1:]
+    if inside.sum() < _MIN_PIXELS:
+        return None
+    gain = np.cumsum(inside - outside)
+    return float(u[int(np.argmax(gain))])
 
 
 def tip_zone(radius_mm: float) -> float:
