@@ -229,7 +229,17 @@ def _fit_march(
     track = cut_polyline(track, max(length - 1.5 * radius_mm - voxel_mm, 0.5 * length))
     if len(track) >= 8:
         track = robust_track(track)
-    return fit_tube(track, cameras, contrasts, radius_mm=radius_mm, base_fixed=base_known, masks=masks)
+    # The tube lies inside the hull, and the march stops within a step (< a
+    # radius) of the hull's end: the tip cannot be farther along than that.
+    return fit_tube(
+        track,
+        cameras,
+        contrasts,
+        radius_mm=radius_mm,
+        base_fixed=base_known,
+        masks=masks,
+        max_length_mm=length + radius_mm,
+    )
 
 
 def silhouette_score(fit: TubeFit, cameras: Sequence[Camera], masks: Sequence[NDArray[np.bool_]]) -> float:

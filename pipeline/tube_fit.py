@@ -96,6 +96,7 @@ def fit_tube(
     smoothness: float = 0.5,
     cap: str = "flat",
     masks: Sequence[NDArray[np.bool_]] | None = None,
+    max_length_mm: float = np.inf,
 ) -> TubeFit:
     """Move ``curve_mm`` so that the tube around it projects onto every silhouette.
 
@@ -115,6 +116,8 @@ def fit_tube(
     masks : per camera (H, W) bool silhouettes, if known: they let a view whose
         end is hidden in another part of the tube still place it (see
         :func:`pipeline.tube_tip.refit_tip`).
+    max_length_mm : the tip is never moved past this arc length (the hull's
+        end: the tube lies inside the hull).
 
     Returns
     -------
@@ -131,7 +134,7 @@ def fit_tube(
         if obs.readings >= 6:
             radius = obs.radius_mm
             pts = pts + _solve_corrections(pts, obs, base_fixed=base_fixed, smoothness=smoothness)
-        pts = refit_tip(pts, cameras, contrasts, radius, cap=cap, masks=masks)
+        pts = refit_tip(pts, cameras, contrasts, radius, cap=cap, masks=masks, max_length_mm=max_length_mm)
     pts = resample_polyline(pts, _sample_count(pts, spacing_mm))
     obs = _read_sides(pts, cameras, contrasts, radius, spacing_mm)
     if obs.readings == 0:

@@ -55,6 +55,7 @@ def refit_tip(
     *,
     cap: str,
     masks: Sequence[NDArray[np.bool_]] | None = None,
+    max_length_mm: float = np.inf,
 ) -> FloatArray:
     """Extend or trim the curve to where the views see the tube end.
 
@@ -115,7 +116,7 @@ def refit_tip(
                 estimates.append(stop + extra - lead)
                 weights.append(_PIXEL_WEIGHT * sin_view**2)
     shift = _weighted_median(np.asarray(estimates), np.asarray(weights)) if estimates else 0.0
-    stop = lead + shift
+    stop = min(lead + shift, max_length_mm - anchor)
     if stop <= 0:
         return cut_polyline(pts, anchor + stop)
     ahead = np.append(np.arange(2.0, stop, 2.0), stop)
