@@ -128,7 +128,7 @@ def calibrate_directory(
     output.parent.mkdir(parents=True, exist_ok=True)
     write_calibration(output, result.cameras, metadata)
     report = Path(report_dir) if report_dir is not None else output.parent
-    result.report_files = write_report(result, calib_dir, views, report)
+    result.report_files = write_report(result, views, report)
     return result
 
 
@@ -304,6 +304,7 @@ def _image_errors(
     """Mean re-projection error of every image under the final calibration (all corners)."""
     obj = board.object_points()
     cams = {c.name: c for c in cameras}
+    R_w0, t_w0 = _world_from_cam0(cams[order[0]])
     errors = []
     for v in views:
         cam = cams[v.camera]
@@ -314,9 +315,7 @@ def _image_errors(
         # Board pose in this camera: through camera 0's board pose and the camera's pose relative to it.
         R0, _ = cv2.Rodrigues(np.asarray(r0, np.float64))
         x0 = obj @ R0.T + np.asarray(t0, np.float64).ravel() * MM_PER_M  # camera 0 frame, mm
-        world_from_cam0 = _world_from_cam0(cams[order[0]])
-        world = x0 @ world_from_cam0[0].T + world_from_cam0[1]
-        px = cam.project(world)
+        px = cam.project(x0 @ R_w0.T + t_w0)
         errors.append(
             ImageError(v.camera, v.key, v.source, float(np.linalg.norm(px - v.corners_px, axis=1).mean()))
         )

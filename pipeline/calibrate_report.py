@@ -11,7 +11,8 @@ import cv2
 import numpy as np
 
 if TYPE_CHECKING:
-    from .calibrate import CalibrationResult, ImageError, View
+    from .calibrate import CalibrationResult, ImageError
+    from .calibration_views import View
 
 log = logging.getLogger(__name__)
 
@@ -50,9 +51,7 @@ def format_table(result: CalibrationResult) -> str:
     return "\n".join(lines)
 
 
-def write_report(
-    result: CalibrationResult, calib_dir: Path, views: Sequence[View], out_dir: Path
-) -> list[Path]:
+def write_report(result: CalibrationResult, views: Sequence[View], out_dir: Path) -> list[Path]:
     """Write the bar chart and one world-axes picture per camera into ``out_dir``; return the paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
     files = [_bar_chart(result, out_dir / "reprojection_errors.png")]
