@@ -76,9 +76,14 @@ SESSIONS = {
 }
 
 # The loop (the tip coming back within a diameter or two of its stem, crossing it
-# in the views) is not yet at the targets: the hull merges the tip with the stem
-# and the march can follow the false bridge. See the centreline report.
-KNOWN_SHORT = {"loop"}
+# in the views) is not yet at issue 4's targets (mean 0.4, p95 1.0, median tip
+# 1.0 mm, length 1 %): the hull merges the tip with the stem, the march has to
+# choose at the crossing (two hypotheses, scored by re-projection IoU) and the tip
+# is often hidden against the stem in every view. Measured on this 12-frame
+# session (mean / p95 / median tip / length): 0.42 / 1.49 / 0.99 / 0.41 (was
+# 0.46 / 1.70 / 1.20 / 0.71). These bounds hold that with margin, so that a
+# regression fails; tighten them to the targets when the loop gets there.
+BOUNDS = {"loop": (0.55, 2.0, 1.5, 1.0)}
 
 
 @pytest.fixture(scope="module")
@@ -93,19 +98,12 @@ def rendered(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    "name",
-    [
-        pytest.param(n, marks=pytest.mark.xfail(reason="loop: not yet at the targets", strict=False))
-        if n in KNOWN_SHORT
-        else n
-        for n in SESSIONS
-    ],
-)
+@pytest.mark.parametrize("name", list(SESSIONS))
 def test_accuracy_targets(name: str, rendered: dict[str, Path]) -> None:
+    mean_mm, p95_mm, tip_mm, length_pct = BOUNDS.get(name, (MEAN_MM, P95_MM, TIP_MM, LENGTH_PCT))
     acc = _measure(rendered[name])
     assert acc.failed == 0
-    assert acc.mean_mm <= MEAN_MM, acc
-    assert acc.p95_mm <= P95_MM, acc
-    assert acc.tip_median_mm <= TIP_MM, acc
-    assert acc.length_pct <= LENGTH_PCT, acc
+    assert acc.mean_mm <= mean_mm, acc
+    assert acc.p95_mm <= p95_mm, acc
+    assert acc.tip_median_mm <= tip_mm, acc
+    assert acc.length_pct <= length_pct, acc

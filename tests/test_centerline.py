@@ -250,3 +250,72 @@ def test_centre_across_moves_a_point_onto_the_axis(rendered_arc: tuple) -> None:
     assert np.linalg.norm(moved - on_axis) < 0.5
     # Far off the tube there is nothing to read.
     assert centre_across(on_axis + 40.0 * side, tangent, cams, contrasts, radius_mm=RADIUS) is None
+
+
+def test_coasting_march_keeps_its_course_through_a_false_bridge() -> None:
+    from pipeline.ordering import march_hull
+
+    curve = _arc()
+    points = voxelise(curve, RADIUS + 1.0)
+    # A slab of hull sticking out sideways at mid-length, as a false bridge to
+    # another part of the tube would: the cross-section there swells.
+    mid = curve[200]
+    axes = [np.arange(-8.0, 8.1, VOXEL), np.arange(0.0, 24.1, VOXEL), np.arange(-8.0, 8.1, VOXEL)]
+    bridge = mid + np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    points = np.unique(np.round(np.vstack([points, bridge]) / VOXEL - 0.5) * VOXEL + VOXEL / 2, axis=0)
+    march = march_hull(points, BASE, radius_mm=RADIUS, voxel_mm=VOXEL, coast=True)
+    assert march.crowded.any() and len(march.crowded) == len(march.points_mm)
+    # Coasting repeats the last clear steps' turn: on a 90 mm bend the course
+    # stays within a voxel of the axis across the few crowded steps.
+    dist, _ = cKDTree(curve).query(march.points_mm[march.crowded])
+    assert dist.max() < VOXEL
+    assert polyline_arclength(march.points_mm)[-1] > 160.0  # on to the tip
+
+
+def test_silhouette_score_prefers_the_whole_tube(rendered_arc: tuple) -> None:
+    from pipeline.centerline import silhouette_score
+    from pipeline.tube_fit import TubeFit
+
+    curve, cams, masks, _ = rendered_arc
+    whole = TubeFit(curve, RADIUS, 0.1, 100)
+    short = TubeFit(cut_polyline(curve, 120.0), RADIUS, 0.1, 100)
+    # The true tube re-projects onto the rendered silhouettes with IoU ~0.9+
+    # (edge pixels); a third of it missing leaves a third of each silhouette.
+    assert silhouette_score(whole, cams, masks) > 0.85
+    assert silhouette_score(short, cams, masks) < silhouette_score(whole, cams, masks) - 0.2
+    assert silhouette_score(TubeFit(curve, float("nan"), 0.1, 0), cams, masks) == 0.0
+
+
+def test_fit_tube_never_grows_past_the_hulls_end(rendered_arc: tuple) -> None:
+    from pipeline.tube_fit import fit_tube
+
+    curve, cams, masks, contrasts = rendered_arc
+    start = cut_polyline(curve, 150.0)
+    free = fit_tube(start, cams, contrasts, radius_mm=RADIUS, masks=masks)
+    capped = fit_tube(start, cams, contrasts, radius_mm=RADIUS, masks=masks, max_length_mm=165.0)
+    # Free, the tip is found (measured ~0.3 mm off); capped, it stops at the cap
+    # (resampling at 4 mm shortens a polyline on a 90 mm bend by < 0.01 mm).
+    assert np.linalg.norm(free.points_mm[-1] - curve[-1]) < 1.0
+    assert polyline_arclength(capped.points_mm)[-1] == pytest.approx(165.0, abs=0.05)
+
+
+def test_end_by_pixels_finds_the_end_from_the_silhouette(rendered_arc: tuple) -> None:
+    from pipeline.tube_tip import _end_by_pixels
+
+    curve, cams, masks, _ = rendered_arc
+    s = polyline_arclength(curve)
+    anchor = s[-1] - 30.0
+    body = cut_polyline(curve, anchor)
+    end_dir = (curve[-1] - curve[-2]) / np.linalg.norm(curve[-1] - curve[-2])
+
+    def path(u: FloatArray) -> FloatArray:
+        """The true axis, u mm past the anchor, then straight on past the end."""
+        on = np.column_stack([np.interp(anchor + u, s, curve[:, i]) for i in range(3)])
+        return on + np.maximum(anchor + u - s[-1], 0.0)[:, None] * end_dir
+
+    # The end is flat: discs reach r past their centre, the flat end's outline
+    # less (by r (1 - cos) / sin): the peak sits up to a few mm short of the
+    # end, and past it by no more than a pixel's worth (< 1 mm here).
+    for cam, mask in zip(cams, masks, strict=True):
+        stop = _end_by_pixels(cam, mask, body, path, 30.0, RADIUS)
+        assert stop is not None and 30.0 - RADIUS <= stop <= 30.0 + 1.0
