@@ -15,6 +15,8 @@ from typing import Any
 from .bench_timing import StageStats
 
 REALTIME_FPS = 30.0
+# The end-to-end wall-time targets are for this many frames (the demo session).
+TARGET_FRAMES = 900
 
 # Stage names in the order of the per-frame path; the chart and table follow it.
 STAGE_ORDER = (
@@ -172,7 +174,11 @@ def speedup_2_over_1(report: BenchReport) -> float:
 def targets(report: BenchReport) -> list[Target]:
     """Issue 8's targets against what ``report`` measured."""
     two = report.run(jobs=2, voxel_mm=2.0)
-    fine = [r for r in report.end_to_end if math.isclose(r.voxel_mm, 1.0)]
+    # The wall-time targets are for the whole 900-frame demo; a shorter run (--quick)
+    # would pass them without saying anything.
+    full = [r for r in report.end_to_end if r.frames >= TARGET_FRAMES]
+    two_full = next((r for r in full if r.jobs == 2 and math.isclose(r.voxel_mm, 2.0)), None)
+    fine = [r for r in full if math.isclose(r.voxel_mm, 1.0)]
     carve = report.carving_methods.get(OURS) or report.stages.get("carving")
     carve_ms = carve.median_ms if carve else float("nan")
     peak = max((r.peak_rss_mb for r in report.end_to_end), default=float("nan"))
@@ -186,9 +192,9 @@ def targets(report: BenchReport) -> list[Target]:
             "%",
             higher_is_better=True,
         ),
-        Target("end to end, 2 workers", _wall(two), 10.0, "s"),
+        Target(f"end to end {TARGET_FRAMES} frames, 2 workers", _wall(two_full), 10.0, "s"),
         Target("end to end / decode only", _ratio(_wall(two), report.decode_floor_s), 5.0, "x"),
-        Target("end to end at 1 mm", min((r.wall_s for r in fine), default=float("nan")), 30.0, "s"),
+        Target(f"end to end {TARGET_FRAMES} frames at 1 mm", _wall(fine[0] if fine else None), 30.0, "s"),
         Target("peak memory", peak / 1024.0, 1.5, "GiB"),
         Target("2 workers / 1 worker", speedup_2_over_1(report), 1.6, "x", higher_is_better=True),
     ]
