@@ -47,6 +47,10 @@ _MIN_OWNED_PX = 3
 _DRAW_SHIFT = 4
 # How far from the rough curve (in radii) the first round seeks the tube's peak.
 _FIRST_CORE = 1.6
+# A reading whose residual after a first solve exceeds this many radii (or this
+# many robust standard deviations of all residuals, if larger) is an outlier.
+_OUTLIER_RADII = 0.25
+_OUTLIER_SPREAD = 4.0
 # A reading wider than this factor times the expected width (+1 px) is contaminated.
 _WIDTH_TOLERANCE = 1.3
 
@@ -97,6 +101,7 @@ def fit_tube(
     cap: str = "flat",
     masks: Sequence[NDArray[np.bool_]] | None = None,
     max_length_mm: float = np.inf,
+    robust: bool = True,
 ) -> TubeFit:
     """Move ``curve_mm`` so that the tube around it projects onto every silhouette.
 
@@ -118,6 +123,8 @@ def fit_tube(
         :func:`pipeline.tube_tip.refit_tip`).
     max_length_mm : the tip is never moved past this arc length (the hull's
         end: the tube lies inside the hull).
+    robust : after each solve, drop the readings it disagrees with and solve
+        again (see :func:`_consistent`).
 
     Returns
     -------
@@ -133,7 +140,11 @@ def fit_tube(
         obs = _read_sides(pts, cameras, contrasts, radius, spacing_mm, core=_FIRST_CORE if i == 0 else 0.6)
         if obs.readings >= 6:
             radius = obs.radius_mm
-            pts = pts + _solve_corrections(pts, obs, base_fixed=base_fixed, smoothness=smoothness)
+            step = _solve_corrections(pts, obs, base_fixed=base_fixed, smoothness=smoothness)
+            kept = _consistent(obs, step) if robust else obs
+            if kept is not obs:
+                step = _solve_corrections(pts, kept, base_fixed=base_fixed, smoothness=smoothness)
+            pts = pts + step
         pts = refit_tip(pts, cameras, contrasts, radius, cap=cap, masks=masks, max_length_mm=max_length_mm)
     pts = resample_polyline(pts, _sample_count(pts, spacing_mm))
     obs = _read_sides(pts, cameras, contrasts, radius, spacing_mm)
@@ -263,6 +274,7 @@ class _CameraEdges:
     hi: FloatArray  # (K,) positive-side edge
     ok: NDArray[np.bool_]  # (K,) both edges found in a usable view
     limit: FloatArray  # (K,) farthest an edge may sit from the axis, mm
+    floor: FloatArray  # (K,) least half-width of a reading of the tube alone, mm
 
 
 def _camera_edges(
@@ -318,6 +330,7 @@ def _camera_edges(
         # An edge may sit no farther from the axis than the radius allows (by 30 %,
         # +0.5 px of edge blur).
         limit = (_WIDTH_TOLERANCE * r_px[part] + 0.5) / safe
+        floor = np.maximum(r_px[part] / _WIDTH_TOLERANCE - 0.5, 0.0) / safe
         out.append(
             _CameraEdges(
                 px,
@@ -328,6 +341,7 @@ def _camera_edges(
                 hi[part] / safe,
                 ok & found[part],
                 limit,
+                floor,
             )
         )
     return out
@@ -361,6 +375,10 @@ def _read_sides(
         # (the axis being where the other edge says, if that one is further out).
         use[:, j, 0] = ok & ~crowd[:, 0] & (-e.lo < e.limit + np.maximum(0.0, e.hi))
         use[:, j, 1] = ok & ~crowd[:, 1] & (e.hi < e.limit + np.maximum(0.0, -e.lo))
+        # A reading narrower than the tube (by the same tolerance) found an edge
+        # inside the silhouette: the outline of another part lying over this one.
+        narrow = e.hi - e.lo < 2.0 * e.floor
+        use[ok & narrow, j] = False
         both = use[:, j, 0] & use[:, j, 1]
         use[both & (e.hi - e.lo > 2.0 * e.limit), j] = False
         rows[:, j], left[:, j], right[:, j] = e.rows, e.lo, e.hi
@@ -442,6 +460,29 @@ def _crowded(
     negative = near & (across < 1.0) & (across > -touch)
     positive = near & (across > -1.0) & (across < touch)
     return np.column_stack([negative.any(axis=1), positive.any(axis=1)])
+
+
+def _consistent(obs: _Sides, step: FloatArray) -> _Sides:
+    """``obs`` without the readings the solution ``step`` (K, 3) disagrees with.
+
+    A reading contaminated by another part of the tube that the curve does not
+    know of (a part it lacks or has in the wrong place) puts the axis where the
+    other views and the neighbouring samples do not: after a first solve its
+    residual stands out. Readings off by more than ``_OUTLIER_RADII`` radii (or
+    ``_OUTLIER_SPREAD`` robust standard deviations, if larger) are dropped;
+    ``obs`` itself is returned when none is.
+    """
+    centre, weight = obs.centres()
+    residual = np.abs(centre - np.einsum("kci,ki->kc", obs.rows, step))
+    used = weight > 0
+    if not used.any():
+        return obs
+    spread = 1.4826 * float(np.median(residual[used]))
+    bad = used & (residual > max(_OUTLIER_RADII * obs.radius_mm, _OUTLIER_SPREAD * spread))
+    if not bad.any():
+        return obs
+    use = obs.use & ~bad[..., None]
+    return _Sides(obs.rows, obs.left, obs.right, use, obs.radius_mm)
 
 
 def _second_difference_gram(k: int) -> FloatArray:
