@@ -2,7 +2,9 @@
 
 Input layout (camera names come from the folder names)::
 
-    CALIB_DIR/board.toml                 optional: type, inner_corners = [cols, rows], square_mm
+    CALIB_DIR/board.toml                 optional: type = "chessboard", inner_corners = [cols, rows],
+                                         square_mm; or type = "charuco", squares = [cols, rows],
+                                         square_mm, marker_mm, dictionary
     CALIB_DIR/<camera>/intrinsics/*      board images (.png .jpg) or a video of the board moving
     CALIB_DIR/<camera>/world.png|jpg     the board lying where the world frame should be
     CALIB_DIR/<camera>/shared/NN.png     optional: boards seen by several cameras at the same
@@ -14,6 +16,11 @@ refinement of all cameras over every board (cv2.calibrateMultiviewExtended,
 which chains cameras through pairwise shared views), and finally the world
 frame: the board of world.png (origin at its first inner corner, z out of the
 board).
+
+ChArUco views show subsets of the corners. Intrinsics use each view's own
+subset; the joint refinement uses, per board pose, only the corners seen by
+every camera that saw it, because calibrateMultiviewExtended gives wrong
+results with points marked unseen (-1, -1) inside a seen view.
 """
 
 from __future__ import annotations
@@ -37,6 +44,9 @@ log = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
 
 MM_PER_M = 1000.0
+# A board pose whose cameras share fewer corners than this is given to the joint
+# refinement by fewer cameras (the ones sharing the most corners).
+MIN_COMMON_CORNERS = 6
 # A corner is dropped when its residual is this many times the camera's median
 # residual and above CORNER_FLOOR_PX: the sector detector occasionally lands a
 # corner of a steeply tilted board a pixel off, which would pull the world frame.
@@ -91,19 +101,18 @@ def calibrate_directory(
     calib_dir : folder in the layout of the module docstring.
     output : calibration.toml to write (aniposelib layout, mm, world frame of world.*).
     board, square_mm : inner corners (cols, rows) and square size; override board.toml.
-    charuco : ChArUco boards are not supported yet (raises CalibrationError).
+    charuco : a ChArUco board's (cols, rows) squares; overrides board.toml (markers
+        0.75 square and DICT_4X4_50 unless board.toml says).
     shared_intrinsics : one K and distortion for all cameras (identical cameras).
     drop_outliers : drop the images whose error stands out (see ``calibrate_report``) and recalibrate.
     report_dir : where the pictures go; default: next to ``output``.
     """
     from .calibrate_report import find_outliers, write_report
 
-    if charuco is not None:
-        raise CalibrationError(f"{calib_dir}: ChArUco boards are not supported yet; use a chessboard")
     calib_dir = Path(calib_dir)
     if not calib_dir.is_dir():
         raise CalibrationError(f"{calib_dir}: not a folder; expected CALIB_DIR/<camera>/intrinsics/*.png")
-    the_board = load_board(calib_dir, board=board, square_mm=square_mm)
+    the_board = load_board(calib_dir, board=board, square_mm=square_mm, charuco=charuco)
     views = detect_directory(calib_dir, the_board)
     result = calibrate_views(views, the_board, shared_intrinsics=shared_intrinsics)
     outliers = find_outliers(result.image_errors)
@@ -118,7 +127,7 @@ def calibrate_directory(
     metadata = {
         "source": "pipeline calibrate",
         "calib_dir": str(calib_dir),
-        "board": f"chessboard {the_board.cols}x{the_board.rows}, {the_board.square_mm:g} mm",
+        "board": the_board.describe(),
         "rms_px": result.rms_px,
         "mean_reprojection_error_px": result.camera_mean_px(),
         "images": {c.name: sum(e.camera == c.name for e in result.image_errors) for c in result.cameras},
@@ -156,20 +165,25 @@ def calibrate_views(views: list[View], board: Board, *, shared_intrinsics: bool 
     keys = sorted({v.instant for v in views})
     by = {(v.camera, v.instant): v for v in views}
     detection = np.zeros((len(order), len(keys)), np.uint8)
-    image_points = []
-    for ci, name in enumerate(order):
-        per_frame = []
-        for fi, key in enumerate(keys):
-            pts = np.full((board.n_corners, 2), -1.0, np.float32)  # (-1, -1): not seen
-            view = by.get((name, key))
+    image_points: list[list[NDArray[np.float32]]] = [[] for _ in order]
+    obj_m = []
+    for fi, key in enumerate(keys):
+        seen = {name: by[(name, key)] for name in order if (name, key) in by}
+        # The solver wants the same number of points in every frame: a frame's common
+        # corners are repeated up to the board's count, which weights its corners up
+        # (every frame then weighs the same) but adds no bias.
+        ids = np.resize(_common_ids(seen), board.n_corners)
+        for ci, name in enumerate(order):
+            pts = np.full((len(ids), 2), -1.0, np.float32)  # (-1, -1): camera did not see this pose
+            view = seen.get(name)
             if view is not None:
-                pts[:] = corners[(name, view.key)]
+                # Rows of this view's corners that hold the common ids (view.ids increasing).
+                pts[:] = corners[(name, view.key)][np.searchsorted(view.ids, ids)]
                 detection[ci, fi] = 1
-            per_frame.append(pts)
-        image_points.append(per_frame)
-    # Metres, not mm: the solver scales the board by its squared size, and a board
-    # in mm trips its "Pattern points are collinear" guard.
-    obj_m = [(obj / MM_PER_M).astype(np.float32)] * len(keys)
+            image_points[ci].append(pts)
+        # Metres, not mm: the solver scales the board by its squared size, and a board
+        # in mm trips its "Pattern points are collinear" guard.
+        obj_m.append((obj[ids] / MM_PER_M).astype(np.float32))
     try:
         # Rs, Ts = None: outputs only (the stubs want sequences).
         rms, Ks, dists, Rs, Ts, _pairs, rvecs0, tvecs0, _ = cv2.calibrateMultiviewExtended(  # type: ignore[call-overload]
@@ -216,6 +230,18 @@ def calibrate_views(views: list[View], board: Board, *, shared_intrinsics: bool 
     return CalibrationResult(cameras=cameras, image_errors=errors, board=board, rms_px=float(rms))
 
 
+def _common_ids(seen: dict[str, View]) -> NDArray[np.intp]:
+    """Corner ids seen by every camera in ``seen``, after dropping from ``seen`` the cameras
+    that leave fewer than MIN_COMMON_CORNERS in common (those that saw the least first)."""
+    while True:
+        ids = np.asarray(sorted(set.intersection(*(set(v.ids.tolist()) for v in seen.values()))), np.intp)
+        if len(ids) >= MIN_COMMON_CORNERS or len(seen) == 1:
+            return ids
+        weakest = min(seen, key=lambda name: len(seen[name].ids))
+        log.debug("%s: too few corners shared with the other cameras; not in the joint view", weakest)
+        del seen[weakest]
+
+
 def _check_connected(views: list[View], order: list[str]) -> None:
     """Every camera must reach the world camera through boards seen by two cameras at once."""
     seen_by: dict[str, set[str]] = {}
@@ -254,7 +280,8 @@ def _intrinsics(
     for members in groups.values():
         mine = [v for v in views if v.camera in members]
         imgs = [corners[(v.camera, v.key)].astype(np.float32) for v in mine]
-        _, K, dist, _, _ = cv2.calibrateCamera([obj] * len(imgs), imgs, sizes[members[0]], None, None)
+        objs = [obj[v.ids] for v in mine]
+        _, K, dist, _, _ = cv2.calibrateCamera(objs, imgs, sizes[members[0]], None, None)
         for n in members:
             out[n] = (np.asarray(K, np.float64), np.asarray(dist, np.float64).ravel()[:5])
     return out
@@ -275,8 +302,8 @@ def _clean_corners(
     predicted, residuals = {}, {}
     for v in views:
         K, dist = intrinsics[v.camera]
-        _, rvec, tvec = cv2.solvePnP(obj, v.corners_px, K, dist)
-        px, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
+        _, rvec, tvec = cv2.solvePnP(obj[v.ids], v.corners_px, K, dist)
+        px, _ = cv2.projectPoints(obj[v.ids], rvec, tvec, K, dist)
         predicted[(v.camera, v.key)] = px.reshape(-1, 2).astype(np.float64)
         residuals[(v.camera, v.key)] = np.linalg.norm(predicted[(v.camera, v.key)] - v.corners_px, axis=1)
     cleaned = {}
@@ -314,7 +341,7 @@ def _image_errors(
             continue
         # Board pose in this camera: through camera 0's board pose and the camera's pose relative to it.
         R0, _ = cv2.Rodrigues(np.asarray(r0, np.float64))
-        x0 = obj @ R0.T + np.asarray(t0, np.float64).ravel() * MM_PER_M  # camera 0 frame, mm
+        x0 = obj[v.ids] @ R0.T + np.asarray(t0, np.float64).ravel() * MM_PER_M  # camera 0 frame, mm
         px = cam.project(x0 @ R_w0.T + t_w0)
         errors.append(
             ImageError(v.camera, v.key, v.source, float(np.linalg.norm(px - v.corners_px, axis=1).mean()))

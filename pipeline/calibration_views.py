@@ -18,7 +18,7 @@ import numpy as np
 from joblib import Parallel, delayed
 from numpy.typing import NDArray
 
-from .boards import Board, detect_corners
+from .boards import Board, detect
 from .errors import CalibrationError
 
 log = logging.getLogger(__name__)
@@ -39,8 +39,9 @@ class View:
     camera: str
     key: str
     source: str  # file (or video#frame) for messages and the report
-    corners_px: FloatArray  # (cols * rows, 2) float64, board order
+    corners_px: FloatArray  # (M, 2) float64: the corners ``ids`` (all, for a chessboard)
     size_px: tuple[int, int]
+    ids: NDArray[np.intp]  # (M,) increasing indices into Board.object_points()
 
     @property
     def shared(self) -> bool:
@@ -137,19 +138,15 @@ def detect_directory(calib_dir: Path, board: Board) -> list[View]:
                 f"{first[2].shape[1]}x{first[2].shape[0]}, {odd} is not); one camera, one size"
             )
         # Threads: OpenCV releases the GIL, and images are independent.
-        found = Parallel(n_jobs=-1, prefer="threads")(
-            delayed(detect_corners)(im, board) for _, _, im in images
-        )
-        for (key, source, image), corners in zip(images, found, strict=True):
-            if corners is None:
+        found = Parallel(n_jobs=-1, prefer="threads")(delayed(detect)(im, board) for _, _, im in images)
+        for (key, source, image), detection in zip(images, found, strict=True):
+            if detection is None:
                 if key == WORLD:
-                    raise CalibrationError(
-                        f"{source}: board {board.cols}x{board.rows} not found; the world image must "
-                        "show the whole board (check --board COLSxROWS)"
-                    )
-                log.warning("%s: board %dx%d not found, image skipped", source, board.cols, board.rows)
+                    raise CalibrationError(f"{source}: {_not_found(board)} (it defines the world frame)")
+                log.warning("%s: %s, image skipped", source, _not_found(board))
                 continue
-            views.append(View(cam, key, source, corners, (image.shape[1], image.shape[0])))
+            ids, corners = detection
+            views.append(View(cam, key, source, corners, (image.shape[1], image.shape[0]), ids))
         usable = sum(v.camera == cam for v in views)
         if usable < MIN_VIEWS:
             raise CalibrationError(
@@ -157,3 +154,13 @@ def detect_directory(calib_dir: Path, board: Board) -> list[View]:
                 f"need at least {MIN_VIEWS} (more views, whole board visible, check --board)"
             )
     return views
+
+
+def _not_found(board: Board) -> str:
+    """Why an image gave no detection, and what to check."""
+    if board.kind == "charuco":
+        return (
+            f"too few ChArUco corners found ({board.describe()}); show more of the board, larger, "
+            "and check --charuco COLSxROWS, --square-mm and board.toml's dictionary"
+        )
+    return f"board {board.cols}x{board.rows} not found; show the whole board and check --board COLSxROWS"
