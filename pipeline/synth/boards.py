@@ -60,11 +60,12 @@ NOISE_SIGMA = 1.5  # grey levels: mild sensor noise
 MARGIN_SQUARES = 0.7  # white border around the squares, in squares
 EDGE_PX = 4.0  # every board corner (margin included) stays this far inside the image
 
-# ChArUco: 5 x 4 squares of 50 mm, 4x4 markers of 0.75 square (a cell is 6.25 mm).
-# The world board on the floor is the hard case at 320x240: seen from 22-34 degrees
-# elevation ~750 mm away, a cell is ~2.6 x 1.2 px. 7 x 5 squares of 30 mm decoded only
-# 0-2 of its 24 corners there; 5 x 4 of 50 mm decodes 7-12 of 12 (measured).
-CHARUCO_SQUARES, CHARUCO_SQUARE_MM, CHARUCO_MARKER_RATIO = (5, 4), 50.0, 0.75
+# ChArUco: 7 x 5 squares of 50 mm (a 350 x 250 mm board, about A3), 4x4 markers of
+# 0.75 square (a cell is 6.25 mm). The world board on the floor is the hard case at
+# 320x240: seen from 22-34 degrees elevation ~750 mm away, a cell is ~2.6 x 1.2 px.
+# With 30 mm squares only 0-2 of its 24 corners decoded there; with 50 mm, 14-24
+# (measured); more squares give the partly visible views enough corners.
+CHARUCO_SQUARES, CHARUCO_SQUARE_MM, CHARUCO_MARKER_RATIO = (7, 5), 50.0, 0.75
 CHARUCO_DICTIONARY = "DICT_4X4_50"
 # Texture pixels per square: a multiple of the marker's 6 cells at 0.75 * 48 = 36 px,
 # so that square edges and marker cells fall on texture pixel edges.
