@@ -104,6 +104,8 @@ def load_board(
     ``board`` is a chessboard's (cols, rows) inner corners, ``charuco`` a ChArUco
     board's (cols, rows) squares; either overrides board.toml's type and size.
     """
+    if board is not None and charuco is not None:
+        raise CalibrationError(f"{calib_dir}: give --board (a chessboard) or --charuco, not both")
     path = Path(calib_dir) / "board.toml"
     doc: dict[str, object] = {}
     if path.is_file():

@@ -73,7 +73,9 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 def _cmd_synth_calib(args: argparse.Namespace) -> int:
     from .synth import render_calibration_views
 
-    render_calibration_views(args.out_dir, arrangement=args.arrangement, seed=args.seed)
+    render_calibration_views(
+        args.out_dir, arrangement=args.arrangement, seed=args.seed, board_type=args.board
+    )
     return EXIT_OK
 
 
@@ -180,13 +182,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "synth-calib",
-        help="render checkerboard calibration images for the synthetic rig",
+        help="render chessboard or ChArUco calibration images for the synthetic rig",
         description="Write OUT_DIR/<camera>/intrinsics/*.png, OUT_DIR/<camera>/world.png, "
         "OUT_DIR/board.toml and the true cameras as OUT_DIR/truth_calibration.toml.",
     )
     p.add_argument("out_dir", type=Path)
     p.add_argument("--arrangement", choices=("oblique", "ninety"), default="oblique", help="camera placement")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--board",
+        choices=("chessboard", "charuco"),
+        default="chessboard",
+        help="chessboard (9x6 inner corners, 20 mm) or ChArUco (7x5 squares, 50 mm, DICT_4X4_50; "
+        "views may show it in part)",
+    )
     p.set_defaults(func=_cmd_synth_calib)
 
     p = sub.add_parser(
@@ -206,7 +215,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--square-mm", type=float, help="square size in mm (overrides board.toml)")
     p.add_argument(
-        "--charuco", type=_board, metavar="COLSxROWS", help="a ChArUco board of COLSxROWS squares instead"
+        "--charuco",
+        type=_board,
+        metavar="COLSxROWS",
+        help="a ChArUco board of COLSxROWS squares instead (markers 0.75 square, DICT_4X4_50, "
+        "unless board.toml says)",
     )
     p.add_argument("--shared-intrinsics", action="store_true", help="one set of intrinsics for all cameras")
     p.add_argument(
