@@ -13,7 +13,7 @@ Three steps, each its own module:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -48,6 +48,8 @@ KNOT_SPACING_MM = 20.0
 # follows the tube (the round drawn end against the flat one), 3-9 % where a
 # loop's march or fit went astray.
 MISFIT = 0.02
+# Times a fit that stops short is carried on (see _carry_on).
+_CARRY_ON_ROUNDS = 2
 # Dense evaluation factor used to invert arc length.
 _DENSE = 16
 
@@ -211,7 +213,49 @@ def fit_centerline(
         # back along the stem, say) is out, unless every candidate does.
         possible = [c for c in candidates if not self_intersects(c.points_mm, c.radius_mm)] or candidates
         best = max(possible, key=lambda c: silhouette_score(c, cameras, masks))
+        best = _carry_on(best, fit, points_mm, base_mm, cameras, masks, radius_mm, voxel_mm, refine)
     return smooth_curve(best.points_mm, n_points=n_points), best
+
+
+def _carry_on(
+    best: TubeFit,
+    fit: Callable[[March], TubeFit],
+    points_mm: FloatArray,
+    base_mm: FloatArray,
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    radius_mm: float,
+    voxel_mm: float,
+    refine: Callable[[FloatArray, FloatArray], FloatArray | None],
+) -> TubeFit:
+    """``best`` carried on past where its march stopped, while that explains more.
+
+    A march can stop where the hull is fat (two parts of a loop merged in most
+    views) even though the fitted curve is on the tube up to there: if the
+    silhouettes still hold unexplained tube, march on from the fitted end, in
+    its direction, never back onto it, and fit again; keep the result if its
+    tube explains the silhouettes better and does not pass through itself.
+    """
+    score = silhouette_score(best, cameras, masks)
+    for _ in range(_CARRY_ON_ROUNDS):
+        if _misfit(best, cameras, masks) <= MISFIT:
+            break
+        march = march_hull(
+            points_mm,
+            base_mm,
+            radius_mm=radius_mm,
+            voxel_mm=voxel_mm,
+            refine=refine,
+            resume_mm=best.points_mm,
+        )
+        if polyline_arclength(march.points_mm)[-1] < polyline_arclength(best.points_mm)[-1] + 2.0 * radius_mm:
+            break
+        longer = fit(march)
+        longer_score = silhouette_score(longer, cameras, masks)
+        if longer_score <= score or self_intersects(longer.points_mm, longer.radius_mm):
+            break
+        best, score = longer, longer_score
+    return best
 
 
 def _fit_march(

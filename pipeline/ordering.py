@@ -122,6 +122,7 @@ def march_hull(
     max_length_mm: float = 2000.0,
     refine: Callable[[FloatArray, FloatArray], FloatArray | None] | None = None,
     coast: bool = False,
+    resume_mm: FloatArray | None = None,
 ) -> March:
     """March through the hull from the base to the tip.
 
@@ -142,11 +143,15 @@ def march_hull(
         last step's turn repeated) instead of asking ``refine`` or the hull: the
         other hypothesis at a crossing, where whatever the hull offers may belong
         to another part of the tube.
+    resume_mm : (R, 3) a curve already known from ``base_mm`` on (a fit that
+        stopped short): the march carries on from its end, in its direction,
+        and never comes back onto it; the usual cross-section is taken from the
+        hull along it.
 
     Returns
     -------
-    :class:`March`; its polyline starts at ``base_mm``, and has one point when the
-    hull holds nothing near the base.
+    :class:`March`; its polyline starts at ``base_mm`` (with ``resume_mm`` as
+    its first points), and has one point when the hull holds nothing near the base.
     """
     pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
     base = np.asarray(base_mm, dtype=np.float64)
@@ -158,21 +163,26 @@ def march_hull(
     reach = radius_mm + voxel_mm
     half_slab = max(voxel_mm, 0.5 * step)
 
-    direction = _initial_direction(pts, tree, base, reach)
+    known = base[None] if resume_mm is None else np.asarray(resume_mm, dtype=np.float64).reshape(-1, 3)
+    counts: list[int] = []  # cross-section sizes of the last clear steps
+    if len(known) > 1:
+        direction = _end_direction(known, step)
+        counts = _usual_sections(pts, tree, known, reach, half_slab)
+    else:
+        direction = _initial_direction(pts, tree, base, reach)
     if direction is None:
-        return March(base[None].copy(), np.zeros(1, dtype=bool))
+        return March(known.copy(), np.zeros(len(known), dtype=bool))
     limit = int(max_length_mm / step)
-    track = np.empty((limit + 1, 3))
-    track[0] = base
-    crowded_at = np.zeros(limit + 1, dtype=bool)
+    track = np.empty((limit + len(known), 3))
+    track[: len(known)] = known
+    crowded_at = np.zeros(len(track), dtype=bool)
     turn: FloatArray | None = None  # the change of heading per step, recently
     turns: list[FloatArray] = []
-    n = 1
+    n = len(known)
     # Revisiting means the march turned into a part of the tube already walked
     # (a tip touching the body): the axes of two touching parts are 2 r apart.
     revisit_sq = (1.5 * radius_mm) ** 2
     skip_recent = int(np.ceil(4.0 * radius_mm / step)) + 1
-    counts: list[int] = []  # cross-section sizes of the last clear steps
     for _ in range(limit):
         here = track[n - 1]
         found = _step(pts, tree, here, direction, step, reach, half_slab, counts, refine)
@@ -212,9 +222,9 @@ def march_hull(
         blended /= math.sqrt(blended @ blended)
         if course is not None:
             blended = course
-        elif not crowded:
+        elif coast and not crowded:
             turns = [*turns[-_TURN_STEPS + 1 :], blended - direction]
-            turn = np.mean(turns, axis=0)
+            turn = np.add.reduce(turns) / len(turns)
         direction = blended
     return March(track[:n].copy(), crowded_at[:n].copy())
 
@@ -246,6 +256,30 @@ def _step(
     if centre is None or (centre - here) @ direction <= 0.25 * step:
         return None
     return centre, crowded, len(section)
+
+
+def _end_direction(known: FloatArray, step: float) -> FloatArray | None:
+    """Unit direction at the end of an (R, 3) polyline, over its last ~2 steps."""
+    gaps = np.linalg.norm(known[-1] - known, axis=1)
+    back = np.nonzero(gaps >= 2.0 * step)[0]
+    ahead = known[-1] - known[back[-1] if len(back) else 0]
+    norm = float(np.linalg.norm(ahead))
+    return ahead / norm if norm > 1e-9 else None
+
+
+def _usual_sections(
+    pts: FloatArray, tree: cKDTree, known: FloatArray, reach: float, half_slab: float
+) -> list[int]:
+    """Hull cross-section sizes (point counts) across an (R, 3) polyline at up to
+    2 x _BASELINE_STEPS places along it: the march's baseline when it resumes."""
+    picks = np.unique(np.linspace(1, len(known) - 1, 2 * _BASELINE_STEPS).round().astype(int))
+    out = []
+    for i in picks:
+        d = known[i] - known[i - 1]
+        norm = float(np.linalg.norm(d))
+        if norm > 1e-9:
+            out.append(len(_slab(pts, tree, known[i], d / norm, reach, half_slab)))
+    return out
 
 
 def _initial_direction(pts: FloatArray, tree: cKDTree, base: FloatArray, reach: float) -> FloatArray | None:

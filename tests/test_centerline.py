@@ -319,3 +319,42 @@ def test_end_by_pixels_finds_the_end_from_the_silhouette(rendered_arc: tuple) ->
     for cam, mask in zip(cams, masks, strict=True):
         stop = _end_by_pixels(cam, mask, body, path, 30.0, RADIUS)
         assert stop is not None and 30.0 - RADIUS <= stop <= 30.0 + 1.0
+
+
+def test_self_intersects_only_where_the_axis_comes_back_onto_itself() -> None:
+    from pipeline.centerline import self_intersects
+
+    assert not self_intersects(_straight(), RADIUS)
+    # The analytic loop's tip passes 16 mm (> a radius) beside where it began.
+    assert not self_intersects(_loop(), RADIUS)
+    # A march that ran on past the tip and back down the tube: it does.
+    up = _straight(100.0)
+    back = up[::-1] + np.array([2.0, 0.0, 0.0])
+    assert self_intersects(np.vstack([up, back]), RADIUS)
+    assert not self_intersects(np.vstack([up, back]), float("nan"))
+
+
+def test_consistent_drops_the_reading_the_solution_disagrees_with() -> None:
+    from pipeline.tube_fit import _consistent, _Sides, _solve_corrections
+
+    # Twenty samples along x, each read by two views: one along y, one along z
+    # (rows: the motion of the projection along each view's normal, per mm).
+    k = 20
+    pts = np.column_stack([np.arange(k) * 4.0, np.zeros(k), np.zeros(k)])
+    rows = np.zeros((k, 2, 3))
+    rows[:, 0, 1] = 1.0
+    rows[:, 1, 2] = 1.0
+    rng = np.random.default_rng(0)
+    offset = rng.normal(0.0, 0.05, (k, 2))  # edge noise, mm
+    offset[10, 0] = 4.0  # another part of the tube in view 0 at sample 10
+    radius = 6.0
+    sides = _Sides(rows, offset - radius, offset + radius, np.ones((k, 2, 2), dtype=bool), radius)
+    step = _solve_corrections(pts, sides, base_fixed=False, smoothness=0.5)
+    kept = _consistent(sides, step)
+    assert not kept.use[10, 0].any()
+    # Everything else stays: its residuals are noise, far under a quarter radius.
+    assert kept.readings == sides.readings - 2
+    again = _solve_corrections(pts, kept, base_fixed=False, smoothness=0.5)
+    # Without the outlier, sample 10 sits where its neighbours and the noise say.
+    assert abs(again[10, 1]) < 0.3 < abs(step[10, 1])
+    assert _consistent(kept, again) is kept
