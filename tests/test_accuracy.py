@@ -72,18 +72,27 @@ SESSIONS = {
     # Sessions unlike the demo: the other camera placement, thicker and thinner tubes.
     "unseen_helix_ninety_r9": {"shape": "helix", "arrangement": "ninety", "radius_mm": 9.0},
     "unseen_bend_ninety_r4": {"shape": "bend_rotate", "arrangement": "ninety", "radius_mm": 4.0, "seed": 5},
+    "unseen_loop_r4": {"shape": "loop", "radius_mm": 4.0, "seed": 3},
     "loop": {"shape": "loop"},
+    "unseen_loop_ninety_r9": {"shape": "loop", "arrangement": "ninety", "radius_mm": 9.0, "seed": 7},
 }
 
-# The loop (the tip coming back within a diameter or two of its stem, crossing it
-# in the views) is not yet at issue 4's targets (mean 0.4, p95 1.0, median tip
-# 1.0 mm, length 1 %): the hull merges the tip with the stem, the march has to
-# choose at the crossing (two hypotheses, scored by re-projection IoU) and the tip
-# is often hidden against the stem in every view. Measured on this 12-frame
-# session (mean / p95 / median tip / length): 0.42 / 1.49 / 0.99 / 0.41 (was
-# 0.46 / 1.70 / 1.20 / 0.71). These bounds hold that with margin, so that a
-# regression fails; tighten them to the targets when the loop gets there.
-BOUNDS = {"loop": (0.55, 2.0, 1.5, 1.0)}
+# Loops (the tip coming back within a diameter or two of its stem, crossing it
+# in the views) with a thin tube meet the targets; thicker ones do not yet meet
+# issue 4's targets (mean 0.4, p95 1.0, median tip 1.0 mm, length 1 %): the
+# hull merges the tip with the stem, and the tip is often hidden against the
+# stem in every view, so that its last few mm are a guess bounded by the hull.
+# Measured on these 12-frame sessions (mean / p95 / median tip / length), with
+# the figures before the multi-hypothesis centreline in brackets:
+#   loop (oblique, r 6):          0.37 / 1.46 / 1.24 / 0.58  (0.46 / 1.70 / 1.20 / 0.71)
+#   unseen_loop_ninety_r9:        0.69 / 2.83 / 5.37 / 1.54  (3.34 / 18.5 / 8.99 / 9.93)
+#   unseen_loop_r4 (at targets):  0.23 / 0.57 / 0.85 / 0.27  (0.62 / 1.14 / 0.92 / 2.51)
+# The bounds below hold those with margin, so that a regression fails; tighten
+# them to the targets as the loop improves.
+BOUNDS = {
+    "loop": (0.5, 2.0, 1.8, 1.0),
+    "unseen_loop_ninety_r9": (1.0, 4.0, 8.0, 2.5),
+}
 
 
 @pytest.fixture(scope="module")
