@@ -358,3 +358,24 @@ def test_consistent_drops_the_reading_the_solution_disagrees_with() -> None:
     # Without the outlier, sample 10 sits where its neighbours and the noise say.
     assert abs(again[10, 1]) < 0.3 < abs(step[10, 1])
     assert _consistent(kept, again) is kept
+
+
+def test_a_resumed_march_carries_on_from_the_given_curve_to_the_tip() -> None:
+    from pipeline.ordering import march_hull
+
+    curve = _helix()
+    points = voxelise(curve, RADIUS + 1.0)
+    known = cut_polyline(curve, 120.0)[::8]
+    march = march_hull(points, BASE, radius_mm=RADIUS, voxel_mm=VOXEL, resume_mm=known)
+    np.testing.assert_array_equal(march.points_mm[: len(known)], known)
+    added = march.points_mm[len(known) :]
+    s = polyline_arclength(curve)
+    # As from the base (see the tracking test): within a voxel of the axis short
+    # of the round end of the voxel set, and stopping within a radius (+ two
+    # voxels) of the tip; only forward (nothing added near the part known).
+    inside = polyline_arclength(march.points_mm)[len(known) :] < s[-1] - RADIUS
+    dist, _ = cKDTree(curve).query(added[inside])
+    assert inside.sum() > 10 and dist.max() < VOXEL
+    assert np.linalg.norm(march.points_mm[-1] - curve[-1]) < RADIUS + 2 * VOXEL
+    _, nearest = cKDTree(curve).query(added)
+    assert s[nearest].min() > 120.0 - 1.0
