@@ -113,13 +113,12 @@ def load_board(
             doc = tomllib.loads(path.read_text())
         except tomllib.TOMLDecodeError as exc:
             raise CalibrationError(f"{path}: TOML syntax error: {exc}") from None
-    kind = (
-        "charuco"
-        if charuco is not None
-        else "chessboard"
-        if board is not None
-        else doc.get("type", "chessboard")
-    )
+    if charuco is not None:
+        kind: object = "charuco"
+    elif board is not None:
+        kind = "chessboard"
+    else:
+        kind = doc.get("type", "chessboard")
     if kind == "charuco":
         return _load_charuco(calib_dir, path, doc, charuco, square_mm)
     if kind != "chessboard":
@@ -244,10 +243,12 @@ def detect_charuco(image: NDArray[np.uint8], board: Board) -> tuple[NDArray[np.i
         return None
     if cv_board.checkCharucoCornersCollinear(cv_ids):
         return None
-    big_px = _refine_saddles(big, np.asarray(corners, np.float64).reshape(-1, 2))
+    big_px, converged = _refine_saddles(big, np.asarray(corners, np.float64).reshape(-1, 2))
+    cv_ids = np.asarray(cv_ids).ravel()[converged]
+    if len(cv_ids) < MIN_CHARUCO_CORNERS or cv_board.checkCharucoCornersCollinear(cv_ids):
+        return None
     # cv2.resize maps source pixel centre x to k * x + (k - 1) / 2.
-    px = (big_px - (k - 1) / 2) / k
-    cv_ids = np.asarray(cv_ids).ravel()
+    px = (big_px[converged] - (k - 1) / 2) / k
     # OpenCV numbers corners row by row from the top of the printed image; ours
     # from the bottom (module docstring).
     ids = (board.rows - 1 - cv_ids // board.cols) * board.cols + cv_ids % board.cols
@@ -255,15 +256,17 @@ def detect_charuco(image: NDArray[np.uint8], board: Board) -> tuple[NDArray[np.i
     return ids[order].astype(np.intp), px[order]
 
 
-def _refine_saddles(image: NDArray[np.uint8], corners_px: FloatArray) -> FloatArray:
+def _refine_saddles(image: NDArray[np.uint8], corners_px: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Corners moved to the saddle point of a quadratic fitted to the blurred image around each.
 
     The detector's own refinement (cornerSubPix) is pulled by the markers that sit
     in the white squares: on exact 320x240 renders its corners are 0.078 px off on
-    average (up to 0.36 px); a quadratic fitted within 0.1 square of the corner,
-    where only the two squares' edges are seen, after a blur of 0.06 square, puts
-    them 0.017 px off (up to 0.044 px) (measured on a 3x up-sampled image). A
-    corner without a saddle in its window keeps the detector's position.
+    average (up to 0.36 px, and over 1 px on steep, close boards); a quadratic
+    fitted within 0.1 square of the corner, where only the two squares' edges are
+    seen, after a blur of 0.06 square, puts them 0.017 px off (up to 0.044 px)
+    (measured on a 3x up-sampled image). A wider window would reach the corners of
+    the markers, saddles too: a corner the detector put further off than the
+    window (steep, close boards) is reported as not converged rather than moved.
 
     Parameters
     ----------
@@ -272,32 +275,44 @@ def _refine_saddles(image: NDArray[np.uint8], corners_px: FloatArray) -> FloatAr
 
     Returns
     -------
-    (M, 2) float64 refined corners.
+    corners : (M, 2) float64 refined corners.
+    converged : (M,) bool, False where the last pass found no saddle in the window
+        or the saddle lies further than the window's radius from the detector's
+        corner (the corner is then unreliable).
     """
     gaps = np.linalg.norm(corners_px[:, None] - corners_px[None], axis=-1)
     np.fill_diagonal(gaps, np.inf)
     spacing = float(np.median(gaps.min(axis=1)))  # about one square, the shorter side when foreshortened
     r = max(2, round(SADDLE_RADIUS * spacing))
-    blurred = cv2.GaussianBlur(image.astype(np.float64), (0, 0), max(0.5, SADDLE_SIGMA * spacing))
+    blurred = np.asarray(
+        cv2.GaussianBlur(image.astype(np.float64), (0, 0), max(0.5, SADDLE_SIGMA * spacing)), np.float64
+    )
+    out, ok = corners_px.copy(), np.zeros(len(corners_px), bool)
+    for _ in range(SADDLE_PASSES):
+        out, ok = _saddle_pass(blurred, out, r)
+    return out, ok & (np.linalg.norm(out - corners_px, axis=1) <= r)
+
+
+def _saddle_pass(blurred: FloatArray, corners_px: FloatArray, r: int) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """One Newton step to the saddle of a quadratic fitted (Gaussian-weighted) in a (2r+1)^2 window."""
     dy, dx = (a.ravel() for a in np.mgrid[-r : r + 1, -r : r + 1].astype(np.float64))
     weight = np.exp(-(dx**2 + dy**2) / (2 * (r / 1.5) ** 2))
     design = np.column_stack([dx**2, dx * dy, dy**2, dx, dy, np.ones_like(dx)]) * weight[:, None]
     fit = np.linalg.pinv(design)  # the same window for every corner: one pseudo-inverse
-    out = corners_px.copy()
-    h, w = image.shape
-    for _ in range(SADDLE_PASSES):
-        for n, (x, y) in enumerate(out):
-            ix, iy = round(x), round(y)
-            if not (r <= ix < w - r and r <= iy < h - r):
-                continue
-            a, b, c, d, e, _ = fit @ (blurred[iy - r : iy + r + 1, ix - r : ix + r + 1].ravel() * weight)
-            hessian = np.array([[2 * a, b], [b, 2 * c]])
-            if np.linalg.det(hessian) >= 0:  # not a saddle: leave the corner where it is
-                continue
-            sx, sy = np.linalg.solve(hessian, [-d, -e])
-            if abs(sx) <= r and abs(sy) <= r:
-                out[n] = (ix + sx, iy + sy)
-    return out
+    out, ok = corners_px.copy(), np.zeros(len(corners_px), bool)
+    h, w = blurred.shape
+    for n, (x, y) in enumerate(corners_px):
+        ix, iy = round(x), round(y)
+        if not (r <= ix < w - r and r <= iy < h - r):
+            continue
+        a, b, c, d, e, _ = fit @ (blurred[iy - r : iy + r + 1, ix - r : ix + r + 1].ravel() * weight)
+        hessian = np.array([[2 * a, b], [b, 2 * c]])
+        if np.linalg.det(hessian) >= 0:  # an extremum, not a saddle
+            continue
+        sx, sy = np.linalg.solve(hessian, [-d, -e])
+        if abs(sx) <= r and abs(sy) <= r:
+            out[n], ok[n] = (ix + sx, iy + sy), True
+    return out, ok
 
 
 def detect_corners(image: NDArray[np.uint8], board: Board) -> FloatArray | None:

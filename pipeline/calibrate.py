@@ -162,17 +162,17 @@ def calibrate_views(views: list[View], board: Board, *, shared_intrinsics: bool 
     corners = _clean_corners(views, board, sizes, shared_intrinsics)
     intrinsics = _intrinsics(views, board, sizes, corners, shared_intrinsics)
 
-    keys = sorted({v.instant for v in views})
-    by = {(v.camera, v.instant): v for v in views}
-    detection = np.zeros((len(order), len(keys)), np.uint8)
+    frames = _joint_frames(views)
+    keys = [key for key, _ in frames]
+    frame_of = {(v.camera, v.key): fi for fi, (_, seen) in enumerate(frames) for v in seen.values()}
+    detection = np.zeros((len(order), len(frames)), np.uint8)
     image_points: list[list[NDArray[np.float32]]] = [[] for _ in order]
     obj_m = []
-    for fi, key in enumerate(keys):
-        seen = {name: by[(name, key)] for name in order if (name, key) in by}
+    for fi, (_, seen) in enumerate(frames):
         # The solver wants the same number of points in every frame: a frame's common
         # corners are repeated up to the board's count, which weights its corners up
         # (every frame then weighs the same) but adds no bias.
-        ids = np.resize(_common_ids(seen), board.n_corners)
+        ids = np.resize(_common_ids(list(seen.values())), board.n_corners)
         for ci, name in enumerate(order):
             pts = np.full((len(ids), 2), -1.0, np.float32)  # (-1, -1): camera did not see this pose
             view = seen.get(name)
@@ -225,21 +225,36 @@ def calibrate_views(views: list[View], board: Board, *, shared_intrinsics: bool 
                 translation_mm=R_i @ t_w + T_i,
             )
         )
-    errors = _image_errors(views, board, cameras, order, keys, rvecs0, tvecs0)
+    errors = _image_errors(views, board, cameras, order, frame_of, rvecs0, tvecs0)
     cameras.sort(key=lambda c: c.name)
     return CalibrationResult(cameras=cameras, image_errors=errors, board=board, rms_px=float(rms))
 
 
-def _common_ids(seen: dict[str, View]) -> NDArray[np.intp]:
-    """Corner ids seen by every camera in ``seen``, after dropping from ``seen`` the cameras
-    that leave fewer than MIN_COMMON_CORNERS in common (those that saw the least first)."""
-    while True:
-        ids = np.asarray(sorted(set.intersection(*(set(v.ids.tolist()) for v in seen.values()))), np.intp)
-        if len(ids) >= MIN_COMMON_CORNERS or len(seen) == 1:
-            return ids
-        weakest = min(seen, key=lambda name: len(seen[name].ids))
-        log.debug("%s: too few corners shared with the other cameras; not in the joint view", weakest)
-        del seen[weakest]
+def _common_ids(seen: list[View]) -> NDArray[np.intp]:
+    """(K,) increasing corner ids present in every view of ``seen``."""
+    return np.asarray(sorted(set.intersection(*(set(v.ids.tolist()) for v in seen))), np.intp)
+
+
+def _joint_frames(views: list[View]) -> list[tuple[str, dict[str, View]]]:
+    """The board poses of the joint refinement: (instant, the views of it per camera).
+
+    A shared instant whose cameras have fewer than MIN_COMMON_CORNERS corners in
+    common (partly seen ChArUco boards) loses the cameras that saw the fewest
+    corners until they do; each camera dropped keeps its view as a board pose of
+    its own, so it still counts for that camera alone.
+    """
+    by_instant: dict[str, dict[str, View]] = {}
+    for v in views:
+        by_instant.setdefault(v.instant, {})[v.camera] = v
+    frames = []
+    for key in sorted(by_instant):
+        seen = by_instant[key]
+        while len(seen) > 1 and len(_common_ids(list(seen.values()))) < MIN_COMMON_CORNERS:
+            weakest = min(seen, key=lambda name: len(seen[name].ids))
+            log.debug("%s %s: too few corners in common with the other cameras", weakest, key)
+            frames.append((f"{weakest}:{key}", {weakest: seen.pop(weakest)}))
+        frames.append((key, seen))
+    return frames
 
 
 def _check_connected(views: list[View], order: list[str]) -> None:
@@ -324,7 +339,7 @@ def _image_errors(
     board: Board,
     cameras: list[Camera],
     order: list[str],
-    keys: list[str],
+    frame_of: dict[tuple[str, str], int],
     rvecs0: list[NDArray[np.float64]],
     tvecs0: list[NDArray[np.float64]],
 ) -> list[ImageError]:
@@ -335,7 +350,7 @@ def _image_errors(
     errors = []
     for v in views:
         cam = cams[v.camera]
-        fi = keys.index(v.instant)
+        fi = frame_of[(v.camera, v.key)]
         r0, t0 = rvecs0[fi], tvecs0[fi]
         if r0 is None or np.asarray(r0).size != 3:
             continue
