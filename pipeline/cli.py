@@ -108,7 +108,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _board(text: str) -> tuple[int, int]:
     cols, sep, rows = text.lower().partition("x")
     if not sep or not cols.isdigit() or not rows.isdigit():
-        raise argparse.ArgumentTypeError(f"expected COLSxROWS inner corners (e.g. 9x6), got {text!r}")
+        raise argparse.ArgumentTypeError(
+            f"expected COLSxROWS (e.g. 9x6: inner corners for --board, squares for --charuco), got {text!r}"
+        )
     return int(cols), int(rows)
 
 
