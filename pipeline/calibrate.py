@@ -19,8 +19,9 @@ board).
 
 ChArUco views show subsets of the corners. Intrinsics use each view's own
 subset; the joint refinement uses, per board pose, only the corners seen by
-every camera that saw it, because calibrateMultiviewExtended gives wrong
-results with points marked unseen (-1, -1) inside a seen view.
+every camera that saw it (repeated up to the board's corner count, as the solver
+wants equal counts), because calibrateMultiviewExtended gives wrong results with
+points marked unseen (-1, -1) inside a seen view.
 """
 
 from __future__ import annotations
@@ -44,8 +45,8 @@ log = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
 
 MM_PER_M = 1000.0
-# A board pose whose cameras share fewer corners than this is given to the joint
-# refinement by fewer cameras (the ones sharing the most corners).
+# A camera whose view of a shared board pose leaves fewer corners than this in
+# common with the other cameras' views uses that view as a pose of its own.
 MIN_COMMON_CORNERS = 6
 # A corner is dropped when its residual is this many times the camera's median
 # residual and above CORNER_FLOOR_PX: the sector detector occasionally lands a
