@@ -44,10 +44,9 @@ FloatArray = NDArray[np.float64]
 KNOT_SPACING_MM = 20.0
 # A fitted tube whose worst view's misfit fraction (pipeline.quality) exceeds
 # this leaves part of a silhouette unexplained: other hypotheses are tried.
-# Measured on rendered sessions (radii 4-9 mm, both rigs): <= 1.7 % where the fit
-# follows the tube (the round drawn end against the flat one), 3-9 % where a
-# loop's march or fit went astray.
-MISFIT = 0.02
+# Measured on rendered sessions (radii 4-9 mm, both rigs): 0 on smooth shapes,
+# <= 0.8 % where a loop's fit follows the tube, 2.8-12 % where it went astray.
+MISFIT = 0.01
 # Times a fit that stops short is carried on (see _carry_on).
 _CARRY_ON_ROUNDS = 2
 # Dense evaluation factor used to invert arc length.

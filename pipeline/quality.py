@@ -96,16 +96,28 @@ def misfit_fraction(
 
     Pixels of either that lie more than a pixel away from the other (silhouette
     pixels the tube misses, tube pixels off the silhouette), as a fraction of the
-    silhouette's area. Unlike 1 - IoU it does not grow with the outline's length
-    in pixels, so it means the same at any resolution: a fit that follows the
-    tube leaves ~0-2 % (its round end against a flat one), one that misses a
-    part of the tube or strays off it, several %.
+    silhouette's area. The drawn tube's round ends are left out of the stray
+    pixels (the real ends may be flat: a disc there strays by up to half its
+    area, which is not a misfit). Unlike 1 - IoU this does not grow with the
+    outline's length in pixels, so it means the same at any resolution: a fit
+    that follows the tube leaves ~0-2 %, one that misses a part of the tube or
+    strays off it, several %.
     """
     area = np.count_nonzero(mask)
     if area == 0:
         return 0.0
-    tube = tube_mask(camera, centerline_mm, radius_mm)
+    pts = np.asarray(centerline_mm, dtype=np.float64)
+    tube = tube_mask(camera, pts, radius_mm)
     grow = np.ones((3, 3), np.uint8)
     missed = mask & ~cv2.dilate(tube.view(np.uint8), grow).view(bool)
     stray = tube & ~cv2.dilate(mask.view(np.uint8), grow).view(bool)
+    ends = np.zeros(mask.shape, np.uint8)
+    px = camera.project(pts[[0, -1]])
+    depth = camera.to_camera(pts[[0, -1]])[:, 2]
+    focal = float(np.mean(np.diag(camera.matrix)[:2]))
+    for (x, y), z in zip(px, depth, strict=True):
+        if np.isfinite([x, y]).all() and z > radius_mm and abs(x) < 1e5 and abs(y) < 1e5:
+            radius_px = focal * radius_mm / z + 1.5  # the disc, its outline and a pixel of rounding
+            cv2.circle(ends, (round(x * 16), round(y * 16)), round(radius_px * 16), 1, -1, cv2.LINE_8, 4)
+    stray &= ends == 0
     return (np.count_nonzero(missed) + np.count_nonzero(stray)) / area

@@ -65,6 +65,11 @@ def test_true_curve_reprojects_onto_rendered_silhouettes() -> None:
     # The same curve moved sideways by one radius is clearly worse.
     shifted = curve + np.array([6.0, 0.0, 0.0])
     assert max(reprojection_iou(cams, masks, shifted, 6.0)) < min(iou) - 0.2
+    # The rendered tube's ends are flat, the drawn one's round: the round ends
+    # are not counted as misfit, so the truth misfits by (almost) nothing (the
+    # centre-line gate is 1 %), the shifted curve by far more.
+    assert max(misfit_fraction(c, m, curve, 6.0) for c, m in zip(cams, masks, strict=True)) < 0.005
+    assert min(misfit_fraction(c, m, shifted, 6.0) for c, m in zip(cams, masks, strict=True)) > 0.05
 
 
 def test_misfit_is_zero_for_the_tube_itself_and_counts_what_a_short_curve_misses() -> None:
