@@ -20,11 +20,12 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy.interpolate import BSpline, make_lsq_spline
+from scipy.spatial import cKDTree
 
 from .camera import Camera
 from .ordering import March, march_hull
 from .polyline import cut_polyline, polyline_arclength, resample_polyline
-from .quality import misfit_fraction, reprojection_iou
+from .quality import misfit_fraction, reprojection_iou, tube_mask
 from .tube_fit import TubeFit, centre_across, fit_tube, trim_unexplained_tail
 
 __all__ = [
@@ -227,34 +228,72 @@ def _carry_on(
     voxel_mm: float,
     refine: Callable[[FloatArray, FloatArray], FloatArray | None],
 ) -> TubeFit:
-    """``best`` carried on past where its march stopped, while that explains more.
+    """``best`` marched on again towards the tube its silhouettes still show.
 
     A march can stop where the hull is fat (two parts of a loop merged in most
-    views) even though the fitted curve is on the tube up to there: if the
-    silhouettes still hold unexplained tube, march on from the fitted end, in
-    its direction, never back onto it, and fit again; keep the result if its
-    tube explains the silhouettes better and does not pass through itself.
+    views), or follow the wrong branch where the tip meets the stem, though the
+    fitted curve is on the tube up to there. The hull points that project onto
+    silhouette pixels the fitted tube leaves unexplained are where the rest of
+    the tube is: march again from the curve's sample nearest to them (in its
+    second half: the first is held by the base), towards them, never back onto
+    the curve before it, and fit again; keep the result if its tube explains
+    the silhouettes better and does not pass through itself.
     """
     score = silhouette_score(best, cameras, masks)
     for _ in range(_CARRY_ON_ROUNDS):
         if _misfit(best, cameras, masks) <= MISFIT:
             break
-        march = march_hull(
-            points_mm,
-            base_mm,
-            radius_mm=radius_mm,
-            voxel_mm=voxel_mm,
-            refine=refine,
-            resume_mm=best.points_mm,
-        )
-        if polyline_arclength(march.points_mm)[-1] < polyline_arclength(best.points_mm)[-1] + 2.0 * radius_mm:
+        lost = _unexplained_points(points_mm, best, cameras, masks)
+        # Fewer than half a radius of tube's worth of voxels is no tube.
+        if len(lost) < 0.5 * np.pi * radius_mm**3 / voxel_mm**3:
             break
-        longer = fit(march)
-        longer_score = silhouette_score(longer, cameras, masks)
-        if longer_score <= score or self_intersects(longer.points_mm, longer.radius_mm):
+        curve = best.points_mm
+        arc = polyline_arclength(curve)
+        tree = cKDTree(lost)
+        gap, nearest = tree.query(curve)
+        gap = np.where(arc < 0.5 * arc[-1], np.inf, gap)
+        j = int(np.argmin(gap))
+        near = lost[tree.query_ball_point(lost[np.asarray(nearest, dtype=np.intp)[j]], 3.0 * radius_mm)]
+        # From the end in its own direction, and from the sample nearest the
+        # unexplained tube towards it (the same when the curve stopped short).
+        starts = [(len(curve) - 1, None), (j, near.mean(axis=0) - curve[j])]
+        candidates = []
+        for k, heading in starts if j < len(curve) - 1 else starts[:1]:
+            march = march_hull(
+                points_mm,
+                base_mm,
+                radius_mm=radius_mm,
+                voxel_mm=voxel_mm,
+                refine=refine,
+                resume_mm=curve[: k + 1],
+                heading=heading,
+            )
+            if polyline_arclength(march.points_mm)[-1] >= arc[k] + 2.0 * radius_mm:
+                other = fit(march)
+                if not self_intersects(other.points_mm, other.radius_mm):
+                    candidates.append((silhouette_score(other, cameras, masks), other))
+        if not candidates or max(c[0] for c in candidates) <= score:
             break
-        best, score = longer, longer_score
+        score, best = max(candidates, key=lambda c: c[0])
     return best
+
+
+def _unexplained_points(
+    points_mm: FloatArray, fit: TubeFit, cameras: Sequence[Camera], masks: Sequence[NDArray[np.bool_]]
+) -> FloatArray:
+    """(U, 3) hull points that project, in some view, onto silhouette pixels more
+    than a pixel away from the fitted tube's re-projection."""
+    pts = np.asarray(points_mm, dtype=np.float64)
+    lost = np.zeros(len(pts), dtype=bool)
+    grow = np.ones((3, 3), np.uint8)
+    for cam, mask in zip(cameras, masks, strict=True):
+        tube = cv2.dilate(tube_mask(cam, fit.points_mm, fit.radius_mm).view(np.uint8), grow).view(bool)
+        free = mask & ~tube
+        px = np.round(cam.project(pts)).astype(np.int64)
+        h, w = mask.shape
+        ok = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+        lost[ok] |= free[px[ok, 1], px[ok, 0]]
+    return pts[lost]
 
 
 def _fit_march(

@@ -123,6 +123,7 @@ def march_hull(
     refine: Callable[[FloatArray, FloatArray], FloatArray | None] | None = None,
     coast: bool = False,
     resume_mm: FloatArray | None = None,
+    heading: FloatArray | None = None,
 ) -> March:
     """March through the hull from the base to the tip.
 
@@ -147,6 +148,8 @@ def march_hull(
         stopped short): the march carries on from its end, in its direction,
         and never comes back onto it; the usual cross-section is taken from the
         hull along it.
+    heading : (3,) the direction to resume in (default: ``resume_mm``'s own at
+        its end).
 
     Returns
     -------
@@ -166,7 +169,7 @@ def march_hull(
     known = base[None] if resume_mm is None else np.asarray(resume_mm, dtype=np.float64).reshape(-1, 3)
     counts: list[int] = []  # cross-section sizes of the last clear steps
     if len(known) > 1:
-        direction = _end_direction(known, step)
+        direction = _end_direction(known, step) if heading is None else _unit(heading)
         counts = _usual_sections(pts, tree, known, reach, half_slab)
     else:
         direction = _initial_direction(pts, tree, base, reach)
@@ -256,6 +259,11 @@ def _step(
     if centre is None or (centre - here) @ direction <= 0.25 * step:
         return None
     return centre, crowded, len(section)
+
+
+def _unit(v: FloatArray) -> FloatArray | None:
+    norm = float(np.linalg.norm(v))
+    return np.asarray(v, dtype=np.float64) / norm if norm > 1e-9 else None
 
 
 def _end_direction(known: FloatArray, step: float) -> FloatArray | None:
