@@ -51,6 +51,8 @@ _FIRST_CORE = 1.6
 # many robust standard deviations of all residuals, if larger) is an outlier.
 _OUTLIER_RADII = 0.25
 _OUTLIER_SPREAD = 4.0
+# Two-edge readings a view needs for its own half-width (see _read_sides).
+_OWN_WIDTH_READINGS = 5
 # A reading wider than this factor times the expected width (+1 px) is contaminated.
 _WIDTH_TOLERANCE = 1.3
 
@@ -227,8 +229,10 @@ class _Sides:
 
     ``left``/``right`` are the silhouette's edges along the image normal (negative
     and positive side), converted to mm at the sample; ``use`` (K, C, 2) says which
-    edges are trusted. ``rows`` (K, C, 3) maps a 3-D motion of the sample (mm) to
-    the motion of its projection along the normal (mm).
+    edges are trusted; ``apparent`` (1, C) is each view's own reading of the
+    half-width, which a single trusted edge is moved in by. ``rows`` (K, C, 3)
+    maps a 3-D motion of the sample (mm) to the motion of its projection along
+    the normal (mm).
     """
 
     rows: FloatArray
@@ -236,6 +240,7 @@ class _Sides:
     right: FloatArray
     use: NDArray[np.bool_]
     radius_mm: float
+    apparent: FloatArray
 
     @property
     def readings(self) -> int:
@@ -244,12 +249,12 @@ class _Sides:
     def centres(self) -> tuple[FloatArray, FloatArray]:
         """Where each view puts the axis along its normal (mm), and the reading's weight:
         the mid-point of two trusted edges (weight 1), or one trusted edge moved in by
-        the radius (weight 1/2: it also carries the radius' error)."""
+        the view's apparent half-width (weight 1/2: it also carries that one's error)."""
         both = self.use[..., 0] & self.use[..., 1]
         centre = np.where(
             both,
             0.5 * (self.left + self.right),
-            np.where(self.use[..., 0], self.left + self.radius_mm, self.right - self.radius_mm),
+            np.where(self.use[..., 0], self.left + self.apparent, self.right - self.apparent),
         )
         weight = np.where(both, 1.0, np.where(self.use.any(axis=-1), 0.5, 0.0))
         return centre, weight
@@ -385,7 +390,16 @@ def _read_sides(
     both = use[..., 0] & use[..., 1] & interior[:, None]
     half = 0.5 * (right - left)[both]
     radius = float(np.median(half)) if half.size >= 3 else radius_mm
-    return _Sides(rows, left, right, use, radius)
+    # One edge places the axis a half-width in from it: the half-width as this
+    # view reads it (its blur and grey levels bias both edges alike, by up to
+    # half a pixel, which the mid-point of two edges cancels and one edge does
+    # not), where it has enough two-edge readings to say.
+    apparent = np.full(c, radius)
+    for j in range(c):
+        own = 0.5 * (right[:, j] - left[:, j])[both[:, j]]
+        if own.size >= _OWN_WIDTH_READINGS:
+            apparent[j] = float(np.median(own))
+    return _Sides(rows, left, right, use, radius, apparent[None, :])
 
 
 def centre_across(
@@ -482,7 +496,7 @@ def _consistent(obs: _Sides, step: FloatArray) -> _Sides:
     if not bad.any():
         return obs
     use = obs.use & ~bad[..., None]
-    return _Sides(obs.rows, obs.left, obs.right, use, obs.radius_mm)
+    return _Sides(obs.rows, obs.left, obs.right, use, obs.radius_mm, obs.apparent)
 
 
 def _second_difference_gram(k: int) -> FloatArray:

@@ -348,7 +348,14 @@ def test_consistent_drops_the_reading_the_solution_disagrees_with() -> None:
     offset = rng.normal(0.0, 0.05, (k, 2))  # edge noise, mm
     offset[10, 0] = 4.0  # another part of the tube in view 0 at sample 10
     radius = 6.0
-    sides = _Sides(rows, offset - radius, offset + radius, np.ones((k, 2, 2), dtype=bool), radius)
+    sides = _Sides(
+        rows,
+        offset - radius,
+        offset + radius,
+        np.ones((k, 2, 2), dtype=bool),
+        radius,
+        np.full((1, 2), radius),
+    )
     step = _solve_corrections(pts, sides, base_fixed=False, smoothness=0.5)
     kept = _consistent(sides, step)
     assert not kept.use[10, 0].any()
