@@ -9,6 +9,15 @@ Three steps, each its own module:
    tube, off-centre where the views are uneven, and overshoots the tip);
 3. :func:`smooth_curve` (here) turns the fitted samples into a cubic spline,
    resampled uniformly in arc length, with unit tangents and curvature.
+
+Where the hull is ambiguous (a loop whose tip crosses its stem in the views)
+the march may choose wrong. A fitted tube that leaves part of a silhouette
+unexplained (:func:`pipeline.quality.misfit_fraction`) is therefore not taken
+as it is: other hypotheses are fitted (the march coasting on its own course
+through the crowded hull; the fit without its outlier rejection; the march
+resumed from the fitted end, or from where the unexplained tube leaves the
+curve), those that pass through themselves are dropped, and the one whose tube
+re-projects best onto the silhouettes (IoU) wins. Each frame stands alone.
 """
 
 from __future__ import annotations
@@ -34,6 +43,8 @@ __all__ = [
     "polyline_arclength",
     "radius_from_silhouettes",
     "resample_polyline",
+    "self_intersects",
+    "silhouette_score",
     "smooth_curve",
 ]
 

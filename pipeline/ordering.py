@@ -8,7 +8,9 @@ cross-section just ahead, found by a mean shift restricted to a thin slab across
 the current direction and started on the straight-ahead prediction. A bridge
 leaving the tube sideways pulls that centroid by at most a fraction of the
 radius, and the march keeps its heading through the crossing (the continuation
-with the smallest turn wins).
+with the smallest turn wins). Where the cross-section swells (crowded), the
+march reports it, so that the caller can try the other hypotheses: coasting on
+the curve's own course through the crowd, or resuming from a known curve.
 """
 
 from __future__ import annotations

@@ -14,7 +14,10 @@ uneven, and overshoots its end. The fit corrects all three from the grey images
 - Contamination. Where another part of the tube lies across or beside a sample in
   one view (the curve's projection passes near itself: loops, crossings), that
   camera's reading there is dropped; so is a reading whose width is not the
-  tube's. The other views, and the smoothness, carry the sample.
+  tube's (wider: another part beside it; narrower: another part's outline over
+  it). After each solve, the readings the solution disagrees with (another part
+  the curve does not know of) are dropped and the problem solved again. The
+  other views, and the smoothness, carry the sample.
 - The tip: after each round the curve is extended or trimmed to where the views
   see the tube end (:mod:`pipeline.tube_tip`).
 - The radius is the median half-width of the clean readings, in mm.

@@ -3,9 +3,12 @@
 The end is sought along the curve's own continuation (a parabola in arc length
 fitted to the measured part just before the end), each view reads where its grey
 image leaves the tube along that line, and the end cap's own extent in that view
-is taken off. Views seeing the end nearly head-on are weighted down, and a view
+is taken off. Views seeing the end nearly head-on are weighted down. A view
 where the end line crosses another part of the tube (a loop's tip coming back to
-its stem) is skipped.
+its stem) gives no edge reading; given the silhouettes, it is read from pixels
+instead: where discs along the end line stop adding more silhouette pixels that
+the rest of the curve leaves unexplained than background pixels. The end never
+moves past where the hull ends.
 """
 
 from __future__ import annotations
