@@ -61,6 +61,8 @@ KNOT_SPACING_MM = 20.0
 MISFIT = 0.01
 # Times a fit that stops short is carried on (see _carry_on).
 _CARRY_ON_ROUNDS = 2
+# How far back (in radii) a carried-on march may restart, coasting (see _carry_on).
+_COAST_BACK_RADII = 8.0
 # Dense evaluation factor used to invert arc length.
 _DENSE = 16
 
@@ -247,8 +249,9 @@ def _carry_on(
     silhouette pixels the fitted tube leaves unexplained are where the rest of
     the tube is: march again from the curve's sample nearest to them (in its
     second half: the first is held by the base), towards them, never back onto
-    the curve before it, and fit again; keep the result if its tube explains
-    the silhouettes better and does not pass through itself.
+    the curve before it, and fit again (also from the end, and coasting from a
+    few diameters back); keep the result whose tube explains the silhouettes
+    best if it does so better than ``best`` and does not pass through itself.
     """
     score = silhouette_score(best, cameras, masks)
     for _ in range(_CARRY_ON_ROUNDS):
@@ -265,11 +268,18 @@ def _carry_on(
         gap = np.where(arc < 0.5 * arc[-1], np.inf, gap)
         j = int(np.argmin(gap))
         near = lost[tree.query_ball_point(lost[np.asarray(nearest, dtype=np.intp)[j]], 3.0 * radius_mm)]
-        # From the end in its own direction, and from the sample nearest the
-        # unexplained tube towards it (the same when the curve stopped short).
-        starts = [(len(curve) - 1, None), (j, near.mean(axis=0) - curve[j])]
+        # From the end in its own direction; from the sample nearest the
+        # unexplained tube, towards it (the same when the curve stopped short);
+        # and from a few diameters back, coasting on the curve's own course
+        # through the crowd (a tip pulled onto the stem it runs along).
+        starts = [(len(curve) - 1, None, False)]
+        if j < len(curve) - 1:
+            starts.append((j, near.mean(axis=0) - curve[j], False))
+        back = int(np.searchsorted(arc, arc[-1] - _COAST_BACK_RADII * radius_mm))
+        if back > len(curve) // 2:
+            starts.append((back, None, True))
         candidates = []
-        for k, heading in starts if j < len(curve) - 1 else starts[:1]:
+        for k, heading, coast in starts:
             march = march_hull(
                 points_mm,
                 base_mm,
@@ -278,6 +288,7 @@ def _carry_on(
                 refine=refine,
                 resume_mm=curve[: k + 1],
                 heading=heading,
+                coast=coast,
             )
             if polyline_arclength(march.points_mm)[-1] >= arc[k] + 2.0 * radius_mm:
                 other = fit(march)

@@ -183,6 +183,11 @@ def march_hull(
     crowded_at = np.zeros(len(track), dtype=bool)
     turn: FloatArray | None = None  # the change of heading per step, recently
     turns: list[FloatArray] = []
+    if coast and len(known) > 1 and direction is not None:
+        # Coasting on from a known curve: its own turn per step at its end.
+        before = _end_direction(known[: _index_back(known, step) + 1], step)
+        if before is not None:
+            turn = direction - before
     n = len(known)
     # Revisiting means the march turned into a part of the tube already walked
     # (a tip touching the body): the axes of two touching parts are 2 r apart.
@@ -266,6 +271,12 @@ def _step(
 def _unit(v: FloatArray) -> FloatArray | None:
     norm = float(np.linalg.norm(v))
     return np.asarray(v, dtype=np.float64) / norm if norm > 1e-9 else None
+
+
+def _index_back(known: FloatArray, step: float) -> int:
+    """Index of the last point of an (R, 3) polyline at least ``step`` (mm) from its end."""
+    back = np.nonzero(np.linalg.norm(known[-1] - known, axis=1) >= step)[0]
+    return int(back[-1]) if len(back) else 0
 
 
 def _end_direction(known: FloatArray, step: float) -> FloatArray | None:

@@ -270,6 +270,12 @@ def test_coasting_march_keeps_its_course_through_a_false_bridge() -> None:
     dist, _ = cKDTree(curve).query(march.points_mm[march.crowded])
     assert dist.max() < VOXEL
     assert polyline_arclength(march.points_mm)[-1] > 160.0  # on to the tip
+    # Resumed from a known curve just before the bridge, coasting starts at
+    # once with that curve's own turn per step.
+    known = cut_polyline(curve, 80.0)[::8]
+    resumed = march_hull(points, BASE, radius_mm=RADIUS, voxel_mm=VOXEL, coast=True, resume_mm=known)
+    dist, _ = cKDTree(curve).query(resumed.points_mm[resumed.crowded])
+    assert resumed.crowded.any() and dist.max() < VOXEL
 
 
 def test_silhouette_score_prefers_the_whole_tube(rendered_arc: tuple) -> None:
