@@ -38,13 +38,24 @@ def test_noise_and_jitter_drop_on_slow_motion() -> None:
 
     raw_err = np.linalg.norm(noisy - truth, axis=-1).mean()
     smooth_err = np.linalg.norm(smoothed - truth, axis=-1).mean()
-    # The filter keeps 0.69 of white noise's RMS inside the sequence (the first and
-    # last frames keep more, up to all of it): 0.85 leaves room for the edges.
+    # Measured 0.45 of the raw error; 0.85 leaves room for other noise draws.
     assert smooth_err < 0.85 * raw_err
     raw_jitter = tip_jitter(noisy[:, -1])
     smooth_jitter = tip_jitter(smoothed[:, -1])
-    # The filter passes 0.31 of white noise's second difference; 0.5 allows for the edges.
+    # The stiff spline cross-validation picks here removes nearly all of the noise's
+    # second difference; 0.5 is a loose bound.
     assert smooth_jitter < 0.5 * raw_jitter
+
+
+def test_slow_noisy_motion_gets_the_jitter_of_the_truth() -> None:
+    # Issue 4: tip jitter within 1.5x the truth's. A 10 s bending cycle (the demo's
+    # pace) seen with 0.3 mm of per-frame noise, as the reconstruction's tip has.
+    t = times(600)
+    truth = bending_arcs(1.0 * np.sin(2 * np.pi * 0.1 * t))
+    noisy = truth + np.random.default_rng(5).normal(0.0, 0.3, truth.shape)
+    smoothed = smooth_centerlines(noisy, t)
+    assert tip_jitter(noisy[:, -1]) > 10 * tip_jitter(truth[:, -1])  # the noise dominates
+    assert tip_jitter(smoothed[:, -1]) < 1.5 * tip_jitter(truth[:, -1])
 
 
 def rotating_arcs(plane_rad: NDArray[np.float64], *, bend_rad: float = 1.0) -> NDArray[np.float64]:
@@ -83,8 +94,9 @@ def test_polynomial_motion_is_kept_exactly_with_uneven_timestamps() -> None:
     coeffs = rng.normal(0.0, 5.0, (7, 8, 3))
     curves = sum(c[None] * (t[:, None, None] - t.mean()) ** k for k, c in enumerate(coeffs))
     smoothed = smooth_centerlines(curves, t)
-    # Only rounding error of a 9x5 least-squares solve on values of ~10 mm.
-    np.testing.assert_allclose(smoothed, curves, atol=1e-8)
+    # Noise-free: cross-validation picks the most supple spline (weight 1e-6 in frame
+    # steps), which misses a degree-6 motion of ~10 mm by ~1e-7 mm.
+    np.testing.assert_allclose(smoothed, curves, atol=1e-5)
 
 
 def test_failed_frames_stay_nan_and_do_not_poison_neighbours() -> None:
