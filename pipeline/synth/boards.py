@@ -43,7 +43,7 @@ import tomli_w
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from .rig import WORKSPACE_CENTER_MM, SynthCamera, make_rig
+from .rig import WORKSPACE_CENTER_MM, SynthCamera, calibration_document, make_rig
 
 log = logging.getLogger(__name__)
 
@@ -161,24 +161,9 @@ def render_calibration_views(
         cv2.imwrite(str(path), image)
 
     (out_dir / "board.toml").write_text(tomli_w.dumps({**board_doc, "square_mm": float(square_mm)}))
-    _write_truth(out_dir / "truth_calibration.toml", cams, arrangement)
+    truth = calibration_document(cams, metadata={"source": "synth-calib", "arrangement": arrangement})
+    (out_dir / "truth_calibration.toml").write_text(tomli_w.dumps(truth))
     log.info("wrote %d calibration images to %s", len(jobs), out_dir)
-
-
-def _write_truth(path: Path, cams: list[SynthCamera], arrangement: str) -> None:
-    doc: dict[str, object] = {}
-    for i, cam in enumerate(cams):
-        rvec, _ = cv2.Rodrigues(cam.R)
-        doc[f"cam_{i}"] = {
-            "name": cam.name,
-            "size": [cam.width, cam.height],
-            "matrix": cam.K.tolist(),
-            "distortions": cam.dist.tolist(),
-            "rotation": np.asarray(rvec, dtype=float).ravel().tolist(),
-            "translation": cam.t.tolist(),
-        }
-    doc["metadata"] = {"source": "synth-calib", "arrangement": arrangement}
-    path.write_text(tomli_w.dumps(doc))
 
 
 def _camera_rays(cam: SynthCamera) -> FloatArray:

@@ -9,7 +9,9 @@ against, so it keeps its own description of a camera.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -72,3 +74,20 @@ def make_rig(arrangement: str = "oblique") -> list[SynthCamera]:
         dist = np.array([-0.08 - 0.02 * i, 0.03, 0.0005 * (i - 1), -0.0004, 0.0])
         cams.append(SynthCamera(f"cam{i}", w, h, K, dist, R, -R @ center))
     return cams
+
+
+def calibration_document(cameras: list[SynthCamera], *, metadata: dict[str, Any]) -> dict[str, Any]:
+    """calibration.toml (aniposelib layout) of the true ``cameras``, with ``metadata``."""
+    doc: dict[str, Any] = {}
+    for i, cam in enumerate(cameras):
+        rvec, _ = cv2.Rodrigues(cam.R)
+        doc[f"cam_{i}"] = {
+            "name": cam.name,
+            "size": [cam.width, cam.height],
+            "matrix": cam.K.tolist(),
+            "distortions": cam.dist.tolist(),
+            "rotation": np.asarray(rvec, dtype=float).ravel().tolist(),
+            "translation": cam.t.tolist(),
+        }
+    doc["metadata"] = metadata
+    return doc

@@ -24,7 +24,7 @@ from ..errors import PipelineError
 from ..synth_names import SHAPES
 from .images import background_texture, render_frame, threshold_for
 from .raycast import project_points
-from .rig import ARRANGEMENTS, SynthCamera, make_rig
+from .rig import ARRANGEMENTS, SynthCamera, calibration_document, make_rig
 from .shapes import shape_centerlines
 
 log = logging.getLogger(__name__)
@@ -102,23 +102,6 @@ def check_poses(centerlines_mm: NDArray[np.float64], radius_mm: float, cameras: 
             raise PipelineError(
                 f"synthetic frame {int(np.argmax(off))}: the tube leaves the image of camera {cam.name}"
             )
-
-
-def calibration_document(cameras: list[SynthCamera], *, arrangement: str) -> dict[str, Any]:
-    """calibration.toml (aniposelib layout) of the true cameras."""
-    doc: dict[str, Any] = {}
-    for i, cam in enumerate(cameras):
-        rvec, _ = cv2.Rodrigues(cam.R)
-        doc[f"cam_{i}"] = {
-            "name": cam.name,
-            "size": [cam.width, cam.height],
-            "matrix": cam.K.tolist(),
-            "distortions": cam.dist.tolist(),
-            "rotation": rvec.ravel().tolist(),
-            "translation": cam.t.tolist(),
-        }
-    doc["metadata"] = {"source": "pipeline synth (true cameras)", "arrangement": arrangement}
-    return doc
 
 
 def session_document(*, polarity: str, radius_mm: float) -> dict[str, Any]:
@@ -233,7 +216,11 @@ def render_session(
     except OSError as exc:
         raise PipelineError(f"{out_dir}: cannot create the session directory: {exc.strerror}") from None
     (out_dir / "calibration.toml").write_bytes(
-        tomli_w.dumps(calibration_document(cameras, arrangement=arrangement)).encode()
+        tomli_w.dumps(
+            calibration_document(
+                cameras, metadata={"source": "pipeline synth (true cameras)", "arrangement": arrangement}
+            )
+        ).encode()
     )
     (out_dir / "session.toml").write_bytes(
         tomli_w.dumps(session_document(polarity=polarity, radius_mm=radius_mm)).encode()
