@@ -9,6 +9,7 @@ millimetres in the world frame of calibration.toml.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -46,11 +47,15 @@ class Camera:
     def height(self) -> int:
         return self.size_px[1]
 
-    @property
+    @cached_property
     def camera_from_world(self) -> FloatArray:
-        """(3, 3) rotation matrix R with x_cam = R @ X_world + t."""
-        rot, _ = cv2.Rodrigues(np.asarray(self.rotation, dtype=np.float64))
-        return np.asarray(rot, dtype=np.float64)
+        """(3, 3) rotation matrix R with x_cam = R @ X_world + t (read-only).
+
+        Computed once per camera: it is used on every projection of every frame.
+        """
+        rot = np.asarray(cv2.Rodrigues(np.asarray(self.rotation, dtype=np.float64))[0], dtype=np.float64)
+        rot.flags.writeable = False
+        return rot
 
     @property
     def center_mm(self) -> FloatArray:

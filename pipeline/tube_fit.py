@@ -272,17 +272,18 @@ class _Sides:
 
 @dataclass(frozen=True, eq=False)
 class _CameraEdges:
-    """One camera's side readings at K points; lengths in mm at each point."""
+    """Side readings at K points in C cameras; (C, K) arrays unless noted, lengths in mm
+    at each point."""
 
-    px: FloatArray  # (K, 2) projected points
-    t_hat: FloatArray  # (K, 2) unit image tangents
-    r_px: FloatArray  # (K,) the radius' image size
-    rows: FloatArray  # (K, 3) d(motion along the normal, mm) / d(point, mm)
-    lo: FloatArray  # (K,) negative-side edge, mm along the normal
-    hi: FloatArray  # (K,) positive-side edge
-    ok: NDArray[np.bool_]  # (K,) both edges found in a usable view
-    limit: FloatArray  # (K,) farthest an edge may sit from the axis, mm
-    floor: FloatArray  # (K,) least half-width of a reading of the tube alone, mm
+    px: FloatArray  # (C, K, 2) projected points
+    t_hat: FloatArray  # (C, K, 2) unit image tangents
+    r_px: FloatArray  # the radius' image size
+    rows: FloatArray  # (C, K, 3) d(motion along the normal, mm) / d(point, mm)
+    lo: FloatArray  # negative-side edge, mm along the normal
+    hi: FloatArray  # positive-side edge
+    ok: NDArray[np.bool_]  # both edges found in a usable view
+    limit: FloatArray  # farthest an edge may sit from the axis, mm
+    floor: FloatArray  # least half-width of a reading of the tube alone, mm
 
 
 def _camera_edges(
@@ -293,66 +294,42 @@ def _camera_edges(
     radius_mm: float,
     *,
     core: float = 0.6,
-) -> list[_CameraEdges]:
+) -> _CameraEdges:
     """Read the silhouette's two edges across the tube at each point, in each view.
 
-    The profiles of all views share one set of offsets, so that the edge search
-    runs once over all of them (it is a dozen numpy calls: per call, not per
-    element, is what costs).
+    All views are handled as one (C, K) batch and share one set of profile
+    offsets, so that the edge search runs once over all of them (it is a dozen
+    numpy calls: per call, not per element, is what costs).
     """
-    geometry = []
-    for cam in cameras:
-        px, jac = project_with_jacobian(cam, pts)
-        ok = np.isfinite(px).all(axis=1)
-        t_img = np.einsum("kij,kj->ki", jac, tangents)
-        t_len = np.linalg.norm(t_img, axis=1)
-        t_hat = t_img / np.maximum(t_len, 1e-12)[:, None]
-        normal = np.column_stack([-t_hat[:, 1], t_hat[:, 0]])
-        row = np.einsum("ki,kij->kj", normal, jac)  # px per mm of motion, along the normal
-        scale = np.linalg.norm(row, axis=1)  # px per mm across the tube
-        ok &= (scale > 0) & (t_len > MIN_SIN_VIEW * scale)
-        geometry.append((px, t_hat, normal, row, scale, ok))
-    k = len(pts)
-    scales = np.concatenate([g[4] for g in geometry])
-    usable = np.concatenate([g[5] for g in geometry])
-    r_px = radius_mm * scales
-    lo = np.zeros(len(scales))
-    hi = np.zeros(len(scales))
-    found = np.zeros(len(scales), dtype=bool)
-    if usable.any():
-        reach = float(np.max(2.5 * r_px[usable] + 3.0))
+    projected = [project_with_jacobian(cam, pts) for cam in cameras]
+    px = np.stack([p for p, _ in projected])  # (C, K, 2)
+    jac = np.stack([j for _, j in projected])  # (C, K, 2, 3)
+    ok = np.isfinite(px).all(axis=-1)
+    t_img = np.einsum("ckij,kj->cki", jac, tangents)
+    t_len = np.linalg.norm(t_img, axis=-1)
+    t_hat = t_img / np.maximum(t_len, 1e-12)[..., None]
+    normal = np.stack([-t_hat[..., 1], t_hat[..., 0]], axis=-1)
+    row = np.einsum("cki,ckij->ckj", normal, jac)  # px per mm of motion, along the normal
+    scale = np.linalg.norm(row, axis=-1)  # px per mm across the tube
+    ok &= (scale > 0) & (t_len > MIN_SIN_VIEW * scale)
+    r_px = radius_mm * scale
+    lo = np.zeros(scale.shape)
+    hi = np.zeros(scale.shape)
+    found = np.zeros(scale.shape, dtype=bool)
+    if ok.any():
+        reach = float(np.max(2.5 * r_px[ok] + 3.0))
         steps = np.arange(-reach, reach + 1e-9, _PROFILE_STEP_PX)
-        profiles = np.concatenate(
-            [
-                sample_image(
-                    contrast, np.nan_to_num(px[:, None, :] + steps[None, :, None] * normal[:, None, :])
-                )
-                for contrast, (px, _, normal, _, _, _) in zip(contrasts, geometry, strict=True)
-            ]
-        )
-        lo, hi, found = side_edges(profiles, steps, r_px, core=core)
-    out = []
-    for j, (px, t_hat, _, row, scale, ok) in enumerate(geometry):
-        part = slice(j * k, (j + 1) * k)
-        safe = np.where(scale > 0, scale, 1.0)
-        # An edge may sit no farther from the axis than the radius allows (by 30 %,
-        # +0.5 px of edge blur).
-        limit = (_WIDTH_TOLERANCE * r_px[part] + 0.5) / safe
-        floor = np.maximum(r_px[part] / _WIDTH_TOLERANCE - 0.5, 0.0) / safe
-        out.append(
-            _CameraEdges(
-                px,
-                t_hat,
-                r_px[part],
-                row / safe[:, None],
-                lo[part] / safe,
-                hi[part] / safe,
-                ok & found[part],
-                limit,
-                floor,
-            )
-        )
-    return out
+        xy = np.nan_to_num(px[:, :, None, :] + steps[None, None, :, None] * normal[:, :, None, :])
+        profiles = np.concatenate([sample_image(contrast, xy[j]) for j, contrast in enumerate(contrasts)])
+        lo, hi, found = (a.reshape(scale.shape) for a in side_edges(profiles, steps, r_px.ravel(), core=core))
+    safe = np.where(scale > 0, scale, 1.0)
+    # An edge may sit no farther from the axis than the radius allows (by 30 %,
+    # +0.5 px of edge blur).
+    limit = (_WIDTH_TOLERANCE * r_px + 0.5) / safe
+    floor = np.maximum(r_px / _WIDTH_TOLERANCE - 0.5, 0.0) / safe
+    return _CameraEdges(
+        px, t_hat, r_px, row / safe[..., None], lo / safe, hi / safe, ok & found, limit, floor
+    )
 
 
 def _read_sides(
@@ -364,32 +341,29 @@ def _read_sides(
     *,
     core: float = 0.6,
 ) -> _Sides:
-    k, c = len(pts), len(cameras)
+    c = len(cameras)
     tangents = _tangents(pts)
     arc = polyline_arclength(pts)
-    rows = np.zeros((k, c, 3))
-    left = np.zeros((k, c))
-    right = np.zeros((k, c))
-    use = np.zeros((k, c, 2), dtype=bool)
     # Samples within a radius of either end see the cap, not the sides: no radius
     # from them; and no reading at all in the tip zone, whose tangent (so its
     # profile's direction) is the least certain: see refit_tip.
     interior = (arc > radius_mm) & (arc < arc[-1] - radius_mm)
     sides_seen = arc < arc[-1] - tip_zone(radius_mm)
-    for j, e in enumerate(_camera_edges(pts, tangents, cameras, contrasts, radius_mm, core=core)):
-        ok = e.ok & sides_seen
-        crowd = _crowded(e.px, e.t_hat, e.r_px, arc, 2.5 * radius_mm + spacing_mm)
-        # A trusted edge is uncrowded on its side and within the limit of the axis
-        # (the axis being where the other edge says, if that one is further out).
-        use[:, j, 0] = ok & ~crowd[:, 0] & (-e.lo < e.limit + np.maximum(0.0, e.hi))
-        use[:, j, 1] = ok & ~crowd[:, 1] & (e.hi < e.limit + np.maximum(0.0, -e.lo))
-        # A reading narrower than the tube (by the same tolerance) found an edge
-        # inside the silhouette: the outline of another part lying over this one.
-        narrow = e.hi - e.lo < 2.0 * e.floor
-        use[ok & narrow, j] = False
-        both = use[:, j, 0] & use[:, j, 1]
-        use[both & (e.hi - e.lo > 2.0 * e.limit), j] = False
-        rows[:, j], left[:, j], right[:, j] = e.rows, e.lo, e.hi
+    e = _camera_edges(pts, tangents, cameras, contrasts, radius_mm, core=core)
+    ok = e.ok & sides_seen  # (C, K)
+    crowd = _crowded(e.px, e.t_hat, e.r_px, arc, 2.5 * radius_mm + spacing_mm)
+    # A trusted edge is uncrowded on its side and within the limit of the axis
+    # (the axis being where the other edge says, if that one is further out).
+    use_lo = ok & ~crowd[..., 0] & (-e.lo < e.limit + np.maximum(0.0, e.hi))
+    use_hi = ok & ~crowd[..., 1] & (e.hi < e.limit + np.maximum(0.0, -e.lo))
+    # A reading narrower than the tube (by the same tolerance) found an edge
+    # inside the silhouette: the outline of another part lying over this one.
+    keep = ~(ok & (e.hi - e.lo < 2.0 * e.floor))
+    use_lo &= keep
+    use_hi &= keep
+    keep = ~(use_lo & use_hi & (e.hi - e.lo > 2.0 * e.limit))
+    use = np.stack([use_lo & keep, use_hi & keep], axis=-1).transpose(1, 0, 2)  # (K, C, 2)
+    rows, left, right = e.rows.transpose(1, 0, 2), e.lo.T, e.hi.T
     both = use[..., 0] & use[..., 1] & interior[:, None]
     half = 0.5 * (right - left)[both]
     radius = float(np.median(half)) if half.size >= 3 else radius_mm
@@ -430,17 +404,18 @@ def centre_across(
     p = np.asarray(point_mm, dtype=np.float64)[None]
     d = np.asarray(direction, dtype=np.float64)[None]
     a_rows, b_vals = [], []
-    for e in _camera_edges(p, d, cameras, contrasts, radius_mm):
-        width = float(e.hi[0] - e.lo[0])
-        offset = 0.5 * float(e.lo[0] + e.hi[0])
+    e = _camera_edges(p, d, cameras, contrasts, radius_mm)
+    for j in range(len(cameras)):
+        width = float(e.hi[j, 0] - e.lo[j, 0])
+        offset = 0.5 * float(e.lo[j, 0] + e.hi[j, 0])
         # The point is meant to be near the axis already: a reading that puts the
         # axis more than a radius away is of some other part of the tube.
         if (
-            e.ok[0]
-            and 2.0 * radius_mm / _WIDTH_TOLERANCE < width < 2.0 * e.limit[0]
+            e.ok[j, 0]
+            and 2.0 * radius_mm / _WIDTH_TOLERANCE < width < 2.0 * e.limit[j, 0]
             and abs(offset) < radius_mm
         ):
-            a_rows.append(e.rows[0])
+            a_rows.append(e.rows[j, 0])
             b_vals.append(offset)
     if not a_rows:
         return None
@@ -458,25 +433,26 @@ def centre_across(
 def _crowded(
     px: FloatArray, t_hat: FloatArray, r_px: FloatArray, arc: FloatArray, apart_mm: float
 ) -> NDArray[np.bool_]:
-    """(K, 2) whether another part of the tube (more than ``apart_mm`` away along the
-    curve) touches sample k's silhouette on its negative / positive side in this view.
+    """(C, K, 2) whether another part of the tube (more than ``apart_mm`` away along
+    the curve) touches sample k's silhouette on its negative / positive side in view c.
 
-    Another part at image offset ``delta`` from sample k lies on k's profile line
-    when |delta . t_hat_k| is within its own radius (+1.5 px: samples are ~2 px
-    apart along it), and touches k's silhouette on one side when delta . n_k is
-    within the two radii (+2 px) on that side; a part over k's axis (within 1 px)
-    spoils both sides. Parts farther along the profile only affect the background
-    level, which the lower quartile ignores.
+    ``px``, ``t_hat`` (C, K, 2) and ``r_px`` (C, K) per view; ``arc`` (K,) mm. Another
+    part at image offset ``delta`` from sample k lies on k's profile line when
+    |delta . t_hat_k| is within its own radius (+1.5 px: samples are ~2 px apart
+    along it), and touches k's silhouette on one side when delta . n_k is within
+    the two radii (+2 px) on that side; a part over k's axis (within 1 px) spoils
+    both sides. Parts farther along the profile only affect the background level,
+    which the lower quartile ignores.
     """
-    delta = px[None, :, :] - px[:, None, :]  # (K, K', 2): from sample k to sample k'
-    along = np.abs(np.einsum("kmi,ki->km", delta, t_hat))
-    normal = np.column_stack([-t_hat[:, 1], t_hat[:, 0]])
-    across = np.einsum("kmi,ki->km", delta, normal)
-    near = (np.abs(arc[:, None] - arc[None, :]) > apart_mm) & (along < r_px[None, :] + 1.5)
-    touch = r_px[:, None] + r_px[None, :] + 2.0
+    delta = px[:, None, :, :] - px[:, :, None, :]  # (C, K, K', 2): from sample k to sample k'
+    along = np.abs(np.einsum("ckmi,cki->ckm", delta, t_hat))
+    normal = np.stack([-t_hat[..., 1], t_hat[..., 0]], axis=-1)
+    across = np.einsum("ckmi,cki->ckm", delta, normal)
+    near = (np.abs(arc[:, None] - arc[None, :]) > apart_mm) & (along < r_px[:, None, :] + 1.5)
+    touch = r_px[:, :, None] + r_px[:, None, :] + 2.0
     negative = near & (across < 1.0) & (across > -touch)
     positive = near & (across > -1.0) & (across < touch)
-    return np.column_stack([negative.any(axis=1), positive.any(axis=1)])
+    return np.stack([negative.any(axis=-1), positive.any(axis=-1)], axis=-1)
 
 
 def _consistent(obs: _Sides, step: FloatArray) -> _Sides:
