@@ -23,7 +23,7 @@ re-projects best onto the silhouettes (IoU) wins. Each frame stands alone.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -36,6 +36,7 @@ from .ordering import March, march_hull
 from .polyline import cut_polyline, polyline_arclength, resample_polyline
 from .quality import misfit_fraction, reprojection_iou, tube_mask
 from .tube_fit import TubeFit, centre_across, fit_tube, trim_unexplained_tail
+from .tube_tip import bend_tip_to_pixels
 
 __all__ = [
     "Centerline",
@@ -227,6 +228,19 @@ def fit_centerline(
         possible = [c for c in candidates if not self_intersects(c.points_mm, c.radius_mm)] or candidates
         best = max(possible, key=lambda c: silhouette_score(c, cameras, masks))
         best = _carry_on(best, fit, points_mm, base_mm, cameras, masks, radius_mm, voxel_mm, refine)
+    if march.crowded.any() and np.isfinite(best.radius_mm) and best.radius_mm > 0:
+        # Where the hull was crowded the tip may lie against another part of
+        # the tube, whose edges then pull the tip's side readings off it.
+        # The tip is bent to the pixels instead (see pipeline.tube_tip).
+        bent = bend_tip_to_pixels(
+            best.points_mm,
+            cameras,
+            masks,
+            contrasts,
+            best.radius_mm,
+            rejects=lambda axis: self_intersects(axis, best.radius_mm),
+        )
+        best = replace(best, points_mm=bent)
     return smooth_curve(best.points_mm, n_points=n_points), best
 
 

@@ -9,6 +9,12 @@ its stem) gives no edge reading; given the silhouettes, it is read from pixels
 instead: where discs along the end line stop adding more silhouette pixels that
 the rest of the curve leaves unexplained than background pixels. The end never
 moves past where the hull ends.
+
+Where the tip lies against another part of the tube (a thick loop's tip on its
+stem), its side readings are pulled off it by the other part's edges, in every
+view that does not separate them. :func:`bend_tip_to_pixels` then bends and
+lengthens the curve's last few radii until the tube it describes, drawn with
+sub-pixel coverage, matches each view's grey levels near the tip.
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .camera import Camera
-from .polyline import cut_polyline, polyline_arclength
+from .polyline import cut_polyline, polyline_arclength, resample_polyline
 from .profiles import JAC_EPS_MM, end_edge, sample_image
 from .quality import tube_mask
 
@@ -48,6 +54,23 @@ _MIN_PIXELS = 4
 _PIXEL_WEIGHT = 0.5
 # cv2 drawing takes fixed-point coordinates with this many fractional bits.
 _DRAW_SHIFT = 4
+# Bending the tip to the pixels (bend_tip_to_pixels): the curve's last
+# _BEND_RADII radii are bent, by a pattern search with these steps (mm); the
+# tube is drawn _SUPERSAMPLE times finer than the image (coverage to 1/16 of a
+# pixel), with _RING_POINTS points on each circle of its flat end, in a window
+# reaching _WINDOW_PX past the drawn tube (room for the bends tried: 4 radii of
+# 9 mm move the tip by at most ~20 px at the rigs' scale of ~0.6 px/mm).
+# Measured on rendered loops (r 4, 6, 9 mm, both rigs; 12 frames each): 4
+# radii and steps down to 0.25 mm. Started from the true curve, the search
+# moves the tip by 0.25-1.0 mm (r 4) and 0.25-2.0 mm (r 9): that is its noise.
+_BEND_RADII = 4.0
+_BEND_STEPS_MM = (4.0, 2.0, 1.0, 0.5, 0.25)
+_SUPERSAMPLE = 4
+_RING_POINTS = 24
+_WINDOW_PX = 20.0
+# Erosion / dilation (px) of the silhouette that picks the pixels certainly on
+# the tube / on the background, to scale the grey levels to coverage.
+_CORE_PX = 5
 
 
 def refit_tip(
@@ -124,6 +147,192 @@ def refit_tip(
         return cut_polyline(pts, anchor + stop)
     ahead = np.append(np.arange(2.0, stop, 2.0), stop)
     return np.vstack([cut_polyline(pts, anchor), path(ahead)])
+
+
+def bend_tip_to_pixels(
+    points_mm: FloatArray,
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    contrasts: Sequence[NDArray[np.float32]],
+    radius_mm: float,
+    *,
+    span_radii: float = _BEND_RADII,
+    rejects: Callable[[FloatArray], bool] | None = None,
+) -> FloatArray:
+    """The curve with its last ``span_radii`` radii bent and lengthened to match the views' pixels.
+
+    The end part (past arc length ``s0``) is moved by ``a ((s - s0) / L)^2``
+    across the end tangent (``a``: two components, mm; the curve before
+    ``s0`` is kept and the join is smooth), then lengthened along its end
+    direction or cut, by ``dl`` mm. (a, dl) minimise, summed over the views in a
+    window around the end part, the squared difference between the tube's
+    drawn coverage (sub-pixel, flat end: :func:`_draw_tube`) and the coverage
+    read from the grey levels (:func:`_coverage`), by a pattern search. Unlike
+    the side readings, this holds where the tip touches another part of the
+    tube: that part is drawn too, so its edges are not taken for the tip's.
+
+    Parameters
+    ----------
+    points_mm : (M, 3) float64 axis, base -> tip, world frame, mm.
+    cameras, masks, contrasts : per camera: the camera, its (H, W) bool
+        silhouette and (H, W) float32 foreground contrast.
+    radius_mm : tube radius, mm.
+    span_radii : length of the bent part, in radii (at most half the curve).
+    rejects : a bent axis (K, 3) this returns True for is not taken (a tube
+        that passes through itself, say).
+
+    Returns
+    -------
+    (M', 3) float64, the bent axis; ``points_mm`` when no bend matches better.
+    """
+    pts = np.asarray(points_mm, dtype=np.float64)
+    arc = polyline_arclength(pts)
+    start = max(float(arc[-1]) - span_radii * radius_mm, 0.5 * float(arc[-1]))
+    # The part before the bend (to a radius before it, so that the drawn
+    # pieces overlap) is drawn once per view.
+    keep = max(start - radius_mm, 0.0)
+    first = max(int(np.searchsorted(arc, keep)) - 1, 0)
+    body = cut_polyline(pts, keep)
+    windows = []
+    for cam, mask, contrast in zip(cameras, masks, contrasts, strict=True):
+        window = _window(cam, pts[first:], radius_mm)
+        if window is None:
+            continue
+        (x0, y0), (x1, y1) = window
+        fixed = np.zeros(((y1 - y0) * _SUPERSAMPLE, (x1 - x0) * _SUPERSAMPLE), np.uint8)
+        _draw_tube(fixed, cam, body, radius_mm, (x0, y0), flat_end=False)
+        windows.append((cam, _coverage(contrast, mask)[y0:y1, x0:x1], fixed, (x0, y0)))
+    if not windows:
+        return pts
+
+    def cost(p: FloatArray) -> float:
+        bent = _bend_end(pts, arc, start, p[:2], float(p[2]))
+        if rejects is not None and rejects(bent):
+            return np.inf
+        total = 0.0
+        for cam, seen, fixed, origin in windows:
+            canvas = fixed.copy()
+            _draw_tube(canvas, cam, bent[first:], radius_mm, origin, flat_end=True)
+            drawn = cv2.resize(canvas, seen.shape[::-1], interpolation=cv2.INTER_AREA).astype(np.float32)
+            total += float(np.sum((drawn / 255.0 - seen) ** 2))
+        return total
+
+    p, best = np.zeros(3), cost(np.zeros(3))
+    for step in _BEND_STEPS_MM:
+        improved = True
+        while improved:
+            improved = False
+            for i in range(3):
+                for sign in (1.0, -1.0):
+                    q = p.copy()
+                    q[i] += sign * step
+                    c = cost(q)
+                    if c < best:
+                        best, p, improved = c, q, True
+    return _bend_end(pts, arc, start, p[:2], float(p[2])) if p.any() else pts
+
+
+def _window(
+    cam: Camera, axis_mm: FloatArray, radius_mm: float
+) -> tuple[tuple[int, int], tuple[int, int]] | None:
+    """Pixel window ((x0, y0), (x1, y1)) around the tube of (K, 3) ``axis_mm``, None if not seen."""
+    px = cam.project(axis_mm)
+    depth = cam.to_camera(axis_mm)[:, 2]
+    if not (np.isfinite(px).all() and (depth > radius_mm).all()):
+        return None
+    margin = float(np.mean(np.diag(cam.matrix)[:2])) * radius_mm / float(depth.min()) + _WINDOW_PX
+    w, h = cam.size_px
+    x0, y0 = (max(int(np.floor(v)), 0) for v in px.min(axis=0) - margin)
+    x1, y1 = (min(int(np.ceil(v)), n) for v, n in zip(px.max(axis=0) + margin, (w, h), strict=True))
+    return ((x0, y0), (x1, y1)) if x1 > x0 and y1 > y0 else None
+
+
+def _coverage(contrast: NDArray[np.float32], mask: NDArray[np.bool_]) -> NDArray[np.float32]:
+    """(H, W) float32 in [0, 1]: how much of each pixel the tube covers, from its grey level.
+
+    The contrast scaled between its median on the background (pixels well
+    outside the silhouette) and on the tube (well inside), clipped: edge
+    pixels, blurred by the optics and the video, come out in between.
+    """
+    grow = np.ones((_CORE_PX, _CORE_PX), np.uint8)
+    core = cv2.erode(mask.view(np.uint8), grow).view(bool)
+    away = ~cv2.dilate(mask.view(np.uint8), grow).view(bool)
+    tube = float(np.median(contrast[core])) if core.any() else float(contrast[mask].max())
+    background = float(np.median(contrast[away])) if away.any() else 0.0
+    scale = tube - background if tube > background else 1.0
+    return np.clip((contrast - background) / scale, 0.0, 1.0).astype(np.float32)
+
+
+def _draw_tube(
+    canvas: NDArray[np.uint8],
+    cam: Camera,
+    axis_mm: FloatArray,
+    radius_mm: float,
+    origin: tuple[int, int],
+    *,
+    flat_end: bool,
+) -> None:
+    """Draw (255) the tube of (K, 3) ``axis_mm`` on a ``_SUPERSAMPLE``-times finer
+    canvas whose pixel (0, 0) is the image's pixel ``origin`` (x, y).
+
+    Discs of the projected radius every half radius along the axis (as
+    :func:`pipeline.quality.tube_mask`, at the finer scale). With ``flat_end``,
+    the last radius is drawn as the outline of a straight cylinder piece (the
+    convex hull of its two end circles, projected), and the discs only up to
+    where it starts (a disc of radius r there stays inside that piece in any
+    view); a disc at the end would reach a radius past a flat end seen side-on.
+    """
+    arc = polyline_arclength(axis_mm)
+    body = cut_polyline(axis_mm, max(float(arc[-1]) - radius_mm, 0.0)) if flat_end else axis_mm
+    length = float(polyline_arclength(body)[-1]) if len(body) > 1 else 0.0
+    dense = (
+        resample_polyline(body, max(2, int(np.ceil(length / (0.5 * radius_mm))) + 1))
+        if len(body) > 1
+        else body
+    )
+    one = _SUPERSAMPLE * (1 << _DRAW_SHIFT)
+    # Pixel centres sit at integer coordinates; on the finer canvas pixel (u, v)'s
+    # centre is at s u + (s - 1) / 2.
+    offset = np.asarray(origin, dtype=np.float64) - (_SUPERSAMPLE - 1) / (2 * _SUPERSAMPLE)
+    focal = float(np.mean(np.diag(cam.matrix)[:2]))
+    centres = np.round((cam.project(dense) - offset) * one).astype(np.int64)
+    radii = np.round(focal * radius_mm / cam.to_camera(dense)[:, 2] * one).astype(np.int64)
+    for (cx, cy), r in zip(centres.tolist(), radii.tolist(), strict=True):
+        cv2.circle(canvas, (cx, cy), r, 255, -1, cv2.LINE_8, _DRAW_SHIFT)
+    end, back = axis_mm[-1], body[-1]
+    if flat_end and np.linalg.norm(end - back) > 0:
+        n1, n2 = _normals(end - back)
+        angle = np.linspace(0.0, 2.0 * np.pi, _RING_POINTS, endpoint=False)
+        ring = radius_mm * (np.cos(angle)[:, None] * n1 + np.sin(angle)[:, None] * n2)
+        px = cam.project(np.vstack([back + ring, end + ring]))
+        hull = cv2.convexHull(np.round((px - offset) * one).astype(np.int32))
+        cv2.fillConvexPoly(canvas, hull, 255, cv2.LINE_8, _DRAW_SHIFT)
+
+
+def _bend_end(
+    pts: FloatArray, arc: FloatArray, start: float, across: FloatArray, longer: float
+) -> FloatArray:
+    """(M, 3) axis bent past arc length ``start`` by ``across`` (2,) mm at its end
+    (across the end tangent, growing as the square of the arc length past
+    ``start``), then lengthened by ``longer`` mm along its end direction (cut if
+    negative)."""
+    n1, n2 = _normals(pts[-1] - pts[-2])
+    w = np.clip((arc - start) / (arc[-1] - start), 0.0, None) ** 2
+    out = pts + w[:, None] * (across[0] * n1 + across[1] * n2)[None, :]
+    if longer < 0:
+        return cut_polyline(out, float(arc[-1]) + longer)
+    if longer > 0:
+        d = out[-1] - out[-2]
+        return np.vstack([out, out[-1] + longer * d / np.linalg.norm(d)])
+    return out
+
+
+def _normals(direction: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Two unit vectors perpendicular to (3,) ``direction`` and to each other."""
+    t = direction / np.linalg.norm(direction)
+    n1 = np.cross(t, np.eye(3)[int(np.argmin(np.abs(t)))])
+    n1 /= np.linalg.norm(n1)
+    return n1, np.cross(t, n1)
 
 
 def _end_by_pixels(
