@@ -328,7 +328,7 @@ def _slab(
     idx = tree.query_ball_point(predicted, float(np.hypot(2.0 * reach, half_slab)))
     if not idx:
         return np.zeros((0, 3))
-    cand = pts[idx]
+    cand = np.take(pts, idx, axis=0)  # faster than pts[idx] from a list
     return np.asarray(cand[np.abs((cand - predicted) @ direction) <= half_slab])
 
 
@@ -340,8 +340,10 @@ def _mean_shift(section: FloatArray, start: FloatArray, reach: float) -> FloatAr
     reach_sq = reach * reach
     for _ in range(_MEAN_SHIFT_ITERATIONS):
         gap = section - centre
-        close = section[np.einsum("ij,ij->i", gap, gap) <= reach_sq]
-        if len(close) == 0:
+        close = np.einsum("ij,ij->i", gap, gap) <= reach_sq
+        count = np.count_nonzero(close)
+        if count == 0:
             return None
-        centre = close.sum(axis=0) / len(close)
+        # A 0/1 weighted sum: one matrix product instead of gathering the rows.
+        centre = (close @ section) / count
     return np.asarray(centre)

@@ -444,15 +444,21 @@ def _crowded(
     both sides. Parts farther along the profile only affect the background level,
     which the lower quartile ignores.
     """
-    delta = px[:, None, :, :] - px[:, :, None, :]  # (C, K, K', 2): from sample k to sample k'
-    along = np.abs(np.einsum("ckmi,cki->ckm", delta, t_hat))
+    # delta . t_k = px_k' . t_k - px_k . t_k: (C, K, K') as one matrix product,
+    # without the (C, K, K', 2) offsets.
     normal = np.stack([-t_hat[..., 1], t_hat[..., 0]], axis=-1)
-    across = np.einsum("ckmi,cki->ckm", delta, normal)
+    along = np.abs(_dot_rows(t_hat, px))
+    across = _dot_rows(normal, px)
     near = (np.abs(arc[:, None] - arc[None, :]) > apart_mm) & (along < r_px[:, None, :] + 1.5)
     touch = r_px[:, :, None] + r_px[:, None, :] + 2.0
     negative = near & (across < 1.0) & (across > -touch)
     positive = near & (across > -1.0) & (across < touch)
     return np.stack([negative.any(axis=-1), positive.any(axis=-1)], axis=-1)
+
+
+def _dot_rows(axes: FloatArray, px: FloatArray) -> FloatArray:
+    """(C, K, K') ``(px[c, k'] - px[c, k]) . axes[c, k]`` for (C, K, 2) ``axes`` and ``px``."""
+    return np.asarray(axes @ px.transpose(0, 2, 1) - np.einsum("cki,cki->ck", axes, px)[..., None])
 
 
 def _consistent(obs: _Sides, step: FloatArray) -> _Sides:
