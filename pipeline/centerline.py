@@ -36,7 +36,7 @@ from .ordering import March, march_hull
 from .polyline import cut_polyline, polyline_arclength, resample_polyline
 from .quality import misfit_fraction, reprojection_iou, tube_mask
 from .tube_fit import TubeFit, centre_across, fit_tube, trim_unexplained_tail
-from .tube_tip import bend_tip_to_pixels
+from .tube_tip import bend_tip_to_pixels, tip_meets_tube
 
 __all__ = [
     "Centerline",
@@ -228,17 +228,23 @@ def fit_centerline(
         possible = [c for c in candidates if not self_intersects(c.points_mm, c.radius_mm)] or candidates
         best = max(possible, key=lambda c: silhouette_score(c, cameras, masks))
         best = _carry_on(best, fit, points_mm, base_mm, cameras, masks, radius_mm, voxel_mm, refine)
-    if march.crowded.any() and np.isfinite(best.radius_mm) and best.radius_mm > 0:
-        # Where the hull was crowded the tip may lie against another part of
-        # the tube, whose edges then pull the tip's side readings off it.
-        # The tip is bent to the pixels instead (see pipeline.tube_tip).
+    if (
+        march.crowded.any()
+        and np.isfinite(best.radius_mm)
+        and best.radius_mm > 0
+        and tip_meets_tube(best.points_mm, cameras, best.radius_mm)
+    ):
+        # The tip lies against another part of the tube in some view, whose
+        # edges can pull the tip's side readings off it: the tip is bent to
+        # the pixels instead (see pipeline.tube_tip).
+        radius = best.radius_mm
         bent = bend_tip_to_pixels(
             best.points_mm,
             cameras,
             masks,
             contrasts,
-            best.radius_mm,
-            rejects=lambda axis: self_intersects(axis, best.radius_mm),
+            radius,
+            rejects=lambda axis: self_intersects(axis, radius),
         )
         best = replace(best, points_mm=bent)
     return smooth_curve(best.points_mm, n_points=n_points), best

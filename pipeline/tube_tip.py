@@ -68,6 +68,9 @@ _BEND_STEPS_MM = (4.0, 2.0, 1.0, 0.5, 0.25)
 _SUPERSAMPLE = 4
 _RING_POINTS = 24
 _WINDOW_PX = 20.0
+# Parts of the tube fewer than this many radii (along the curve) before the
+# bent part are its own neighbours, not another part that it can lie on.
+_APART_RADII = 4.0
 # Erosion / dilation (px) of the silhouette that picks the pixels certainly on
 # the tube / on the background, to scale the grey levels to coverage.
 _CORE_PX = 5
@@ -230,6 +233,34 @@ def bend_tip_to_pixels(
                     if c < best:
                         best, p, improved = c, q, True
     return _bend_end(pts, arc, start, p[:2], float(p[2])) if p.any() else pts
+
+
+def tip_meets_tube(
+    points_mm: FloatArray, cameras: Sequence[Camera], radius_mm: float, *, span_radii: float = _BEND_RADII
+) -> bool:
+    """Whether, in some view, the tube's last ``span_radii`` radii touch or cross
+    the image of a part of the tube at least ``_APART_RADII`` radii before them
+    along the curve (projected tubes within a pixel): where the tip's side
+    readings can be another part's edges.
+
+    ``points_mm`` : (M, 3) float64 axis, base -> tip, world frame, mm.
+    """
+    pts = np.asarray(points_mm, dtype=np.float64)
+    arc = polyline_arclength(pts)
+    start = float(arc[-1]) - span_radii * radius_mm
+    tip, others = pts[arc >= start], pts[arc < start - _APART_RADII * radius_mm]
+    if len(tip) == 0 or len(others) == 0:
+        return False
+    for cam in cameras:
+        focal = float(np.mean(np.diag(cam.matrix)[:2]))
+        reach = focal * radius_mm / np.concatenate([cam.to_camera(tip)[:, 2], cam.to_camera(others)[:, 2]])
+        if not (reach > 0).all():
+            continue
+        # Both tubes' projected radii (the largest: the nearest) and a pixel.
+        touch = reach[: len(tip)].max() + reach[len(tip) :].max() + 1.0
+        if _min_distance(cam.project(tip), cam.project(others)) < touch:
+            return True
+    return False
 
 
 def _window(
