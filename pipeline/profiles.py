@@ -133,27 +133,57 @@ def end_edge(profile: FloatArray, t: FloatArray, radius_mm: float, mm_per_px: fl
 
     Levels as in :func:`side_edges`: a first crossing half way between the tube's peak
     and the profile's lowest decile, then half way between the rim (one pixel
-    inside) and the lower quartile of what lies past the end.
+    inside) and the lower quartile of what lies past the end. One row: scalar
+    arithmetic (the same as :func:`crossing` and :func:`interp_rows` on one row),
+    which costs a tenth of their array calls.
     """
+    row = profile[0]
     step = t[1] - t[0]
     inside = np.nonzero(t <= -radius_mm)[0]  # t: mm past the current end
     if len(inside) == 0:
         return None
-    start = np.array([int(np.argmax(profile[0, inside]))])
-    peak = profile[0, start]
-    bg = np.array([np.percentile(profile[0], 10)])
-    if peak[0] - bg[0] < MIN_CONTRAST:
+    start = int(np.argmax(row[inside]))
+    peak = float(row[start])
+    bg = _percentile(row, 0.10)
+    if peak - bg < MIN_CONTRAST:
         return None
-    pos, hit = crossing(profile, start, 0.5 * (peak + bg), 1)
-    if not hit[0]:
+    pos = _first_below(row, start, 0.5 * (peak + bg))
+    if pos is None:
         return None
     px_steps = mm_per_px / step  # one pixel, in samples
-    beyond = profile[0, int(np.ceil(pos[0] + px_steps)) :]
+    beyond = row[int(np.ceil(pos + px_steps)) :]
     if len(beyond):
-        bg = np.array([np.percentile(beyond, 25)])
-    rim = interp_rows(profile, np.maximum(pos - px_steps, start.astype(np.float64)))
-    rim = np.where(rim - bg >= MIN_CONTRAST, rim, peak)
-    pos, hit = crossing(profile, start, 0.5 * (rim + bg), 1)
-    if not hit[0]:
+        bg = _percentile(beyond, 0.25)
+    at = max(pos - px_steps, float(start))
+    lo = min(max(int(np.floor(at)), 0), len(row) - 2)
+    frac = min(max(at - lo, 0.0), 1.0)
+    rim = (1 - frac) * float(row[lo]) + frac * float(row[lo + 1])
+    if rim - bg < MIN_CONTRAST:
+        rim = peak
+    pos = _first_below(row, start, 0.5 * (rim + bg))
+    if pos is None:
         return None
-    return float(t[0] + pos[0] * step)
+    return float(t[0] + pos * step)
+
+
+def _first_below(row: FloatArray, start: int, level: float) -> float | None:
+    """:func:`crossing` towards +1 on one (S,) row: the fractional index, or None."""
+    below = np.flatnonzero(row[start + 1 :] < level)
+    if len(below) == 0:
+        return None
+    j = min(max(start + 1 + int(below[0]), 1), len(row) - 2)
+    a, b = float(row[j - 1]), float(row[j])
+    return (j - 1) + min(max((a - level) / max(a - b, 1e-9), 0.0), 1.0)
+
+
+def _percentile(values: FloatArray, q: float) -> float:
+    """``np.percentile(values, 100 q)`` (linear interpolation) of a 1-D array, without
+    its per-call overhead."""
+    ordered = np.sort(values)
+    at = q * (len(ordered) - 1)
+    lo = int(at)
+    hi = min(lo + 1, len(ordered) - 1)
+    a, b = float(ordered[lo]), float(ordered[hi])
+    gamma = at - lo
+    # numpy's own lerp, exact at both ends.
+    return b - (b - a) * (1.0 - gamma) if gamma >= 0.5 else a + (b - a) * gamma
