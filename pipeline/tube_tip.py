@@ -19,6 +19,7 @@ sub-pixel coverage, matches each view's grey levels near the tip.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 
 import cv2
@@ -31,6 +32,7 @@ from .profiles import JAC_EPS_MM, end_edge, sample_image
 from .quality import tube_mask
 
 FloatArray = NDArray[np.float64]
+_log = logging.getLogger(__name__)
 
 # Sampling step along the 3-D end line (mm).
 _TIP_STEP_MM = 0.25
@@ -54,17 +56,21 @@ _MIN_PIXELS = 4
 _PIXEL_WEIGHT = 0.5
 # cv2 drawing takes fixed-point coordinates with this many fractional bits.
 _DRAW_SHIFT = 4
-# Bending the tip to the pixels (bend_tip_to_pixels): the curve's last
-# _BEND_RADII radii are bent, by a pattern search with these steps (mm); the
-# tube is drawn _SUPERSAMPLE times finer than the image (coverage to 1/16 of a
-# pixel), with _RING_POINTS points on each circle of its flat end, in a window
-# reaching _WINDOW_PX past the drawn tube (room for the bends tried: 4 radii of
-# 9 mm move the tip by at most ~20 px at the rigs' scale of ~0.6 px/mm).
-# Measured on rendered loops (r 4, 6, 9 mm, both rigs; 12 frames each): 4
-# radii and steps down to 0.25 mm. Started from the true curve, the search
-# moves the tip by 0.25-1.0 mm (r 4) and 0.25-2.0 mm (r 9): that is its noise.
-_BEND_RADII = 4.0
+# Bending the tip to the pixels (bend_tip_to_pixels): the curve's last 4
+# radii are bent, then its last 2, each by a pattern search with these steps
+# (mm); the tube is drawn _SUPERSAMPLE times finer than the image (coverage to
+# 1/16 of a pixel), with _RING_POINTS points on each circle of its flat end, in
+# a window reaching _WINDOW_PX past the drawn tube (room for the largest bend
+# allowed, 1.5 radii: ~8 px for r = 9 mm at the rigs' ~0.6 px/mm). Measured on
+# rendered loops (r 4, 6, 7.5, 9 mm, both rigs, 12 frames each): spans of 3, 4
+# or 6 radii alone give median tips of 1.6-2.5, 1.7-2.6 and 2.4-3.8 mm on the
+# r 9 loops; 4 then 2 radii 1.4-2.3 mm. Started from the true curve, one search
+# moves the tip by 0.25-1.0 mm (r 4) and 0.25-2.0 mm (r 9): its noise.
+_BEND_SPANS_RADII = (4.0, 2.0)
 _BEND_STEPS_MM = (4.0, 2.0, 1.0, 0.5, 0.25)
+# The tip is moved at most this many radii across or along: farther, it is
+# another hypothesis of where the tube goes, not a correction of the fit.
+_MAX_BEND_RADII = 1.5
 _SUPERSAMPLE = 4
 _RING_POINTS = 24
 _WINDOW_PX = 20.0
@@ -159,20 +165,23 @@ def bend_tip_to_pixels(
     contrasts: Sequence[NDArray[np.float32]],
     radius_mm: float,
     *,
-    span_radii: float = _BEND_RADII,
+    spans_radii: Sequence[float] = _BEND_SPANS_RADII,
     rejects: Callable[[FloatArray], bool] | None = None,
 ) -> FloatArray:
-    """The curve with its last ``span_radii`` radii bent and lengthened to match the views' pixels.
+    """The curve with its last few radii bent and lengthened to match the views' pixels.
 
-    The end part (past arc length ``s0``) is moved by ``a ((s - s0) / L)^2``
-    across the end tangent (``a``: two components, mm; the curve before
-    ``s0`` is kept and the join is smooth), then lengthened along its end
-    direction or cut, by ``dl`` mm. (a, dl) minimise, summed over the views in a
-    window around the end part, the squared difference between the tube's
-    drawn coverage (sub-pixel, flat end: :func:`_draw_tube`) and the coverage
-    read from the grey levels (:func:`_coverage`), by a pattern search. Unlike
-    the side readings, this holds where the tip touches another part of the
-    tube: that part is drawn too, so its edges are not taken for the tip's.
+    For each span L in ``spans_radii`` in turn (in radii, at most half the
+    curve), the end part (past arc length ``s0``, L before the end) is moved by
+    ``a ((s - s0) / L)^2`` across the end tangent (``a``: two components, mm;
+    the curve before ``s0`` is kept and the join is smooth), then lengthened
+    along its own continuation or cut, by ``dl`` mm. (a, dl) minimise, summed
+    over the views in a window around the end part, the squared difference
+    between the tube's drawn coverage (sub-pixel, flat end: :func:`_draw_tube`)
+    and the coverage read from the grey levels (:func:`_coverage`), by a
+    pattern search. Unlike the side readings, this holds where the tip touches
+    another part of the tube: that part is drawn too, so its edges are not
+    taken for the tip's. A longer span sets the tip's course, a shorter one
+    then its last few mm.
 
     Parameters
     ----------
@@ -180,7 +189,7 @@ def bend_tip_to_pixels(
     cameras, masks, contrasts : per camera: the camera, its (H, W) bool
         silhouette and (H, W) float32 foreground contrast.
     radius_mm : tube radius, mm.
-    span_radii : length of the bent part, in radii (at most half the curve).
+    spans_radii : lengths of the bent part, in radii, one search each.
     rejects : a bent axis (K, 3) this returns True for is not taken (a tube
         that passes through itself, say).
 
@@ -189,13 +198,29 @@ def bend_tip_to_pixels(
     (M', 3) float64, the bent axis; ``points_mm`` when no bend matches better.
     """
     pts = np.asarray(points_mm, dtype=np.float64)
+    for span in spans_radii:
+        pts = _bend_once(pts, cameras, masks, contrasts, radius_mm, span * radius_mm, rejects)
+    return pts
+
+
+def _bend_once(
+    pts: FloatArray,
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    contrasts: Sequence[NDArray[np.float32]],
+    radius_mm: float,
+    span_mm: float,
+    rejects: Callable[[FloatArray], bool] | None,
+) -> FloatArray:
+    """One search of :func:`bend_tip_to_pixels`, bending the last ``span_mm``."""
     arc = polyline_arclength(pts)
-    start = max(float(arc[-1]) - span_radii * radius_mm, 0.5 * float(arc[-1]))
+    start = max(float(arc[-1]) - span_mm, 0.5 * float(arc[-1]))
     # The part before the bend (to a radius before it, so that the drawn
     # pieces overlap) is drawn once per view.
     keep = max(start - radius_mm, 0.0)
     first = max(int(np.searchsorted(arc, keep)) - 1, 0)
     body = cut_polyline(pts, keep)
+    ahead = _end_frame(pts, arc, at_mm=float(arc[-1]), span_mm=_END_SPAN_MM)
     windows = []
     for cam, mask, contrast in zip(cameras, masks, contrasts, strict=True):
         window = _window(cam, pts[first:], radius_mm)
@@ -209,7 +234,9 @@ def bend_tip_to_pixels(
         return pts
 
     def cost(p: FloatArray) -> float:
-        bent = _bend_end(pts, arc, start, p[:2], float(p[2]))
+        if np.hypot(p[0], p[1]) > _MAX_BEND_RADII * radius_mm or abs(p[2]) > _MAX_BEND_RADII * radius_mm:
+            return np.inf
+        bent = _bend_end(pts, arc, start, p[:2], float(p[2]), ahead)
         if rejects is not None and rejects(bent):
             return np.inf
         total = 0.0
@@ -232,11 +259,16 @@ def bend_tip_to_pixels(
                     c = cost(q)
                     if c < best:
                         best, p, improved = c, q, True
-    return _bend_end(pts, arc, start, p[:2], float(p[2])) if p.any() else pts
+    _log.debug("tip bent by %s mm across, %+.2f mm longer (cost %.1f)", p[:2], p[2], best)
+    return _bend_end(pts, arc, start, p[:2], float(p[2]), ahead) if p.any() else pts
 
 
 def tip_meets_tube(
-    points_mm: FloatArray, cameras: Sequence[Camera], radius_mm: float, *, span_radii: float = _BEND_RADII
+    points_mm: FloatArray,
+    cameras: Sequence[Camera],
+    radius_mm: float,
+    *,
+    span_radii: float = _BEND_SPANS_RADII[0],
 ) -> bool:
     """Whether, in some view, the tube's last ``span_radii`` radii touch or cross
     the image of a part of the tube at least ``_APART_RADII`` radii before them
@@ -341,20 +373,30 @@ def _draw_tube(
 
 
 def _bend_end(
-    pts: FloatArray, arc: FloatArray, start: float, across: FloatArray, longer: float
+    pts: FloatArray,
+    arc: FloatArray,
+    start: float,
+    across: FloatArray,
+    longer: float,
+    ahead: Callable[[FloatArray], FloatArray],
 ) -> FloatArray:
     """(M, 3) axis bent past arc length ``start`` by ``across`` (2,) mm at its end
     (across the end tangent, growing as the square of the arc length past
-    ``start``), then lengthened by ``longer`` mm along its end direction (cut if
-    negative)."""
+    ``start``), then lengthened by ``longer`` mm along its own continuation
+    ``ahead`` (u mm past the end -> points, see :func:`_end_frame`), bent alike,
+    or cut if ``longer`` is negative."""
     n1, n2 = _normals(pts[-1] - pts[-2])
-    w = np.clip((arc - start) / (arc[-1] - start), 0.0, None) ** 2
-    out = pts + w[:, None] * (across[0] * n1 + across[1] * n2)[None, :]
+    offset = across[0] * n1 + across[1] * n2
+    span = float(arc[-1]) - start
+    w = np.clip((arc - start) / span, 0.0, None) ** 2
+    out = pts + w[:, None] * offset[None, :]
     if longer < 0:
         return cut_polyline(out, float(arc[-1]) + longer)
     if longer > 0:
-        d = out[-1] - out[-2]
-        return np.vstack([out, out[-1] + longer * d / np.linalg.norm(d)])
+        u = np.append(np.arange(2.0, longer, 2.0), longer)
+        # The continuation is a least-squares fit: shifted to start at the end.
+        more = ahead(u) - ahead(np.zeros(1)) + pts[-1]
+        return np.vstack([out, more + (((arc[-1] + u - start) / span) ** 2)[:, None] * offset[None, :]])
     return out
 
 
