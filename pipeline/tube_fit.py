@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -35,7 +36,7 @@ from scipy.linalg import solveh_banded
 
 from .camera import Camera
 from .polyline import polyline_arclength, resample_polyline
-from .profiles import project_with_jacobian, sample_image, side_edges
+from .profiles import median_1d, project_with_jacobian, sample_image, side_edges
 from .tube_tip import MIN_SIN_VIEW, refit_tip, tip_zone
 
 FloatArray = NDArray[np.float64]
@@ -319,7 +320,9 @@ def _camera_edges(
     if ok.any():
         reach = float(np.max(2.5 * r_px[ok] + 3.0))
         steps = np.arange(-reach, reach + 1e-9, _PROFILE_STEP_PX)
-        xy = np.nan_to_num(px[:, :, None, :] + steps[None, None, :, None] * normal[:, :, None, :])
+        xy = px[:, :, None, :] + steps[None, None, :, None] * normal[:, :, None, :]
+        if not (np.isfinite(px).all() and np.isfinite(normal).all()):
+            xy = np.nan_to_num(xy)  # a point behind a camera (rare: the check is cheaper)
         profiles = np.concatenate([sample_image(contrast, xy[j]) for j, contrast in enumerate(contrasts)])
         lo, hi, found = (a.reshape(scale.shape) for a in side_edges(profiles, steps, r_px.ravel(), core=core))
     safe = np.where(scale > 0, scale, 1.0)
@@ -366,7 +369,7 @@ def _read_sides(
     rows, left, right = e.rows.transpose(1, 0, 2), e.lo.T, e.hi.T
     both = use[..., 0] & use[..., 1] & interior[:, None]
     half = 0.5 * (right - left)[both]
-    radius = float(np.median(half)) if half.size >= 3 else radius_mm
+    radius = median_1d(half) if half.size >= 3 else radius_mm
     # One edge places the axis a half-width in from it: the half-width as this
     # view reads it (its blur and grey levels bias both edges alike, by up to
     # half a pixel, which the mid-point of two edges cancels and one edge does
@@ -375,7 +378,7 @@ def _read_sides(
     for j in range(c):
         own = 0.5 * (right[:, j] - left[:, j])[both[:, j]]
         if own.size >= _OWN_WIDTH_READINGS:
-            apparent[j] = float(np.median(own))
+            apparent[j] = median_1d(own)
     return _Sides(rows, left, right, use, radius, apparent[None, :])
 
 
@@ -476,7 +479,7 @@ def _consistent(obs: _Sides, step: FloatArray) -> _Sides:
     used = weight > 0
     if not used.any():
         return obs
-    spread = 1.4826 * float(np.median(residual[used]))
+    spread = 1.4826 * median_1d(residual[used])
     bad = used & (residual > max(_OUTLIER_RADII * obs.radius_mm, _OUTLIER_SPREAD * spread))
     if not bad.any():
         return obs
@@ -484,15 +487,18 @@ def _consistent(obs: _Sides, step: FloatArray) -> _Sides:
     return _Sides(obs.rows, obs.left, obs.right, use, obs.radius_mm, obs.apparent)
 
 
+@lru_cache(maxsize=256)
 def _second_difference_gram(k: int) -> FloatArray:
     """(3, k) diagonals 0, 1, 2 of D^T D, D the (k-2, k) second difference;
-    entry [d, j] is (D^T D)[j - d, j]."""
+    entry [d, j] is (D^T D)[j - d, j]. Cached per k (read-only): curves keep their
+    sample count from frame to frame."""
     stencil = np.array([1.0, -2.0, 1.0])
     out = np.zeros((3, k))
     rows = np.arange(k - 2)
     for p in range(3):
         for q in range(p, 3):
             np.add.at(out[q - p], rows + q, stencil[p] * stencil[q])
+    out.flags.writeable = False
     return out
 
 
@@ -512,17 +518,16 @@ def _solve_corrections(pts: FloatArray, obs: _Sides, *, base_fixed: bool, smooth
     # diagonal, and solve it in O(K) instead of densely.
     n, upper = 3 * k, 8
     band = np.zeros((upper + 1, n))
-    idx = np.arange(k)
     for a in range(3):
         for b in range(a, 3):
-            band[upper + a - b, 3 * idx + b] += blocks[:, a, b]
+            band[upper + a - b, b::3] += blocks[:, a, b]  # columns 3 i + b
     if k >= 3:
         # Second-difference penalty D^T D on each coordinate: the pentadiagonal
         # stencil (1, -4, 6, -4, 1) inside, trimmed at the ends.
         d2tdd = _second_difference_gram(k)  # diagonals 0, 1, 2 of D^T D
         for off in range(3):
-            for a in range(3):
-                band[upper - 3 * off, 3 * idx[off:] + a] += smoothness * d2tdd[off, off:]
+            # Columns 3 i + a (i >= off) of that band row, all three coordinates at once.
+            band[upper - 3 * off].reshape(k, 3)[off:] += smoothness * d2tdd[off, off:, None]
     g = rhs.reshape(-1)
     if base_fixed:
         # Pin the first sample: its rows and columns become the identity.
