@@ -123,6 +123,8 @@ def run_bench(
     stats = stages.timer.stats()
     order = [s for s in STAGE_ORDER if s in stats] + [s for s in stats if s not in STAGE_ORDER]
     report.stages = {name: stats[name] for name in order}
+    statuses = [r.status for r in stages.results.values()]
+    report.meta["stage_frames"] = {k: statuses.count(k) for k in ("ok", "empty", "failed")}
     report.one_off_s = {"build_grid at 128^3": stages.setup_s, "close the recordings": stages.close_s}
 
     # Frames with something in every view: the others carve nothing and time nothing.

@@ -94,7 +94,10 @@ def run_process(
         time.sleep(RSS_SAMPLE_S)
     wall = time.perf_counter() - start
     stderr = popen.stderr.read().decode(errors="replace") if popen.stderr else ""
-    if popen.returncode not in (0, 1):
+    if popen.returncode == 1:  # the run finished, some frames failed: say which
+        failed = [line for line in stderr.splitlines() if "failed" in line]
+        log.warning("%s: some frames failed:\n%s", label, "\n".join(failed[-10:]))
+    elif popen.returncode != 0:
         log.warning("%s exited with %d:\n%s", label, popen.returncode, stderr[-2000:])
     return EndToEndRun(
         label=label,

@@ -288,7 +288,8 @@ def format_table(report: BenchReport) -> str:
     head = (
         f"Benchmark: {meta.get('session', '?')}, {meta.get('frames', '?')} frames, "
         f"{meta.get('cpus', '?')} CPUs, load average before/after "
-        f"{meta.get('load_before', '?')} / {meta.get('load_after', '?')}"
+        f"{meta.get('load_before', '?')} / {meta.get('load_after', '?')}; "
+        f"frames timed stage by stage: {meta.get('stage_frames', '?')}"
     )
     two = report.run(jobs=2, voxel_mm=2.0)
     per_frame_ms = _ratio(_wall(two) * 1e3, two.frames) if two else float("nan")
