@@ -8,6 +8,7 @@ includes imports and the per-session set-up exactly as a user pays them.
 from __future__ import annotations
 
 import logging
+import resource
 import shutil
 import subprocess
 import sys
@@ -64,6 +65,8 @@ def run_process(
 ) -> EndToEndRun:
     """Run ``python -m pipeline process`` on ``session_dir`` and time it, start to exit.
 
+    CPU time (user + sys) of the whole tree is reported beside the wall time: on a
+    shared machine it shows what the run needs, whatever others take.
     Peak memory is the largest summed RSS of the process tree (the CLI process and
     its loky workers) seen by sampling every RSS_SAMPLE_S. Summing RSS counts pages
     shared between processes (libraries, memory-mapped tables) once per process, so
@@ -85,6 +88,7 @@ def run_process(
         *extra_args,
     ]
     log.info("timing: %s", " ".join(cmd[1:]))
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     popen = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     proc = psutil.Process(popen.pid)
@@ -93,6 +97,10 @@ def run_process(
         peak = max(peak, _tree_rss(proc))
         time.sleep(RSS_SAMPLE_S)
     wall = time.perf_counter() - start
+    # Children's CPU time counts every descendant reaped so far (the loky workers are
+    # reaped by the CLI process when its pool shuts down), so the difference is this run's.
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu_s = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     stderr = popen.stderr.read().decode(errors="replace") if popen.stderr else ""
     if popen.returncode == 1:  # the run finished, some frames failed: say which
         failed = [line for line in stderr.splitlines() if "failed" in line]
@@ -107,6 +115,7 @@ def run_process(
         wall_s=wall,
         exit_code=int(popen.returncode),
         peak_rss_mb=peak / 1024**2,
+        cpu_s=cpu_s,
     )
 
 

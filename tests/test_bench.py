@@ -107,7 +107,7 @@ def test_table_json_and_chart_show_the_fake_measurement(tmp_path: Path) -> None:
     table = format_table(report)
     assert "| carving | 0.800 | 1.400 | 8000.0 | 10000 |" in table  # original / ours = 8000 / 0.8
     assert "| centreline | 2.000 | 3.000 | 50.0 | 25 |" in table
-    assert "| 2 mm, 2 workers | 900 | 7.00 | 129 | 4.3 |" in table  # 900 / 7 s = 128.6 fps
+    assert "| 2 mm, 2 workers | 900 | 7.00 | 129 | 4.3 | n/a | 1200 |" in table  # 900 / 7 s = 128.6 fps
     assert "carving identical to brute force on 10/10 frames" in table
 
     write_json(report, tmp_path / "bench.json")
