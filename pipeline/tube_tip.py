@@ -57,16 +57,18 @@ _PIXEL_WEIGHT = 0.5
 # cv2 drawing takes fixed-point coordinates with this many fractional bits.
 _DRAW_SHIFT = 4
 # Bending the tip to the pixels (bend_tip_to_pixels): the curve's last 4
-# radii are bent, then its last 2, each by a pattern search with these steps
-# (mm); the tube is drawn _SUPERSAMPLE times finer than the image (coverage to
-# 1/16 of a pixel), with _RING_POINTS points on each circle of its flat end, in
-# a window reaching _WINDOW_PX past the drawn tube (room for the largest bend
-# allowed, 1.5 radii: ~8 px for r = 9 mm at the rigs' ~0.6 px/mm). Measured on
-# rendered loops (r 4, 6, 7.5, 9 mm, both rigs, 12 frames each): spans of 3, 4
-# or 6 radii alone give median tips of 1.6-2.5, 1.7-2.6 and 2.4-3.8 mm on the
-# r 9 loops; 4 then 2 radii 1.4-2.3 mm. Started from the true curve, one search
-# moves the tip by 0.25-1.0 mm (r 4) and 0.25-2.0 mm (r 9): its noise.
-_BEND_SPANS_RADII = (4.0, 2.0)
+# radii are bent, then its last 2, then its last 1, each by a pattern search
+# with these steps (mm); the tube is drawn _SUPERSAMPLE times finer than the
+# image (coverage to 1/16 of a pixel), with _RING_POINTS points on each circle
+# of its flat end, in a window reaching _WINDOW_PX past the drawn tube (room for
+# the largest bend allowed, 1.5 radii: ~8 px for r = 9 mm at the rigs' ~0.6
+# px/mm). Measured on rendered loops (r 4, 6, 7.5, 9 mm, both rigs, 12-16
+# frames each), median tip on the r 9 loops: one span of 3, 4 or 6 radii
+# 1.6-2.5, 1.7-2.6, 2.4-3.8 mm; 4 then 2 radii 1.4-2.3 mm; 4, 2, 1 radii
+# 1.1-2.0 mm (6, 4, 2: 1.3-2.3 mm). Started from the true curve, the searches
+# move the tip by 0.5-0.8 mm (median; r 4-9), mostly shorter (0.3-1.3 mm): the
+# blurred corners of a flat end.
+_BEND_SPANS_RADII = (4.0, 2.0, 1.0)
 _BEND_STEPS_MM = (4.0, 2.0, 1.0, 0.5, 0.25)
 # The tip is moved at most this many radii across or along: farther, it is
 # another hypothesis of where the tube goes, not a correction of the fit.
@@ -180,7 +182,7 @@ def bend_tip_to_pixels(
     and the coverage read from the grey levels (:func:`_coverage`), by a
     pattern search. Unlike the side readings, this holds where the tip touches
     another part of the tube: that part is drawn too, so its edges are not
-    taken for the tip's. A longer span sets the tip's course, a shorter one
+    taken for the tip's. A longer span sets the tip's course, the shorter ones
     then its last few mm.
 
     Parameters
