@@ -31,8 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .bench_chart import plot_report
 from .bench_e2e import decode_floor, ensure_demo, run_process, voxel_session
-from .bench_report import STAGE_ORDER, BenchReport, format_table, plot_report, write_json
+from .bench_report import STAGE_ORDER, BenchReport, format_table, write_json
 from .bench_timing import StageStats
 from .session import load_session
 

@@ -16,13 +16,13 @@ import numpy as np
 import pytest
 from conftest import build_session, rig_cameras
 
+from pipeline.bench_chart import plot_report
 from pipeline.bench_e2e import voxel_session
 from pipeline.bench_report import (
     BenchReport,
     EndToEndRun,
     ScalingRow,
     format_table,
-    plot_report,
     speedup_2_over_1,
     targets,
     write_json,
