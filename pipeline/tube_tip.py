@@ -230,7 +230,7 @@ def _bend_once(
             continue
         (x0, y0), (x1, y1) = window
         fixed = np.zeros(((y1 - y0) * _SUPERSAMPLE, (x1 - x0) * _SUPERSAMPLE), np.uint8)
-        _draw_tube(fixed, cam, body, radius_mm, (x0, y0), flat_end=False)
+        _draw_tube(fixed, cam, *_tube_points(body, radius_mm, flat_end=False), radius_mm, (x0, y0))
         windows.append((cam, _coverage(contrast, mask)[y0:y1, x0:x1], fixed, (x0, y0)))
     if not windows:
         return pts
@@ -241,10 +241,11 @@ def _bend_once(
         bent = _bend_end(pts, arc, start, p[:2], float(p[2]), ahead)
         if rejects is not None and rejects(bent):
             return np.inf
+        discs, outline = _tube_points(bent[first:], radius_mm, flat_end=True)
         total = 0.0
         for cam, seen, fixed, origin in windows:
             canvas = fixed.copy()
-            _draw_tube(canvas, cam, bent[first:], radius_mm, origin, flat_end=True)
+            _draw_tube(canvas, cam, discs, outline, radius_mm, origin)
             drawn = cv2.resize(canvas, seen.shape[::-1], interpolation=cv2.INTER_AREA).astype(np.float32)
             total += float(np.sum((drawn / 255.0 - seen) ** 2))
         return total
@@ -328,49 +329,56 @@ def _coverage(contrast: NDArray[np.float32], mask: NDArray[np.bool_]) -> NDArray
     return np.clip((contrast - background) / scale, 0.0, 1.0).astype(np.float32)
 
 
-def _draw_tube(
-    canvas: NDArray[np.uint8],
-    cam: Camera,
-    axis_mm: FloatArray,
-    radius_mm: float,
-    origin: tuple[int, int],
-    *,
-    flat_end: bool,
-) -> None:
-    """Draw (255) the tube of (K, 3) ``axis_mm`` on a ``_SUPERSAMPLE``-times finer
-    canvas whose pixel (0, 0) is the image's pixel ``origin`` (x, y).
+def _tube_points(axis_mm: FloatArray, radius_mm: float, *, flat_end: bool) -> tuple[FloatArray, FloatArray]:
+    """What :func:`_draw_tube` draws of the tube around (K, 3) ``axis_mm``: disc
+    centres (D, 3) every half radius along the axis (as
+    :func:`pipeline.quality.tube_mask`), and the outline (O, 3) of its flat end
+    ((0, 3) without ``flat_end``), world frame, mm.
 
-    Discs of the projected radius every half radius along the axis (as
-    :func:`pipeline.quality.tube_mask`, at the finer scale). With ``flat_end``,
-    the last radius is drawn as the outline of a straight cylinder piece (the
-    convex hull of its two end circles, projected), and the discs only up to
-    where it starts (a disc of radius r there stays inside that piece in any
-    view); a disc at the end would reach a radius past a flat end seen side-on.
+    With ``flat_end``, the last radius is the outline of a straight cylinder
+    piece (its two end circles: their projection's convex hull is the piece's),
+    and the discs stop where it starts (a disc of radius r there stays inside
+    that piece in any view); a disc at the end would reach a radius past a flat
+    end seen side-on.
     """
     arc = polyline_arclength(axis_mm)
     body = cut_polyline(axis_mm, max(float(arc[-1]) - radius_mm, 0.0)) if flat_end else axis_mm
     length = float(polyline_arclength(body)[-1]) if len(body) > 1 else 0.0
-    dense = (
+    discs = (
         resample_polyline(body, max(2, int(np.ceil(length / (0.5 * radius_mm))) + 1))
         if len(body) > 1
         else body
     )
+    end, back = axis_mm[-1], body[-1]
+    if not flat_end or not np.linalg.norm(end - back) > 0:
+        return discs, np.zeros((0, 3))
+    n1, n2 = _normals(end - back)
+    angle = np.linspace(0.0, 2.0 * np.pi, _RING_POINTS, endpoint=False)
+    ring = radius_mm * (np.cos(angle)[:, None] * n1 + np.sin(angle)[:, None] * n2)
+    return discs, np.vstack([back + ring, end + ring])
+
+
+def _draw_tube(
+    canvas: NDArray[np.uint8],
+    cam: Camera,
+    discs_mm: FloatArray,
+    outline_mm: FloatArray,
+    radius_mm: float,
+    origin: tuple[int, int],
+) -> None:
+    """Draw (255) a tube given by :func:`_tube_points` on a ``_SUPERSAMPLE``-times
+    finer canvas whose pixel (0, 0) is the image's pixel ``origin`` (x, y)."""
     one = _SUPERSAMPLE * (1 << _DRAW_SHIFT)
     # Pixel centres sit at integer coordinates; on the finer canvas pixel (u, v)'s
     # centre is at s u + (s - 1) / 2.
     offset = np.asarray(origin, dtype=np.float64) - (_SUPERSAMPLE - 1) / (2 * _SUPERSAMPLE)
     focal = float(np.mean(np.diag(cam.matrix)[:2]))
-    centres = np.round((cam.project(dense) - offset) * one).astype(np.int64)
-    radii = np.round(focal * radius_mm / cam.to_camera(dense)[:, 2] * one).astype(np.int64)
-    for (cx, cy), r in zip(centres.tolist(), radii.tolist(), strict=True):
+    px = np.round((cam.project(np.vstack([discs_mm, outline_mm])) - offset) * one)
+    radii = np.round(focal * radius_mm / cam.to_camera(discs_mm)[:, 2] * one).astype(np.int64)
+    for (cx, cy), r in zip(px[: len(discs_mm)].astype(np.int64).tolist(), radii.tolist(), strict=True):
         cv2.circle(canvas, (cx, cy), r, 255, -1, cv2.LINE_8, _DRAW_SHIFT)
-    end, back = axis_mm[-1], body[-1]
-    if flat_end and np.linalg.norm(end - back) > 0:
-        n1, n2 = _normals(end - back)
-        angle = np.linspace(0.0, 2.0 * np.pi, _RING_POINTS, endpoint=False)
-        ring = radius_mm * (np.cos(angle)[:, None] * n1 + np.sin(angle)[:, None] * n2)
-        px = cam.project(np.vstack([back + ring, end + ring]))
-        hull = cv2.convexHull(np.round((px - offset) * one).astype(np.int32))
+    if len(outline_mm):
+        hull = cv2.convexHull(px[len(discs_mm) :].astype(np.int32))
         cv2.fillConvexPoly(canvas, hull, 255, cv2.LINE_8, _DRAW_SHIFT)
 
 
@@ -405,9 +413,15 @@ def _bend_end(
 def _normals(direction: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Two unit vectors perpendicular to (3,) ``direction`` and to each other."""
     t = direction / np.linalg.norm(direction)
-    n1 = np.cross(t, np.eye(3)[int(np.argmin(np.abs(t)))])
+    # t x e_k for the axis e_k least along t, written out (np.cross is slow on
+    # single vectors, and this runs for every bend tried).
+    k = int(np.argmin(np.abs(t)))
+    i, j = (k + 1) % 3, (k + 2) % 3
+    n1 = np.zeros(3)
+    n1[i], n1[j] = t[j], -t[i]
     n1 /= np.linalg.norm(n1)
-    return n1, np.cross(t, n1)
+    n2 = np.array([t[1] * n1[2] - t[2] * n1[1], t[2] * n1[0] - t[0] * n1[2], t[0] * n1[1] - t[1] * n1[0]])
+    return n1, n2
 
 
 def _end_by_pixels(
