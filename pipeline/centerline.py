@@ -17,7 +17,11 @@ as it is: other hypotheses are fitted (the march coasting on its own course
 through the crowded hull; the fit without its outlier rejection; the march
 resumed from the fitted end, or from where the unexplained tube leaves the
 curve), those that pass through themselves are dropped, and the one whose tube
-re-projects best onto the silhouettes (IoU) wins. Each frame stands alone.
+re-projects best onto the silhouettes (IoU) wins. Where the hull was crowded
+and the tip's tube meets another part's in some view (a loop's tip lying on its
+stem, whose edges the side readings can take for the tip's), the tip is then
+bent to the pixels (:func:`pipeline.tube_tip.bend_tip_to_pixels`). Each frame
+stands alone.
 """
 
 from __future__ import annotations
