@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import errno
+import itertools
 import logging
 import math
 import os
@@ -236,13 +237,21 @@ def process_range(
 
 
 def frame_ranges(start: int, stop: int, n_workers: int) -> list[tuple[int, int]]:
-    """Split ``[start, stop)`` into contiguous ranges, several per worker."""
+    """Split ``[start, stop)`` into contiguous ranges of near-equal size, several per worker.
+
+    The number of ranges is a multiple of the number of workers where the frames
+    allow it: with 9 ranges on 2 workers the last one would run alone, a ninth of
+    the run on one core.
+    """
     n = stop - start
     if n <= 0:
         return []
-    size = math.ceil(n / (RANGES_PER_WORKER * max(1, n_workers)))
-    size = max(MIN_RANGE_FRAMES, min(MAX_RANGE_FRAMES, size))
-    return [(a, min(a + size, stop)) for a in range(start, stop, size)]
+    workers = max(1, n_workers)
+    count = max(math.ceil(n / MAX_RANGE_FRAMES), RANGES_PER_WORKER * workers)
+    count = math.ceil(count / workers) * workers
+    count = max(1, min(count, n // MIN_RANGE_FRAMES))
+    bounds = np.linspace(start, stop, count + 1).round().astype(int)
+    return [(int(a), int(b)) for a, b in itertools.pairwise(bounds)]
 
 
 def _effective_jobs(jobs: int) -> int:

@@ -64,7 +64,9 @@ def test_frame_ranges_partition_the_frames(start: int, stop: int, workers: int) 
 
 def test_900_frames_on_two_workers_give_several_ranges_each() -> None:
     sizes = [b - a for a, b in runner.frame_ranges(0, 900, 2)]
-    assert len(sizes) >= 2 * 4 and max(sizes) == 100
+    # A multiple of the workers (no range left to run alone at the end), near-equal sizes.
+    assert len(sizes) >= 2 * 4 and len(sizes) % 2 == 0 and max(sizes) <= 100
+    assert max(sizes) - min(sizes) <= 1
 
 
 def test_summary_compresses_failed_frames_into_ranges() -> None:
