@@ -34,3 +34,7 @@ class OutputError(PipelineError):
 
 class EvaluationError(PipelineError):
     """A recording or ground truth cannot be evaluated (missing, unreadable, mismatched)."""
+
+
+class RecordingError(PipelineError):
+    """A recording (MCAP) cannot be read."""

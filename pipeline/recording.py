@@ -28,7 +28,7 @@ from mcap.stream_reader import CRCValidationError, StreamReader
 from mcap_protobuf.decoder import DecoderFactory
 from numpy.typing import NDArray
 
-from .errors import PipelineError
+from .errors import RecordingError
 from .record_mcap import (
     CENTERLINE_TOPIC,
     METADATA_NAME,
@@ -38,10 +38,6 @@ from .record_mcap import (
 )
 
 log = logging.getLogger(__name__)
-
-
-class RecordingError(PipelineError):
-    """A file is not a readable MCAP recording."""
 
 
 @dataclass(frozen=True, eq=False)
