@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 from conftest import build_session, rig_cameras
 
-from pipeline.bench_chart import plot_report
-from pipeline.bench_e2e import voxel_session
-from pipeline.bench_report import (
+from pipeline.bench.chart import plot_report
+from pipeline.bench.e2e import voxel_session
+from pipeline.bench.report import (
     BenchReport,
     EndToEndRun,
     ScalingRow,
@@ -27,7 +27,7 @@ from pipeline.bench_report import (
     targets,
     write_json,
 )
-from pipeline.bench_stages import (
+from pipeline.bench.stages import (
     StageRun,
     compare_methods,
     lookup_gather,
@@ -35,7 +35,7 @@ from pipeline.bench_stages import (
     time_stages,
     upsample_masks,
 )
-from pipeline.bench_timing import StageStats, StageTimer
+from pipeline.bench.timing import StageStats, StageTimer
 from pipeline.hull import carve
 from pipeline.session import load_session
 

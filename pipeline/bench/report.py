@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .bench_timing import StageStats
+from .timing import StageStats
 
 REALTIME_FPS = 30.0
 # The end-to-end wall-time targets are for this many frames (the demo session).

@@ -20,17 +20,17 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .baseline_carving import carve_original
-from .baseline_curve import polyfit_centerline
-from .bench_report import BRUTE_FORCE, LOOKUP, ORIGINAL, OURS, ScalingRow
-from .bench_timing import StageStats, StageTimer
-from .camera import Camera
-from .frame_result import FrameResult
-from .hull import HullGrid, build_grid, carve, carve_brute_force, voxel_centers_mm
-from .reconstruct import SessionModel, build_model, frame_silhouettes, reconstruct_from_silhouettes
-from .runner import process_range
-from .session import Session
-from .settings import Workspace
+from ..baseline_carving import carve_original
+from ..baseline_curve import polyfit_centerline
+from ..camera import Camera
+from ..frame_result import FrameResult
+from ..hull import HullGrid, build_grid, carve, carve_brute_force, voxel_centers_mm
+from ..reconstruct import SessionModel, build_model, frame_silhouettes, reconstruct_from_silhouettes
+from ..runner import process_range
+from ..session import Session
+from ..settings import Workspace
+from .report import BRUTE_FORCE, LOOKUP, ORIGINAL, OURS, ScalingRow
+from .timing import StageStats, StageTimer
 
 log = logging.getLogger(__name__)
 
@@ -70,8 +70,8 @@ def time_stages(session: Session, out_dir: Path, *, frames: int) -> StageRun:
     """
     import rerun as rr
 
-    from .record_mcap import McapRecorder
-    from .record_rerun import RerunRecorder
+    from ..record_mcap import McapRecorder
+    from ..record_rerun import RerunRecorder
 
     start = time.perf_counter()
     model = build_model(session)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .bench_report import REALTIME_FPS, STAGE_ORDER, BenchReport
+from .report import REALTIME_FPS, STAGE_ORDER, BenchReport
 
 
 def plot_report(report: BenchReport, path: Path) -> None:

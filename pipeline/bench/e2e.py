@@ -19,8 +19,8 @@ from pathlib import Path
 import psutil
 import tomli_w
 
-from .bench_report import EndToEndRun
-from .video import read_frames
+from ..video import read_frames
+from .report import EndToEndRun
 
 log = logging.getLogger(__name__)
 

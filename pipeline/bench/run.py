@@ -22,7 +22,6 @@ import argparse
 import logging
 import os
 import platform
-import sys
 import tempfile
 import time
 from collections.abc import Sequence
@@ -31,11 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .bench_chart import plot_report
-from .bench_e2e import decode_floor, ensure_demo, run_process, voxel_session
-from .bench_report import STAGE_ORDER, BenchReport, format_table, write_json
-from .bench_timing import StageStats
-from .session import load_session
+from ..session import load_session
+from .chart import plot_report
+from .e2e import decode_floor, ensure_demo, run_process, voxel_session
+from .report import STAGE_ORDER, BenchReport, format_table, write_json
+from .timing import StageStats
 
 log = logging.getLogger("pipeline.bench")
 
@@ -88,7 +87,7 @@ def run_bench(
     fine_end_to_end : also time ``process`` end to end at 1 mm voxels.
     work_dir : scratch directory for outputs (a temporary one by default).
     """
-    from .bench_stages import carving_scaling, compare_methods, time_stages
+    from .stages import carving_scaling, compare_methods, time_stages
 
     report = BenchReport()
     report.meta = {
@@ -198,7 +197,3 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"wrote {args.out / 'bench.json'} and {args.out / 'bench.png'} ({time.perf_counter() - start:.0f} s)"
     )
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
