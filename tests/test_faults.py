@@ -26,7 +26,7 @@ from mcap.reader import make_reader
 from mcap.records import Chunk, Message
 from mcap.stream_reader import StreamReader, breakup_chunk
 
-from pipeline import runner
+from pipeline import outputs, runner
 from pipeline.cli import EXIT_FRAMES_FAILED, EXIT_OK, main
 from pipeline.errors import OutputError
 from pipeline.frame_result import FrameResult
@@ -264,8 +264,8 @@ def test_disk_full_is_a_clear_error_and_leaves_nothing(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, room: int
 ) -> None:
     session = build_session(tmp_path / "take", frames=6)
-    real_open = runner._open_partial
-    monkeypatch.setattr(runner, "_open_partial", lambda path: _FullDisk(real_open(path), room))
+    real_open = outputs._open_partial
+    monkeypatch.setattr(outputs, "_open_partial", lambda path: _FullDisk(real_open(path), room))
     out = tmp_path / "out"
     with pytest.raises(OutputError, match=r"disk full while writing the recordings; free space"):
         _run(session, out)
@@ -278,7 +278,7 @@ def test_disk_full_at_rename_leaves_no_half_output(tmp_path: Path, monkeypatch: 
     def replace(src: Any, dst: Any) -> None:
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(runner.os, "replace", replace)
+    monkeypatch.setattr(outputs.os, "replace", replace)
     out = tmp_path / "out"
     with pytest.raises(OutputError, match="disk full"):
         _run(session, out)

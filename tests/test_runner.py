@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 from conftest import build_session, write_video
 
-from pipeline import runner
+from pipeline import frame_task, outputs, runner
 from pipeline.errors import OutputError, SessionError
 from pipeline.frame_result import FrameResult
 from pipeline.recording import load_recording
@@ -150,7 +150,7 @@ def test_silhouette_png_decodes_to_the_mask_in_its_tint(width: int) -> None:
     png = runner.encode_silhouette(mask)
     bgra = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
     assert bgra is not None and bgra.shape == (24, width, 4)
-    r, g, b, a = runner.SILHOUETTE_RGBA
+    r, g, b, a = frame_task.SILHOUETTE_RGBA
     np.testing.assert_array_equal(bgra[mask], np.tile([b, g, r, a], (mask.sum(), 1)))
     assert (bgra[~mask][:, 3] == 0).all()  # transparent outside the silhouette
 
@@ -226,11 +226,11 @@ def test_an_rrd_cut_short_is_not_given_its_final_name(short_session: Path, tmp_p
         load_session(short_session), out_dir=tmp_path, backend="threading", progress=False, frame_fn=fixed_rod
     )
     rrd = tmp_path / "short.rrd"
-    runner._check_rrd_complete(rrd, rrd)  # a finished file passes
+    outputs._check_rrd_complete(rrd, rrd)  # a finished file passes
     cut = tmp_path / ".cut.rrd.partial"
     cut.write_bytes(rrd.read_bytes()[: rrd.stat().st_size * 9 // 10])
     with pytest.raises(OutputError, match=r"final\.rrd: the Rerun recording could not be written completely"):
-        runner._check_rrd_complete(cut, tmp_path / "final.rrd")
+        outputs._check_rrd_complete(cut, tmp_path / "final.rrd")
 
 
 @pytest.mark.slow

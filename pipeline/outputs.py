@@ -1,0 +1,259 @@
+"""The outputs of a run: the MCAP and Rerun files under temporary names, and the summary.
+
+Both files are written as ``.<name>.partial`` beside their final names and renamed
+into place (``os.replace``) only when complete, so an interrupted or failed run never
+leaves a truncated file under a final name, and replaces existing outputs only then.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import logging
+import os
+import uuid
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .errors import OutputError
+from .frame_task import FrameOutput
+from .session import Session
+from .smoothing import smooth_centerlines
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """How a run went.
+
+    frames_failed : (frame index, reason) for every failed frame, in order.
+    outputs : (path, size in bytes) of each file written.
+    exit_code : 0 when every frame is ok or empty, 1 when some failed.
+    """
+
+    frames_ok: int
+    frames_empty: int
+    frames_failed: list[tuple[int, str]]
+    wall_s: float
+    fps: float
+    outputs: list[tuple[Path, int]] = field(default_factory=list)
+
+    @property
+    def exit_code(self) -> int:
+        return 1 if self.frames_failed else 0
+
+    def lines(self) -> list[str]:
+        """The closing summary, one line per fact."""
+        total = self.frames_ok + self.frames_empty + len(self.frames_failed)
+        out = [
+            f"frames: {total} processed, {self.frames_ok} ok, {self.frames_empty} empty, "
+            f"{len(self.frames_failed)} failed",
+        ]
+        out += [f"  failed {span}: {reason}" for span, reason in compress_failures(self.frames_failed)]
+        out.append(f"time: {self.wall_s:.1f} s wall, {self.fps:.1f} frames/s")
+        out += [f"wrote {path} ({_human_size(size)})" for path, size in self.outputs]
+        return out
+
+
+def compress_failures(failed: Sequence[tuple[int, str]]) -> list[tuple[str, str]]:
+    """[(3, "x"), (4, "x"), (5, "x"), (9, "y")] -> [("3-5", "x"), ("9", "y")]."""
+    spans: list[tuple[int, int, str]] = []
+    for index, reason in sorted(failed):
+        if spans and spans[-1][1] == index - 1 and spans[-1][2] == reason:
+            spans[-1] = (spans[-1][0], index, reason)
+        else:
+            spans.append((index, index, reason))
+    return [(f"{a}" if a == b else f"{a}-{b}", reason) for a, b, reason in spans]
+
+
+def _human_size(size: int) -> str:
+    value = float(size)
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if value < 1024 or unit == "GiB":
+            return f"{value:.0f} {unit}" if unit == "B" else f"{value:.1f} {unit}"
+        value /= 1024
+    return f"{size} B"
+
+
+def _partial(path: Path) -> Path:
+    return path.with_name(f".{path.name}.partial")
+
+
+def _open_partial(path: Path) -> IO[bytes]:
+    """Open the temporary file for ``path``'s content (a seam for tests)."""
+    return _partial(path).open("wb")
+
+
+def prepare_outputs(out_dir: Path, name: str, force: bool) -> tuple[Path, Path]:
+    """Check, before any work, that the outputs can be written; return their final paths."""
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(
+            f"{out_dir}: cannot create the output directory ({exc.strerror}); use --out"
+        ) from None
+    if not os.access(out_dir, os.W_OK):
+        raise OutputError(f"{out_dir}: output directory is not writable; use --out to choose another")
+    mcap_path, rrd_path = out_dir / f"{name}.mcap", out_dir / f"{name}.rrd"
+    if not force:
+        for path in (mcap_path, rrd_path):
+            if path.exists():
+                raise OutputError(f"{path}: already exists; use --force to replace it")
+    try:
+        probe = out_dir / f".{name}.{uuid.uuid4().hex}.probe"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise OutputError(f"{out_dir}: cannot write in the output directory ({exc.strerror})") from None
+    return mcap_path, rrd_path
+
+
+def output_error(out_dir: Path, exc: OSError) -> OutputError:
+    if exc.errno == errno.ENOSPC:
+        return OutputError(f"{out_dir}: disk full while writing the recordings; free space and rerun")
+    return OutputError(f"{out_dir}: cannot write the recordings ({exc.strerror or exc})")
+
+
+def _check_rrd_complete(partial: Path, final: Path) -> None:
+    """Rerun writes from a background thread and reports a full disk only in its log:
+    read the file's footer back before giving it its final name."""
+    try:
+        from rerun.chunk import RrdReader
+    except ImportError:  # rerun-sdk without its [catalog] extra: trust the writer
+        return
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "no footer" is said again by the error below
+        try:
+            RrdReader(partial).store()
+        except (RuntimeError, ValueError, OSError) as exc:
+            raise OutputError(
+                f"{final}: the Rerun recording could not be written completely (disk full?); "
+                f"free space and rerun ({' '.join(str(exc).split())[:200]})"
+            ) from None
+
+
+def _smooth(centerlines_mm: NDArray[np.float64], times_s: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    try:
+        return np.asarray(smooth_centerlines(centerlines_mm, times_s), dtype=np.float64)
+    except Exception as exc:  # the per-frame results are safe: lose the extra, not the run
+        log.warning(
+            "temporal smoothing failed (%s: %s); no smoothed centrelines logged", type(exc).__name__, exc
+        )
+        return None
+
+
+class Writers:
+    """The MCAP and Rerun writers of one run, their temporary files, and the tallies."""
+
+    def __init__(self, session: Session, mcap_path: Path, rrd_path: Path, *, images: bool) -> None:
+        import rerun as rr
+
+        from .record_mcap import McapRecorder
+        from .record_rerun import RerunRecorder, default_blueprint
+
+        self.session = session
+        self.mcap_path, self.rrd_path = mcap_path, rrd_path
+        self._mcap_file: IO[bytes] | None = None
+        self._stream: Any = None
+        self.frames: list[int] = []
+        self.times_ns: list[int] = []
+        self.curves: list[NDArray[np.float64] | None] = []
+        self.counts = {"ok": 0, "empty": 0}
+        self.failed: list[tuple[int, str]] = []
+        try:
+            self._mcap_file = _open_partial(mcap_path)
+            meta = {
+                "session": session.name,
+                "fps": repr(session.fps),
+                "frame_count": str(session.frame_count),
+                "centerline_points": str(session.settings.centerline.points),
+                "centerline_method": session.settings.centerline.method,
+                "start_time": session.settings.session.start_time.isoformat(),
+            }
+            self.mcap = McapRecorder(self._mcap_file, session.cameras, images=images, metadata=meta)
+            self._stream = rr.RecordingStream(application_id="pipeline", recording_id=uuid.uuid4())
+            # Deterministic files: no wall-clock "log_time" timeline, only frame and time.
+            self._stream.set_log_time_enabled(False)
+            self._stream.save(
+                _partial(rrd_path), default_blueprint=default_blueprint([c.name for c in session.cameras])
+            )
+            self._stream.send_recording_name(session.name)
+            self.rerun = RerunRecorder(self._stream, session.cameras, session.settings.workspace)
+        except BaseException:
+            self.abort()
+            raise
+
+    def write(self, out: FrameOutput) -> None:
+        result = out.result
+        time_ns = self.session.timestamp_ns(result.index)
+        self.mcap.write_frame(result, time_ns, jpegs=out.jpegs)
+        self.rerun.write_frame(result, time_ns, jpegs=out.jpegs, silhouettes_png=out.silhouettes_png)
+        self.frames.append(result.index)
+        self.times_ns.append(time_ns)
+        self.curves.append(result.centerline_mm if result.status == "ok" else None)
+        if result.status == "failed":
+            self.failed.append((result.index, result.reason))
+        else:
+            self.counts[result.status] = self.counts.get(result.status, 0) + 1
+
+    def _smoothed(self) -> NDArray[np.float64] | None:
+        lengths = {len(c) for c in self.curves if c is not None}
+        if len(lengths) != 1:
+            return None
+        (n,) = lengths
+        stacked = np.full((len(self.curves), n, 3), np.nan)
+        for row, curve in enumerate(self.curves):
+            if curve is not None:
+                stacked[row] = curve
+        start_ns = self.times_ns[0]
+        times_s = (np.asarray(self.times_ns, dtype=np.int64) - start_ns).astype(np.float64) * 1e-9
+        return _smooth(stacked, times_s)
+
+    def finish(self) -> None:
+        """Smoothing, footers, then the renames that make the outputs appear."""
+        wanted = self.frames and self.session.settings.centerline.smooth
+        smoothed = self._smoothed() if wanted else None
+        if smoothed is not None:
+            self.mcap.write_smoothed(smoothed, self.times_ns)
+            self.rerun.write_smoothed(smoothed, self.frames, self.times_ns)
+        self.mcap.finish()
+        assert self._mcap_file is not None
+        self._mcap_file.flush()
+        os.fsync(self._mcap_file.fileno())
+        self._mcap_file.close()
+        self.rerun.finish()
+        self._stream.flush()
+        self._stream.disconnect()
+        _check_rrd_complete(_partial(self.rrd_path), self.rrd_path)
+        for path in (self.mcap_path, self.rrd_path):
+            os.replace(_partial(path), path)
+
+    def abort(self) -> None:
+        """Close everything and remove the temporary files; finished outputs are untouched."""
+        with contextlib.suppress(Exception):
+            if self._mcap_file is not None:
+                self._mcap_file.close()
+        with contextlib.suppress(Exception):
+            if self._stream is not None:
+                self._stream.disconnect()
+        for path in (self.mcap_path, self.rrd_path):
+            with contextlib.suppress(FileNotFoundError):
+                _partial(path).unlink()
+
+    def summary(self, wall_s: float) -> RunSummary:
+        n = len(self.frames)
+        return RunSummary(
+            frames_ok=self.counts.get("ok", 0),
+            frames_empty=self.counts.get("empty", 0),
+            frames_failed=list(self.failed),
+            wall_s=wall_s,
+            fps=n / wall_s if wall_s > 0 else 0.0,
+            outputs=[(p, p.stat().st_size) for p in (self.mcap_path, self.rrd_path)],
+        )
