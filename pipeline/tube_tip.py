@@ -208,21 +208,23 @@ def bend_tip_to_pixels(
     (M', 3) float64, the bent axis; ``points_mm`` when no bend matches better.
     """
     pts = np.asarray(points_mm, dtype=np.float64)
+    # The grey levels read as coverage once for all the spans.
+    seen = [_coverage(contrast, mask) for contrast, mask in zip(contrasts, masks, strict=True)]
     for span in spans_radii:
-        pts = _bend_once(pts, cameras, masks, contrasts, radius_mm, span * radius_mm, rejects)
+        pts = _bend_once(pts, cameras, seen, radius_mm, span * radius_mm, rejects)
     return pts
 
 
 def _bend_once(
     pts: FloatArray,
     cameras: Sequence[Camera],
-    masks: Sequence[NDArray[np.bool_]],
-    contrasts: Sequence[NDArray[np.float32]],
+    coverages: Sequence[NDArray[np.float32]],
     radius_mm: float,
     span_mm: float,
     rejects: Callable[[FloatArray], bool] | None,
 ) -> FloatArray:
-    """One search of :func:`bend_tip_to_pixels`, bending the last ``span_mm``."""
+    """One search of :func:`bend_tip_to_pixels`, bending the last ``span_mm``;
+    ``coverages``: per camera, (H, W) float32 from :func:`_coverage`."""
     arc = polyline_arclength(pts)
     start = max(float(arc[-1]) - span_mm, 0.5 * float(arc[-1]))
     # The part before the bend (to a radius before it, so that the drawn
@@ -232,23 +234,35 @@ def _bend_once(
     body = cut_polyline(pts, keep)
     ahead = _end_frame(pts, arc, at_mm=float(arc[-1]), span_mm=_END_SPAN_MM)
     windows = []
-    for cam, mask, contrast in zip(cameras, masks, contrasts, strict=True):
+    for cam, coverage in zip(cameras, coverages, strict=True):
         window = _window(cam, pts[first:], radius_mm)
         if window is None:
             continue
         (x0, y0), (x1, y1) = window
         fixed = np.zeros(((y1 - y0) * _SUPERSAMPLE, (x1 - x0) * _SUPERSAMPLE), np.uint8)
         _draw_tube(fixed, cam, *_tube_points(body, radius_mm, flat_end=False), radius_mm, (x0, y0))
-        windows.append((cam, _coverage(contrast, mask)[y0:y1, x0:x1], fixed, (x0, y0)))
+        windows.append((cam, coverage[y0:y1, x0:x1], fixed, (x0, y0)))
     if not windows:
         return pts
 
-    def cost(p: FloatArray) -> float:
+    # The pattern search comes back to points it has tried (a step back after
+    # a step forth): each bend's cost is kept. Its steps are sums of powers of
+    # two, so the keys are exact.
+    tried: dict[tuple[float, ...], float] = {}
+
+    def cost(p: FloatArray, below: float) -> float:
+        """Mismatch of the bend ``p`` (across (2,), longer, mm); inf out of
+        bounds, or if it would beat ``below`` but ``rejects`` it (checked only
+        then: most bends tried do not beat the best, and the check is dear)."""
+        key = tuple(p.tolist())
+        if key not in tried:
+            tried[key] = mismatch(p, below)
+        return tried[key]
+
+    def mismatch(p: FloatArray, below: float) -> float:
         if np.hypot(p[0], p[1]) > _MAX_BEND_RADII * radius_mm or abs(p[2]) > _MAX_BEND_RADII * radius_mm:
             return np.inf
         bent = _bend_end(pts, arc, start, p[:2], float(p[2]), ahead)
-        if rejects is not None and rejects(bent):
-            return np.inf
         discs, outline = _tube_points(bent[first:], radius_mm, flat_end=True)
         total = 0.0
         for cam, seen, fixed, origin in windows:
@@ -256,9 +270,11 @@ def _bend_once(
             _draw_tube(canvas, cam, discs, outline, radius_mm, origin)
             drawn = cv2.resize(canvas, seen.shape[::-1], interpolation=cv2.INTER_AREA).astype(np.float32)
             total += float(np.sum((drawn / 255.0 - seen) ** 2))
+        if total < below and rejects is not None and rejects(bent):
+            return np.inf
         return total
 
-    p, best = np.zeros(3), cost(np.zeros(3))
+    p, best = np.zeros(3), cost(np.zeros(3), np.inf)
     for step in _BEND_STEPS_MM:
         improved = True
         while improved:
@@ -267,7 +283,7 @@ def _bend_once(
                 for sign in (1.0, -1.0):
                     q = p.copy()
                     q[i] += sign * step
-                    c = cost(q)
+                    c = cost(q, best)
                     if c < best:
                         best, p, improved = c, q, True
     _log.debug("tip bent by %s mm across, %+.2f mm longer (cost %.1f)", p[:2], p[2], best)
