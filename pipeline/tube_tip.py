@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .camera import Camera
-from .polyline import cut_polyline, polyline_arclength, resample_polyline
+from .polyline import cut_polyline, polyline_arclength
 from .profiles import JAC_EPS_MM, end_edge, sample_image
 from .quality import tube_mask
 
@@ -372,15 +372,18 @@ def _tube_points(axis_mm: FloatArray, radius_mm: float, *, flat_end: bool) -> tu
     that piece in any view); a disc at the end would reach a radius past a flat
     end seen side-on.
     """
+    # The discs are interpolated on the whole axis' arc length up to where the
+    # body ends: the same points as cutting it there and resampling the cut
+    # (see resample_polyline), with one arc length instead of four (this runs
+    # for every bend tried).
     arc = polyline_arclength(axis_mm)
-    body = cut_polyline(axis_mm, max(float(arc[-1]) - radius_mm, 0.0)) if flat_end else axis_mm
-    length = float(polyline_arclength(body)[-1]) if len(body) > 1 else 0.0
-    discs = (
-        resample_polyline(body, max(2, int(np.ceil(length / (0.5 * radius_mm))) + 1))
-        if len(body) > 1
-        else body
-    )
-    end, back = axis_mm[-1], body[-1]
+    length = max(float(arc[-1]) - radius_mm, 0.0) if flat_end else float(arc[-1])
+    if length > 0:
+        u = np.linspace(0.0, length, max(2, int(np.ceil(length / (0.5 * radius_mm))) + 1))
+        discs = np.column_stack([np.interp(u, arc, axis_mm[:, i]) for i in range(3)])
+    else:
+        discs = axis_mm[:1]
+    end, back = axis_mm[-1], discs[-1]
     if not flat_end or not np.linalg.norm(end - back) > 0:
         return discs, np.zeros((0, 3))
     n1, n2 = _normals(end - back)
