@@ -163,7 +163,7 @@ def march_hull(
     if len(pts) == 0:
         return March(base[None].copy(), np.zeros(1, dtype=bool))
     step = step_mm if step_mm is not None else max(voxel_mm, 0.75 * radius_mm)
-    tree = cKDTree(pts)
+    index = _HullIndex.build(pts, voxel_mm)
     # The cross-section sought: the tube's own radius plus a voxel of hull overshoot.
     reach = radius_mm + voxel_mm
     half_slab = max(voxel_mm, 0.5 * step)
@@ -172,9 +172,9 @@ def march_hull(
     counts: list[int] = []  # cross-section sizes of the last clear steps
     if len(known) > 1:
         direction = _end_direction(known, step) if heading is None else _unit(heading)
-        counts = _usual_sections(pts, tree, known, reach, half_slab)
+        counts = _usual_sections(index, known, reach, half_slab)
     else:
-        direction = _initial_direction(pts, tree, base, reach)
+        direction = _initial_direction(index, base, reach)
     if direction is None:
         return March(known.copy(), np.zeros(len(known), dtype=bool))
     limit = int(max_length_mm / step)
@@ -195,7 +195,7 @@ def march_hull(
     skip_recent = int(np.ceil(4.0 * radius_mm / step)) + 1
     for _ in range(limit):
         here = track[n - 1]
-        found = _step(pts, tree, here, direction, step, reach, half_slab, counts, refine)
+        found = _step(index, here, direction, step, reach, half_slab, counts, refine)
         course = None
         if coast and found is not None and found[1] and turn is not None:
             # On course: the heading turned by the last clear steps' turn, one step on.
@@ -208,7 +208,7 @@ def march_hull(
             # on too far is harmless: trim_unexplained_tail cuts what explains no
             # silhouette pixel.
             for ahead in range(2, _LOOK_AHEAD_STEPS + 2):
-                found = _step(pts, tree, here, direction, ahead * step, reach, half_slab, counts, refine)
+                found = _step(index, here, direction, ahead * step, reach, half_slab, counts, refine)
                 if found is not None:
                     break
         if found is None:
@@ -240,8 +240,7 @@ def march_hull(
 
 
 def _step(
-    pts: FloatArray,
-    tree: cKDTree,
+    index: _HullIndex,
     here: FloatArray,
     direction: FloatArray,
     step: float,
@@ -253,7 +252,7 @@ def _step(
     """The axis ``step`` mm ahead: (centre, crowded, cross-section size), or None
     when the hull has no cross-section there or it lies behind ``here``."""
     predicted = here + step * direction
-    section = _slab(pts, tree, predicted, direction, reach, half_slab)
+    section = _slab(index, predicted, direction, reach, half_slab)
     if len(section) == 0:
         return None
     # Where the hull swells past its usual cross-section, another part of the
@@ -288,9 +287,7 @@ def _end_direction(known: FloatArray, step: float) -> FloatArray | None:
     return ahead / norm if norm > 1e-9 else None
 
 
-def _usual_sections(
-    pts: FloatArray, tree: cKDTree, known: FloatArray, reach: float, half_slab: float
-) -> list[int]:
+def _usual_sections(index: _HullIndex, known: FloatArray, reach: float, half_slab: float) -> list[int]:
     """Hull cross-section sizes (point counts) across an (R, 3) polyline at up to
     2 x _BASELINE_STEPS places along it: the march's baseline when it resumes."""
     picks = np.unique(np.linspace(1, len(known) - 1, 2 * _BASELINE_STEPS).round().astype(int))
@@ -299,16 +296,14 @@ def _usual_sections(
         d = known[i] - known[i - 1]
         norm = float(np.linalg.norm(d))
         if norm > 1e-9:
-            out.append(len(_slab(pts, tree, known[i], d / norm, reach, half_slab)))
+            out.append(len(_slab(index, known[i], d / norm, reach, half_slab)))
     return out
 
 
-def _initial_direction(pts: FloatArray, tree: cKDTree, base: FloatArray, reach: float) -> FloatArray | None:
+def _initial_direction(index: _HullIndex, base: FloatArray, reach: float) -> FloatArray | None:
     """Unit direction from the base into the hull, or None if no hull is near the base."""
-    _, nearest = tree.query(base)
-    start = pts[int(nearest)]
-    idx = tree.query_ball_point(start, 3.0 * reach)
-    ahead = pts[idx].mean(axis=0) - base
+    start = index.pts[index.nearest(base)]
+    ahead = index.ball(start, 3.0 * reach).mean(axis=0) - base
     norm = float(np.linalg.norm(ahead))
     if norm < 1e-9:
         return None
@@ -316,8 +311,7 @@ def _initial_direction(pts: FloatArray, tree: cKDTree, base: FloatArray, reach: 
 
 
 def _slab(
-    pts: FloatArray,
-    tree: cKDTree,
+    index: _HullIndex,
     predicted: FloatArray,
     direction: FloatArray,
     reach: float,
@@ -325,11 +319,7 @@ def _slab(
 ) -> FloatArray:
     """(Q, 3) hull points in the slab |(x - predicted) . direction| <= half_slab,
     within 2 * reach of ``predicted``."""
-    idx = tree.query_ball_point(predicted, float(np.hypot(2.0 * reach, half_slab)))
-    if not idx:
-        return np.zeros((0, 3))
-    cand = np.take(pts, idx, axis=0)  # faster than pts[idx] from a list
-    return np.asarray(cand[np.abs((cand - predicted) @ direction) <= half_slab])
+    return index.slab(predicted, direction, float(np.hypot(2.0 * reach, half_slab)), half_slab)
 
 
 def _mean_shift(section: FloatArray, start: FloatArray, reach: float) -> FloatArray | None:
@@ -347,3 +337,94 @@ def _mean_shift(section: FloatArray, start: FloatArray, reach: float) -> FloatAr
         # A 0/1 weighted sum: one matrix product instead of gathering the rows.
         centre = (close @ section) / count
     return np.asarray(centre)
+
+
+# A voxel grid over the hull's bounding box larger than this (cells) is not
+# worth allocating per march: a k-d tree answers instead.
+_MAX_GRID_CELLS = 4_000_000
+
+
+@dataclass(frozen=True, eq=False)
+class _HullIndex:
+    """The hull's points, indexed for "points within r of p" queries.
+
+    Hull points are voxel centres on one grid, so the points near p are a block
+    of a grid of row numbers: a slice, a few array calls, and no k-d tree to
+    build (its build alone was a sixth of the march). Points not on one grid
+    (or a huge one) fall back to a k-d tree; both give the same points.
+
+    Attributes
+    ----------
+    pts : (P, 3) float64 points, world frame, mm.
+    origin : (3,) float64 the point of cell (0, 0, 0): the points' minimum, mm.
+    voxel : grid spacing, mm.
+    rows : (X, Y, Z) int32 row of ``pts`` in each cell, -1 where empty (empty
+        array with a tree).
+    tree : the k-d tree when the points are not on one grid, else None.
+    """
+
+    pts: FloatArray
+    origin: FloatArray
+    voxel: float
+    rows: NDArray[np.int32]
+    tree: cKDTree | None
+
+    @classmethod
+    def build(cls, pts: FloatArray, voxel_mm: float) -> _HullIndex:
+        """Index (P, 3) points (P > 0) expected on a grid of ``voxel_mm`` spacing."""
+        origin = pts.min(axis=0)
+        cell = (pts - origin) / voxel_mm
+        ijk = np.rint(cell).astype(np.intp)
+        shape = ijk.max(axis=0) + 1
+        # 1e-3 voxel: float32 voxel centres round-tripped to float64 are off by ~1e-7.
+        if voxel_mm > 0 and np.abs(cell - ijk).max() < 1e-3 and int(np.prod(shape)) <= _MAX_GRID_CELLS:
+            rows = np.full(tuple(shape), -1, dtype=np.int32)
+            rows[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = np.arange(len(pts), dtype=np.int32)
+            if np.count_nonzero(rows >= 0) == len(pts):  # no two points share a cell
+                return cls(pts, origin, float(voxel_mm), rows, None)
+        return cls(pts, origin, float(voxel_mm), np.zeros((0, 0, 0), dtype=np.int32), cKDTree(pts))
+
+    def ball(self, centre: FloatArray, radius: float) -> FloatArray:
+        """(Q, 3) points within ``radius`` (mm) of ``centre`` (3,), in no particular order."""
+        return self.slab(centre, None, radius, 0.0)
+
+    def slab(self, centre: FloatArray, normal: FloatArray | None, radius: float, half: float) -> FloatArray:
+        """(Q, 3) points within ``radius`` (mm) of ``centre`` (3,) and within ``half``
+        (mm) of the plane through it across unit ``normal`` (3,) (None: no plane)."""
+        if self.tree is not None:
+            idx = self.tree.query_ball_point(centre, radius)
+            cand = np.take(self.pts, idx, axis=0) if idx else np.zeros((0, 3))
+            if normal is None:
+                return cand
+            return np.asarray(cand[np.abs((cand - centre) @ normal) <= half])
+        # Only the cells of the box around the slab's disk can hold such points:
+        # along axis i it reaches radius * sin(angle to the normal) + half * |cos|
+        # (one cell of margin against rounding), then the exact tests.
+        # Scalar arithmetic on the three axes: a tenth of the cost of numpy's
+        # per-call overhead on (3,) arrays.
+        at = ((centre - self.origin) / self.voxel).tolist()
+        cos = [0.0, 0.0, 0.0] if normal is None else normal.tolist()
+        lo, hi = [], []
+        for i in range(3):
+            reach = (radius * math.sqrt(max(1.0 - cos[i] * cos[i], 0.0)) + half * abs(cos[i])) / self.voxel
+            lo.append(max(math.floor(at[i] - reach) - 1, 0))
+            hi.append(math.ceil(at[i] + reach) + 2)
+        a, b, c = lo
+        x, y, z = hi
+        if x <= 0 or y <= 0 or z <= 0:
+            return np.zeros((0, 3))
+        block = self.rows[a:x, b:y, c:z]
+        cand = np.take(self.pts, block[block >= 0], axis=0)
+        gap = cand - centre
+        keep = np.einsum("ij,ij->i", gap, gap) <= radius * radius
+        if normal is not None:
+            keep &= np.abs(gap @ normal) <= half
+        return np.asarray(cand[keep])
+
+    def nearest(self, point: FloatArray) -> int:
+        """Row of the point nearest ``point`` (3,); the first row where several tie
+        (a base on a grid corner is equidistant from four voxel centres)."""
+        if self.tree is not None:
+            return int(self.tree.query(point)[1])
+        gap = self.pts - point
+        return int(np.argmin(np.einsum("ij,ij->i", gap, gap)))
