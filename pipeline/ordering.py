@@ -422,9 +422,15 @@ class _HullIndex:
         return np.asarray(cand[keep])
 
     def nearest(self, point: FloatArray) -> int:
-        """Row of the point nearest ``point`` (3,); the first row where several tie
-        (a base on a grid corner is equidistant from four voxel centres)."""
+        """Row of the point nearest ``point`` (3,)."""
         if self.tree is not None:
             return int(self.tree.query(point)[1])
         gap = self.pts - point
-        return int(np.argmin(np.einsum("ij,ij->i", gap, gap)))
+        dist_sq = np.einsum("ij,ij->i", gap, gap)
+        best = int(np.argmin(dist_sq))
+        if np.count_nonzero(dist_sq == dist_sq[best]) > 1:
+            # A tie (a base on a grid corner is equidistant from four voxel
+            # centres): the march's course can depend on which one it starts
+            # from, so the pick stays the k-d tree's, as it always was.
+            return int(cKDTree(self.pts).query(point)[1])
+        return best
