@@ -406,7 +406,9 @@ def _draw_tube(
     # Pixel centres sit at integer coordinates; on the finer canvas pixel (u, v)'s
     # centre is at s u + (s - 1) / 2.
     offset = np.asarray(origin, dtype=np.float64) - (_SUPERSAMPLE - 1) / (2 * _SUPERSAMPLE)
-    focal = float(np.mean(np.diag(cam.matrix)[:2]))
+    # The mean of fx and fy, written out: np.mean(np.diag(...)) costs more than
+    # the discs drawn here, and this runs for every bend tried in every view.
+    focal = (float(cam.matrix[0, 0]) + float(cam.matrix[1, 1])) / 2
     px = np.round((cam.project(np.vstack([discs_mm, outline_mm])) - offset) * one)
     radii = np.round(focal * radius_mm / cam.to_camera(discs_mm)[:, 2] * one).astype(np.int64)
     for (cx, cy), r in zip(px[: len(discs_mm)].astype(np.int64).tolist(), radii.tolist(), strict=True):
