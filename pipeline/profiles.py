@@ -46,6 +46,25 @@ def sample_image(image: NDArray[np.float32], xy: FloatArray) -> FloatArray:
     return np.asarray(out, dtype=np.float64).reshape(shape)
 
 
+def sample_lines(
+    image: NDArray[np.float32], start_px: FloatArray, direction: FloatArray, steps: FloatArray
+) -> FloatArray:
+    """(K, S) bilinear samples of ``image`` along K lines: at ``start_px`` (K, 2) +
+    ``steps`` (S,) x ``direction`` (K, 2), px; edge pixels repeat, as :func:`sample_image`.
+
+    One cv2.remap with (K, S) maps built directly, per axis: no (K, S, 2) array to
+    build, cast and split (the same sample positions, so the same values).
+    """
+    maps = []
+    for axis in range(2):
+        at = start_px[:, axis, None] + steps[None, :] * direction[:, axis, None]
+        if not np.isfinite(at).all():
+            at = np.nan_to_num(at)  # a point behind a camera (rare: the check is cheaper)
+        maps.append(at.astype(np.float32))
+    out = cv2.remap(image, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return np.asarray(out, dtype=np.float64)
+
+
 def side_edges(
     profile: FloatArray, steps: FloatArray, r_px: FloatArray, *, core: float = 0.6
 ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:

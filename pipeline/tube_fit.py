@@ -36,7 +36,7 @@ from scipy.linalg import solveh_banded
 
 from .camera import Camera
 from .polyline import polyline_arclength, resample_polyline
-from .profiles import median_1d, project_with_jacobian, sample_image, side_edges
+from .profiles import median_1d, project_with_jacobian, sample_lines, side_edges
 from .tube_tip import MIN_SIN_VIEW, refit_tip, tip_zone
 
 FloatArray = NDArray[np.float64]
@@ -320,10 +320,9 @@ def _camera_edges(
     if ok.any():
         reach = float(np.max(2.5 * r_px[ok] + 3.0))
         steps = np.arange(-reach, reach + 1e-9, _PROFILE_STEP_PX)
-        xy = px[:, :, None, :] + steps[None, None, :, None] * normal[:, :, None, :]
-        if not (np.isfinite(px).all() and np.isfinite(normal).all()):
-            xy = np.nan_to_num(xy)  # a point behind a camera (rare: the check is cheaper)
-        profiles = np.concatenate([sample_image(contrast, xy[j]) for j, contrast in enumerate(contrasts)])
+        profiles = np.concatenate(
+            [sample_lines(contrast, px[j], normal[j], steps) for j, contrast in enumerate(contrasts)]
+        )
         lo, hi, found = (a.reshape(scale.shape) for a in side_edges(profiles, steps, r_px.ravel(), core=core))
     safe = np.where(scale > 0, scale, 1.0)
     # An edge may sit no farther from the axis than the radius allows (by 30 %,
