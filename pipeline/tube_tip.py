@@ -87,6 +87,14 @@ _APART_RADII = 4.0
 # the tip error where it was (mean 0.56 against 0.53 mm unbent) at ~50 ms a
 # frame. A loop's tip lying on its stem meets it in 2-3 views of 3.
 _MIN_MEETING_VIEWS = 2
+# ... unless the tip lies against the other part in space: axes within this many
+# radii, surfaces within a diameter. Then the views that see them apart see them
+# barely apart (the gap in an image is at most the gap in space), the edges
+# of the one part blurred into the other's, and their side readings are as
+# doubtful. (Measured: the r 6 loops' single-view frames, axes 3.4-3.6 radii
+# apart, keep their bends (loop p95 1.03 -> 0.94 mm); the demo's, 4.5-4.6
+# radii apart, stay unbent.)
+_TOUCH_RADII = 4.0
 # Erosion / dilation (px) of the silhouette that picks the pixels certainly on
 # the tube / on the background, to scale the grey levels to coverage.
 _CORE_PX = 5
@@ -304,7 +312,8 @@ def tip_meets_tube(
     pixel): where the tip's side readings can be another part's edges.
 
     One such view is not enough (see ``_MIN_MEETING_VIEWS``): the others,
-    which see the tip apart, place it.
+    which see the tip apart, place it; unless the tip lies against that part
+    in space (axes within ``_TOUCH_RADII`` radii).
 
     ``points_mm`` : (M, 3) float64 axis, base -> tip, world frame, mm.
     """
@@ -314,6 +323,8 @@ def tip_meets_tube(
     tip, others = pts[arc >= start], pts[arc < start - _APART_RADII * radius_mm]
     if len(tip) == 0 or len(others) == 0:
         return False
+    if _min_distance(tip, others) < _TOUCH_RADII * radius_mm:
+        min_views = 1
     meeting = 0
     for cam in cameras:
         focal = float(np.mean(np.diag(cam.matrix)[:2]))
@@ -509,7 +520,7 @@ def tip_zone(radius_mm: float) -> float:
 
 
 def _min_distance(a: FloatArray, b: FloatArray) -> float:
-    """Smallest distance between a point of (A, 2) ``a`` and a point of (B, 2) ``b``."""
+    """Smallest distance between a point of (A, D) ``a`` and a point of (B, D) ``b``."""
     gap = a[:, None, :] - b[None, :, :]
     return float(np.sqrt(np.einsum("abi,abi->ab", gap, gap).min()))
 
