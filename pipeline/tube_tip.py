@@ -323,7 +323,10 @@ def tip_meets_tube(
     tip, others = pts[arc >= start], pts[arc < start - _APART_RADII * radius_mm]
     if len(tip) == 0 or len(others) == 0:
         return False
-    if _min_distance(tip, others) < _TOUCH_RADII * radius_mm:
+    # Against another part, not near its own neighbours across a tight bend
+    # (a 24 mm arc's chord on a 30 mm bend is 23 mm): parts twice as far back.
+    far = pts[arc < start - 2.0 * _APART_RADII * radius_mm]
+    if len(far) and _min_distance(tip, far) < _TOUCH_RADII * radius_mm:
         min_views = 1
     meeting = 0
     for cam in cameras:

@@ -44,12 +44,13 @@ def _helix() -> FloatArray:
     return BASE + np.column_stack([25 * np.cos(t) - 25, 25 * np.sin(t), 40 * t / (2 * np.pi)])
 
 
-def _loop() -> FloatArray:
-    """A stem, then 1.15 turns of a 30 mm circle drifting sideways: the tip passes
-    16 mm beside where the circle began (the hull bridges them in some views)."""
+def _loop(drift_mm: float = 16.0) -> FloatArray:
+    """A stem, then 1.15 turns of a 30 mm circle drifting ``drift_mm`` sideways per
+    turn: the tip passes 16 mm (by default) beside where the circle began (the
+    hull bridges them in some views)."""
     stem = np.column_stack([np.zeros(100), np.zeros(100), np.linspace(0.0, 60.0, 100)])
     t = np.linspace(0.0, 2 * np.pi * 1.15, 800)
-    circle = np.column_stack([30 * (1 - np.cos(t)), 16 * t / (2 * np.pi), 60 + 30 * np.sin(t)])
+    circle = np.column_stack([30 * (1 - np.cos(t)), drift_mm * t / (2 * np.pi), 60 + 30 * np.sin(t)])
     return BASE + np.vstack([stem[:-1], circle])
 
 
@@ -430,6 +431,23 @@ def test_tip_meets_tube_only_where_the_tip_comes_back_to_the_tube() -> None:
     assert tip_meets_tube(_loop(), cams, RADIUS)
     assert not tip_meets_tube(_arc(length=200.0, bend_radius=110.0), cams, RADIUS)
     assert not tip_meets_tube(_straight(), cams, RADIUS)
+
+
+def test_tip_meets_tube_needs_two_views_unless_the_tip_lies_against_the_tube() -> None:
+    from conftest import rig_cameras
+
+    from pipeline.tube_tip import tip_meets_tube
+
+    cams = rig_cameras()
+    # The loop drifting 50 mm sideways per turn: its tip passes ~7 radii from
+    # the parts of the tube well before it, and crosses their image in one
+    # view of the rig (camera 1) only: the other two place it, no bend.
+    far = _loop(drift_mm=50.0)
+    assert [tip_meets_tube(far, [c], RADIUS, min_views=1) for c in cams] == [False, True, False]
+    assert not tip_meets_tube(far, cams, RADIUS)
+    # The 16 mm loop's tip lies against its start (axes 2.7 radii apart): one
+    # view seeing them meet is enough.
+    assert tip_meets_tube(_loop(), cams[:1], RADIUS)
 
 
 @pytest.mark.parametrize(("across", "longer"), [((4.0, -3.0), -5.0), ((-3.0, 2.0), 6.0)])
