@@ -120,9 +120,10 @@ def _run_ranges(
     """Yield ``(range, outputs)`` in range order; ``(range, reason)`` for a range given up.
 
     A task that dies (a killed worker, out of memory) or raises takes the pool's
-    in-flight work with it. The unfinished ranges are run again in a fresh pool; if
-    that breaks too, each remaining range runs alone, and one that still dies is
-    given up: its frames are marked failed and the run goes on.
+    in-flight work with it. The unfinished ranges are run again in a fresh pool (the
+    retry); if that breaks too, each remaining range runs alone, so that the ranges
+    that only shared the pool with the culprit are not given up with it, and one
+    that still dies alone is given up: its frames are marked failed, the run goes on.
     """
     from joblib import Parallel
 
@@ -141,12 +142,12 @@ def _run_ranges(
                     done += 1
             except Exception as exc:  # TerminatedWorkerError, BrokenProcessPool, a task's error
                 first, last = group[done][0], group[done][1] - 1
-                reason = f"worker died twice on frames {first}-{last} ({type(exc).__name__})"
+                reason = f"worker died on frames {first}-{last}, also when retried ({type(exc).__name__})"
                 log.warning(
                     "a worker failed on frames %d onwards (%s: %s); %s",
                     group[done][0],
                     type(exc).__name__,
-                    exc,
+                    str(exc).strip().splitlines()[0][:200] if str(exc).strip() else "",
                     "giving up on this range" if attempt == "isolated" else "retrying in a fresh pool",
                 )
                 if attempt == "isolated":
