@@ -307,7 +307,7 @@ def test_accuracy_table_is_markdown_with_ours_smoothed_and_polyfit() -> None:
     assert len(first) == len(COLUMNS)
     assert first[:4] == ["loop", "oblique", "6", "0.20"]
     assert first[7] == "1/5"  # failed / frames
-    assert first[9] == "0.20" and first[11] == "0.20"  # smoothed and polyfit means
+    assert first[9] == "0.20" and first[13] == "0.20"  # smoothed and polyfit means
     second = [cell.strip() for cell in lines[3].strip("|").split("|")]
     assert second[0] == "ninety-helix-r4 (unseen)" and second[9] == "-" and second[-1] == "-"
     assert json.loads(results_json(results))[1]["polyfit"] is None
