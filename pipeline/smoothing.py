@@ -48,8 +48,10 @@ FloatArray = NDArray[np.float64]
 # LOWESS's choice (Cleveland 1979): outliers lie beyond six median deviations.
 _CUTOFF_MEDIANS = 6.0
 # Smoothing weights tried by cross-validation, for times in frame steps: from a spline
-# that all but interpolates (1e-6) to one stiffer than any motion of this robot (1e8).
-_LAMBDAS = np.logspace(-6.0, 8.0, 57)
+# that all but interpolates (1e-6) to one stiffer than any motion of this robot (1e8),
+# a decade apart, then a quarter-decade apart around the best decade.
+_LAMBDAS = np.logspace(-6.0, 8.0, 15)
+_REFINE = np.logspace(-0.75, 0.75, 7)
 # A spline is fitted only through at least this many good frames (the CV halves need 5 each).
 _MIN_SPLINE_FRAMES = 12
 
@@ -153,16 +155,23 @@ def _cross_validated_spline(
     if len(x) < _MIN_SPLINE_FRAMES:
         return None
     y = curves[active].reshape(len(x), -1)
-    folds = ((slice(0, None, 2), slice(1, None, 2)), (slice(1, None, 2), slice(0, None, 2)))
-    errors = np.zeros(len(_LAMBDAS))
-    for fit, test in folds:
-        inside = (x[test] > x[fit][0]) & (x[test] < x[fit][-1])  # no extrapolation
-        for i, lam in enumerate(_LAMBDAS):
-            half = make_smoothing_spline(x[fit], y[fit], lam=float(lam))
-            errors[i] += float(np.sum((half(x[test][inside]) - y[test][inside]) ** 2))
-    lam = 2.0 * float(_LAMBDAS[int(np.argmin(errors))])
+    coarse = _cv_errors(x, y, _LAMBDAS)
+    fine = _LAMBDAS[int(np.argmin(coarse))] * _REFINE
+    lam = 2.0 * float(fine[int(np.argmin(_cv_errors(x, y, fine)))])
     spline = make_smoothing_spline(x, y, lam=lam)
     return np.asarray(spline(offsets), dtype=np.float64).reshape(curves.shape)
+
+
+def _cv_errors(x: FloatArray, y: FloatArray, lambdas: FloatArray) -> FloatArray:
+    """Two-fold cross-validation error of a smoothing spline for each weight in ``lambdas``."""
+    folds = ((slice(0, None, 2), slice(1, None, 2)), (slice(1, None, 2), slice(0, None, 2)))
+    errors = np.zeros(len(lambdas))
+    for fit, test in folds:
+        inside = (x[test] > x[fit][0]) & (x[test] < x[fit][-1])  # no extrapolation
+        for i, lam in enumerate(lambdas):
+            half = make_smoothing_spline(x[fit], y[fit], lam=float(lam))
+            errors[i] += float(np.sum((half(x[test][inside]) - y[test][inside]) ** 2))
+    return errors
 
 
 def _surrounded(active: NDArray[np.bool_], half_window: int, count: int) -> NDArray[np.bool_]:
