@@ -229,6 +229,10 @@ def process_session(
     n_jobs = _effective_jobs(jobs)
     from joblib import delayed
 
+    # Local workers start now: they spawn and import the per-frame modules (~1 s)
+    # while the parent builds the model and opens the writers.
+    warm_up = _warm_up_workers(n_jobs) if backend == "loky" and n_jobs > 1 else None
+
     if frame_fn is None:
         from .reconstruct import build_model
 
@@ -258,6 +262,8 @@ def process_session(
             _progress(stop - start, progress) as bar,
         ):
             ranges = frame_ranges(start, stop, n_workers)
+            for _ in warm_up or ():
+                pass  # long done: the workers were started before the model was built
             for span, outputs in _run_ranges(ranges, call, n_jobs):
                 if isinstance(outputs, str):
                     outputs = [FrameOutput(FrameResult.failed(i, outputs), None, None) for i in range(*span)]
@@ -285,6 +291,22 @@ def process_session(
             _release_loky_workers()
     wall = time.perf_counter() - t0
     return writer.summary(wall)
+
+
+def _import_frame_modules() -> None:
+    from . import reconstruct  # noqa: F401
+
+
+def _warm_up_workers(n_jobs: int) -> Iterator[None]:
+    """Start ``n_jobs`` loky workers importing the per-frame modules; returns at once.
+
+    The run's own ``Parallel`` calls reuse these workers (joblib keeps one reusable
+    loky executor per process, kept as long as its arguments do not change).
+    """
+    from joblib import Parallel, delayed
+
+    parallel = Parallel(n_jobs=n_jobs, backend="loky", return_as="generator_unordered")
+    return iter(parallel(delayed(_import_frame_modules)() for _ in range(n_jobs)))
 
 
 def _release_loky_workers() -> None:
