@@ -77,28 +77,6 @@ def infer_base(
     return base
 
 
-def track_hull(
-    points_mm: FloatArray,
-    base_mm: FloatArray,
-    *,
-    radius_mm: float,
-    voxel_mm: float,
-    step_mm: float | None = None,
-    max_length_mm: float = 2000.0,
-    refine: Callable[[FloatArray, FloatArray], FloatArray | None] | None = None,
-) -> FloatArray:
-    """March through the hull from the base to the tip: :func:`march_hull`'s polyline."""
-    return march_hull(
-        points_mm,
-        base_mm,
-        radius_mm=radius_mm,
-        voxel_mm=voxel_mm,
-        step_mm=step_mm,
-        max_length_mm=max_length_mm,
-        refine=refine,
-    ).points_mm
-
-
 @dataclass(frozen=True, eq=False)
 class March:
     """Result of :func:`march_hull`.

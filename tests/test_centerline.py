@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.centerline import smooth_curve
 from pipeline.evaluate import centerline_distances
-from pipeline.ordering import infer_base, track_hull
+from pipeline.ordering import infer_base, march_hull
 from pipeline.polyline import cut_polyline, polyline_arclength, resample_polyline
 
 BASE = np.array([128.0, 128.0, 0.0])
@@ -74,7 +74,7 @@ def test_track_recovers_the_tube_axis_from_base_to_tip(name: str) -> None:
     curve = SHAPES[name]()
     # The hull of a real tube is a little fatter than the tube: + half a voxel.
     points = voxelise(curve, RADIUS + 1.0)
-    track = track_hull(points, BASE, radius_mm=RADIUS, voxel_mm=VOXEL)
+    track = march_hull(points, BASE, radius_mm=RADIUS, voxel_mm=VOXEL).points_mm
     # Beyond the true tip the march runs on into the round end of the voxel set.
     inside = polyline_arclength(track) < polyline_arclength(curve)[-1] - RADIUS
     dist = centerline_distances(track[inside], curve)
@@ -98,11 +98,11 @@ def test_track_recovers_the_tube_axis_from_base_to_tip(name: str) -> None:
 
 def test_track_does_not_depend_on_the_order_of_the_points() -> None:
     points = voxelise(_loop(), RADIUS + 1.0)
-    forward = track_hull(points, BASE, radius_mm=RADIUS, voxel_mm=VOXEL)
-    backward = track_hull(points[::-1].copy(), BASE, radius_mm=RADIUS, voxel_mm=VOXEL)
-    shuffled = track_hull(
+    forward = march_hull(points, BASE, radius_mm=RADIUS, voxel_mm=VOXEL).points_mm
+    backward = march_hull(points[::-1].copy(), BASE, radius_mm=RADIUS, voxel_mm=VOXEL).points_mm
+    shuffled = march_hull(
         points[np.random.default_rng(0).permutation(len(points))], BASE, radius_mm=RADIUS, voxel_mm=VOXEL
-    )
+    ).points_mm
     # Only float summation order differs.
     np.testing.assert_allclose(backward, forward, atol=1e-9)
     np.testing.assert_allclose(shuffled, forward, atol=1e-9)
@@ -112,14 +112,14 @@ def test_track_from_the_other_end_runs_tip_to_base() -> None:
     curve = _arc()
     points = voxelise(curve, RADIUS + 1.0)
     # Starting at the tube's far end (the cap centre) the march goes the other way.
-    track = track_hull(points, curve[-1], radius_mm=RADIUS, voxel_mm=VOXEL)
+    track = march_hull(points, curve[-1], radius_mm=RADIUS, voxel_mm=VOXEL).points_mm
     assert np.linalg.norm(track[-1] - BASE) < RADIUS
     assert centerline_distances(track, curve).mean() < 0.5
 
 
 def test_no_hull_near_the_base_gives_a_single_point() -> None:
     far = np.array([10.0, 10.0, 250.0])
-    assert track_hull(np.zeros((0, 3)), far, radius_mm=RADIUS, voxel_mm=VOXEL).shape == (1, 3)
+    assert march_hull(np.zeros((0, 3)), far, radius_mm=RADIUS, voxel_mm=VOXEL).points_mm.shape == (1, 3)
 
 
 def test_inferred_base_is_where_the_tube_meets_the_floor() -> None:
