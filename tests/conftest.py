@@ -17,7 +17,7 @@ import pytest
 import tomli_w
 from numpy.typing import NDArray
 
-from pipeline.calibration_io import write_calibration
+from pipeline.calibration_io import read_calibration, write_calibration
 from pipeline.camera import Camera
 from pipeline.synth.rig import make_rig
 
@@ -113,3 +113,25 @@ def build_session(
 def make_session() -> Callable[..., Path]:
     """Factory: ``make_session(tmp_path / "s", **overrides)``; see :func:`build_session`."""
     return build_session
+
+
+def rotation_angle_deg(R_a: NDArray[np.float64], R_b: NDArray[np.float64]) -> float:
+    """Angle (degrees) of the rotation between two (3, 3) rotation matrices."""
+    rvec, _ = cv2.Rodrigues(R_a @ R_b.T)
+    return float(np.degrees(np.linalg.norm(rvec)))
+
+
+def assert_meets_calibration_targets(
+    cameras: Sequence[Camera], mean_px: dict[str, float], truth: Path
+) -> None:
+    """Issue 7's targets for every calibrated camera against truth_calibration.toml:
+    0.2 px mean re-projection error (the original's figure), focal length within
+    0.5 %, optical centre within 2 mm, orientation within 0.2 degrees."""
+    true_cams = {c.name: c for c in read_calibration(truth)}
+    for cam in cameras:
+        true = true_cams[cam.name]
+        assert mean_px[cam.name] <= 0.2, cam.name
+        assert abs(cam.matrix[0, 0] / true.matrix[0, 0] - 1) <= 0.005, cam.name
+        assert abs(cam.matrix[1, 1] / true.matrix[1, 1] - 1) <= 0.005, cam.name
+        assert np.linalg.norm(cam.center_mm - true.center_mm) <= 2.0, cam.name
+        assert rotation_angle_deg(cam.camera_from_world, true.camera_from_world) <= 0.2, cam.name
