@@ -1,13 +1,13 @@
 """Per-frame wall-clock samples per stage, and their median / 95th percentile.
 
 Used by ``make bench`` only; the pipeline itself records its per-stage times in
-:attr:`FrameResult.timings_s`, which :meth:`StageTimer.add_timings` takes as is.
+:attr:`FrameResult.timings_s`, which the bench adds sample by sample.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -55,11 +55,6 @@ class StageTimer:
 
     def add(self, stage: str, seconds: float) -> None:
         self.samples_s.setdefault(stage, []).append(float(seconds))
-
-    def add_timings(self, timings_s: Mapping[str, float], *, prefix: str = "") -> None:
-        """Add every stage of a ``FrameResult.timings_s`` as one sample each."""
-        for stage, seconds in timings_s.items():
-            self.add(prefix + stage, seconds)
 
     def stats(self) -> dict[str, StageStats]:
         """Stage -> median / p95 of its samples, in the order stages were first seen."""
