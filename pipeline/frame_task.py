@@ -48,16 +48,6 @@ class FrameOutput:
     silhouettes_png: tuple[bytes, ...] | None
 
 
-def reconstruct_with_silhouettes(
-    index: int, images: Sequence[Image], model: Any
-) -> tuple[FrameResult, Sequence[Mask] | None]:
-    """The default frame function: silhouettes, then the reconstruction from them."""
-    from .reconstruct import frame_silhouettes, reconstruct_from_silhouettes
-
-    masks = frame_silhouettes(images, model)
-    return reconstruct_from_silhouettes(index, images, masks, model), masks
-
-
 def _png_chunk(tag: bytes, data: bytes) -> bytes:
     return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data))
 
@@ -129,7 +119,10 @@ def process_range(
     frame_fn: FrameFunction | None = None,
 ) -> list[FrameOutput]:
     """Decode frames ``start <= i < stop`` of every video and process them (one task)."""
-    frame_fn = frame_fn or reconstruct_with_silhouettes
+    if frame_fn is None:
+        from .reconstruct import reconstruct_with_silhouettes
+
+        frame_fn = reconstruct_with_silhouettes
     readers = [read_frames(Path(p), start, stop) for p in video_paths]
     outputs = []
     frames = zip(*readers, strict=True)

@@ -68,21 +68,26 @@ def frame_silhouettes(images: Sequence[NDArray[np.uint8]], model: SessionModel) 
 def reconstruct_frame(
     index: int, images: Sequence[NDArray[np.uint8] | None], model: SessionModel
 ) -> FrameResult:
-    """One frame, from its grey images (one per camera, None if undecodable).
-
-    = :func:`frame_silhouettes` + :func:`reconstruct_from_silhouettes`, with the
-    silhouette time recorded under "silhouette".
-    """
+    """One frame, from its grey images (one per camera, None if undecodable)."""
     for cam, image in zip(model.cameras, images, strict=True):
         if image is None:
             return FrameResult.failed(index, f"frame {index}: camera {cam.name!r} image could not be decoded")
-    present = [im for im in images if im is not None]
-    start = time.perf_counter()
-    masks = frame_silhouettes(present, model)
-    elapsed = time.perf_counter() - start
-    result = reconstruct_from_silhouettes(index, present, masks, model)
-    result.timings_s["silhouette"] = elapsed
+    result, _ = reconstruct_with_silhouettes(index, [im for im in images if im is not None], model)
     return result
+
+
+def reconstruct_with_silhouettes(
+    index: int, images: Sequence[NDArray[np.uint8]], model: SessionModel
+) -> tuple[FrameResult, list[NDArray[np.bool_]]]:
+    """:func:`frame_silhouettes` + :func:`reconstruct_from_silhouettes`, with the
+    silhouette time recorded under "silhouette"; the silhouettes are returned too
+    (the runner logs them)."""
+    start = time.perf_counter()
+    masks = frame_silhouettes(images, model)
+    elapsed = time.perf_counter() - start
+    result = reconstruct_from_silhouettes(index, images, masks, model)
+    result.timings_s["silhouette"] = elapsed
+    return result, masks
 
 
 def reconstruct_from_silhouettes(

@@ -285,6 +285,9 @@ def test_end_to_end_centrelines_match_the_ground_truth(e2e: tuple[Path, Path, st
     rec = load_recording(out / "demo.mcap")
     truth_mm = np.load(session / "ground_truth.npz")["centerlines"]
     assert (rec.statuses == "ok").all() and len(rec) == E2E_FRAMES
+    # Every stage of the worker's frame path is timed, silhouettes included.
+    stages = {"decode", "silhouette", "carve", "centerline", "quality", "encode"}
+    assert all(stages <= set(m["timings_s"]) for m in rec.metrics)
     for row, frame in enumerate(rec.frame_indices):
         curve_mm = rec.centerlines_m[row] * 1000.0
         # Nearest distance from each reconstructed point to the dense true curve. The

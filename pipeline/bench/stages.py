@@ -25,7 +25,7 @@ from ..baseline_curve import polyfit_centerline
 from ..camera import Camera
 from ..frame_result import FrameResult
 from ..hull import HullGrid, build_grid, carve, carve_brute_force, voxel_centers_mm
-from ..reconstruct import SessionModel, build_model, frame_silhouettes, reconstruct_from_silhouettes
+from ..reconstruct import SessionModel, build_model, reconstruct_with_silhouettes
 from ..runner import process_range
 from ..session import Session
 from ..settings import Workspace
@@ -81,11 +81,7 @@ def time_stages(session: Session, out_dir: Path, *, frames: int) -> StageRun:
     def frame_fn(
         index: int, images: Sequence[NDArray[np.uint8]], m: SessionModel
     ) -> tuple[FrameResult, Masks]:
-        t0 = time.perf_counter()
-        sil = frame_silhouettes(images, m)
-        elapsed = time.perf_counter() - t0
-        result = reconstruct_from_silhouettes(index, images, sil, m)
-        result.timings_s["silhouette"] = elapsed
+        result, sil = reconstruct_with_silhouettes(index, images, m)
         masks[index] = sil
         return result, sil
 
