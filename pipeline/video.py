@@ -6,18 +6,29 @@ images and never a path.
 
 from __future__ import annotations
 
+import bisect
+import logging
+import math
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
 
+import av
 import cv2
 import numpy as np
+from av.video.reformatter import VideoReformatter
 from numpy.typing import NDArray
 
 from .errors import VideoError
 
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mkv", ".mov", ".m4v")
+
+log = logging.getLogger(__name__)
+
+# An AVI packet starts after its chunk's header (fourcc and size), where idx1 points.
+_CHUNK_HEADER_BYTES = 8
 
 # A damaged or half-copied video is reported by us, once, naming the file; OpenCV's and
 # FFmpeg's own lines ("moov atom not found", "overread 8") would bury that message and
@@ -60,40 +71,213 @@ def probe_video(path: Path) -> VideoInfo:
 
 
 def read_frames(path: Path, start: int, stop: int) -> Iterator[tuple[int, NDArray[np.uint8] | None]]:
-    """Yield ``(index, grey image or None)`` for frames ``start <= index < stop``.
+    """Yield ``(index, grey image or None)`` for every frame ``start <= index < stop``, in order.
 
-    None marks a frame that could not be decoded (a truncated or damaged file);
-    frames are positioned exactly (decoded from the start or a seek verified by
-    the reported position), so frame ``i`` is the i-th frame of the file.
+    Parameters
+    ----------
+    path : the video file.
+    start, stop : frame range; frame ``i`` is the one the container times at ``i / fps``.
+
+    Yields
+    ------
+    index : int, ``start``, ``start + 1``, ... ``stop - 1``.
+    image : (H, W) uint8 grey image (OpenCV's BGR-to-grey of the decoded picture), or
+        None where the file cannot provide that frame: cut short, a packet lost in
+        damaged bytes or rejected by the decoder, or an inter-coded frame that would be
+        decoded from a damaged reference. Why is logged once per call, naming the frames.
+
+    Notes
+    -----
+    Each frame is placed by its timestamp, never by counting packets: an AVI has no
+    timestamps of its own and FFmpeg numbers its packets as they come, so one chunk
+    lost in damaged bytes would shift every later frame by one. Where the container
+    indexes every frame (AVI idx1, MP4 sample tables), a packet takes the timestamp of
+    the index entry it starts at instead.
     """
-    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    if stop <= start:
+        return
+    problems: dict[int, str] = {}
     try:
-        if not cap.isOpened():
-            for i in range(start, stop):
-                yield i, None
-            return
-        _seek(cap, start)
+        container = av.open(str(path))
+    except (av.error.FFmpegError, OSError) as exc:  # probe_video reports this before a run
+        log.warning("%s: cannot be opened (%s); frames %d-%d failed", path, exc, start, stop - 1)
         for i in range(start, stop):
-            ok, frame = cap.read()
-            if not ok or frame is None:
-                yield i, None
-                continue
-            if frame.ndim == 3:
-                frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
-            yield i, np.asarray(frame, dtype=np.uint8)  # no copy: already uint8 (typed for mypy)
+            yield i, None
+        return
+    try:
+        expected = start
+        if container.streams.video:
+            for index, image in _decode(container, container.streams.video[0], start, stop, problems):
+                if index < expected:  # a repeated timestamp: keep the first
+                    continue
+                for lost in range(expected, index):
+                    problems.setdefault(lost, "missing from the stream")
+                    yield lost, None
+                yield index, image
+                expected = index + 1
+        for i in range(expected, stop):
+            problems.setdefault(i, "not in the file (cut short?)")
+            yield i, None
     finally:
-        cap.release()
+        container.close()
+        _log_problems(path, {i: r for i, r in problems.items() if start <= i < stop})
 
 
-def _seek(cap: cv2.VideoCapture, start: int) -> None:
-    """Place ``cap`` so that the next read returns frame ``start``."""
-    if start <= 0:
-        return
-    cap.set(cv2.CAP_PROP_POS_FRAMES, start)
-    if int(cap.get(cv2.CAP_PROP_POS_FRAMES)) == start:
-        return
-    # The container could not seek exactly: decode from the beginning instead.
-    cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
-    for _ in range(start):
-        if not cap.grab():
-            return
+@dataclass(frozen=True)
+class _FrameIndex:
+    """The container's own index of a video stream: one entry per frame, in file order.
+
+    ``positions`` (byte offsets, ascending), ``timestamps`` (in the stream's time base)
+    and ``sizes`` (bytes) are parallel lists; ``keyframes`` says which entries decode
+    without a reference.
+    """
+
+    positions: list[int]
+    timestamps: list[int]
+    sizes: list[int]
+    keyframes: list[bool]
+
+    @classmethod
+    def of(cls, stream: av.video.stream.VideoStream) -> _FrameIndex | None:
+        """The index of ``stream``, or None unless it has an entry for each of its frames.
+
+        Matroska's cues list only some keyframes, and an AVI cut short has lost its
+        idx1 (the demuxer then indexes packets as it reads them); both carry timestamps
+        the demuxer can be trusted with, or have nothing better to offer.
+        """
+        entries = sorted(stream.index_entries, key=lambda e: e.pos)
+        if not entries or len(entries) != stream.frames:
+            return None
+        return cls(
+            positions=[e.pos for e in entries],
+            timestamps=[e.timestamp for e in entries],
+            sizes=[e.size for e in entries],
+            keyframes=[e.is_keyframe for e in entries],
+        )
+
+    def seek_entry(self, to_index: Callable[[int], int], start: int) -> int:
+        """The entry a seek to frame ``start`` lands on: the last keyframe at or before it."""
+        landing = 0
+        for k, (timestamp, keyframe) in enumerate(zip(self.timestamps, self.keyframes, strict=True)):
+            if keyframe and to_index(timestamp) <= start:
+                landing = k
+        return landing
+
+    def locate(self, packet: av.Packet) -> int | None:
+        """The entry ``packet`` was read from, or None if it starts at no entry.
+
+        A packet that does not start at an entry (give or take an AVI chunk header),
+        or is not the entry's size, is bytes the demuxer resynchronised into.
+        """
+        if packet.pos is None:
+            return None
+        k = bisect.bisect_right(self.positions, packet.pos) - 1
+        if k < 0 or packet.pos - self.positions[k] > _CHUNK_HEADER_BYTES or packet.size != self.sizes[k]:
+            return None
+        return k
+
+
+def _decode(
+    container: av.container.InputContainer,
+    stream: av.video.stream.VideoStream,
+    start: int,
+    stop: int,
+    problems: dict[int, str],
+) -> Iterator[tuple[int, NDArray[np.uint8] | None]]:
+    """Yield ``(index, grey image)`` for the frames from ``start`` that decode cleanly, ascending.
+
+    Frames that do not come out are left out (the caller fills the gaps with None)
+    and their reason goes into ``problems`` (frame index -> reason).
+    """
+    stream.codec_context.options = {"err_detect": "explode"}  # a damaged packet fails, not a garbled picture
+    t0 = stream.start_time or 0
+    rate = stream.average_rate or stream.guessed_rate or 30
+    # PyAV types time_base as optional; a demuxed stream always has one.
+    frames_per_tick = float((stream.time_base or Fraction(1, 1000)) * rate)  # index = (ts - t0) * this
+
+    def to_index(timestamp: int) -> int:
+        return round((timestamp - t0) * frames_per_tick)
+
+    index = _FrameIndex.of(stream)
+    if start > 0:
+        # To the last keyframe at or before `start`; the frames up to it are decoded and dropped.
+        container.seek(t0 + math.floor(start / frames_per_tick), stream=stream, backward=True)
+    reformatter = VideoReformatter()  # one scaler context for every frame (half the cost of to_ndarray's)
+    # No picture to refer to until a keyframe: at the start, after a seek or after damage.
+    broken = True
+    keyframe_pts: int | None = None  # of the last keyframe sent to the decoder
+    # The index entry the next packet should come from: where the seek lands.
+    next_entry = None if index is None else index.seek_entry(to_index, start)
+    previous = start - 1
+    for packet in container.demux(stream):
+        keyframe = packet.is_keyframe
+        if index is not None and packet.size:
+            k = index.locate(packet)
+            if k is None:
+                broken = True
+                continue
+            if next_entry is not None and k > next_entry:
+                for j in range(next_entry, k):
+                    problems.setdefault(to_index(index.timestamps[j]), "lost in damaged bytes")
+                broken = True
+            next_entry = k + 1
+            if packet.dts is not None:
+                # The index's timestamp, not the demuxer's count of the packets it found.
+                shift = index.timestamps[k] - packet.dts
+                packet.dts = index.timestamps[k]
+                if packet.pts is not None:
+                    packet.pts += shift
+            keyframe = index.keyframes[k]
+        if packet.size:
+            if keyframe:
+                broken = False
+                keyframe_pts = packet.pts
+            elif broken:
+                if packet.pts is not None:
+                    problems.setdefault(to_index(packet.pts), "its reference frame was damaged")
+                continue
+        try:
+            frames = packet.decode()
+        except av.error.FFmpegError as exc:
+            if packet.pts is not None:
+                problems.setdefault(to_index(packet.pts), f"rejected by the decoder ({exc.strerror})")
+            broken = True
+            continue
+        for frame in frames:
+            i = previous + 1 if frame.pts is None else to_index(frame.pts)
+            previous = i
+            if i >= stop:
+                return
+            if i < start:
+                continue
+            if frame.is_corrupt:
+                problems.setdefault(i, "decoded with errors")
+                # Later frames refer to it, unless a keyframe was sent since (the decoder
+                # may hand out a rejected frame's remains after the next keyframe).
+                if keyframe_pts is None or frame.pts is None or frame.pts >= keyframe_pts:
+                    broken = True
+                continue
+            bgr = reformatter.reformat(frame, format="bgr24").to_ndarray()
+            # Via BGR, as OpenCV reads it: the same grey levels to the bit (PyAV's own
+            # "gray" conversion differs by up to 2 levels).
+            yield i, np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), dtype=np.uint8)
+
+
+def _log_problems(path: Path, problems: dict[int, str]) -> None:
+    """One warning per reason, naming the frames that got None for it."""
+    by_reason: dict[str, list[int]] = {}
+    for i, reason in sorted(problems.items()):
+        by_reason.setdefault(reason, []).append(i)
+    for reason, frames in by_reason.items():
+        log.warning("%s: frame(s) %s failed: %s", path, _spans(frames), reason)
+
+
+def _spans(frames: list[int]) -> str:
+    """``[2, 3, 4, 7]`` -> ``"2-4, 7"`` (ascending input)."""
+    spans: list[list[int]] = []
+    for i in frames:
+        if spans and i == spans[-1][1] + 1:
+            spans[-1][1] = i
+        else:
+            spans.append([i, i])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in spans)
