@@ -23,8 +23,9 @@ Timelines: ``frame`` (sequence: frame index) and ``time`` (timestamp of the fram
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import rerun as rr
@@ -109,36 +110,67 @@ class _Series:
                 column.append(float("nan"))
 
 
+def _points_columns(items: list[NDArray[np.float64]]) -> Any:
+    return rr.Points3D.columns(positions=np.concatenate(items) if items else np.zeros((0, 3)))
+
+
+# Per kind of row: the component columns of the present items, and each item's
+# instance count (a row without an item has none).
+_KINDS: dict[str, tuple[Callable[[list[Any]], Any], Callable[[Any], int]]] = {
+    "points": (_points_columns, len),
+    "strips3d": (lambda items: rr.LineStrips3D.columns(strips=items), lambda _: 1),
+    "strips2d": (lambda items: rr.LineStrips2D.columns(strips=items), lambda _: 1),
+    "image": (lambda items: rr.EncodedImage.columns(blob=items), lambda _: 1),
+}
+
+
 @dataclass
-class _Images:
-    """Encoded images per entity, kept for up to ``batch`` frames and sent as columns:
-    one ``send_columns`` of 100 images costs a fifth of 100 ``log`` calls, and images
-    are most of what the parent process logs."""
+class _Rows:
+    """One entity's per-frame data (None: nothing at that frame)."""
+
+    kind: str
+    frames: list[int] = field(default_factory=list)
+    times_ns: list[int] = field(default_factory=list)
+    items: list[Any] = field(default_factory=list)
+
+
+@dataclass
+class _Columns:
+    """Every entity's per-frame data, kept for up to ``batch`` frames and sent as
+    columns: one ``send_columns`` of 100 frames costs a fraction of 100 ``log``
+    calls, and logging is most of what the parent process does per frame.
+
+    A frame without data (no curve, no silhouette) is a row with no instance: the
+    viewer shows nothing there, as after a ``Clear``, rather than the previous
+    frame's data.
+    """
 
     batch: int = 100
-    frames: dict[str, list[int]] = field(default_factory=dict)
-    times_ns: dict[str, list[int]] = field(default_factory=dict)
-    blobs: dict[str, list[bytes]] = field(default_factory=dict)
+    rows: dict[str, _Rows] = field(default_factory=dict)
 
-    def add(self, path: str, frame: int, time_ns: int, blob: bytes) -> None:
-        self.frames.setdefault(path, []).append(frame)
-        self.times_ns.setdefault(path, []).append(time_ns)
-        self.blobs.setdefault(path, []).append(blob)
+    def add(self, path: str, kind: str, frame: int, time_ns: int, item: Any) -> None:
+        rows = self.rows.setdefault(path, _Rows(kind))
+        rows.frames.append(frame)
+        rows.times_ns.append(time_ns)
+        rows.items.append(item)
 
     def full(self) -> bool:
-        return any(len(f) >= self.batch for f in self.frames.values())
+        return any(len(r.frames) >= self.batch for r in self.rows.values())
 
     def send(self, rec: rr.RecordingStream) -> None:
-        for path, blobs in self.blobs.items():
+        for path, rows in self.rows.items():
+            columns, count = _KINDS[rows.kind]
+            present = [item for item in rows.items if item is not None]
+            lengths = [0 if item is None else count(item) for item in rows.items]
             rec.send_columns(
                 path,
                 indexes=[
-                    rr.TimeColumn("frame", sequence=np.asarray(self.frames[path], dtype=np.int64)),
-                    rr.TimeColumn("time", timestamp=np.asarray(self.times_ns[path]).astype("datetime64[ns]")),
+                    rr.TimeColumn("frame", sequence=np.asarray(rows.frames, dtype=np.int64)),
+                    rr.TimeColumn("time", timestamp=np.asarray(rows.times_ns).astype("datetime64[ns]")),
                 ],
-                columns=rr.EncodedImage.columns(blob=blobs),
+                columns=columns(present).partition(lengths),
             )
-        self.frames, self.times_ns, self.blobs = {}, {}, {}
+        self.rows = {}
 
 
 class RerunRecorder:
@@ -156,12 +188,8 @@ class RerunRecorder:
         self._cameras = tuple(cameras)
         self._workspace = workspace
         self._series = _Series()
-        self._images = _Images()
+        self._columns = _Columns()
         self._statics_written = False
-
-    def _set_time(self, frame: int, time_ns: int) -> None:
-        self._rec.set_time("frame", sequence=frame)
-        self._rec.set_time("time", timestamp=np.datetime64(time_ns, "ns"))
 
     def write_statics(self) -> None:
         """The world's axes, the workspace box and the cameras (all static)."""
@@ -213,6 +241,11 @@ class RerunRecorder:
             rr.LineStrips3D.from_fields(radii=_CURVE_RADIUS_MM, colors=[_CENTERLINE_RGB]),
             static=True,
         )
+        rec.log(
+            "world/centerline_smoothed",
+            rr.LineStrips3D.from_fields(radii=_CURVE_RADIUS_MM, colors=[_SMOOTHED_RGB]),
+            static=True,
+        )
         rec.log("world/tip", rr.Points3D.from_fields(radii=3.0, colors=[_TIP_RGB]), static=True)
         for cam in self._cameras:
             base = image_path(cam.name)
@@ -243,40 +276,25 @@ class RerunRecorder:
         """One frame: images, silhouettes, hull, centreline (3-D and re-projected), tip."""
         if not self._statics_written:
             self.write_statics()
-        rec = self._rec
-        self._set_time(result.index, time_ns)
+        frame, add = result.index, self._columns.add
+        curve = result.centerline_mm if result.status == "ok" else None
         for i, cam in enumerate(self._cameras):
             base = image_path(cam.name)
-            # A frame without an image or silhouette clears the previous one rather than
-            # leaving it on screen under this frame's time.
             if jpegs is not None:
-                self._log_encoded(f"{base}/jpeg", jpegs[i], result.index, time_ns)
-            png = silhouettes_png[i] if silhouettes_png is not None else b""
-            self._log_encoded(f"{base}/silhouette", png, result.index, time_ns)
-        rec.log("world/hull", rr.Points3D.from_fields(positions=result.points_mm))
-        curve = result.centerline_mm if result.status == "ok" else None
-        if curve is None:
-            # Clear the previous frame's curve so a failed frame shows no stale answer.
-            for path in ["world/centerline", "world/tip"] + [
-                f"{image_path(c.name)}/centerline" for c in self._cameras
-            ]:
-                rec.log(path, rr.Clear(recursive=False))
-        else:
-            rec.log("world/centerline", rr.LineStrips3D.from_fields(strips=[curve]))
-            rec.log("world/tip", rr.Points3D.from_fields(positions=curve[-1:]))
-            for cam in self._cameras:
+                add(f"{base}/jpeg", "image", frame, time_ns, jpegs[i] or None)
+            png = silhouettes_png[i] if silhouettes_png is not None else None
+            add(f"{base}/silhouette", "image", frame, time_ns, png or None)
+            pixels = None
+            if curve is not None:
                 pixels = cam.project(curve) + OPENCV_TO_RERUN_PX
                 pixels = pixels[np.isfinite(pixels).all(axis=1)]
-                rec.log(f"{image_path(cam.name)}/centerline", rr.LineStrips2D.from_fields(strips=[pixels]))
+            add(f"{base}/centerline", "strips2d", frame, time_ns, pixels)
+        add("world/hull", "points", frame, time_ns, np.asarray(result.points_mm).reshape(-1, 3))
+        add("world/centerline", "strips3d", frame, time_ns, curve)
+        add("world/tip", "points", frame, time_ns, None if curve is None else curve[-1:])
+        if self._columns.full():
+            self._columns.send(self._rec)
         self._series.add(result.index, time_ns, self._scalars(result))
-
-    def _log_encoded(self, path: str, data: bytes, frame: int, time_ns: int) -> None:
-        if data:
-            self._images.add(path, frame, time_ns, data)
-            if self._images.full():
-                self._images.send(self._rec)
-        else:
-            self._rec.log(path, rr.Clear(recursive=False))
 
     def _scalars(self, result: FrameResult) -> dict[str, float]:
         values: dict[str, float] = {"plots/voxels": float(result.voxel_count)}
@@ -295,18 +313,15 @@ class RerunRecorder:
     ) -> None:
         """(F, N, 3) mm smoothed centrelines (NaN rows: no curve) at their frames."""
         for curve, frame, time_ns in zip(centerlines_mm, frames, times_ns, strict=True):
-            self._set_time(int(frame), int(time_ns))
-            if np.isfinite(curve).all() and len(curve):
-                self._rec.log(
-                    "world/centerline_smoothed",
-                    rr.LineStrips3D([curve], radii=_CURVE_RADIUS_MM, colors=[_SMOOTHED_RGB]),
-                )
-            else:
-                self._rec.log("world/centerline_smoothed", rr.Clear(recursive=False))
+            ok = len(curve) > 0 and bool(np.isfinite(curve).all())
+            self._columns.add(
+                "world/centerline_smoothed", "strips3d", int(frame), int(time_ns), curve if ok else None
+            )
+        self._columns.send(self._rec)
 
     def finish(self) -> None:
-        """Send the queued images and the time series as columns, and flush the stream."""
-        self._images.send(self._rec)
+        """Send the queued rows and the time series as columns, and flush the stream."""
+        self._columns.send(self._rec)
         series = self._series
         frames = np.asarray(series.frames, dtype=np.int64)
         times = np.asarray(series.times_ns, dtype=np.int64).astype("datetime64[ns]")
