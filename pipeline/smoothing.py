@@ -252,10 +252,18 @@ def _local_fits(
     frames = len(curves)
     fitted = np.full_like(curves, np.nan)
     has_fit = np.zeros(frames, dtype=bool)
+    # At a steady frame rate most windows have the same relative offsets, hence the
+    # same weights: each set is computed once (keyed to 1e-9 frame steps, far below
+    # any real timing difference).
+    weights: dict[bytes, FloatArray | None] = {}
     for f in np.flatnonzero(np.isfinite(curves).all(axis=(1, 2))).tolist():
         lo, hi = max(0, f - half_window), min(frames, f + half_window + 1)
         used = lo + np.flatnonzero(active[lo:hi])
-        coeffs = _local_fit_weights(offsets[used] - offsets[f], degree, max_gain=max_gain)
+        relative = offsets[used] - offsets[f]
+        key = np.round(relative, 9).tobytes()
+        if key not in weights:
+            weights[key] = _local_fit_weights(relative, degree, max_gain=max_gain)
+        coeffs = weights[key]
         if coeffs is not None:
             fitted[f] = np.tensordot(coeffs, curves[used], axes=1)
             has_fit[f] = True
