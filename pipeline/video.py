@@ -18,7 +18,6 @@ from pathlib import Path
 import av
 import cv2
 import numpy as np
-from av.video.reformatter import VideoReformatter
 from numpy.typing import NDArray
 
 from .errors import VideoError
@@ -177,74 +176,107 @@ class _FrameIndex:
         return k
 
 
+@dataclass(frozen=True)
+class _Clock:
+    """Frame index <-> timestamp (in the stream's time base) of a video stream."""
+
+    start_ts: int
+    frames_per_tick: float
+
+    @classmethod
+    def of(cls, stream: av.video.stream.VideoStream) -> _Clock:
+        rate = stream.average_rate or stream.guessed_rate or 30
+        # PyAV types time_base as optional; a demuxed stream always has one.
+        return cls(stream.start_time or 0, float((stream.time_base or Fraction(1, 1000)) * rate))
+
+    def index(self, timestamp: int) -> int:
+        return round((timestamp - self.start_ts) * self.frames_per_tick)
+
+    def timestamp(self, index: int) -> int:
+        return self.start_ts + math.floor(index / self.frames_per_tick)
+
+
+def _packets(
+    container: av.container.InputContainer,
+    stream: av.video.stream.VideoStream,
+    clock: _Clock,
+    start: int,
+    problems: dict[int, str],
+) -> Iterator[tuple[av.Packet, bool, bool]]:
+    """Yield ``(packet, keyframe, after_loss)`` from the last keyframe at or before ``start`` on.
+
+    Packets carry their true timestamps (the index's, where it has one entry per
+    frame). ``after_loss`` is True for the first packet after packets lost in damaged
+    bytes, which go into ``problems`` (frame index -> reason). The last packet is
+    the empty one that flushes the decoder.
+    """
+    index = _FrameIndex.of(stream)
+    if start > 0:
+        container.seek(clock.timestamp(start), stream=stream, backward=True)
+    # The index entry the next packet should come from: where the seek lands.
+    next_entry = None if index is None else index.seek_entry(clock.index, start)
+    after_loss = False
+    for packet in container.demux(stream):
+        if index is None or not packet.size:
+            yield packet, packet.is_keyframe, False
+            continue
+        k = index.locate(packet)
+        if k is None:  # bytes the demuxer resynchronised into: no frame of the index
+            after_loss = True
+            continue
+        if next_entry is not None and k > next_entry:
+            for j in range(next_entry, k):
+                problems.setdefault(clock.index(index.timestamps[j]), "lost in damaged bytes")
+            after_loss = True
+        next_entry = k + 1
+        shift = index.timestamps[k] - packet.dts if packet.dts is not None else 0
+        if shift:  # the index's timestamp, not the demuxer's count of the packets it found
+            packet.dts = index.timestamps[k]
+            if packet.pts is not None:
+                packet.pts += shift
+        yield packet, index.keyframes[k], after_loss
+        after_loss = False
+
+
 def _decode(
     container: av.container.InputContainer,
     stream: av.video.stream.VideoStream,
     start: int,
     stop: int,
     problems: dict[int, str],
-) -> Iterator[tuple[int, NDArray[np.uint8] | None]]:
+) -> Iterator[tuple[int, NDArray[np.uint8]]]:
     """Yield ``(index, grey image)`` for the frames from ``start`` that decode cleanly, ascending.
 
     Frames that do not come out are left out (the caller fills the gaps with None)
-    and their reason goes into ``problems`` (frame index -> reason).
+    and their reason goes into ``problems`` (frame index -> reason). An inter-coded
+    frame is not decoded after damage until the next keyframe: its picture would be
+    built on a damaged reference.
     """
     stream.codec_context.options = {"err_detect": "explode"}  # a damaged packet fails, not a garbled picture
-    t0 = stream.start_time or 0
-    rate = stream.average_rate or stream.guessed_rate or 30
-    # PyAV types time_base as optional; a demuxed stream always has one.
-    frames_per_tick = float((stream.time_base or Fraction(1, 1000)) * rate)  # index = (ts - t0) * this
-
-    def to_index(timestamp: int) -> int:
-        return round((timestamp - t0) * frames_per_tick)
-
-    index = _FrameIndex.of(stream)
-    if start > 0:
-        # To the last keyframe at or before `start`; the frames up to it are decoded and dropped.
-        container.seek(t0 + math.floor(start / frames_per_tick), stream=stream, backward=True)
-    reformatter = VideoReformatter()  # one scaler context for every frame (half the cost of to_ndarray's)
-    # No picture to refer to until a keyframe: at the start, after a seek or after damage.
-    broken = True
+    clock = _Clock.of(stream)
+    grey = _Greyer(stream)
+    broken = True  # no reference picture until a keyframe: at the start, after a seek or damage
     keyframe_pts: int | None = None  # of the last keyframe sent to the decoder
-    # The index entry the next packet should come from: where the seek lands.
-    next_entry = None if index is None else index.seek_entry(to_index, start)
     previous = start - 1
-    for packet in container.demux(stream):
-        keyframe = packet.is_keyframe
-        if index is not None and packet.size:
-            k = index.locate(packet)
-            if k is None:
-                broken = True
-                continue
-            if next_entry is not None and k > next_entry:
-                for j in range(next_entry, k):
-                    problems.setdefault(to_index(index.timestamps[j]), "lost in damaged bytes")
-                broken = True
-            next_entry = k + 1
-            if packet.dts is not None:
-                # The index's timestamp, not the demuxer's count of the packets it found.
-                shift = index.timestamps[k] - packet.dts
-                packet.dts = index.timestamps[k]
-                if packet.pts is not None:
-                    packet.pts += shift
-            keyframe = index.keyframes[k]
+    for packet, keyframe, after_loss in _packets(container, stream, clock, start, problems):
+        broken = broken or after_loss
         if packet.size:
             if keyframe:
                 broken = False
                 keyframe_pts = packet.pts
             elif broken:
                 if packet.pts is not None:
-                    problems.setdefault(to_index(packet.pts), "its reference frame was damaged")
+                    problems.setdefault(clock.index(packet.pts), "its reference frame was damaged")
                 continue
         try:
             frames = packet.decode()
         except av.error.FFmpegError as exc:
             if packet.pts is not None:
-                problems.setdefault(to_index(packet.pts), f"rejected by the decoder ({exc.strerror})")
+                problems.setdefault(clock.index(packet.pts), f"rejected by the decoder ({exc.strerror})")
             broken = True
             continue
         for frame in frames:
-            i = previous + 1 if frame.pts is None else to_index(frame.pts)
+            i = previous + 1 if frame.pts is None else clock.index(frame.pts)
             previous = i
             if i >= stop:
                 return
@@ -257,10 +289,31 @@ def _decode(
                 if keyframe_pts is None or frame.pts is None or frame.pts >= keyframe_pts:
                     broken = True
                 continue
-            bgr = reformatter.reformat(frame, format="bgr24").to_ndarray()
-            # Via BGR, as OpenCV reads it: the same grey levels to the bit (PyAV's own
-            # "gray" conversion differs by up to 2 levels).
-            yield i, np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), dtype=np.uint8)
+            yield i, grey(frame)
+
+
+class _Greyer:
+    """Grey images of a stream's frames, bit for bit what OpenCV's reader gives.
+
+    Via BGR as OpenCV converts (PyAV's own "gray" conversion differs by up to 2
+    levels), in a filter graph: its output frames come from a pool, where a
+    reformatted frame per picture would cost a fresh 230 kB allocation each.
+    """
+
+    def __init__(self, stream: av.video.stream.VideoStream) -> None:
+        self._graph = graph = av.filter.Graph()  # kept: its filters die with it
+        self._source = graph.add_buffer(template=stream)
+        to_bgr = graph.add("format", "bgr24")
+        self._sink = graph.add("buffersink")
+        self._source.link_to(to_bgr)
+        to_bgr.link_to(self._sink)
+        graph.configure()
+
+    def __call__(self, frame: av.VideoFrame) -> NDArray[np.uint8]:
+        self._source.push(frame)
+        bgr = self._sink.pull()
+        assert isinstance(bgr, av.VideoFrame)  # a video graph's output (typed Frame)
+        return np.asarray(cv2.cvtColor(bgr.to_ndarray(), cv2.COLOR_BGR2GRAY), dtype=np.uint8)
 
 
 def _log_problems(path: Path, problems: dict[int, str]) -> None:
