@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import itertools
 import logging
 import math
 import os
@@ -24,8 +23,6 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import FrameType
 from typing import Any
-
-import numpy as np
 
 from .errors import SessionError, SettingsError
 from .frame_result import FrameResult
@@ -48,28 +45,32 @@ log = logging.getLogger(__name__)
 # Ranges of this many frames at most: long enough that one seek per range is
 # negligible, short enough that every worker gets several (load balance, retries).
 MAX_RANGE_FRAMES = 100
+# ... and at least this many (a range costs a task and three seeks).
 MIN_RANGE_FRAMES = 8
-RANGES_PER_WORKER = 4
 BACKENDS = ("loky", "threading", "dask")
 DASK_CONNECT_TIMEOUT_S = 10
 
 
 def frame_ranges(start: int, stop: int, n_workers: int) -> list[tuple[int, int]]:
-    """Split ``[start, stop)`` into contiguous ranges of near-equal size, several per worker.
+    """Split ``[start, stop)`` into contiguous ranges, largest first.
 
-    The number of ranges is a multiple of the number of workers where the frames
-    allow it: with 9 ranges on 2 workers the last one would run alone, a ninth of
-    the run on one core.
+    Each range takes the frames left divided by twice the number of workers
+    (within MIN_RANGE_FRAMES..MAX_RANGE_FRAMES): long ranges while much is left,
+    short ones at the end (guided self-scheduling), so that the workers run out
+    of work within a short range of each other instead of one idling while
+    another finishes a long one.
     """
-    n = stop - start
-    if n <= 0:
-        return []
-    workers = max(1, n_workers)
-    count = max(math.ceil(n / MAX_RANGE_FRAMES), RANGES_PER_WORKER * workers)
-    count = math.ceil(count / workers) * workers
-    count = max(1, min(count, n // MIN_RANGE_FRAMES))
-    bounds = np.linspace(start, stop, count + 1).round().astype(int)
-    return [(int(a), int(b)) for a, b in itertools.pairwise(bounds)]
+    ranges: list[tuple[int, int]] = []
+    share = 2 * max(1, n_workers)
+    at = start
+    while at < stop:
+        left = stop - at
+        size = min(MAX_RANGE_FRAMES, max(MIN_RANGE_FRAMES, math.ceil(left / share)))
+        if left - size < MIN_RANGE_FRAMES:  # no stub of a range at the end
+            size = left
+        ranges.append((at, at + size))
+        at += size
+    return ranges
 
 
 def _effective_jobs(jobs: int) -> int:

@@ -62,11 +62,14 @@ def test_frame_ranges_partition_the_frames(start: int, stop: int, workers: int) 
     assert max(b - a for a, b in ranges) <= runner.MAX_RANGE_FRAMES
 
 
-def test_900_frames_on_two_workers_give_several_ranges_each() -> None:
+def test_ranges_shrink_towards_the_end() -> None:
     sizes = [b - a for a, b in runner.frame_ranges(0, 900, 2)]
-    # A multiple of the workers (no range left to run alone at the end), near-equal sizes.
-    assert len(sizes) >= 2 * 4 and len(sizes) % 2 == 0 and max(sizes) <= 100
-    assert max(sizes) - min(sizes) <= 1
+    # Several ranges per worker, the longest first; the last ones short, so that
+    # the workers finish within a short range of each other.
+    assert len(sizes) >= 2 * 4 and max(sizes) <= runner.MAX_RANGE_FRAMES
+    assert sizes[:-1] == sorted(sizes[:-1], reverse=True)
+    assert max(sizes[-3:]) < 2 * runner.MIN_RANGE_FRAMES
+    assert min(sizes) >= runner.MIN_RANGE_FRAMES
 
 
 def test_summary_compresses_failed_frames_into_ranges() -> None:
