@@ -37,6 +37,20 @@ os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
 cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
 
 
+def _pyav_log_level(setting: str) -> int | None:
+    """PyAV's log level for an OPENCV_FFMPEG_LOGLEVEL value (the same FFmpeg scale); None: quiet."""
+    try:
+        level = int(setting)
+    except ValueError:
+        return None
+    return level if level >= 0 else None
+
+
+# PyAV is quiet unless told otherwise; the same variable (which --debug sets) makes it
+# pass FFmpeg's lines to the "libav" loggers. Read at import, so it holds in workers too.
+av.logging.set_level(_pyav_log_level(os.environ["OPENCV_FFMPEG_LOGLEVEL"]))
+
+
 @dataclass(frozen=True)
 class VideoInfo:
     path: Path
@@ -254,7 +268,7 @@ def _decode(
     """
     stream.codec_context.options = {"err_detect": "explode"}  # a damaged packet fails, not a garbled picture
     clock = _Clock.of(stream)
-    grey = _Greyer(stream)
+    grey = _Greyer()
     broken = True  # no reference picture until a keyframe: at the start, after a seek or damage
     keyframe_pts: int | None = None  # of the last keyframe sent to the decoder
     previous = start - 1
@@ -298,18 +312,27 @@ class _Greyer:
     Via BGR as OpenCV converts (PyAV's own "gray" conversion differs by up to 2
     levels), in a filter graph: its output frames come from a pool, where a
     reformatted frame per picture would cost a fresh 230 kB allocation each.
+    The graph is built for the first frame's size, format, colour space and range
+    (a stream does not always state the last two, and the frames do).
     """
 
-    def __init__(self, stream: av.video.stream.VideoStream) -> None:
-        self._graph = graph = av.filter.Graph()  # kept: its filters die with it
-        self._source = graph.add_buffer(template=stream)
-        to_bgr = graph.add("format", "bgr24")
-        self._sink = graph.add("buffersink")
-        self._source.link_to(to_bgr)
-        to_bgr.link_to(self._sink)
-        graph.configure()
+    def __init__(self) -> None:
+        self._graph: av.filter.Graph | None = None  # kept: its filters die with it
 
     def __call__(self, frame: av.VideoFrame) -> NDArray[np.uint8]:
+        if self._graph is None:
+            self._graph = av.filter.Graph()
+            source = self._graph.add(
+                "buffer",
+                f"video_size={frame.width}x{frame.height}:pix_fmt={frame.format.name}:time_base=1/1000"
+                f":pixel_aspect=1/1:colorspace={int(frame.colorspace)}:range={int(frame.color_range)}",
+            )
+            to_bgr = self._graph.add("format", "bgr24")
+            sink = self._graph.add("buffersink")
+            source.link_to(to_bgr)
+            to_bgr.link_to(sink)
+            self._graph.configure()
+            self._source, self._sink = source, sink
         self._source.push(frame)
         bgr = self._sink.pull()
         assert isinstance(bgr, av.VideoFrame)  # a video graph's output (typed Frame)
