@@ -12,8 +12,9 @@ Three steps, each its own module:
 
 Where the hull is ambiguous (a loop whose tip crosses its stem in the views)
 the march may choose wrong. A fitted tube that leaves part of a silhouette
-unexplained (:func:`pipeline.quality.misfit_fraction`) is therefore not taken
-as it is: other hypotheses are fitted (the march coasting on its own course
+unexplained (:func:`pipeline.quality.misfit_fraction`), or whose parts come
+closer than a tube allows (a tip curled into its stem, which the stem hides in
+most views), is therefore not taken as it is: other hypotheses are fitted (the march coasting on its own course
 through the crowded hull; the fit without its outlier rejection; the march
 resumed from the fitted end, or from where the unexplained tube leaves the
 curve), those that pass through themselves are dropped, and the one whose tube
@@ -68,6 +69,14 @@ MISFIT = 0.01
 _CARRY_ON_ROUNDS = 2
 # How far back (in radii) a carried-on march may restart, coasting (see _carry_on).
 _COAST_BACK_RADII = 8.0
+# Two parts of a tube of radius r touch when their axes are 2 r apart; a fitted
+# axis may stray from the true one by up to a quarter radius (the fit's outlier
+# limit, pipeline.tube_fit._OUTLIER_RADII) on each part: a curve whose parts
+# come closer than this many radii passes through itself and is not the tube.
+# Measured on rendered loops (r 4-9 mm, both rigs): the true curves keep
+# 2.1-4.2 r; the wrong hypotheses (a tip curled into the stem, a march run
+# back along it) come to 0.5-1.4 r.
+_CLOSEST_RADII = 1.5
 # Dense evaluation factor used to invert arc length.
 _DENSE = 16
 
@@ -216,20 +225,24 @@ def fit_centerline(
 
     march = march_hull(points_mm, base_mm, radius_mm=radius_mm, voxel_mm=voxel_mm, refine=refine)
     best = fit(march)
-    if march.crowded.any() and _misfit(best, cameras, masks) > MISFIT:
+    if march.crowded.any() and (_misfit(best, cameras, masks) > MISFIT or _passes_through_itself(best)):
         # The march had to choose where the hull swelled (a crossing, a false
         # bridge), and its tube leaves parts of the silhouettes unexplained (or
-        # strays off them): try the other hypotheses. Coasting keeps the curve's
-        # course through the crowd; without the outlier rejection the fit keeps
-        # readings that a wrong curve would call inconsistent. The tube that
-        # explains the silhouettes best (re-projection IoU) wins.
+        # strays off them), or passes through itself (a tip curled into the
+        # stem explains the silhouettes as well as the tip beside it, where the
+        # stem hides it in most views): try the other hypotheses. Coasting
+        # keeps the curve's course through the crowd; without the outlier
+        # rejection the fit keeps readings that a wrong curve would call
+        # inconsistent. The tube that explains the silhouettes best
+        # (re-projection IoU) wins.
         coasted = march_hull(
             points_mm, base_mm, radius_mm=radius_mm, voxel_mm=voxel_mm, refine=refine, coast=True
         )
         candidates = [best, fit(coasted), fit(march, robust=False), fit(coasted, robust=False)]
         # A tube cannot pass through itself: a curve that does (a march that ran
-        # back along the stem, say) is out, unless every candidate does.
-        possible = [c for c in candidates if not self_intersects(c.points_mm, c.radius_mm)] or candidates
+        # back along the stem, a tip curled into it) is out, unless every
+        # candidate does.
+        possible = [c for c in candidates if not _passes_through_itself(c)] or candidates
         best = max(possible, key=lambda c: silhouette_score(c, cameras, masks))
         best = _carry_on(best, fit, points_mm, base_mm, cameras, masks, radius_mm, voxel_mm, refine)
     if (
@@ -248,6 +261,9 @@ def fit_centerline(
             masks,
             contrasts,
             radius,
+            # Only a bend that runs into the tube is refused, not one that comes
+            # close (as candidates are, above): the search's path from a tip
+            # against the stem to the right place can pass closer than 1.5 r.
             rejects=lambda axis: self_intersects(axis, radius),
         )
         best = replace(best, points_mm=bent)
@@ -316,7 +332,7 @@ def _carry_on(
             )
             if polyline_arclength(march.points_mm)[-1] >= arc[k] + 2.0 * radius_mm:
                 other = fit(march)
-                if not self_intersects(other.points_mm, other.radius_mm):
+                if not _passes_through_itself(other):
                     candidates.append((silhouette_score(other, cameras, masks), other))
         if not candidates or max(c[0] for c in candidates) <= score:
             break
@@ -387,12 +403,13 @@ def _misfit(fit: TubeFit, cameras: Sequence[Camera], masks: Sequence[NDArray[np.
     )
 
 
-def self_intersects(points_mm: FloatArray, radius_mm: float) -> bool:
-    """Whether an (M, 3) axis comes back within a radius of itself (mm, world frame).
+def self_intersects(points_mm: FloatArray, radius_mm: float, *, closest_radii: float = 1.0) -> bool:
+    """Whether an (M, 3) axis comes back within ``closest_radii`` radii of itself (mm, world frame).
 
-    Two parts of a tube of radius r cannot have axes closer than 2 r (half that
-    leaves room for a fit a few mm off where they nearly touch); parts
-    closer than 4 r along the curve (a bend) are not compared. NaN radius: False.
+    Two parts of a tube of radius r cannot have axes closer than 2 r (the
+    default, half that, leaves room for a fit a few mm off where they nearly
+    touch); parts closer than 4 r along the curve (a bend) are not compared.
+    NaN radius: False.
     """
     if not np.isfinite(radius_mm):
         return False
@@ -400,7 +417,12 @@ def self_intersects(points_mm: FloatArray, radius_mm: float) -> bool:
     s = polyline_arclength(pts)
     apart = np.abs(s[:, None] - s[None, :]) > 4.0 * radius_mm
     gap = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=-1)
-    return bool((apart & (gap < radius_mm)).any())
+    return bool((apart & (gap < closest_radii * radius_mm)).any())
+
+
+def _passes_through_itself(fit: TubeFit) -> bool:
+    """Whether a fitted tube's parts come closer than ``_CLOSEST_RADII`` radii: not a tube."""
+    return self_intersects(fit.points_mm, fit.radius_mm, closest_radii=_CLOSEST_RADII)
 
 
 def silhouette_score(fit: TubeFit, cameras: Sequence[Camera], masks: Sequence[NDArray[np.bool_]]) -> float:

@@ -279,9 +279,16 @@ def _usual_sections(index: _HullIndex, known: FloatArray, reach: float, half_sla
 
 
 def _initial_direction(index: _HullIndex, base: FloatArray, reach: float) -> FloatArray | None:
-    """Unit direction from the base into the hull, or None if no hull is near the base."""
-    start = index.pts[index.nearest(base)]
-    ahead = index.ball(start, 3.0 * reach).mean(axis=0) - base
+    """Unit direction from the base into the hull, or None if no hull is near the base.
+
+    The hull around the base itself, not around its nearest voxel: a base on a
+    grid corner is equidistant from four voxel centres, and the course must not
+    hang on which one a tie-break picks.
+    """
+    near = index.ball(base, 3.0 * reach)
+    if len(near) == 0:  # the hull starts farther off (an inferred or misplaced base)
+        near = index.ball(index.pts[index.nearest(base)], 3.0 * reach)
+    ahead = near.mean(axis=0) - base
     norm = float(np.linalg.norm(ahead))
     if norm < 1e-9:
         return None
@@ -400,15 +407,8 @@ class _HullIndex:
         return np.asarray(cand[keep])
 
     def nearest(self, point: FloatArray) -> int:
-        """Row of the point nearest ``point`` (3,)."""
+        """Row of the point nearest ``point`` (3,) (the first such row on a tie)."""
         if self.tree is not None:
             return int(self.tree.query(point)[1])
         gap = self.pts - point
-        dist_sq = np.einsum("ij,ij->i", gap, gap)
-        best = int(np.argmin(dist_sq))
-        if np.count_nonzero(dist_sq == dist_sq[best]) > 1:
-            # A tie (a base on a grid corner is equidistant from four voxel
-            # centres): the march's course can depend on which one it starts
-            # from, so the pick stays the k-d tree's, as it always was.
-            return int(cKDTree(self.pts).query(point)[1])
-        return best
+        return int(np.argmin(np.einsum("ij,ij->i", gap, gap)))
