@@ -1,0 +1,187 @@
+"""Reading frames: exact positions, OpenCV's grey levels, and damage that fails the right frames.
+
+Every video here shows a texture moving by a few pixels a frame, so that each frame
+differs from its neighbours: a frame read one position late cannot pass for the
+right one. Damage is made by overwriting bytes where the container's index says a
+frame is stored, then compared frame by frame with the undamaged file.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import av
+import cv2
+import numpy as np
+import pytest
+from conftest import write_video
+from numpy.typing import NDArray
+
+from pipeline.video import read_frames
+
+N_FRAMES = 30
+KEYFRAME_INTERVAL = 12  # OpenCV's mp4v writer: frames 0, 12, 24 are keyframes
+AVI_CHUNK_HEADER = 8  # fourcc and size, before an AVI chunk's data
+
+Frames = list[NDArray[np.uint8] | None]
+
+
+def _moving_texture(n: int = N_FRAMES) -> list[NDArray[np.uint8]]:
+    """(64, 96) uint8 frames: a smooth random texture shifted 3 px right per frame."""
+    noise = np.random.default_rng(0).integers(0, 256, (64, 96)).astype(np.uint8)
+    texture = cv2.GaussianBlur(noise, (0, 0), 1.5)
+    return [np.roll(texture, 3 * i, axis=1) for i in range(n)]
+
+
+def _read_all(path: Path, n: int = N_FRAMES) -> Frames:
+    got = list(read_frames(path, 0, n))
+    assert [i for i, _ in got] == list(range(n))
+    return [image for _, image in got]
+
+
+def _stored_at(path: Path, frame: int) -> tuple[int, int]:
+    """(byte offset, size) where the container's index stores ``frame`` (AVI: its chunk header)."""
+    with av.open(str(path)) as container:
+        entries = sorted(container.streams.video[0].index_entries, key=lambda e: e.timestamp)
+        return entries[frame].pos, entries[frame].size
+
+
+def _overwrite(source: Path, target: Path, start: int, length: int) -> Path:
+    """Copy ``source`` to ``target`` with ``length`` bytes from ``start`` replaced by noise."""
+    data = bytearray(source.read_bytes())
+    data[start : start + length] = np.random.default_rng(1).bytes(length)
+    target.write_bytes(bytes(data))
+    return target
+
+
+def _same(a: NDArray[np.uint8] | None, b: NDArray[np.uint8] | None) -> bool:
+    return a is not None and b is not None and np.array_equal(a, b)
+
+
+@pytest.fixture(scope="module")
+def videos(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """The moving texture as MJPG in AVI (every frame a keyframe) and mp4v in MP4 and AVI."""
+    directory = tmp_path_factory.mktemp("video")
+    images = _moving_texture()
+    return {
+        "mjpg.avi": write_video(directory / "mjpg.avi", images, fourcc="MJPG"),
+        "mp4v.mp4": write_video(directory / "mp4v.mp4", images, fourcc="mp4v"),
+        "mp4v.avi": write_video(directory / "mp4v.avi", images, fourcc="mp4v"),
+    }
+
+
+@pytest.fixture(scope="module")
+def originals(videos: dict[str, Path]) -> dict[str, Frames]:
+    return {name: _read_all(path) for name, path in videos.items()}
+
+
+# --- undamaged files ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["mjpg.avi", "mp4v.mp4", "mp4v.avi"])
+def test_grey_levels_are_opencvs_to_the_bit(
+    videos: dict[str, Path], originals: dict[str, Frames], name: str
+) -> None:
+    capture = cv2.VideoCapture(str(videos[name]), cv2.CAP_FFMPEG)
+    for i, image in enumerate(originals[name]):
+        ok, bgr = capture.read()
+        assert ok, f"{name}: OpenCV could not read frame {i}"
+        assert _same(image, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)), f"{name}: frame {i}"
+    capture.release()
+
+
+def test_frames_follow_the_texture(originals: dict[str, Frames]) -> None:
+    """MJPG keeps the texture within a few grey levels; a neighbouring frame is far off."""
+    truth = _moving_texture()
+    images = originals["mjpg.avi"]
+    for i in range(N_FRAMES):
+        image = images[i]
+        assert image is not None
+        err = np.abs(image.astype(int) - truth[i]).mean()
+        # JPEG at OpenCV's default quality: ~1-2 levels mean error; a 3 px shift of
+        # this texture (blurred at sigma 1.5 px) gives ~20.
+        assert err < 4, f"frame {i}: mean error {err:.1f}"
+        if i > 0:
+            assert np.abs(image.astype(int) - truth[i - 1]).mean() > 10
+
+
+# Starts on and between keyframes, the last frame, and a range past the end.
+RANGES = [(0, 5), (1, 4), (11, 14), (12, 13), (13, 20), (23, 30), (29, 30), (27, 33)]
+
+
+@pytest.mark.parametrize("name", ["mjpg.avi", "mp4v.mp4", "mp4v.avi"])
+def test_ranges_read_with_seeking_equal_the_full_read(
+    videos: dict[str, Path], originals: dict[str, Frames], name: str
+) -> None:
+    full = originals[name]
+    for start, stop in RANGES:
+        got = list(read_frames(videos[name], start, stop))
+        assert [i for i, _ in got] == list(range(start, stop))
+        for i, image in got:
+            if i < N_FRAMES:
+                assert _same(image, full[i]), f"{name}: frame {i} read from {start}"
+            else:
+                assert image is None, f"{name}: frame {i} is past the end"
+
+
+def test_a_file_that_does_not_open_gives_none_for_every_frame(tmp_path: Path) -> None:
+    path = tmp_path / "junk.avi"
+    path.write_bytes(b"not a video at all")
+    assert list(read_frames(path, 2, 5)) == [(2, None), (3, None), (4, None)]
+
+
+# --- damaged files -----------------------------------------------------------------------------
+
+
+def _check_damage(damaged: Frames, original: Frames, failed: set[int]) -> None:
+    """Frames in ``failed`` are None; every other frame equals the original of the same index."""
+    for i, (got, want) in enumerate(zip(damaged, original, strict=True)):
+        if i in failed:
+            assert got is None, f"frame {i} should have failed"
+        else:
+            assert _same(got, want), f"frame {i} differs from the undamaged file's frame {i}"
+
+
+def test_mjpg_chunk_lost_in_damaged_bytes_fails_that_frame_only(
+    videos: dict[str, Path], originals: dict[str, Frames], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # Frame 9's chunk header and half its data become noise: the AVI demuxer loses the
+    # chunk, resynchronises on frame 10's, and numbers it 9 (the shift this guards against).
+    pos, size = _stored_at(videos["mjpg.avi"], 9)
+    damaged = _overwrite(videos["mjpg.avi"], tmp_path / "lost.avi", pos, AVI_CHUNK_HEADER + size // 2)
+    with caplog.at_level(logging.WARNING, logger="pipeline.video"):
+        frames = _read_all(damaged)
+    _check_damage(frames, originals["mjpg.avi"], {9})
+    assert "lost.avi: frame(s) 9 failed: lost in damaged bytes" in caplog.text
+
+
+def test_mjpg_picture_data_damaged_fails_that_frame_only(
+    videos: dict[str, Path], originals: dict[str, Frames], tmp_path: Path
+) -> None:
+    # The chunk's header survives, 40 bytes of its JPEG data do not: the decoder rejects it.
+    pos, size = _stored_at(videos["mjpg.avi"], 9)
+    damaged = _overwrite(videos["mjpg.avi"], tmp_path / "data.avi", pos + AVI_CHUNK_HEADER + size // 3, 40)
+    _check_damage(_read_all(damaged), originals["mjpg.avi"], {9})
+
+
+@pytest.mark.parametrize("name", ["mp4v.avi", "mp4v.mp4"])
+def test_damaged_p_frame_fails_the_frames_up_to_the_next_keyframe(
+    videos: dict[str, Path], originals: dict[str, Frames], tmp_path: Path, name: str
+) -> None:
+    # Frame 5 is a P-frame; 6-11 are predicted from it, so they would decode to a
+    # damaged picture too. From keyframe 12 on, every frame is exact again.
+    pos, size = _stored_at(videos[name], 5)
+    damaged = _overwrite(videos[name], tmp_path / name, pos, size // 2)
+    _check_damage(_read_all(damaged), originals[name], set(range(5, KEYFRAME_INTERVAL)))
+
+
+def test_damaged_file_read_in_ranges_equals_its_full_read(videos: dict[str, Path], tmp_path: Path) -> None:
+    """Seeking near, onto and past the damage finds the same frames as reading from the start."""
+    pos, size = _stored_at(videos["mp4v.avi"], 14)
+    damaged = _overwrite(videos["mp4v.avi"], tmp_path / "ranges.avi", pos, AVI_CHUNK_HEADER + size // 2)
+    full = _read_all(damaged)
+    assert [i for i, image in enumerate(full) if image is None] == list(range(14, 2 * KEYFRAME_INTERVAL))
+    for start, stop in [(12, 16), (13, 15), (14, 20), (15, 26), (23, 25), (24, 30)]:
+        for i, image in read_frames(damaged, start, stop):
+            assert (image is None and full[i] is None) or _same(image, full[i]), f"frame {i} from {start}"
