@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
+import av
 import numpy as np
 import pytest
 from conftest import build_session
@@ -101,17 +102,29 @@ def test_avi_cut_short_fails_the_frames_past_the_cut(tmp_path: Path) -> None:
     assert list(rec.statuses).count("failed") == len(failed)
 
 
+def _chunks_hit(video: Path, start: int, stop: int) -> set[int]:
+    """Frames of an AVI whose chunk (8-byte header and data, where idx1 puts it) meets bytes [start, stop)."""
+    with av.open(str(video)) as container:
+        entries = container.streams.video[0].index_entries
+        return {e.timestamp for e in entries if e.pos < stop and e.pos + 8 + e.size > start}
+
+
 def test_damaged_packet_fails_frames_of_that_camera_only(tmp_path: Path) -> None:
     session = build_session(tmp_path / "dmg", frames=10)
     video = session / "cam2.avi"
     data = bytearray(video.read_bytes())
     middle = len(data) // 2
+    hit = _chunks_hit(video, middle, middle + 800)
+    # Mid-file: the last frame is intact, so a failure there (the cut case) would not do.
+    assert hit and max(hit) < 9
     data[middle : middle + 800] = np.random.default_rng(1).bytes(800)
     video.write_bytes(bytes(data))
     summary = _run(session, tmp_path / "out")
-    assert summary.frames_ok + summary.frames_empty + len(summary.frames_failed) == 10
-    assert summary.frames_failed, "damage went unnoticed"
+    # Exactly the frames whose bytes were hit fail (one chunk loses its header, one its
+    # picture data); the frames after them are read at their own positions and are ok.
+    assert sorted(i for i, _ in summary.frames_failed) == sorted(hit)
     assert all("camera cam2" in reason for _, reason in summary.frames_failed)
+    assert summary.frames_ok == 10 - len(hit)
     assert summary.exit_code == 1
 
 
