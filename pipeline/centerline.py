@@ -14,15 +14,17 @@ Where the hull is ambiguous (a loop whose tip crosses its stem in the views)
 the march may choose wrong. A fitted tube that leaves part of a silhouette
 unexplained (:func:`pipeline.quality.misfit_fraction`), or whose parts come
 closer than a tube allows (a tip curled into its stem, which the stem hides in
-most views), is therefore not taken as it is: other hypotheses are fitted (the march coasting on its own course
-through the crowded hull; the fit without its outlier rejection; the march
-resumed from the fitted end, or from where the unexplained tube leaves the
-curve), those that pass through themselves are dropped, and the one whose tube
-re-projects best onto the silhouettes (IoU) wins. Where the hull was crowded
-and the tip's tube meets another part's in some view (a loop's tip lying on its
-stem, whose edges the side readings can take for the tip's), the tip is then
-bent to the pixels (:func:`pipeline.tube_tip.bend_tip_to_pixels`). Each frame
-stands alone.
+most views), is therefore not taken as it is: other hypotheses are fitted (the
+march coasting on its own course through the crowded hull; the fit without its
+outlier rejection; the march resumed from the fitted end, or from where the
+unexplained tube leaves the curve), those whose parts come too close are
+dropped, and the one whose tube re-projects best onto the silhouettes (IoU)
+wins. Where the hull was crowded and the tip's tube meets another part's in
+some view (a loop's tip lying on its stem, whose edges the side readings can
+take for the tip's), the tip is then bent to the pixels
+(:func:`pipeline.tube_tip.bend_tip_to_pixels`), and the stem under it fitted
+again now that the tip is known (:func:`pipeline.tube_fit.refit_body`). Each
+frame stands alone.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ from .camera import Camera
 from .ordering import March, march_hull
 from .polyline import cut_polyline, polyline_arclength, resample_polyline
 from .quality import misfit_fraction, reprojection_iou, tube_mask
-from .tube_fit import TubeFit, centre_across, fit_tube, trim_unexplained_tail
+from .tube_fit import TubeFit, centre_across, fit_tube, refit_body, trim_unexplained_tail
 from .tube_tip import bend_tip_to_pixels, tip_meets_tube
 
 __all__ = [
@@ -77,6 +79,9 @@ _COAST_BACK_RADII = 8.0
 # 2.1-4.2 r; the wrong hypotheses (a tip curled into the stem, a march run
 # back along it) come to 0.5-1.4 r.
 _CLOSEST_RADII = 1.5
+# The tip's last this many radii, as the bend placed them (its longest span,
+# see pipeline.tube_tip.bend_tip_to_pixels), are held when the stem is refitted.
+_HELD_TIP_RADII = 4.0
 # Dense evaluation factor used to invert arc length.
 _DENSE = 16
 
@@ -265,6 +270,12 @@ def fit_centerline(
             # close (as candidates are, above): the search's path from a tip
             # against the stem to the right place can pass closer than 1.5 r.
             rejects=lambda axis: self_intersects(axis, radius),
+        )
+        # With the tip placed, the stem under it is read again: the views where
+        # the tip's tube touches it are now known (see pipeline.tube_fit.refit_body).
+        hold = float(polyline_arclength(bent)[-1]) - _HELD_TIP_RADII * radius
+        bent = refit_body(
+            bent, cameras, contrasts, radius_mm=radius, hold_from_mm=hold, base_fixed=base_known
         )
         best = replace(best, points_mm=bent)
     return smooth_curve(best.points_mm, n_points=n_points), best

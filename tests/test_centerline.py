@@ -339,6 +339,11 @@ def test_self_intersects_only_where_the_axis_comes_back_onto_itself() -> None:
     back = up[::-1] + np.array([2.0, 0.0, 0.0])
     assert self_intersects(np.vstack([up, back]), RADIUS)
     assert not self_intersects(np.vstack([up, back]), float("nan"))
+    # Back down 1.2 radii beside itself: within a radius of itself nowhere, but
+    # closer than the 2 r of two touching parts (less a fit's slack: 1.5 r).
+    beside = up[::-1] + np.array([1.2 * RADIUS, 0.0, 0.0])
+    assert not self_intersects(np.vstack([up, beside]), RADIUS)
+    assert self_intersects(np.vstack([up, beside]), RADIUS, closest_radii=1.5)
 
 
 def test_consistent_drops_the_reading_the_solution_disagrees_with() -> None:
