@@ -55,22 +55,23 @@ SESSIONS = {
 }
 
 # Loops (the tip coming back within a diameter or two of its stem, crossing it
-# in the views) with tubes up to r 6 meet the targets; the thick one does not
-# yet meet issue 4's targets (mean 0.4, p95 1.0, median tip 1.0 mm, length 1 %):
+# in the views) with tubes up to r 6 meet the targets; the thick one meets the
+# length target but not yet the others (mean 0.4, p95 1.0, median tip 1.0 mm):
 # its tip lies against the stem in every view, the hull merges them, and the
 # tip's last mm are read only from the pixels (pipeline.tube_tip's bend); where
 # the other views hide the tip in the stem, its place along the one view's line
-# of sight is not in the images at all (frame 7 here: tip 9 mm off).
+# of sight is hardly in the images at all.
 # Measured on these 12-frame sessions (mean / p95 / median tip / length), with
-# the figures before the stem under the tip was refitted once the tip is placed
-# (and before the march's start and the hypotheses' spacing test) in brackets:
-#   loop (oblique, r 6, at targets): 0.22 / 0.62 / 0.68 / 0.32  (0.29 / 0.95 / 0.69 / 0.39)
-#   unseen_loop_ninety_r9:           0.44 / 1.61 / 2.11 / 1.10  (0.52 / 1.98 / 1.97 / 0.96)
-#   unseen_loop_r4 (at targets):     0.21 / 0.46 / 0.87 / 0.36  (0.24 / 0.63 / 0.87 / 0.34)
+# the figures before the stem under a bent tip was refitted and the tip bent
+# again (and before the march's start and the hypotheses' spacing test) in
+# brackets:
+#   loop (oblique, r 6, at targets): 0.22 / 0.58 / 0.68 / 0.33  (0.29 / 0.95 / 0.69 / 0.39)
+#   unseen_loop_ninety_r9:           0.40 / 1.30 / 1.92 / 0.86  (0.52 / 1.98 / 1.97 / 0.96)
+#   unseen_loop_r4 (at targets):     0.20 / 0.46 / 0.89 / 0.28  (0.24 / 0.63 / 0.87 / 0.34)
 # The bound below holds the r 9 loop with margin, so that a regression fails;
 # tighten it to the targets as the loop improves.
 BOUNDS = {
-    "unseen_loop_ninety_r9": (0.6, 2.1, 2.8, 1.4),
+    "unseen_loop_ninety_r9": (0.55, 1.7, 2.5, LENGTH_PCT),
 }
 
 
