@@ -485,3 +485,22 @@ def test_bend_tip_to_pixels_leaves_the_true_tip_nearly_alone(rendered_loop: tupl
     assert np.linalg.norm(bent[-1] - truth[-1]) < 1.0
     # A bend that the caller rejects is never taken.
     assert bend_tip_to_pixels(truth, cams, masks, contrasts, RADIUS, rejects=lambda _: True) is truth
+
+
+def test_a_curve_whose_parts_come_too_close_ranks_lower(rendered_loop: tuple) -> None:
+    from pipeline.centerline import _IMPLAUSIBLE, _standing, silhouette_score
+    from pipeline.tube_fit import TubeFit
+
+    curve, cams, masks, _ = rendered_loop
+    truth = resample_polyline(curve, 64)
+    # The loop's tip passes 16 mm (2.7 r) beside where the circle began; moved
+    # 9 mm towards it (in y, the loop's drift), its axis comes within ~1.2 r of
+    # that part: closer than two touching parts of the tube can be, less a fit's
+    # slack (1.5 r).
+    arc = polyline_arclength(truth)
+    pull = np.clip((arc - (arc[-1] - 30.0)) / 30.0, 0.0, None) ** 2
+    curled = truth - pull[:, None] * np.array([0.0, 9.0, 0.0])
+    right, wrong = TubeFit(truth, RADIUS, 0.1, 100), TubeFit(curled, RADIUS, 0.1, 100)
+    assert _standing(right, cams, masks) == silhouette_score(right, cams, masks)
+    assert _standing(wrong, cams, masks) == pytest.approx(silhouette_score(wrong, cams, masks) - _IMPLAUSIBLE)
+    assert _standing(wrong, cams, masks) < _standing(right, cams, masks)
