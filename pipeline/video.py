@@ -10,7 +10,7 @@ import bisect
 import logging
 import math
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -136,19 +136,16 @@ def read_frames(path: Path, start: int, stop: int) -> Iterator[tuple[int, NDArra
         _log_problems(path, {i: r for i, r in problems.items() if start <= i < stop})
 
 
-@dataclass(frozen=True)
 class _FrameIndex:
     """The container's own index of a video stream: one entry per frame, in file order.
 
-    ``positions`` (byte offsets, ascending), ``timestamps`` (in the stream's time base)
-    and ``sizes`` (bytes) are parallel lists; ``keyframes`` says which entries decode
-    without a reference.
+    Entries are read as they are needed (one per packet, a few more after damage),
+    never all at once: a range of a long video costs no more than one of a short one.
     """
 
-    positions: list[int]
-    timestamps: list[int]
-    sizes: list[int]
-    keyframes: list[bool]
+    def __init__(self, entries: av.index.IndexEntries) -> None:
+        self._entries = entries
+        self._count = len(entries)
 
     @classmethod
     def of(cls, stream: av.video.stream.VideoStream) -> _FrameIndex | None:
@@ -158,36 +155,37 @@ class _FrameIndex:
         idx1 (the demuxer then indexes packets as it reads them); both carry timestamps
         the demuxer can be trusted with, or have nothing better to offer.
         """
-        entries = sorted(stream.index_entries, key=lambda e: e.pos)
-        if not entries or len(entries) != stream.frames:
-            return None
-        return cls(
-            positions=[e.pos for e in entries],
-            timestamps=[e.timestamp for e in entries],
-            sizes=[e.size for e in entries],
-            keyframes=[e.is_keyframe for e in entries],
-        )
+        entries = stream.index_entries
+        return cls(entries) if 0 < len(entries) == stream.frames else None
 
-    def seek_entry(self, to_index: Callable[[int], int], start: int) -> int:
-        """The entry a seek to frame ``start`` lands on: the last keyframe at or before it."""
-        landing = 0
-        for k, (timestamp, keyframe) in enumerate(zip(self.timestamps, self.keyframes, strict=True)):
-            if keyframe and to_index(timestamp) <= start:
-                landing = k
-        return landing
+    def __getitem__(self, k: int) -> av.index.IndexEntry:
+        return self._entries[k]
 
-    def locate(self, packet: av.Packet) -> int | None:
-        """The entry ``packet`` was read from, or None if it starts at no entry.
+    def seek_entry(self, timestamp: int) -> int:
+        """The entry a seek to ``timestamp`` lands on: the last keyframe at or before it."""
+        return max(self._entries.search_timestamp(timestamp, backward=True), 0)
 
-        A packet that does not start at an entry (give or take an AVI chunk header),
-        or is not the entry's size, is bytes the demuxer resynchronised into.
+    def locate(self, packet: av.Packet, expected: int) -> int | None:
+        """The entry ``packet`` was read from (``expected`` or a later one), or None.
+
+        A packet that starts at no entry (give or take an AVI chunk header), or is not
+        its entry's size, is bytes the demuxer resynchronised into after damage.
         """
-        if packet.pos is None:
+        pos, size = packet.pos, packet.size
+        if pos is None:
             return None
-        k = bisect.bisect_right(self.positions, packet.pos) - 1
-        if k < 0 or packet.pos - self.positions[k] > _CHUNK_HEADER_BYTES or packet.size != self.sizes[k]:
-            return None
-        return k
+        if self._holds(expected, pos, size):
+            return expected
+        # After damage: the last entry starting at or before the packet.
+        k = bisect.bisect_right(self._entries, pos, expected, self._count, key=lambda e: e.pos) - 1
+        return k if k > expected and self._holds(k, pos, size) else None
+
+    def _holds(self, k: int, pos: int, size: int) -> bool:
+        """Whether a packet of ``size`` bytes read at byte ``pos`` is entry ``k``."""
+        if not 0 <= k < self._count:
+            return False
+        entry = self._entries[k]
+        return 0 <= pos - entry.pos <= _CHUNK_HEADER_BYTES and size == entry.size
 
 
 @dataclass(frozen=True)
@@ -225,30 +223,31 @@ def _packets(
     the empty one that flushes the decoder.
     """
     index = _FrameIndex.of(stream)
+    target = clock.timestamp(start)
     if start > 0:
-        container.seek(clock.timestamp(start), stream=stream, backward=True)
+        container.seek(target, stream=stream, backward=True)
     # The index entry the next packet should come from: where the seek lands.
-    next_entry = None if index is None else index.seek_entry(clock.index, start)
+    next_entry = 0 if index is None else index.seek_entry(target)
     after_loss = False
     for packet in container.demux(stream):
         if index is None or not packet.size:
             yield packet, packet.is_keyframe, False
             continue
-        k = index.locate(packet)
+        k = index.locate(packet, next_entry)
         if k is None:  # bytes the demuxer resynchronised into: no frame of the index
             after_loss = True
             continue
-        if next_entry is not None and k > next_entry:
-            for j in range(next_entry, k):
-                problems.setdefault(clock.index(index.timestamps[j]), "lost in damaged bytes")
+        for lost in range(next_entry, k):
+            problems.setdefault(clock.index(index[lost].timestamp), "lost in damaged bytes")
             after_loss = True
         next_entry = k + 1
-        shift = index.timestamps[k] - packet.dts if packet.dts is not None else 0
+        entry = index[k]
+        shift = entry.timestamp - packet.dts if packet.dts is not None else 0
         if shift:  # the index's timestamp, not the demuxer's count of the packets it found
-            packet.dts = index.timestamps[k]
+            packet.dts = entry.timestamp
             if packet.pts is not None:
                 packet.pts += shift
-        yield packet, index.keyframes[k], after_loss
+        yield packet, entry.is_keyframe, after_loss
         after_loss = False
 
 
