@@ -28,6 +28,8 @@ log = logging.getLogger(__name__)
 
 # An AVI packet starts after its chunk's header (fourcc and size), where idx1 points.
 _CHUNK_HEADER_BYTES = 8
+# H.264 and HEVC show a frame at most 16 frames after it is decoded.
+_MAX_REORDER_FRAMES = 16
 
 # A damaged or half-copied video is reported by us, once, naming the file; OpenCV's and
 # FFmpeg's own lines ("moov atom not found", "overread 8") would bury that message and
@@ -161,24 +163,20 @@ class _FrameIndex:
     def __getitem__(self, k: int) -> av.index.IndexEntry:
         return self._entries[k]
 
-    def seek_entry(self, timestamp: int) -> int:
-        """The entry a seek to ``timestamp`` lands on: the last keyframe at or before it."""
-        return max(self._entries.search_timestamp(timestamp, backward=True), 0)
+    def locate(self, packet: av.Packet, expected: int | None) -> int | None:
+        """The entry ``packet`` was read from: ``expected`` or a later one (any, if None).
 
-    def locate(self, packet: av.Packet, expected: int) -> int | None:
-        """The entry ``packet`` was read from (``expected`` or a later one), or None.
-
-        A packet that starts at no entry (give or take an AVI chunk header), or is not
-        its entry's size, is bytes the demuxer resynchronised into after damage.
+        None if it starts at no entry (give or take an AVI chunk header) or is not its
+        entry's size: bytes the demuxer resynchronised into after damage.
         """
         pos, size = packet.pos, packet.size
         if pos is None:
             return None
-        if self._holds(expected, pos, size):
-            return expected
-        # After damage: the last entry starting at or before the packet.
-        k = bisect.bisect_right(self._entries, pos, expected, self._count, key=lambda e: e.pos) - 1
-        return k if k > expected and self._holds(k, pos, size) else None
+        if expected is not None and self._holds(expected, pos, size):
+            return expected  # the usual case, one entry read
+        first = 0 if expected is None else expected + 1
+        k = bisect.bisect_right(self._entries, pos, first, self._count, key=lambda e: e.pos) - 1
+        return k if k >= first and self._holds(k, pos, size) else None
 
     def _holds(self, k: int, pos: int, size: int) -> bool:
         """Whether a packet of ``size`` bytes read at byte ``pos`` is entry ``k``."""
@@ -215,21 +213,48 @@ def _packets(
     start: int,
     problems: dict[int, str],
 ) -> Iterator[tuple[av.Packet, bool, bool]]:
-    """Yield ``(packet, keyframe, after_loss)`` from the last keyframe at or before ``start`` on.
+    """Yield ``(packet, keyframe, after_loss)`` from a keyframe at or before ``start`` on.
 
-    Packets carry their true timestamps (the index's, where it has one entry per
-    frame). ``after_loss`` is True for the first packet after packets lost in damaged
-    bytes, which go into ``problems`` (frame index -> reason). The last packet is
-    the empty one that flushes the decoder.
+    A seek goes by decoding timestamps, so with B-frames it can land on a keyframe
+    shown after ``start``, and a damaged keyframe sends the demuxer past it: then
+    the seek is made again from further back, and last from the top of the file.
     """
     index = _FrameIndex.of(stream)
-    target = clock.timestamp(start)
-    if start > 0:
-        container.seek(target, stream=stream, backward=True)
-    # The index entry the next packet should come from: where the seek lands.
-    next_entry = 0 if index is None else index.seek_entry(target)
+    for landing in sorted({start, max(start - _MAX_REORDER_FRAMES, 0), 0}, reverse=True):
+        if start > 0:
+            container.seek(clock.timestamp(landing), stream=stream, backward=True)
+        # Where a seek lands is the demuxer's choice: the first packet is found in the index.
+        packets = _retimed(
+            container.demux(stream), index, clock, problems, next_entry=0 if start == 0 else None
+        )
+        first = next(packets, None)
+        if first is None:
+            return
+        if landing > 0 and first[0].pts is not None and clock.index(first[0].pts) > start:
+            continue
+        yield first
+        yield from packets
+        return
+
+
+def _retimed(
+    packets: Iterator[av.Packet],
+    index: _FrameIndex | None,
+    clock: _Clock,
+    problems: dict[int, str],
+    *,
+    next_entry: int | None,
+) -> Iterator[tuple[av.Packet, bool, bool]]:
+    """Yield ``(packet, keyframe, after_loss)`` for ``packets`` in file order.
+
+    Packets carry their true timestamps: the index's, where it has one entry per
+    frame, else the demuxer's. ``after_loss`` is True for the first packet after
+    packets lost in damaged bytes, which go into ``problems`` (frame index -> reason).
+    ``next_entry`` is the index entry the first packet should be (None: any). The
+    last packet is the empty one that flushes the decoder.
+    """
     after_loss = False
-    for packet in container.demux(stream):
+    for packet in packets:
         if index is None or not packet.size:
             yield packet, packet.is_keyframe, False
             continue
@@ -237,7 +262,7 @@ def _packets(
         if k is None:  # bytes the demuxer resynchronised into: no frame of the index
             after_loss = True
             continue
-        for lost in range(next_entry, k):
+        for lost in range(k if next_entry is None else next_entry, k):
             problems.setdefault(clock.index(index[lost].timestamp), "lost in damaged bytes")
             after_loss = True
         next_entry = k + 1
@@ -294,6 +319,8 @@ def _decode(
             if i >= stop:
                 return
             if i < start:
+                continue
+            if i in problems:  # its packet was rejected: what a decoder still hands out is a remnant
                 continue
             if frame.is_corrupt:
                 problems.setdefault(i, "decoded with errors")

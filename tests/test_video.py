@@ -185,3 +185,46 @@ def test_damaged_file_read_in_ranges_equals_its_full_read(videos: dict[str, Path
     for start, stop in [(12, 16), (13, 15), (14, 20), (15, 26), (23, 25), (24, 30)]:
         for i, image in read_frames(damaged, start, stop):
             assert (image is None and full[i] is None) or _same(image, full[i]), f"frame {i} from {start}"
+
+
+# --- H.264 with B-frames (decode order differs from display order) -----------------------------
+
+
+@pytest.fixture(scope="module")
+def h264(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The moving texture as H.264 with B-frames in MP4, a keyframe every 12 frames."""
+    if "libx264" not in av.codecs_available:
+        pytest.skip("this PyAV build has no libx264 encoder")
+    path = tmp_path_factory.mktemp("h264") / "h264.mp4"
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("libx264", rate=30, options={"g": "12", "sc_threshold": "0"})
+        stream.width, stream.height, stream.pix_fmt = 96, 64, "yuv420p"
+        for image in _moving_texture():
+            frame = av.VideoFrame.from_ndarray(np.dstack([image] * 3), format="bgr24")
+            container.mux(stream.encode(frame))
+        container.mux(stream.encode(None))
+    return path
+
+
+def test_h264_ranges_read_with_seeking_equal_the_full_read(h264: Path) -> None:
+    full = _read_all(h264)
+    assert all(image is not None for image in full)
+    for start, stop in RANGES:
+        for i, image in read_frames(h264, start, stop):
+            assert image is None if i >= N_FRAMES else _same(image, full[i]), f"frame {i} read from {start}"
+
+
+def test_h264_damaged_frame_fails_and_no_frame_is_wrong(h264: Path, tmp_path: Path) -> None:
+    """A damaged P-frame fails, and so may frames that refer to it (B-frames on either side
+    of it); every frame that is returned is exact, and all are from the next keyframe on."""
+    original = _read_all(h264)
+    with av.open(str(h264)) as container:
+        stream = container.streams.video[0]
+        # A P-frame with enough bytes to damage, before keyframe 12 (index in decode order).
+        k = next(k for k, e in enumerate(stream.index_entries) if not e.is_keyframe and e.size > 60)
+        pos, size = stream.index_entries[k].pos, stream.index_entries[k].size
+    damaged = _overwrite(h264, tmp_path / "h264.mp4", pos + size // 3, 20)
+    frames = _read_all(damaged)
+    failed = [i for i, image in enumerate(frames) if image is None]
+    assert failed and max(failed) < KEYFRAME_INTERVAL
+    _check_damage(frames, original, set(failed))
