@@ -1,4 +1,7 @@
-"""Video files: probing, and reading a contiguous range of frames.
+"""Video files: probing (OpenCV), and reading a contiguous range of frames (PyAV).
+
+Frames are read with PyAV rather than OpenCV because placing each one by the
+container's index, not by a count of packets, needs the packets' byte positions.
 
 Kept apart from the array code: everything downstream receives (H, W) uint8 grey
 images and never a path.
@@ -141,8 +144,10 @@ def read_frames(path: Path, start: int, stop: int) -> Iterator[tuple[int, NDArra
 class _FrameIndex:
     """The container's own index of a video stream: one entry per frame, in file order.
 
-    Entries are read as they are needed (one per packet, a few more after damage),
-    never all at once: a range of a long video costs no more than one of a short one.
+    Byte positions ascend with the entries (AVI idx1 and MP4 sample tables list the
+    frames as they are stored, in decoding order). Entries are read as they are
+    needed (one per packet, a few more after damage), never all at once: a range of
+    a long video costs no more than one of a short one.
     """
 
     def __init__(self, entries: av.index.IndexEntries) -> None:
@@ -153,9 +158,9 @@ class _FrameIndex:
     def of(cls, stream: av.video.stream.VideoStream) -> _FrameIndex | None:
         """The index of ``stream``, or None unless it has an entry for each of its frames.
 
-        Matroska's cues list only some keyframes, and an AVI cut short has lost its
-        idx1 (the demuxer then indexes packets as it reads them); both carry timestamps
-        the demuxer can be trusted with, or have nothing better to offer.
+        Matroska's cues list only some keyframes, but its blocks carry timestamps the
+        demuxer passes on. An AVI cut short has lost its idx1 (the demuxer indexes
+        packets as it reads them), and its count of packets is all there is.
         """
         entries = stream.index_entries
         return cls(entries) if 0 < len(entries) == stream.frames else None
