@@ -329,8 +329,8 @@ def _decode(
                 continue
             if frame.is_corrupt:
                 problems.setdefault(i, "decoded with errors")
-                # Later frames refer to it, unless a keyframe was sent since (the decoder
-                # may hand out a rejected frame's remains after the next keyframe).
+                # Later frames refer to it, unless a keyframe was sent since (with
+                # B-frames, a frame comes out some packets after its own).
                 if keyframe_pts is None or frame.pts is None or frame.pts >= keyframe_pts:
                     broken = True
                 continue
@@ -355,7 +355,8 @@ class _Greyer:
             self._graph = av.filter.Graph()
             source = self._graph.add(
                 "buffer",
-                f"video_size={frame.width}x{frame.height}:pix_fmt={frame.format.name}:time_base=1/1000"
+                f"video_size={frame.width}x{frame.height}:pix_fmt={frame.format.name}"
+                f":time_base={frame.time_base or Fraction(1, 1000)}"
                 f":pixel_aspect=1/1:colorspace={int(frame.colorspace)}:range={int(frame.color_range)}",
             )
             to_bgr = self._graph.add("format", "bgr24")
