@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -251,7 +250,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     if args.debug:
         # FFmpeg's own diagnostics (silenced in pipeline.video) help debug a damaged video.
-        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "24")  # AV_LOG_WARNING
+        from .video import show_ffmpeg_messages
+
+        show_ffmpeg_messages()
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         return func(args)

@@ -38,6 +38,7 @@ _MAX_REORDER_FRAMES = 16
 # FFmpeg's own lines ("moov atom not found", "overread 8") would bury that message and
 # repeat for every bad frame. FFmpeg reads its level when first used, so this also holds
 # in worker processes; set OPENCV_FFMPEG_LOGLEVEL yourself (e.g. 24) to see them again.
+_USER_FFMPEG_LEVEL = os.environ.get("OPENCV_FFMPEG_LOGLEVEL")  # a level you set stays yours
 os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
 cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
 
@@ -51,9 +52,20 @@ def _pyav_log_level(setting: str) -> int | None:
     return level if level >= 0 else None
 
 
-# PyAV is quiet unless told otherwise; the same variable (which --debug sets) makes it
-# pass FFmpeg's lines to the "libav" loggers. Read at import, so it holds in workers too.
+# PyAV is quiet unless told otherwise; the same variable makes it pass FFmpeg's lines
+# to the "libav" loggers. Read at import, so it holds in worker processes too.
 av.logging.set_level(_pyav_log_level(os.environ["OPENCV_FFMPEG_LOGLEVEL"]))
+
+
+def show_ffmpeg_messages() -> None:
+    """Let FFmpeg's warnings through (``--debug``), in OpenCV and PyAV, here and in workers started later.
+
+    Call it before the first video is opened: OpenCV reads its level once. A level
+    set in OPENCV_FFMPEG_LOGLEVEL before this module was imported is left as it is.
+    """
+    if _USER_FFMPEG_LEVEL is None:
+        os.environ["OPENCV_FFMPEG_LOGLEVEL"] = "24"  # AV_LOG_WARNING
+    av.logging.set_level(_pyav_log_level(os.environ["OPENCV_FFMPEG_LOGLEVEL"]))
 
 
 @dataclass(frozen=True)
