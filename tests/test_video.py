@@ -9,6 +9,9 @@ frame is stored, then compared frame by frame with the undamaged file.
 from __future__ import annotations
 
 import logging
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import av
@@ -18,6 +21,7 @@ import pytest
 from conftest import write_video
 from numpy.typing import NDArray
 
+from pipeline import video
 from pipeline.video import read_frames
 
 N_FRAMES = 30
@@ -228,3 +232,25 @@ def test_h264_damaged_frame_fails_and_no_frame_is_wrong(h264: Path, tmp_path: Pa
     failed = [i for i, image in enumerate(frames) if image is None]
     assert failed and max(failed) < KEYFRAME_INTERVAL
     _check_damage(frames, original, set(failed))
+
+
+# --- FFmpeg's own messages -------------------------------------------------------------------------
+
+
+def test_ffmpeg_messages_are_quiet_until_debug_asks(monkeypatch: pytest.MonkeyPatch) -> None:
+    # A fresh interpreter: earlier tests here may have run the CLI with --debug.
+    env = {k: v for k, v in os.environ.items() if k != "OPENCV_FFMPEG_LOGLEVEL"}
+    code = (
+        "import av.logging, pipeline.video, os; "
+        "print(av.logging.get_level(), os.environ['OPENCV_FFMPEG_LOGLEVEL'])"
+    )
+    fresh = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert fresh.stdout.split() == ["None", "-8"]  # PyAV passes nothing on; OpenCV's FFmpeg quiet
+    monkeypatch.setattr(video, "_USER_FFMPEG_LEVEL", None)
+    monkeypatch.setenv("OPENCV_FFMPEG_LOGLEVEL", "-8")  # restored after the test
+    try:
+        video.show_ffmpeg_messages()
+        assert os.environ["OPENCV_FFMPEG_LOGLEVEL"] == "24"  # for OpenCV, and workers started later
+        assert av.logging.get_level() == av.logging.WARNING
+    finally:
+        av.logging.set_level(None)
