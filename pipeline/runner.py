@@ -256,6 +256,7 @@ def process_session(
     except OSError as exc:  # the disk filled up before the first frame
         raise output_error(out_dir, exc) from None
     done = 0
+    finished = False
     try:
         with (
             _sigterm_as_interrupt(),
@@ -273,6 +274,7 @@ def process_session(
                 done += len(outputs)
                 bar.update(len(outputs))
         writer.finish()
+        finished = True
     except KeyboardInterrupt:
         writer.abort()
         log.warning(
@@ -289,7 +291,8 @@ def process_session(
         raise
     finally:
         if backend == "loky":
-            _release_loky_workers()
+            # A run cut short kills its workers: they would finish their ranges first.
+            _release_loky_workers(kill=not finished)
     wall = time.perf_counter() - t0
     return writer.summary(wall)
 
@@ -310,8 +313,8 @@ def _warm_up_workers(n_jobs: int) -> Iterator[None]:
     return iter(parallel(delayed(_import_frame_modules)() for _ in range(n_jobs)))
 
 
-def _release_loky_workers() -> None:
-    """Stop this run's worker processes.
+def _release_loky_workers(*, kill: bool = False) -> None:
+    """Stop this run's worker processes (``kill``: at once, without waiting for their tasks).
 
     They hold the memory-mapped model (hundreds of MB for fine grids) and would
     otherwise idle for minutes; and a later run in the same process (another session,
@@ -322,7 +325,7 @@ def _release_loky_workers() -> None:
     executor = getattr(reusable_executor, "_executor", None)  # loky keeps one per process
     if executor is not None:
         with contextlib.suppress(Exception):
-            executor.shutdown(wait=True)
+            executor.shutdown(wait=True, kill_workers=kill)
 
 
 def _frame_span(session: Session, frames: tuple[int, int | None] | None) -> tuple[int, int]:
