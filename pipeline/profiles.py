@@ -84,23 +84,31 @@ def side_edges(
     near = np.abs(steps)[None, :] <= np.maximum(1.0, core * r_px)[:, None]
     peak_idx = np.argmax(np.where(near, profile, -np.inf), axis=1)
     peak = profile[np.arange(k), peak_idx]
-    dist = np.abs(steps)[None, :]
-    outer = (dist >= (1.5 * r_px + 2.0)[:, None]) & (dist <= (2.5 * r_px + 3.0)[:, None])
     # Both sides in one pass (half the numpy calls): the negative side is the
     # positive side of the mirrored profile, rows 0..K-1 below; K..2K-1 are as is.
     both = np.concatenate([profile[:, ::-1], profile])
     start = np.concatenate([s - 1 - peak_idx, peak_idx])
     top = np.concatenate([peak, peak])
-    region = np.concatenate([(outer & (steps < 0)[None, :])[:, ::-1], outer & (steps > 0)[None, :]])
-    bg = lower_quartile(both, region)
+    # The outer part, 1.5 r + 2 to 2.5 r + 3 px from the centre, is one run of
+    # samples on each side (``steps`` ascend): where it starts in ``both``'s rows
+    # and how long it is, found by bisection instead of (2K, S) masks.
+    inner_px, outer_px = 1.5 * r_px + 2.0, 2.5 * r_px + 3.0
+    neg_end = np.searchsorted(steps, -inner_px, "right")  # steps <= -(1.5 r + 2)
+    pos_start = np.searchsorted(steps, inner_px, "left")  # steps >= 1.5 r + 2
+    first = np.concatenate([s - neg_end, pos_start])
+    neg_start = np.searchsorted(steps, -outer_px, "left")  # steps >= -(2.5 r + 3)
+    pos_end = np.searchsorted(steps, outer_px, "right")  # steps <= 2.5 r + 3
+    count = np.concatenate([neg_end - neg_start, pos_end - pos_start])
+    bg = _run_lower_quartile(both, first, np.maximum(count, 0))
     ok = np.isfinite(bg) & (top - bg >= MIN_CONTRAST)
     bg = np.where(ok, bg, top)
-    pos, hit = crossing(both, start, 0.5 * (top + bg), 1)
+    ahead = np.arange(s)[None, :] > start[:, None]  # both passes search past the peak
+    pos, hit = _crossing_ahead(both, ahead, 0.5 * (top + bg), 1)
     # The rim's shade, one pixel inside the first estimate (not past the peak).
     rim_at = np.minimum(np.maximum(pos - 1.0 / step, np.minimum(start, pos)), np.maximum(start, pos))
     rim = interp_rows(both, rim_at)
     rim = np.where(rim - bg >= MIN_CONTRAST, rim, top)
-    pos, hit2 = crossing(both, start, 0.5 * (rim + bg), 1)
+    pos, hit2 = _crossing_ahead(both, ahead, 0.5 * (rim + bg), 1)
     found = ok & hit & hit2
     left = steps[0] + (s - 1 - pos[:k]) * step
     right = steps[0] + pos[k:] * step
@@ -115,6 +123,21 @@ def lower_quartile(profile: FloatArray, region: NDArray[np.bool_]) -> FloatArray
     ordered = np.sort(np.where(region, profile, np.inf), axis=1)
     count = region.sum(axis=1)
     return np.asarray(ordered[np.arange(len(profile)), (count // 4).clip(0, profile.shape[1] - 1)])
+
+
+def _run_lower_quartile(profile: FloatArray, first: NDArray[np.intp], count: NDArray[np.intp]) -> FloatArray:
+    """:func:`lower_quartile` of each row of (K, S) ``profile`` over the run of
+    ``count`` (K,) samples from index ``first`` (K,): the same value, sorting only
+    the runs (a few samples each) instead of whole rows."""
+    width = int(count.max()) if len(count) else 0
+    if width == 0:
+        return np.full(len(profile), np.inf)
+    offsets = np.arange(width)
+    rows = np.arange(len(profile))[:, None]
+    cols = np.minimum(first[:, None] + offsets, profile.shape[1] - 1)
+    run = np.where(offsets < count[:, None], profile[rows, cols], np.inf)
+    run.sort(axis=1)
+    return np.asarray(run[rows[:, 0], count // 4])
 
 
 def interp_rows(profile: FloatArray, at: FloatArray) -> FloatArray:
@@ -132,9 +155,17 @@ def crossing(
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """First fractional index from ``start`` towards ``side`` (+1/-1) where each row of
     (K, S) ``profile`` falls below ``level`` (K,), and whether it does."""
-    k, s = profile.shape
-    idx = np.arange(s)[None, :]
+    idx = np.arange(profile.shape[1])[None, :]
     ahead = idx > start[:, None] if side > 0 else idx < start[:, None]
+    return _crossing_ahead(profile, ahead, level, side)
+
+
+def _crossing_ahead(
+    profile: FloatArray, ahead: NDArray[np.bool_], level: FloatArray, side: int
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """:func:`crossing` with the (K, S) mask of the samples past each row's start
+    given (computed once for several levels)."""
+    k, s = profile.shape
     below = (profile < level[:, None]) & ahead
     hit = below.any(axis=1)
     if side > 0:
