@@ -19,6 +19,7 @@ import math
 import statistics
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -230,7 +231,8 @@ def _step(
     """The axis ``step`` mm ahead: (centre, crowded, cross-section size), or None
     when the hull has no cross-section there or it lies behind ``here``."""
     predicted = here + step * direction
-    section = _slab(index, predicted, direction, reach, half_slab)
+    radius = _slab_radius(reach, half_slab)
+    section, dist_sq = index.slab_with_distances(predicted, direction, radius, half_slab)
     if len(section) == 0:
         return None
     # Where the hull swells past its usual cross-section, another part of the
@@ -239,7 +241,7 @@ def _step(
     crowded = len(counts) >= _BASELINE_STEPS and len(section) > _CROWDED * statistics.median(counts)
     centre = refine(predicted, direction) if crowded and refine is not None else None
     if centre is None:
-        centre = _mean_shift(section, predicted, reach)
+        centre = _mean_shift(section, predicted, reach, dist_sq=dist_sq)
     if centre is None or (centre - here) @ direction <= 0.25 * step:
         return None
     return centre, crowded, len(section)
@@ -304,18 +306,30 @@ def _slab(
 ) -> FloatArray:
     """(Q, 3) hull points in the slab |(x - predicted) . direction| <= half_slab,
     within 2 * reach of ``predicted``."""
-    return index.slab(predicted, direction, float(np.hypot(2.0 * reach, half_slab)), half_slab)
+    return index.slab(predicted, direction, _slab_radius(reach, half_slab), half_slab)
 
 
-def _mean_shift(section: FloatArray, start: FloatArray, reach: float) -> FloatArray | None:
+@lru_cache(maxsize=64)
+def _slab_radius(reach: float, half_slab: float) -> float:
+    """How far from its centre (mm) a slab reaches: the same for every step of a march."""
+    return float(np.hypot(2.0 * reach, half_slab))
+
+
+def _mean_shift(
+    section: FloatArray, start: FloatArray, reach: float, *, dist_sq: FloatArray | None = None
+) -> FloatArray | None:
     """Centroid of a slab's points near ``start``: a mean shift limited to ``reach``
     around its current estimate, so that hull material more than a tube radius
-    away (a false bridge, another part of the tube) is ignored."""
+    away (a false bridge, another part of the tube) is ignored. ``dist_sq`` (Q,):
+    the points' squared distances from ``start``, if known (the slab's own)."""
     centre = start
     reach_sq = reach * reach
-    for _ in range(_MEAN_SHIFT_ITERATIONS):
-        gap = section - centre
-        close = np.einsum("ij,ij->i", gap, gap) <= reach_sq
+    for i in range(_MEAN_SHIFT_ITERATIONS):
+        if i == 0 and dist_sq is not None:
+            close = dist_sq <= reach_sq
+        else:
+            gap = section - centre
+            close = np.einsum("ij,ij->i", gap, gap) <= reach_sq
         count = np.count_nonzero(close)
         if count == 0:
             return None
@@ -376,12 +390,19 @@ class _HullIndex:
     def slab(self, centre: FloatArray, normal: FloatArray | None, radius: float, half: float) -> FloatArray:
         """(Q, 3) points within ``radius`` (mm) of ``centre`` (3,) and within ``half``
         (mm) of the plane through it across unit ``normal`` (3,) (None: no plane)."""
+        return self.slab_with_distances(centre, normal, radius, half)[0]
+
+    def slab_with_distances(
+        self, centre: FloatArray, normal: FloatArray | None, radius: float, half: float
+    ) -> tuple[FloatArray, FloatArray]:
+        """:meth:`slab`'s (Q, 3) points and their (Q,) squared distances from ``centre`` (mm^2)."""
         if self.tree is not None:
             idx = self.tree.query_ball_point(centre, radius)
             cand = np.take(self.pts, idx, axis=0) if idx else np.zeros((0, 3))
-            if normal is None:
-                return cand
-            return np.asarray(cand[np.abs((cand - centre) @ normal) <= half])
+            if normal is not None:
+                cand = cand[np.abs((cand - centre) @ normal) <= half]
+            gap = cand - centre
+            return np.asarray(cand), np.einsum("ij,ij->i", gap, gap)
         # Only the cells of the box around the slab's disk can hold such points:
         # along axis i it reaches radius * sin(angle to the normal) + half * |cos|
         # (one cell of margin against rounding), then the exact tests.
@@ -397,14 +418,15 @@ class _HullIndex:
         a, b, c = lo
         x, y, z = hi
         if x <= 0 or y <= 0 or z <= 0:
-            return np.zeros((0, 3))
+            return np.zeros((0, 3)), np.zeros(0)
         block = self.rows[a:x, b:y, c:z]
         cand = np.take(self.pts, block[block >= 0], axis=0)
         gap = cand - centre
-        keep = np.einsum("ij,ij->i", gap, gap) <= radius * radius
+        dist_sq = np.einsum("ij,ij->i", gap, gap)
+        keep = dist_sq <= radius * radius
         if normal is not None:
             keep &= np.abs(gap @ normal) <= half
-        return np.asarray(cand[keep])
+        return np.asarray(cand[keep]), dist_sq[keep]
 
     def nearest(self, point: FloatArray) -> int:
         """Row of the point nearest ``point`` (3,) (the first such row on a tie)."""
