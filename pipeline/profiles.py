@@ -7,6 +7,8 @@ interpolated between samples. Also the projection's Jacobian, by finite differen
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -24,11 +26,21 @@ MIN_CONTRAST = 12.0
 
 def project_with_jacobian(cam: Camera, pts: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Pixels (K, 2) and the projection's Jacobian (K, 2, 3) px/mm, by finite differences."""
+    px, jac = project_with_jacobians([cam], pts)
+    return px[0], jac[0]
+
+
+def project_with_jacobians(cameras: Sequence[Camera], pts: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """:func:`project_with_jacobian` in C cameras at once: pixels (C, K, 2) and
+    Jacobians (C, K, 2, 3) px/mm (the shifted points built once for all)."""
     k = len(pts)
     shifted = np.concatenate([pts] + [pts + JAC_EPS_MM * e for e in np.eye(3)])
-    px = cam.project(shifted).reshape(4, k, 2)
-    jac = (px[1:] - px[0]) / JAC_EPS_MM  # (3, K, 2)
-    return px[0], jac.transpose(1, 2, 0)
+    px = [cam.project(shifted).reshape(4, k, 2) for cam in cameras]
+    # Stacked per camera, as (K, 2) and (K, 2, 3) blocks: einsum sums in another
+    # order on arrays of other strides (size-1 axes included), and one rounding
+    # difference moved a loop frame's curve by 9 mm.
+    jac = [((p[1:] - p[0]) / JAC_EPS_MM).transpose(1, 2, 0) for p in px]  # (K, 2, 3) each
+    return np.stack([p[0] for p in px]), np.stack(jac)
 
 
 def sample_image(image: NDArray[np.float32], xy: FloatArray) -> FloatArray:
@@ -55,14 +67,27 @@ def sample_lines(
     One cv2.remap with (K, S) maps built directly, per axis: no (K, S, 2) array to
     build, cast and split (the same sample positions, so the same values).
     """
+    return sample_lines_in([image], start_px[None], direction[None], steps)[0]
+
+
+def sample_lines_in(
+    images: Sequence[NDArray[np.float32]], start_px: FloatArray, direction: FloatArray, steps: FloatArray
+) -> FloatArray:
+    """(C, K, S) :func:`sample_lines` in C images at once, ``start_px`` and
+    ``direction`` (C, K, 2): the maps of all images built by one array call per
+    axis, one cv2.remap per image into one array."""
     maps = []
     for axis in range(2):
-        at = start_px[:, axis, None] + steps[None, :] * direction[:, axis, None]
+        at = start_px[..., axis, None] + steps * direction[..., axis, None]
         if not np.isfinite(at).all():
             at = np.nan_to_num(at)  # a point behind a camera (rare: the check is cheaper)
         maps.append(at.astype(np.float32))
-    out = cv2.remap(image, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return np.asarray(out, dtype=np.float64)
+    out = np.empty(maps[0].shape, dtype=np.float32)
+    for j, image in enumerate(images):
+        cv2.remap(
+            image, maps[0][j], maps[1][j], cv2.INTER_LINEAR, dst=out[j], borderMode=cv2.BORDER_REPLICATE
+        )
+    return out.astype(np.float64)
 
 
 def side_edges(

@@ -36,7 +36,7 @@ from scipy.linalg import solveh_banded
 
 from .camera import Camera
 from .polyline import polyline_arclength, resample_polyline
-from .profiles import median_1d, project_with_jacobian, sample_lines, side_edges
+from .profiles import median_1d, project_with_jacobians, sample_lines_in, side_edges
 from .tube_tip import MIN_SIN_VIEW, refit_tip, tip_zone
 
 FloatArray = NDArray[np.float64]
@@ -366,9 +366,7 @@ def _camera_edges(
     offsets, so that the edge search runs once over all of them (it is a dozen
     numpy calls: per call, not per element, is what costs).
     """
-    projected = [project_with_jacobian(cam, pts) for cam in cameras]
-    px = np.stack([p for p, _ in projected])  # (C, K, 2)
-    jac = np.stack([j for _, j in projected])  # (C, K, 2, 3)
+    px, jac = project_with_jacobians(cameras, pts)  # (C, K, 2), (C, K, 2, 3)
     ok = np.isfinite(px).all(axis=-1)
     t_img = np.einsum("ckij,kj->cki", jac, tangents)
     t_len = np.linalg.norm(t_img, axis=-1)
@@ -384,9 +382,7 @@ def _camera_edges(
     if ok.any():
         reach = float(np.max(2.5 * r_px[ok] + 3.0))
         steps = np.arange(-reach, reach + 1e-9, _PROFILE_STEP_PX)
-        profiles = np.concatenate(
-            [sample_lines(contrast, px[j], normal[j], steps) for j, contrast in enumerate(contrasts)]
-        )
+        profiles = sample_lines_in(contrasts, px, normal, steps).reshape(-1, len(steps))
         lo, hi, found = (a.reshape(scale.shape) for a in side_edges(profiles, steps, r_px.ravel(), core=core))
     safe = np.where(scale > 0, scale, 1.0)
     # An edge may sit no farther from the axis than the radius allows (by 30 %,
