@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from .camera import Camera
 from .polyline import cut_polyline, polyline_arclength
-from .profiles import JAC_EPS_MM, end_edge, sample_image
+from .profiles import JAC_EPS_MM, MIN_CONTRAST, end_edge, sample_image
 from .quality import tube_mask
 
 FloatArray = NDArray[np.float64]
@@ -107,6 +107,12 @@ _TOUCH_RADII = 4.0
 # Erosion / dilation (px) of the silhouette that picks the pixels certainly on
 # the tube / on the background, to scale the grey levels to coverage.
 _CORE_PX = 5
+# ... and the local levels: Gaussian averages over those pixels, with these
+# widths (px); fewer than _NEAR_WEIGHT of such pixels in the kernel's weight
+# leave the global median.
+_TUBE_SIGMA_PX = 3.0
+_BACKGROUND_SIGMA_PX = 4.0
+_NEAR_WEIGHT = 1e-3
 
 
 def refit_tip(
@@ -370,17 +376,34 @@ def _window(
 def _coverage(contrast: NDArray[np.float32], mask: NDArray[np.bool_]) -> NDArray[np.float32]:
     """(H, W) float32 in [0, 1]: how much of each pixel the tube covers, from its grey level.
 
-    The contrast scaled between its median on the background (pixels well
-    outside the silhouette) and on the tube (well inside), clipped: edge
-    pixels, blurred by the optics and the video, come out in between.
+    The contrast scaled between the background's local level (pixels well
+    outside the silhouette, averaged nearby) and the tube's (well inside),
+    clipped: edge pixels, blurred by the optics and the video, come out in
+    between. Local, because the scene is textured and the tube shaded: with one
+    level for each, a background patch darker than the median reads as part
+    covered, and the tip is drawn towards it.
     """
     grow = np.ones((_CORE_PX, _CORE_PX), np.uint8)
     core = cv2.erode(mask.view(np.uint8), grow).view(bool)
     away = ~cv2.dilate(mask.view(np.uint8), grow).view(bool)
-    tube = float(np.median(contrast[core])) if core.any() else float(contrast[mask].max())
-    background = float(np.median(contrast[away])) if away.any() else 0.0
-    scale = tube - background if tube > background else 1.0
+    tube_all = float(np.median(contrast[core])) if core.any() else float(contrast[mask].max())
+    background_all = float(np.median(contrast[away])) if away.any() else 0.0
+    tube = _local_mean(contrast, core, _TUBE_SIGMA_PX, tube_all)
+    background = _local_mean(contrast, away, _BACKGROUND_SIGMA_PX, background_all)
+    scale = np.maximum(tube - background, MIN_CONTRAST)
     return np.clip((contrast - background) / scale, 0.0, 1.0).astype(np.float32)
+
+
+def _local_mean(
+    image: NDArray[np.float32], where: NDArray[np.bool_], sigma_px: float, default: float
+) -> NDArray[np.float32]:
+    """(H, W) float32 Gaussian-weighted mean of ``image`` over the pixels ``where``
+    (normalised convolution); ``default`` where none is near."""
+    weight = where.astype(np.float32)
+    total = cv2.GaussianBlur(image * weight, (0, 0), sigma_px)
+    norm = cv2.GaussianBlur(weight, (0, 0), sigma_px)
+    near = norm > _NEAR_WEIGHT
+    return np.where(near, total / np.where(near, norm, 1.0), np.float32(default)).astype(np.float32)
 
 
 def _tube_points(axis_mm: FloatArray, radius_mm: float, *, flat_end: bool) -> tuple[FloatArray, FloatArray]:
