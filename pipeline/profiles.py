@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .camera import Camera
+from .camera import Camera, project_in_views
 
 FloatArray = NDArray[np.float64]
 
@@ -35,10 +35,10 @@ def project_with_jacobians(cameras: Sequence[Camera], pts: FloatArray) -> tuple[
     Jacobians (C, K, 2, 3) px/mm (the shifted points built once for all)."""
     k = len(pts)
     shifted = np.concatenate([pts] + [pts + JAC_EPS_MM * e for e in np.eye(3)])
-    px = [cam.project(shifted).reshape(4, k, 2) for cam in cameras]
-    # Stacked per camera, as (K, 2) and (K, 2, 3) blocks: einsum sums in another
-    # order on arrays of other strides (size-1 axes included), and one rounding
-    # difference moved a loop frame's curve by 9 mm.
+    px = project_in_views(cameras, shifted).reshape(len(cameras), 4, k, 2)
+    # Stacked per camera from (K, 2) and (3, K, 2) blocks, as always: einsum sums
+    # in another order on arrays of other strides (and np.stack keeps the blocks'
+    # layout), and one rounding difference can move a loop frame's curve by mm.
     jac = [((p[1:] - p[0]) / JAC_EPS_MM).transpose(1, 2, 0) for p in px]  # (K, 2, 3) each
     return np.stack([p[0] for p in px]), np.stack(jac)
 
