@@ -88,6 +88,14 @@ _IMPLAUSIBLE = 0.05
 # The tip's last this many radii, as the bend placed them (its longest span,
 # see pipeline.tube_tip.bend_tip_to_pixels), are held when the stem is refitted.
 _HELD_TIP_RADII = 4.0
+# The stem under a bent tip is bridged (see _bridge_under_tip) where it comes
+# within this many radii of the tip's last _HELD_TIP_RADII radii, at least
+# _BRIDGE_APART_RADII radii before them along the curve.
+_BRIDGE_REACH_RADII = 3.0
+_BRIDGE_APART_RADII = 4.0
+# Measured bulges of the stem under a loop's tip: up to 1.2 radii (r 9 ninety
+# loop); a bridge that moves the stem farther is not correcting such a pull.
+_BRIDGE_MOVE_RADII = 1.5
 # Dense evaluation factor used to invert arc length.
 _DENSE = 16
 
@@ -301,16 +309,66 @@ def fit_centerline(
 
         bent = bend(best.points_mm)
         hold = float(polyline_arclength(bent)[-1]) - _HELD_TIP_RADII * radius
-        bent = refit_body(
-            bent, cameras, contrasts, radius_mm=radius, hold_from_mm=hold, base_fixed=base_known
-        )
-        # Measured (12-frame r 9 ninety loop; 150 frames of it): the second
-        # bend takes mean / p95 / median tip / length from 0.44 / 1.61 / 2.11 /
-        # 1.10 to 0.40 / 1.30 / 1.92 / 0.86 (0.43 / 1.47 / 1.90 / 1.05 to 0.42
-        # / 1.42 / 1.77 / 0.94), for ~25 ms more on such a frame.
-        bent = bend(bent)
-        best = replace(best, points_mm=bent)
+        # The stem may bulge towards the tip (see _bridge_under_tip): it is
+        # refitted both as it is and bridged there, and the tube that explains
+        # the silhouettes better is kept (bridging a stem that does bend there
+        # loses its bend, where the readings near the tip are dropped).
+        starts = [bent]
+        bridged = _bridge_under_tip(bent, radius, hold_from_mm=hold)
+        if bridged is not bent:
+            starts.append(bridged)
+        outcomes = []
+        for start in starts:
+            refit = refit_body(
+                start, cameras, contrasts, radius_mm=radius, hold_from_mm=hold, base_fixed=base_known
+            )
+            # Measured (12-frame r 9 ninety loop; 150 frames of it): the second
+            # bend takes mean / p95 / median tip / length from 0.44 / 1.61 /
+            # 2.11 / 1.10 to 0.40 / 1.30 / 1.92 / 0.86 (0.43 / 1.47 / 1.90 /
+            # 1.05 to 0.42 / 1.42 / 1.77 / 0.94), for ~25 ms more on such a frame.
+            outcomes.append(replace(best, points_mm=bend(refit)))
+        best = max(outcomes, key=lambda c: _standing(c, cameras, masks)) if len(outcomes) > 1 else outcomes[0]
     return smooth_curve(best.points_mm, n_points=n_points), best
+
+
+def _bridge_under_tip(points_mm: FloatArray, radius_mm: float, *, hold_from_mm: float) -> FloatArray:
+    """(M, 3) axis with the part of the stem that lies near its tip replaced by a
+    spline through the stem around it.
+
+    The tip's edges, taken for the stem's while the tip was misplaced, pull the
+    stem towards it (a bulge of up to a radius over a few radii); refitting
+    the stem cannot undo it where the views that see both have their readings
+    dropped as crowded (the corrections there follow their neighbours', so the
+    bulge stays): bridged first, the stem there is what its neighbours say,
+    and the views that do see it move it.
+    """
+    pts = np.asarray(points_mm, dtype=np.float64)
+    arc = polyline_arclength(pts)
+    tip = pts[arc >= hold_from_mm]
+    stem = arc < hold_from_mm - _BRIDGE_APART_RADII * radius_mm
+    if len(tip) == 0 or stem.sum() < 8:
+        return pts
+    gap = np.sqrt(((pts[:, None, :] - tip[None, :, :]) ** 2).sum(-1)).min(axis=1)
+    near = stem & (gap < _BRIDGE_REACH_RADII * radius_mm)
+    if not near.any():
+        return pts
+    weights = np.where(near, 0.0, 1.0)
+    weights[[0, -1]] = 10.0
+    try:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            bridge = _lsq_spline(pts, arc, weights, KNOT_SPACING_MM)(arc[near])
+    except (ValueError, np.linalg.LinAlgError):
+        return pts
+    # A knot span with no weighted sample (a long bridge) leaves the spline
+    # free there: no bridge. Nor one that moves the stem farther than the
+    # tip's pull can have (see _BRIDGE_MOVE_RADII).
+    if not np.isfinite(bridge).all():
+        return pts
+    if np.linalg.norm(bridge - pts[near], axis=1).max() > _BRIDGE_MOVE_RADII * radius_mm:
+        return pts
+    out = pts.copy()
+    out[near] = bridge
+    return out
 
 
 def _carry_on(
