@@ -39,8 +39,8 @@ def project_with_jacobians(cameras: Sequence[Camera], pts: FloatArray) -> tuple[
     # Stacked per camera from (K, 2) and (3, K, 2) blocks, as always: einsum sums
     # in another order on arrays of other strides (and np.stack keeps the blocks'
     # layout), and one rounding difference can move a loop frame's curve by mm.
-    jac = [((p[1:] - p[0]) / JAC_EPS_MM).transpose(1, 2, 0) for p in px]  # (K, 2, 3) each
-    return np.stack([p[0] for p in px]), np.stack(jac)
+    jac = ((px[:, 1:] - px[:, :1]) / JAC_EPS_MM).transpose(0, 2, 3, 1)  # (C, K, 2, 3)
+    return np.ascontiguousarray(px[:, 0]), jac
 
 
 def sample_image(image: NDArray[np.float32], xy: FloatArray) -> FloatArray:
