@@ -193,7 +193,6 @@ def march_hull(
         if found is None:
             break
         centre, crowded, size = found
-        move = centre - here
         if n > skip_recent:
             gap = track[: n - skip_recent] - centre
             if np.einsum("ij,ij->i", gap, gap).min() < revisit_sq:
@@ -205,10 +204,7 @@ def march_hull(
         track[n] = centre
         crowded_at[n] = crowded
         n += 1
-        # Heading = a blend of the old and the measured one: damps the voxel noise
-        # without lagging behind a bend of radius >> step.
-        blended = move / math.sqrt(move @ move) + 0.5 * direction
-        blended /= math.sqrt(blended @ blended)
+        blended = _blend(centre.tolist(), here.tolist(), direction.tolist())
         if course is not None:
             blended = course
         elif coast and not crowded:
@@ -216,6 +212,24 @@ def march_hull(
             turn = np.add.reduce(turns) / len(turns)
         direction = blended
     return March(track[:n].copy(), crowded_at[:n].copy())
+
+
+def _blend(centre: list[float], here: list[float], direction: list[float]) -> FloatArray:
+    """The next heading (3,): a blend of the old one and the measured move from
+    ``here`` to ``centre``, which damps the voxel noise without lagging behind a
+    bend of radius >> step.
+
+    Scalar arithmetic on the three components: the operations, in the order,
+    that (3,) arrays would do (numpy's three-term dot sums left to right), at a
+    fraction of the cost of numpy's calls.
+    """
+    mx, my, mz = centre[0] - here[0], centre[1] - here[1], centre[2] - here[2]
+    norm = math.sqrt(mx * mx + my * my + mz * mz)
+    bx = mx / norm + 0.5 * direction[0]
+    by = my / norm + 0.5 * direction[1]
+    bz = mz / norm + 0.5 * direction[2]
+    norm = math.sqrt(bx * bx + by * by + bz * bz)
+    return np.array([bx / norm, by / norm, bz / norm])
 
 
 def _step(
@@ -408,7 +422,7 @@ class _HullIndex:
         # (one cell of margin against rounding), then the exact tests.
         # Scalar arithmetic on the three axes: a tenth of the cost of numpy's
         # per-call overhead on (3,) arrays.
-        at = ((centre - self.origin) / self.voxel).tolist()
+        at = [(c - o) / self.voxel for c, o in zip(centre.tolist(), self.origin.tolist(), strict=True)]
         cos = [0.0, 0.0, 0.0] if normal is None else normal.tolist()
         lo, hi = [], []
         for i in range(3):
@@ -419,7 +433,7 @@ class _HullIndex:
         x, y, z = hi
         if x <= 0 or y <= 0 or z <= 0:
             return np.zeros((0, 3)), np.zeros(0)
-        block = self.rows[a:x, b:y, c:z]
+        block = self.rows[a:x, b:y, c:z].ravel()
         cand = np.take(self.pts, block[block >= 0], axis=0)
         gap = cand - centre
         dist_sq = np.einsum("ij,ij->i", gap, gap)
