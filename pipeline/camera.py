@@ -18,6 +18,10 @@ from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 
+# Fewer points than this are projected view by view with cv2.projectPoints: the
+# array version's ~30 calls cost more than three small projectPoints calls.
+_MIN_POINTS_IN_VIEWS = 48
+
 
 @dataclass(frozen=True, eq=False)
 class Camera:
@@ -57,6 +61,12 @@ class Camera:
         rot = np.asarray(cv2.Rodrigues(np.asarray(self.rotation, dtype=np.float64))[0], dtype=np.float64)
         rot.flags.writeable = False
         return rot
+
+    @cached_property
+    def focal_px(self) -> float:
+        """The mean of fx and fy (pixels per unit of x/z): a length's image size at
+        unit depth. Computed once per camera (it sizes every drawn disc)."""
+        return float(np.mean(np.diag(self.matrix)[:2]))
 
     @property
     def center_mm(self) -> FloatArray:
@@ -178,14 +188,14 @@ def project_in_views(cameras: Sequence[Camera], points_mm: FloatArray) -> FloatA
     """
     pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
     constants = _view_constants(tuple(cameras))
-    if len(pts) == 0 or constants is None:
+    if len(pts) < _MIN_POINTS_IN_VIEWS or constants is None:
         return np.stack([cam.project(pts) for cam in cameras]).reshape(len(cameras), len(pts), 2)
-    rot, t, k, fx, fy, cx, cy = constants
+    r00, r01, r02, r10, r11, r12, r20, r21, r22, t0, t1, t2, k1, k2, p1, p2, k3, fx, fy, cx, cy = constants
     big_x, big_y, big_z = pts[:, 0], pts[:, 1], pts[:, 2]
     # OpenCV's order: ((R0 X + R1 Y) + R2 Z) + t, left to right.
-    x = rot[:, 0, 0, None] * big_x + rot[:, 0, 1, None] * big_y + rot[:, 0, 2, None] * big_z + t[:, 0]
-    y = rot[:, 1, 0, None] * big_x + rot[:, 1, 1, None] * big_y + rot[:, 1, 2, None] * big_z + t[:, 1]
-    z = rot[:, 2, 0, None] * big_x + rot[:, 2, 1, None] * big_y + rot[:, 2, 2, None] * big_z + t[:, 2]
+    x = r00 * big_x + r01 * big_y + r02 * big_z + t0
+    y = r10 * big_x + r11 * big_y + r12 * big_z + t1
+    z = r20 * big_x + r21 * big_y + r22 * big_z + t2
     behind = z <= 0
     inv_z = 1.0 / np.where(z != 0, z, 1.0)  # OpenCV: z ? 1/z : 1
     x = x * inv_z
@@ -196,32 +206,33 @@ def project_in_views(cameras: Sequence[Camera], points_mm: FloatArray) -> FloatA
     a1 = 2 * x * y
     a2 = r2 + 2 * x * x
     a3 = r2 + 2 * y * y
-    radial = 1 + k[0] * r2 + k[1] * r4 + k[4] * r6
-    xd = x * radial + k[2] * a1 + k[3] * a2
-    yd = y * radial + k[2] * a3 + k[3] * a1
+    radial = 1 + k1 * r2 + k2 * r4 + k3 * r6
+    xd = x * radial + p1 * a1 + p2 * a2
+    yd = y * radial + p1 * a3 + p2 * a1
     px = np.stack([xd * fx + cx, yd * fy + cy], axis=-1)
-    px[behind] = np.nan
+    if behind.any():
+        px[behind] = np.nan
     return px
 
 
 @lru_cache(maxsize=16)
 def _view_constants(cameras: tuple[Camera, ...]) -> tuple[FloatArray, ...] | None:
-    """:func:`project_in_views`' per-view constants, stacked once per set of cameras:
-    R (C, 3, 3), t (C, 3, 1), k1 k2 p1 p2 k3 (5, C, 1), fx, fy, cx, cy (C, 1);
-    None when a camera has more than five distortion coefficients."""
+    """:func:`project_in_views`' per-view constants, each (C, 1), stacked once per
+    set of cameras: R's nine entries (row by row), t's three, k1 k2 p1 p2 k3, fx,
+    fy, cx, cy; None when a camera has more than five distortion coefficients."""
     if any(np.asarray(cam.distortions).size > 5 for cam in cameras):
         return None
-    rot = np.stack([cam.camera_from_world for cam in cameras])
-    t = np.stack([np.asarray(cam.translation_mm, dtype=np.float64) for cam in cameras])[..., None]
-    k = np.zeros((5, len(cameras), 1))
+    rot = np.stack([cam.camera_from_world for cam in cameras]).reshape(len(cameras), 9)
+    t = np.stack([np.asarray(cam.translation_mm, dtype=np.float64) for cam in cameras])
+    k = np.zeros((len(cameras), 5))
     for j, cam in enumerate(cameras):
         dist = np.asarray(cam.distortions, dtype=np.float64).ravel()
-        k[: len(dist), j, 0] = dist
-    fx, fy, cx, cy = (
-        np.array([[cam.matrix[a, b]] for cam in cameras], dtype=np.float64)
-        for a, b in ((0, 0), (1, 1), (0, 2), (1, 2))
+        k[j, : len(dist)] = dist
+    intrinsics = np.array(
+        [[cam.matrix[a, b] for a, b in ((0, 0), (1, 1), (0, 2), (1, 2))] for cam in cameras]
     )
-    out = (rot, t, k, fx, fy, cx, cy)
+    columns = np.concatenate([rot, t, k, intrinsics], axis=1)
+    out = tuple(np.ascontiguousarray(columns[:, i : i + 1]) for i in range(columns.shape[1]))
     for a in out:
         a.flags.writeable = False
     return out

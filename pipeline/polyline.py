@@ -14,10 +14,15 @@ def polyline_arclength(points_mm: FloatArray) -> FloatArray:
     return np.concatenate([[0.0], np.cumsum(seg)])
 
 
-def resample_polyline(points_mm: FloatArray, n_points: int) -> FloatArray:
-    """(M, 3) polyline -> (n_points, 3) points uniform in chord length (linear interpolation)."""
+def resample_polyline(
+    points_mm: FloatArray, n_points: int, *, arclength_mm: FloatArray | None = None
+) -> FloatArray:
+    """(M, 3) polyline -> (n_points, 3) points uniform in chord length (linear interpolation).
+
+    ``arclength_mm`` (M,): its :func:`polyline_arclength`, if the caller has it.
+    """
     pts = np.asarray(points_mm, dtype=np.float64)
-    s = polyline_arclength(pts)
+    s = polyline_arclength(pts) if arclength_mm is None else arclength_mm
     u = np.linspace(0.0, s[-1], n_points)
     return np.column_stack([np.interp(u, s, pts[:, i]) for i in range(3)])
 

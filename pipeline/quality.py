@@ -8,6 +8,7 @@ far from the robot's, or a low IoU, says the frame is not to be trusted).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import cv2
@@ -45,14 +46,18 @@ def tube_mask(
     supersample : drawing resolution factor.
     """
     pts = np.asarray(centerline_mm, dtype=np.float64)
-    length = float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()) if len(pts) > 1 else 0.0
-    n = max(2, int(np.ceil(length / (_DISC_SPACING * radius_mm))) + 1)
-    dense = resample_polyline(pts, n) if len(pts) > 1 else pts
+    if len(pts) > 1:
+        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        n = max(2, math.ceil(float(seg.sum()) / (_DISC_SPACING * radius_mm)) + 1)
+        # The same arc length resample_polyline would compute (the segments' cumulative sum).
+        dense = resample_polyline(pts, n, arclength_mm=np.concatenate([[0.0], np.cumsum(seg)]))
+    else:
+        dense = pts
     w, h = camera.size_px
     canvas = np.zeros((h * supersample, w * supersample), np.uint8)
     px = camera.project(dense)
     depth = camera.to_camera(dense)[:, 2]
-    focal = float(np.mean(np.diag(camera.matrix)[:2]))
+    focal = camera.focal_px
     ok = np.isfinite(px).all(axis=1) & (depth > radius_mm)
     scale = supersample * (1 << _SHIFT)
     # Pixel centres sit at integer coordinates; at s-times resolution pixel (u, v)'s
@@ -114,9 +119,9 @@ def misfit_fraction(
     ends = np.zeros(mask.shape, np.uint8)
     px = camera.project(pts[[0, -1]])
     depth = camera.to_camera(pts[[0, -1]])[:, 2]
-    focal = float(np.mean(np.diag(camera.matrix)[:2]))
-    for (x, y), z in zip(px, depth, strict=True):
-        if np.isfinite([x, y]).all() and z > radius_mm and abs(x) < 1e5 and abs(y) < 1e5:
+    focal = camera.focal_px
+    for (x, y), z in zip(px.tolist(), depth.tolist(), strict=True):
+        if math.isfinite(x) and math.isfinite(y) and z > radius_mm and abs(x) < 1e5 and abs(y) < 1e5:
             radius_px = focal * radius_mm / z + 1.5  # the disc, its outline and a pixel of rounding
             cv2.circle(ends, (round(x * 16), round(y * 16)), round(radius_px * 16), 1, -1, cv2.LINE_8, 4)
     stray &= ends == 0

@@ -258,22 +258,15 @@ def trim_unexplained_tail(
         owner = np.zeros(mask.shape, np.int32)
         px = cam.project(pts)
         depth = cam.to_camera(pts)[:, 2]
-        focal = float(np.mean(np.diag(cam.matrix)[:2]))
+        focal = cam.focal_px
         ok = np.isfinite(px).all(axis=1) & (depth > 0)
         centres = np.round(np.nan_to_num(px) * one).astype(np.int64)
         radii = np.round((focal * radius_mm / np.where(ok, depth, 1.0) + 0.5) * one).astype(np.int64)
         # Drawn from the tip back, so the sample nearest the base wins each pixel.
-        for k in range(m - 1, -1, -1):
-            if ok[k]:
-                cv2.circle(
-                    owner,
-                    (int(centres[k, 0]), int(centres[k, 1])),
-                    int(radii[k]),
-                    k + 1,
-                    -1,
-                    cv2.LINE_8,
-                    _DRAW_SHIFT,
-                )
+        drawn = zip(ok.tolist(), centres.tolist(), radii.tolist(), strict=True)
+        for k, (seen, (cx, cy), r) in reversed(list(enumerate(drawn))):
+            if seen:
+                cv2.circle(owner, (cx, cy), r, k + 1, -1, cv2.LINE_8, _DRAW_SHIFT)
         counts = np.bincount(owner[mask], minlength=m + 1)[1:]
         owned = np.maximum(owned, counts)
     needed = np.nonzero(owned >= min_pixels)[0]
