@@ -56,22 +56,22 @@ SESSIONS = {
 
 # Loops (the tip coming back within a diameter or two of its stem, crossing it
 # in the views) with tubes up to r 6 meet the targets; the thick one meets the
-# length target but not yet the others (mean 0.4, p95 1.0, median tip 1.0 mm):
-# its tip lies against the stem in every view, the hull merges them, and the
-# tip's last mm are read only from the pixels (pipeline.tube_tip's bend); where
-# the other views hide the tip in the stem, its place along the one view's line
-# of sight is hardly in the images at all.
-# Measured on these 12-frame sessions (mean / p95 / median tip / length), with
-# the figures before the stem under a bent tip was refitted and the tip bent
-# again (and before the march's start and the hypotheses' spacing test) in
-# brackets:
-#   loop (oblique, r 6, at targets): 0.22 / 0.58 / 0.68 / 0.33  (0.29 / 0.95 / 0.69 / 0.39)
-#   unseen_loop_ninety_r9:           0.40 / 1.30 / 1.92 / 0.86  (0.52 / 1.98 / 1.97 / 0.96)
-#   unseen_loop_r4 (at targets):     0.20 / 0.46 / 0.89 / 0.28  (0.24 / 0.63 / 0.87 / 0.34)
-# The bound below holds the r 9 loop with margin, so that a regression fails;
-# tighten it to the targets as the loop improves.
+# mean, tip and length targets but not yet p95 (1.0 mm): its tip lies against
+# the stem in every view and the hull merges them; in a few frames the stem
+# under the tip is still pulled 3-8 mm towards it over a few radii (the fit's
+# readings there are the tip's edges), which the p95 of a 12-frame session
+# sees. Measured on these 12-frame sessions (mean / p95 / median tip /
+# length), with the figures before the tip's drawn model lost cv2's fill bias,
+# its end face was squared to the tangent, its grey levels were read locally
+# and the stem under it was bridged (pipeline.tube_tip, pipeline.centerline)
+# in brackets:
+#   loop (oblique, r 6, at targets): 0.22 / 0.58 / 0.42 / 0.28  (0.22 / 0.58 / 0.68 / 0.33)
+#   unseen_loop_ninety_r9:           0.36 / 1.23 / 0.70 / 0.58  (0.40 / 1.30 / 1.92 / 0.86)
+#   unseen_loop_r4 (at targets):     0.21 / 0.43 / 0.66 / 0.33  (0.20 / 0.46 / 0.89 / 0.28)
+# The p95 bound below holds the r 9 loop with margin, so that a regression
+# fails; tighten it to the target as the loop improves.
 BOUNDS = {
-    "unseen_loop_ninety_r9": (0.55, 1.7, 2.5, LENGTH_PCT),
+    "unseen_loop_ninety_r9": (MEAN_MM, 1.4, TIP_MM, LENGTH_PCT),
 }
 
 
