@@ -192,14 +192,14 @@ def _crossing_ahead(
     given (computed once for several levels)."""
     k, s = profile.shape
     below = (profile < level[:, None]) & ahead
-    hit = below.any(axis=1)
     if side > 0:
         j = np.argmax(below, axis=1)
     else:
         j = s - 1 - np.argmax(below[:, ::-1], axis=1)
+    rows = np.arange(k)
+    hit = below[rows, j]  # argmax lands on a True wherever a row has one
     j = np.minimum(np.maximum(j, 1), s - 2)
     inner = j - side
-    rows = np.arange(k)
     a, b = profile[rows, inner], profile[rows, j]
     frac = np.minimum(np.maximum((a - level) / np.maximum(a - b, 1e-9), 0.0), 1.0)
     return np.asarray(inner + side * frac, dtype=np.float64), np.asarray(hit)

@@ -66,11 +66,14 @@ def tube_mask(
     # cv2 fills a disc of radius R out to about R + 0.5 canvas pixels (measured:
     # 35 px for R = 3 against pi R^2 = 28): draw half a canvas pixel smaller.
     radii = np.round((focal * radius_mm / depth[ok] * supersample - 0.5) * (1 << _SHIFT)).astype(np.int64)
+    # Drawn in 1 at full resolution, so that the canvas is the mask (no threshold
+    # pass over the image); in 255 when it is averaged down.
+    colour = 255 if supersample > 1 else 1
     for (cx, cy), r in zip(centres.tolist(), radii.tolist(), strict=True):
-        cv2.circle(canvas, (cx, cy), r, 255, -1, cv2.LINE_8, _SHIFT)
+        cv2.circle(canvas, (cx, cy), r, colour, -1, cv2.LINE_8, _SHIFT)
     if supersample > 1:
         return np.asarray(cv2.resize(canvas, (w, h), interpolation=cv2.INTER_AREA) > 127)
-    return canvas > 127
+    return canvas.view(bool)
 
 
 def silhouette_iou(predicted: NDArray[np.bool_], observed: NDArray[np.bool_]) -> float:

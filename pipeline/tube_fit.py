@@ -152,7 +152,7 @@ def fit_tube(
     pts = np.asarray(curve_mm, dtype=np.float64)
     radius = float(radius_mm)
     for i in range(iterations):
-        pts = resample_polyline(pts, _sample_count(pts, spacing_mm))
+        pts = _resampled(pts, spacing_mm)
         # The first round looks for the tube's peak within 1.6 radii of the
         # rough curve (the march may be a few mm off in crowded hull), later
         # rounds within 0.6 (the curve is on the tube by then).
@@ -165,7 +165,7 @@ def fit_tube(
                 step = _solve_corrections(pts, kept, base_fixed=base_fixed, smoothness=smoothness)
             pts = pts + step
         pts = refit_tip(pts, cameras, contrasts, radius, cap=cap, masks=masks, max_length_mm=max_length_mm)
-    pts = resample_polyline(pts, _sample_count(pts, spacing_mm))
+    pts = _resampled(pts, spacing_mm)
     obs = _read_sides(pts, cameras, contrasts, radius, spacing_mm)
     if obs.readings == 0:
         return TubeFit(pts, float("nan"), float("nan"), 0)
@@ -207,7 +207,7 @@ def refit_body(
     (K, 3) float64 axis, resampled every ~``spacing_mm``; the same end.
     """
     pts = np.asarray(curve_mm, dtype=np.float64)
-    pts = resample_polyline(pts, _sample_count(pts, spacing_mm))
+    pts = _resampled(pts, spacing_mm)
     held = polyline_arclength(pts) >= hold_from_mm
     for _ in range(iterations):
         obs = _read_sides(
@@ -274,9 +274,15 @@ def trim_unexplained_tail(
     return pts[: max(last + 1, 2)]
 
 
-def _sample_count(pts: FloatArray, spacing_mm: float) -> int:
-    length = float(polyline_arclength(pts)[-1])
-    return max(6, round(length / spacing_mm) + 1)
+def _sample_count(pts: FloatArray, spacing_mm: float, *, arclength_mm: FloatArray | None = None) -> int:
+    arc = polyline_arclength(pts) if arclength_mm is None else arclength_mm
+    return max(6, round(float(arc[-1]) / spacing_mm) + 1)
+
+
+def _resampled(pts: FloatArray, spacing_mm: float) -> FloatArray:
+    """(M, 3) polyline resampled every ~``spacing_mm`` (its arc length computed once)."""
+    arc = polyline_arclength(pts)
+    return resample_polyline(pts, _sample_count(pts, spacing_mm, arclength_mm=arc), arclength_mm=arc)
 
 
 def _tangents(pts: FloatArray) -> FloatArray:
