@@ -352,16 +352,23 @@ def _bridge_under_tip(points_mm: FloatArray, radius_mm: float, *, hold_from_mm: 
     near = stem & (gap < _BRIDGE_REACH_RADII * radius_mm)
     if not near.any():
         return pts
-    weights = np.where(near, 0.0, 1.0)
+    keep = ~near
+    weights = np.ones(int(keep.sum()))
     weights[[0, -1]] = 10.0
+    # The knots of smooth_curve's spline, but none over the bridged part: a
+    # knot span there would hold no sample, and leave the spline free.
+    total = float(arc[-1])
+    inner = np.linspace(0.0, total, int(total / KNOT_SPACING_MM) + 2)[1:-1]
+    inner = inner[(inner < arc[near].min()) | (inner > arc[near].max())]
+    knots = np.concatenate([np.zeros(4), inner, np.full(4, total)])
     try:
         with np.errstate(invalid="ignore", divide="ignore"):
-            bridge = _lsq_spline(pts, arc, weights, KNOT_SPACING_MM)(arc[near])
+            spline = make_lsq_spline(arc[keep], pts[keep], knots, k=3, w=weights)
+            bridge = spline(arc[near])
     except (ValueError, np.linalg.LinAlgError):
         return pts
-    # A knot span with no weighted sample (a long bridge) leaves the spline
-    # free there: no bridge. Nor one that moves the stem farther than the
-    # tip's pull can have (see _BRIDGE_MOVE_RADII).
+    # No bridge that moves the stem farther than the tip's pull can have (see
+    # _BRIDGE_MOVE_RADII).
     if not np.isfinite(bridge).all():
         return pts
     if np.linalg.norm(bridge - pts[near], axis=1).max() > _BRIDGE_MOVE_RADII * radius_mm:
