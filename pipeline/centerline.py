@@ -350,21 +350,26 @@ def _bridge_under_tip(points_mm: FloatArray, radius_mm: float, *, hold_from_mm: 
         return pts
     gap = np.sqrt(((pts[:, None, :] - tip[None, :, :]) ** 2).sum(-1)).min(axis=1)
     near = stem & (gap < _BRIDGE_REACH_RADII * radius_mm)
+    near[0] = False  # the base stays where it is
     if not near.any():
         return pts
     keep = ~near
     weights = np.ones(int(keep.sum()))
     weights[[0, -1]] = 10.0
-    # The knots of smooth_curve's spline, but none over the bridged part: a
-    # knot span there would hold no sample, and leave the spline free.
+    # The knots of smooth_curve's spline, but none over the bridged part: the
+    # bridge is one cubic piece, as stiff as the stem it stands for (with
+    # knots there, the pieces over it are held by the samples beyond, and
+    # swing; over a long bridge some are held by none, and are undefined).
+    # Measured on the r 9 ninety loop, 150 frames: 0.405 / 1.308 mm mean / p95
+    # with knots over the bridge (or none only where it is undefined), 0.363 /
+    # 1.118 mm without.
     total = float(arc[-1])
     inner = np.linspace(0.0, total, int(total / KNOT_SPACING_MM) + 2)[1:-1]
     inner = inner[(inner < arc[near].min()) | (inner > arc[near].max())]
     knots = np.concatenate([np.zeros(4), inner, np.full(4, total)])
     try:
         with np.errstate(invalid="ignore", divide="ignore"):
-            spline = make_lsq_spline(arc[keep], pts[keep], knots, k=3, w=weights)
-            bridge = spline(arc[near])
+            bridge = make_lsq_spline(arc[keep], pts[keep], knots, k=3, w=weights)(arc[near])
     except (ValueError, np.linalg.LinAlgError):
         return pts
     # No bridge that moves the stem farther than the tip's pull can have (see

@@ -507,27 +507,42 @@ def test_a_curve_whose_parts_come_too_close_ranks_lower(rendered_loop: tuple) ->
     assert _standing(wrong, cams, masks) < _standing(right, cams, masks)
 
 
+def _smooth_loop() -> FloatArray:
+    """A loop whose curvature grows smoothly from 0 to 1/30 per mm over its first
+    ~100 mm, drifting 16 mm sideways per turn: its tip passes ~16 mm beside the
+    stem, where the stem is still turning (no joint to bridge over)."""
+    s = np.linspace(0.0, 260.0, 2600)
+    ds = s[1] - s[0]
+    heading = np.cumsum((1 - np.exp(-((s / 50.0) ** 2))) / 30.0) * ds
+    x, z = np.cumsum(np.sin(heading)) * ds, np.cumsum(np.cos(heading)) * ds
+    return BASE + np.column_stack([x, 16.0 * heading / (2 * np.pi), z])
+
+
 def test_bridge_under_tip_takes_out_a_bulge_towards_the_tip() -> None:
     from pipeline.centerline import _HELD_TIP_RADII, _bridge_under_tip
 
-    truth = resample_polyline(_loop(), 70)
+    truth = resample_polyline(_smooth_loop(), 70)
     arc = polyline_arclength(truth)
     hold = float(arc[-1]) - _HELD_TIP_RADII * RADIUS
     tip = truth[arc >= hold]
     stem = arc < hold - 4.0 * RADIUS
-    # The loop's tip passes 16 mm (2.7 r) beside the stem's top: that part of
-    # the stem pulled 5 mm towards it (a Gaussian bump, sigma 8 mm), as the
-    # tip's edges pull it in the fit.
+    # The part of the stem nearest the tip pulled 5 mm towards it (a Gaussian
+    # bump, sigma 8 mm), as the tip's edges pull it in the fit.
     gap = np.linalg.norm(truth[:, None] - tip[None], axis=-1).min(axis=1)
     near = int(np.argmin(np.where(stem, gap, np.inf)))
+    assert gap[near] < 3.0 * RADIUS  # the tip lies against the stem
     toward = tip[np.argmin(np.linalg.norm(tip - truth[near], axis=1))] - truth[near]
     bump = 5.0 * np.exp(-0.5 * ((arc - arc[near]) / 8.0) ** 2) * stem
     bulged = truth + bump[:, None] * toward / np.linalg.norm(toward)
     bridged = _bridge_under_tip(bulged, RADIUS, hold_from_mm=hold)
-    # Measured 0.67 mm from the truth (the spline across the stem's join with
-    # the circle); the bulge was 5 mm. The tip's part is held exactly.
-    assert np.linalg.norm(bridged - truth, axis=1).max() < 1.0
+    # Measured 1.24 mm from the truth: one cubic piece over ~50 mm of a stem
+    # whose curvature changes there (bridging the unbulged curve errs 1.14 mm;
+    # fit_centerline keeps a bridged stem only if its tube explains the
+    # silhouettes better). The bulge was 5 mm. The base and the tip's part
+    # are held exactly.
+    assert np.linalg.norm(bridged - truth, axis=1).max() < 1.5
     np.testing.assert_array_equal(bridged[arc >= hold], bulged[arc >= hold])
+    np.testing.assert_array_equal(bridged[0], bulged[0])
     # A tip far from the rest of the curve (a gentle C) leaves it as it is.
     c_shape = resample_polyline(_arc(length=200.0, bend_radius=110.0), 50)
     length = float(polyline_arclength(c_shape)[-1])
