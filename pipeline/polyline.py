@@ -10,8 +10,23 @@ FloatArray = NDArray[np.float64]
 
 def polyline_arclength(points_mm: FloatArray) -> FloatArray:
     """(M,) cumulative chord length along an (M, 3) polyline, starting at 0 (mm)."""
-    seg = np.linalg.norm(np.diff(points_mm, axis=0), axis=1)
-    return np.concatenate([[0.0], np.cumsum(seg)])
+    pts = np.asarray(points_mm)
+    if pts.dtype != np.float64:  # summed in its own precision, then widened
+        return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    out = np.empty(len(pts))
+    out[0] = 0.0
+    np.cumsum(vector_norms(pts[1:] - pts[:-1]), out=out[1:])
+    return out
+
+
+def vector_norms(vectors: FloatArray) -> FloatArray:
+    """(...,) Euclidean norms of (..., D) ``vectors`` along the last axis.
+
+    ``np.linalg.norm(vectors, axis=-1)``'s own arithmetic (the sum of squares
+    reduced, then its root), so the same values, without its per-call overhead:
+    it runs a few dozen times per frame on small arrays.
+    """
+    return np.sqrt(np.add.reduce(vectors * vectors, axis=-1))
 
 
 def resample_polyline(

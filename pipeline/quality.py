@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .camera import Camera
-from .polyline import resample_polyline
+from .polyline import resample_polyline, vector_norms
 
 FloatArray = NDArray[np.float64]
 
@@ -47,7 +47,7 @@ def tube_mask(
     """
     pts = np.asarray(centerline_mm, dtype=np.float64)
     if len(pts) > 1:
-        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        seg = vector_norms(pts[1:] - pts[:-1])
         n = max(2, math.ceil(float(seg.sum()) / (_DISC_SPACING * radius_mm)) + 1)
         # The same arc length resample_polyline would compute (the segments' cumulative sum).
         dense = resample_polyline(pts, n, arclength_mm=np.concatenate([[0.0], np.cumsum(seg)]))

@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from scipy.linalg import solveh_banded
 
 from .camera import Camera
-from .polyline import polyline_arclength, resample_polyline
+from .polyline import polyline_arclength, resample_polyline, vector_norms
 from .profiles import median_1d, project_with_jacobians, sample_lines_in, side_edges
 from .tube_tip import MIN_SIN_VIEW, refit_tip, tip_zone
 
@@ -292,7 +292,7 @@ def _tangents(pts: FloatArray) -> FloatArray:
     d[1:-1] = (pts[2:] - pts[:-2]) / 2.0
     d[0] = pts[1] - pts[0]
     d[-1] = pts[-1] - pts[-2]
-    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    return d / np.maximum(vector_norms(d)[:, None], 1e-12)
 
 
 @dataclass(frozen=True, eq=False)
@@ -373,21 +373,22 @@ def _camera_edges(
     px, jac = project_with_jacobians(cameras, pts)  # (C, K, 2), (C, K, 2, 3)
     ok = np.isfinite(px).all(axis=-1)
     t_img = np.einsum("ckij,kj->cki", jac, tangents)
-    t_len = np.linalg.norm(t_img, axis=-1)
+    t_len = vector_norms(t_img)
     t_hat = t_img / np.maximum(t_len, 1e-12)[..., None]
     normal = np.stack([-t_hat[..., 1], t_hat[..., 0]], axis=-1)
     row = np.einsum("cki,ckij->ckj", normal, jac)  # px per mm of motion, along the normal
-    scale = np.linalg.norm(row, axis=-1)  # px per mm across the tube
+    scale = vector_norms(row)  # px per mm across the tube
     ok &= (scale > 0) & (t_len > MIN_SIN_VIEW * scale)
     r_px = radius_mm * scale
-    lo = np.zeros(scale.shape)
-    hi = np.zeros(scale.shape)
-    found = np.zeros(scale.shape, dtype=bool)
+    lo: FloatArray = np.zeros(scale.shape)
+    hi: FloatArray = np.zeros(scale.shape)
+    found: NDArray[np.bool_] = np.zeros(scale.shape, dtype=bool)
     if ok.any():
         reach = float(np.max(2.5 * r_px[ok] + 3.0))
         steps = np.arange(-reach, reach + 1e-9, _PROFILE_STEP_PX)
         profiles = sample_lines_in(contrasts, px, normal, steps).reshape(-1, len(steps))
-        lo, hi, found = (a.reshape(scale.shape) for a in side_edges(profiles, steps, r_px.ravel(), core=core))
+        left, right, both = side_edges(profiles, steps, r_px.ravel(), core=core)
+        lo, hi, found = left.reshape(scale.shape), right.reshape(scale.shape), both.reshape(scale.shape)
     safe = np.where(scale > 0, scale, 1.0)
     # An edge may sit no farther from the axis than the radius allows (by 30 %,
     # +0.5 px of edge blur).
