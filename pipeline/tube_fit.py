@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import solveh_banded
 
-from .camera import Camera
+from .camera import Camera, project_in_views
 from .polyline import polyline_arclength, resample_polyline, vector_norms
 from .profiles import median_1d, project_with_jacobians, sample_lines_in, side_edges
 from .tube_tip import MIN_SIN_VIEW, refit_tip, tip_zone
@@ -254,13 +254,13 @@ def trim_unexplained_tail(
     m = len(pts)
     owned = np.zeros(m, dtype=np.int64)
     one = 1 << _DRAW_SHIFT
-    for cam, mask in zip(cameras, masks, strict=True):
+    for cam, mask, px in zip(cameras, masks, project_in_views(cameras, pts), strict=True):
         owner = np.zeros(mask.shape, np.int32)
-        px = cam.project(pts)
         depth = cam.to_camera(pts)[:, 2]
         focal = cam.focal_px
         ok = np.isfinite(px).all(axis=1) & (depth > 0)
-        centres = np.round(np.nan_to_num(px) * one).astype(np.int64)
+        # Only the samples in view are drawn: the others' centres are any integers.
+        centres = np.round(np.where(ok[:, None], px, 0.0) * one).astype(np.int64)
         radii = np.round((focal * radius_mm / np.where(ok, depth, 1.0) + 0.5) * one).astype(np.int64)
         # Drawn from the tip back, so the sample nearest the base wins each pixel.
         drawn = zip(ok.tolist(), centres.tolist(), radii.tolist(), strict=True)
