@@ -66,12 +66,12 @@ SESSIONS = {
 # and the stem under it was bridged (pipeline.tube_tip, pipeline.centerline)
 # in brackets:
 #   loop (oblique, r 6, at targets): 0.22 / 0.58 / 0.42 / 0.28  (0.22 / 0.58 / 0.68 / 0.33)
-#   unseen_loop_ninety_r9:           0.32 / 1.11 / 0.65 / 0.39  (0.40 / 1.30 / 1.92 / 0.86)
+#   unseen_loop_ninety_r9:           0.32 / 1.05 / 0.65 / 0.41  (0.40 / 1.30 / 1.92 / 0.86)
 #   unseen_loop_r4 (at targets):     0.21 / 0.43 / 0.66 / 0.33  (0.20 / 0.46 / 0.89 / 0.28)
 # The p95 bound below holds the r 9 loop with margin, so that a regression
 # fails; tighten it to the target as the loop improves.
 BOUNDS = {
-    "unseen_loop_ninety_r9": (MEAN_MM, 1.3, TIP_MM, LENGTH_PCT),
+    "unseen_loop_ninety_r9": (MEAN_MM, 1.2, TIP_MM, LENGTH_PCT),
 }
 
 
