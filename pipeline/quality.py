@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .camera import Camera
+from .camera import Camera, project_in_views
 from .polyline import resample_polyline, vector_norms
 
 FloatArray = NDArray[np.float64]
@@ -45,17 +45,39 @@ def tube_mask(
     radius_mm : tube radius, mm.
     supersample : drawing resolution factor.
     """
+    dense = _disc_centres(centerline_mm, radius_mm)
+    return _draw_tube(camera, dense, camera.project(dense), radius_mm, supersample=supersample)
+
+
+def tube_masks(
+    cameras: Sequence[Camera], centerline_mm: FloatArray, radius_mm: float
+) -> list[NDArray[np.bool_]]:
+    """:func:`tube_mask` in each camera (the same masks): the discs' centres found
+    once and projected in all views at once."""
+    dense = _disc_centres(centerline_mm, radius_mm)
+    return [
+        _draw_tube(cam, dense, px, radius_mm, supersample=1)
+        for cam, px in zip(cameras, project_in_views(cameras, dense), strict=True)
+    ]
+
+
+def _disc_centres(centerline_mm: FloatArray, radius_mm: float) -> FloatArray:
+    """(n, 3) the axis resampled every ~r/2 (mm, world frame): the drawn discs' centres."""
     pts = np.asarray(centerline_mm, dtype=np.float64)
-    if len(pts) > 1:
-        seg = vector_norms(pts[1:] - pts[:-1])
-        n = max(2, math.ceil(float(seg.sum()) / (_DISC_SPACING * radius_mm)) + 1)
-        # The same arc length resample_polyline would compute (the segments' cumulative sum).
-        dense = resample_polyline(pts, n, arclength_mm=np.concatenate([[0.0], np.cumsum(seg)]))
-    else:
-        dense = pts
+    if len(pts) <= 1:
+        return pts
+    seg = vector_norms(pts[1:] - pts[:-1])
+    n = max(2, math.ceil(float(seg.sum()) / (_DISC_SPACING * radius_mm)) + 1)
+    # The same arc length resample_polyline would compute (the segments' cumulative sum).
+    return resample_polyline(pts, n, arclength_mm=np.concatenate([[0.0], np.cumsum(seg)]))
+
+
+def _draw_tube(
+    camera: Camera, dense: FloatArray, px: FloatArray, radius_mm: float, *, supersample: int
+) -> NDArray[np.bool_]:
+    """:func:`tube_mask` from the discs' centres (n, 3) and their pixels (n, 2)."""
     w, h = camera.size_px
     canvas = np.zeros((h * supersample, w * supersample), np.uint8)
-    px = camera.project(dense)
     depth = camera.to_camera(dense)[:, 2]
     focal = camera.focal_px
     ok = np.isfinite(px).all(axis=1) & (depth > radius_mm)
@@ -91,10 +113,8 @@ def reprojection_iou(
     radius_mm: float,
 ) -> tuple[float, ...]:
     """Per-camera IoU of the reconstructed tube, re-projected, with each silhouette."""
-    return tuple(
-        silhouette_iou(tube_mask(cam, centerline_mm, radius_mm), mask)
-        for cam, mask in zip(cameras, masks, strict=True)
-    )
+    tubes = tube_masks(cameras, centerline_mm, radius_mm)
+    return tuple(silhouette_iou(tube, mask) for tube, mask in zip(tubes, masks, strict=True))
 
 
 def misfit_fraction(
@@ -115,7 +135,32 @@ def misfit_fraction(
     if area == 0:
         return 0.0
     pts = np.asarray(centerline_mm, dtype=np.float64)
-    tube = tube_mask(camera, pts, radius_mm)
+    return _misfit_of(camera, mask, pts, tube_mask(camera, pts, radius_mm), radius_mm, int(area))
+
+
+def misfit_fractions(
+    cameras: Sequence[Camera], masks: Sequence[NDArray[np.bool_]], centerline_mm: FloatArray, radius_mm: float
+) -> tuple[float, ...]:
+    """:func:`misfit_fraction` in each camera (the same values), the tube drawn
+    by :func:`tube_masks`."""
+    pts = np.asarray(centerline_mm, dtype=np.float64)
+    tubes = tube_masks(cameras, pts, radius_mm)
+    out = []
+    for cam, mask, tube in zip(cameras, masks, tubes, strict=True):
+        area = int(np.count_nonzero(mask))
+        out.append(_misfit_of(cam, mask, pts, tube, radius_mm, area) if area else 0.0)
+    return tuple(out)
+
+
+def _misfit_of(
+    camera: Camera,
+    mask: NDArray[np.bool_],
+    pts: FloatArray,
+    tube: NDArray[np.bool_],
+    radius_mm: float,
+    area: int,
+) -> float:
+    """:func:`misfit_fraction` given the drawn tube and the silhouette's (nonzero) area."""
     grow = np.ones((3, 3), np.uint8)
     missed = mask & ~cv2.dilate(tube.view(np.uint8), grow).view(bool)
     stray = tube & ~cv2.dilate(mask.view(np.uint8), grow).view(bool)

@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 from conftest import rig_cameras
 
-from pipeline.quality import misfit_fraction, reprojection_iou, silhouette_iou, tube_mask
+from pipeline.quality import (
+    misfit_fraction,
+    misfit_fractions,
+    reprojection_iou,
+    silhouette_iou,
+    tube_mask,
+    tube_masks,
+)
 from pipeline.settings import SilhouetteSettings
 from pipeline.silhouette import extract_silhouette
 from pipeline.synth.images import THRESHOLD_DARK, render_frame
@@ -95,3 +102,19 @@ def test_misfit_is_zero_for_the_tube_itself_and_counts_what_a_short_curve_misses
     # Drawn a pixel wider or narrower than the silhouette: still no misfit.
     assert misfit_fraction(cams[0], masks[0], curve, 6.5) == 0.0
     assert misfit_fraction(cams[0], np.zeros_like(masks[0]), curve, 6.0) == 0.0  # nothing seen
+
+
+def test_masks_and_misfits_in_all_views_equal_the_per_view_ones() -> None:
+    cams = rig_cameras()
+    curve = shape_centerlines("helix", 12, base_mm=BASE)[7]
+    short = curve[: len(curve) // 2]  # misses half the tube: misfits well above 0
+    masks = [tube_mask(cam, curve, 5.0) for cam in cams]
+    # The same discs projected the same way (project_in_views is OpenCV's
+    # arithmetic): identical masks and figures, no tolerance.
+    # ~100 and ~25 discs: over and under project_in_views' array threshold (48 points).
+    for axis in (curve, curve[: len(curve) // 4]):
+        for batched, cam in zip(tube_masks(cams, axis, 5.0), cams, strict=True):
+            np.testing.assert_array_equal(batched, tube_mask(cam, axis, 5.0))
+    per_view = tuple(misfit_fraction(c, m, short, 5.0) for c, m in zip(cams, masks, strict=True))
+    assert min(per_view) > 0.05
+    assert misfit_fractions(cams, masks, short, 5.0) == per_view
