@@ -36,9 +36,11 @@ def project_with_jacobians(cameras: Sequence[Camera], pts: FloatArray) -> tuple[
     k = len(pts)
     shifted = np.concatenate([pts] + [pts + JAC_EPS_MM * e for e in np.eye(3)])
     px = project_in_views(cameras, shifted).reshape(len(cameras), 4, k, 2)
-    # Stacked per camera from (K, 2) and (3, K, 2) blocks, as always: einsum sums
-    # in another order on arrays of other strides (and np.stack keeps the blocks'
-    # layout), and one rounding difference can move a loop frame's curve by mm.
+    # The Jacobians keep the layout the per-camera np.stack gave them, a (C, 3, K, 2)
+    # block viewed as (C, K, 2, 3), and the pixels are a fresh (C, K, 2) array:
+    # the tube fit's einsum calls sum in another order over other strides (seen:
+    # last-bit differences in the image tangents), and the curves are kept bit
+    # for bit.
     jac = ((px[:, 1:] - px[:, :1]) / JAC_EPS_MM).transpose(0, 2, 3, 1)  # (C, K, 2, 3)
     return np.ascontiguousarray(px[:, 0]), jac
 
