@@ -43,7 +43,7 @@ from scipy.spatial import cKDTree
 from .camera import Camera
 from .ordering import March, march_hull
 from .polyline import cut_polyline, polyline_arclength, resample_polyline
-from .quality import misfit_fraction, reprojection_iou, tube_mask
+from .quality import misfit_fractions, reprojection_iou, tube_mask
 from .tube_fit import TubeFit, centre_across, fit_tube, refit_body, trim_unexplained_tail
 from .tube_tip import bend_tip_to_pixels, tip_meets_tube
 
@@ -522,9 +522,7 @@ def _misfit(fit: TubeFit, cameras: Sequence[Camera], masks: Sequence[NDArray[np.
     """The worst view's :func:`~pipeline.quality.misfit_fraction` of a fitted tube (1 if no radius)."""
     if not (np.isfinite(fit.radius_mm) and fit.radius_mm > 0):
         return 1.0
-    return max(
-        misfit_fraction(c, m, fit.points_mm, fit.radius_mm) for c, m in zip(cameras, masks, strict=True)
-    )
+    return max(misfit_fractions(cameras, masks, fit.points_mm, fit.radius_mm))
 
 
 def self_intersects(points_mm: FloatArray, radius_mm: float, *, closest_radii: float = 1.0) -> bool:
@@ -579,6 +577,6 @@ def radius_from_silhouettes(
         perimeter = sum(cv2.arcLength(c, True) for c in contours)
         depth = float(cam.to_camera(np.asarray(centre_mm, dtype=np.float64)[None])[0, 2])
         if perimeter > 0 and depth > 0:
-            focal = float(np.mean(np.diag(cam.matrix)[:2]))
+            focal = cam.focal_px
             radii.append(np.count_nonzero(mask) / perimeter * depth / focal)
     return float(np.median(radii)) if radii else float("nan")

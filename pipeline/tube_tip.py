@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .camera import Camera
+from .camera import Camera, project_in_views
 from .polyline import cut_polyline, polyline_arclength
 from .profiles import JAC_EPS_MM, MIN_CONTRAST, end_edge, sample_image
 from .quality import tube_mask
@@ -153,14 +153,15 @@ def refit_tip(
     others = pts[arc < arc[-1] - (2.5 * radius_mm + 4.0)]
     probe = np.concatenate([line, others, end + JAC_EPS_MM * np.eye(3), end[None]])
     estimates, weights = [], []
+    probe_px = project_in_views(cameras, probe)  # (C, P, 2): every view in one go
     for view, (cam, contrast) in enumerate(zip(cameras, contrasts, strict=True)):
-        px = cam.project(probe)
+        px = probe_px[view]
         line_px, others_px = px[: len(u)], px[len(u) : len(u) + len(others)]
         end_px, jac = px[-1], (px[-4:-1] - px[-1]).T / JAC_EPS_MM  # (2,), (2, 3)
         if not np.isfinite(line_px).all():
             continue
         depth = float(cam.to_camera(end[None])[0, 2])
-        px_per_mm = float(np.mean(np.diag(cam.matrix)[:2])) / depth
+        px_per_mm = cam.focal_px / depth
         sin_view = min(float(np.linalg.norm(jac @ end_dir)) / px_per_mm, 1.0)
         if sin_view < MIN_SIN_VIEW or not np.isfinite(end_px).all():
             continue
@@ -352,7 +353,7 @@ def tip_meets_tube(
         min_views = 1
     meeting = 0
     for cam in cameras:
-        focal = float(np.mean(np.diag(cam.matrix)[:2]))
+        focal = cam.focal_px
         reach = focal * radius_mm / np.concatenate([cam.to_camera(tip)[:, 2], cam.to_camera(others)[:, 2]])
         if not (reach > 0).all():
             continue
@@ -373,7 +374,7 @@ def _window(
     depth = cam.to_camera(axis_mm)[:, 2]
     if not (np.isfinite(px).all() and (depth > radius_mm).all()):
         return None
-    margin = float(np.mean(np.diag(cam.matrix)[:2])) * radius_mm / float(depth.min()) + _WINDOW_PX
+    margin = cam.focal_px * radius_mm / float(depth.min()) + _WINDOW_PX
     w, h = cam.size_px
     x0, y0 = (max(int(np.floor(v)), 0) for v in px.min(axis=0) - margin)
     x1, y1 = (min(int(np.ceil(v)), n) for v, n in zip(px.max(axis=0) + margin, (w, h), strict=True))
@@ -483,9 +484,7 @@ def _draw_tube(
     # Pixel centres sit at integer coordinates; on the finer canvas pixel (u, v)'s
     # centre is at s u + (s - 1) / 2.
     offset = np.asarray(origin, dtype=np.float64) - (_SUPERSAMPLE - 1) / (2 * _SUPERSAMPLE)
-    # The mean of fx and fy, written out: np.mean(np.diag(...)) costs more than
-    # the discs drawn here, and this runs for every bend tried in every view.
-    focal = (float(cam.matrix[0, 0]) + float(cam.matrix[1, 1])) / 2
+    focal = cam.focal_px
     px = (cam.project(np.vstack([discs_mm, outline_mm])) - offset) * one
     # cv2 fills what its outlines touch: shapes come out too large (see _CIRCLE_BIAS).
     bias = _CIRCLE_BIAS * (1 << _DRAW_SHIFT)
@@ -584,7 +583,7 @@ def _end_by_pixels(
     px = cam.project(line)
     if not (np.isfinite(px).all() and (depth > radius_mm).all()):
         return None
-    focal = float(np.mean(np.diag(cam.matrix)[:2]))
+    focal = cam.focal_px
     w, h = cam.size_px
     owner = np.zeros((h, w), np.int32)
     one = 1 << _DRAW_SHIFT
