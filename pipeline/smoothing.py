@@ -54,6 +54,10 @@ _LAMBDAS = np.logspace(-6.0, 8.0, 15)
 _REFINE = np.logspace(-0.75, 0.75, 7)
 # A spline is fitted only through at least this many good frames (the CV halves need 5 each).
 _MIN_SPLINE_FRAMES = 12
+# Degree of the local fit that judges frames near the ends of a run, where the full
+# degree's one-sided fit passes too much noise to judge anything: a quadratic over
+# the frames on one side still tells a frame several mm off from its neighbours.
+_END_DEGREE = 2
 
 
 def smooth_centerlines(
@@ -129,6 +133,11 @@ def smooth_centerlines(
         near = np.convolve(has_fit, np.ones(2 * half_window + 1), mode="same") > 0
         has_fit = has_fit | (active & near)
         fitted = spline
+        # An outlier next to trusted frames takes the spline's value, which the
+        # frames around it (not the outlier) decide; at the end of a run, where no
+        # local fit reaches, it would otherwise keep its wrong value.
+        beside = np.convolve(has_fit, np.ones(3), mode="same") > 0
+        has_fit = has_fit | (ok & ~active & beside)
     # An outlier with too few inliers around it for the narrow window takes the wide
     # one, even if that fit passes up to twice the noise's RMS (gain 4): an outlier is
     # at least min_outlier_mm off, several times the reconstruction's noise. Only
@@ -199,6 +208,11 @@ def _inliers(
     # Each pass removes at least one frame, so this bound is never what stops it.
     for _ in range(len(curves)):
         fitted, has_fit = _local_fits(curves, offsets, active, half_window, degree)
+        if degree > _END_DEGREE and not has_fit[ok].all():
+            # Frames without a usable fit (near the ends of a run) are judged by a
+            # lower-degree one, or an outlier there would never be found.
+            low, has_low = _local_fits(curves, offsets, active, half_window, _END_DEGREE, only=ok & ~has_fit)
+            fitted[has_low], has_fit = low[has_low], has_fit | has_low
         outliers = _outliers(curves, fitted, active & has_fit, half_window, cutoff_mm)
         if not outliers.any():
             break
@@ -234,6 +248,7 @@ def _local_fits(
     degree: int,
     *,
     max_gain: float = 1.0,
+    only: NDArray[np.bool_] | None = None,
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Each ok frame's local polynomial fit over the active frames of its window.
 
@@ -243,6 +258,7 @@ def _local_fits(
     offsets : (F,) float64 frame times in median frame steps.
     active : (F,) bool frames that enter the fits.
     max_gain : largest usable noise gain (see :func:`_local_fit_weights`).
+    only : (F,) bool, fit only these frames (default: every ok frame).
 
     Returns
     -------
@@ -256,7 +272,10 @@ def _local_fits(
     # same weights: each set is computed once (keyed to 1e-9 frame steps, far below
     # any real timing difference).
     weights: dict[bytes, FloatArray | None] = {}
-    for f in np.flatnonzero(np.isfinite(curves).all(axis=(1, 2))).tolist():
+    wanted = np.isfinite(curves).all(axis=(1, 2))
+    if only is not None:
+        wanted &= only
+    for f in np.flatnonzero(wanted).tolist():
         lo, hi = max(0, f - half_window), min(frames, f + half_window + 1)
         used = lo + np.flatnonzero(active[lo:hi])
         relative = offsets[used] - offsets[f]
