@@ -321,6 +321,50 @@ def _bend_once(
     return _bend_end(pts, arc, start, p[:2], float(p[2]), ahead) if p.any() else pts
 
 
+def coverage_mismatch(
+    axes_mm: Sequence[FloatArray],
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    contrasts: Sequence[NDArray[np.float32]],
+    radius_mm: float,
+) -> list[float]:
+    """How far each of several tubes is from the views' grey levels: one cost each.
+
+    The cost :func:`bend_tip_to_pixels` minimises, for whole tubes: per view,
+    the sum of squared differences between the tube's drawn coverage
+    (sub-pixel, flat end, see :func:`_draw_tube`) and the coverage read from
+    the grey levels (:func:`_coverage`), over one window holding all the tubes
+    (so that the costs compare), summed over the views. Unlike the
+    silhouettes' IoU, this sees where a tip lies on another part of the tube
+    (its edges blur into the other part's), and a flat end.
+
+    Parameters
+    ----------
+    axes_mm : each (M_i, 3) float64 axis, base -> tip, world frame, mm.
+    cameras, masks, contrasts : per camera: the camera, its (H, W) bool
+        silhouette and (H, W) float32 foreground contrast.
+    radius_mm : tube radius, mm (the same for all).
+
+    Returns
+    -------
+    One cost per axis (squared coverage, summed over pixels: lower is better).
+    """
+    costs = [0.0] * len(axes_mm)
+    for cam, contrast, mask in zip(cameras, contrasts, masks, strict=True):
+        windows = [w for w in (_window(cam, axis, radius_mm) for axis in axes_mm) if w is not None]
+        if len(windows) < len(axes_mm):
+            continue  # a tube this view does not see whole: no fair comparison here
+        x0, y0 = (min(w[0][i] for w in windows) for i in (0, 1))
+        x1, y1 = (max(w[1][i] for w in windows) for i in (0, 1))
+        seen = _coverage(contrast, mask)[y0:y1, x0:x1]
+        for n, axis in enumerate(axes_mm):
+            canvas = np.zeros(((y1 - y0) * _SUPERSAMPLE, (x1 - x0) * _SUPERSAMPLE), np.uint8)
+            _draw_tube(canvas, cam, *_tube_points(axis, radius_mm, flat_end=True), radius_mm, (x0, y0))
+            drawn = cv2.resize(canvas, seen.shape[::-1], interpolation=cv2.INTER_AREA).astype(np.float32)
+            costs[n] += float(np.sum((drawn / 255.0 - seen) ** 2))
+    return costs
+
+
 def tip_meets_tube(
     points_mm: FloatArray,
     cameras: Sequence[Camera],
