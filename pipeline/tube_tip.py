@@ -321,6 +321,49 @@ def _bend_once(
     return _bend_end(pts, arc, start, p[:2], float(p[2]), ahead) if p.any() else pts
 
 
+def continue_on_circle(points_mm: FloatArray, *, redo_mm: float, fit_mm: float) -> FloatArray:
+    """(M', 3) axis whose last ``redo_mm`` are replaced by the circle the part before follows.
+
+    The circle (centre, radius, plane) is fitted, least squares, to the axis
+    over the ``fit_mm`` before the cut, and followed from the cut, in the
+    axis' direction of travel, for ``redo_mm``, in 2 mm steps. A loop's tip
+    that lies on its stem has no readings of its own that a fit could follow:
+    this is where its course takes it (the tip bend then corrects it to the
+    pixels). A part too straight for a circle is continued straight.
+
+    Parameters
+    ----------
+    points_mm : (M, 3) float64 axis, base -> tip, world frame, mm.
+    redo_mm, fit_mm : lengths along the axis, mm.
+    """
+    pts = np.asarray(points_mm, dtype=np.float64)
+    arc = polyline_arclength(pts)
+    cut = cut_polyline(pts, float(arc[-1]) - redo_mm)
+    cut_arc = polyline_arclength(cut)
+    part = cut[cut_arc >= cut_arc[-1] - fit_mm]
+    ahead = np.append(np.arange(2.0, redo_mm, 2.0), redo_mm)
+    centre = part.mean(axis=0)
+    _, spread, vt = np.linalg.svd(part - centre)
+    xy = (part - centre) @ vt[:2].T
+    # Kasa's algebraic circle: |p|^2 = 2 c . p + (R^2 - |c|^2), linear in c and R^2 - |c|^2.
+    design = np.column_stack([2.0 * xy, np.ones(len(xy))])
+    (cx, cy, k), *_ = np.linalg.lstsq(design, (xy**2).sum(axis=1), rcond=None)
+    radius = float(np.sqrt(max(k + cx**2 + cy**2, 0.0)))
+    # Sagitta below a thousandth of the chord (spread across / along): straight.
+    if len(part) < 3 or spread[1] < 1e-3 * spread[0] or not 0.0 < radius < np.inf:
+        along = vt[0] if (part[-1] - part[0]) @ vt[0] >= 0 else -vt[0]
+        return np.vstack([cut, cut[-1] + np.outer(ahead, along)])
+    rel = xy - (cx, cy)
+    # The way round the part goes: the sign of the angle it sweeps, step by step
+    # (its last step alone can be a sliver, where the cut fell by a sample).
+    sweep = float(np.sum(rel[:-1, 0] * rel[1:, 1] - rel[:-1, 1] * rel[1:, 0]))
+    angles = np.arctan2(rel[-1, 1], rel[-1, 0]) + np.sign(sweep or 1.0) * ahead / radius
+    on_circle = radius * np.column_stack([np.cos(angles), np.sin(angles)])
+    # Shifted to start at the cut (the circle passes within the fit's residual of it).
+    from_cut = on_circle - radius * rel[-1] / np.linalg.norm(rel[-1])
+    return np.vstack([cut, cut[-1] + from_cut @ vt[:2]])
+
+
 def coverage_mismatch(
     axes_mm: Sequence[FloatArray],
     cameras: Sequence[Camera],

@@ -23,6 +23,7 @@ from pipeline.tube_tip import (
     _shrink_convex,
     _tube_points,
     bend_tip_to_pixels,
+    continue_on_circle,
     coverage_mismatch,
 )
 
@@ -215,3 +216,29 @@ def test_coverage_mismatch_ranks_the_true_tube_first() -> None:
     # window only adds background pixels, read and drawn as 0 here.
     alone = coverage_mismatch([axis], rig_cameras("ninety"), masks, contrasts, radius)
     assert alone[0] == pytest.approx(costs[0], rel=0.05)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_continue_on_circle_follows_an_arc_and_a_straight_line(seed: int) -> None:
+    # An arc of radius 30 mm in a random plane, its last 40 mm gone straight
+    # along its tangent: the continuation puts them back on the circle the part
+    # before follows, to the same length. Exact but for the polyline's chords (0.2 mm apart on
+    # the arc, sagitta ~2e-4 mm) and lstsq's rounding: 1e-3 mm.
+    rng = np.random.default_rng(seed)
+    rotation = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    angle = np.linspace(0.0, 4.0, 600)
+    circle = np.column_stack([30.0 * np.cos(angle), 30.0 * np.sin(angle), np.zeros_like(angle)])
+    axis = circle @ rotation.T + rng.normal(size=3) * 50.0
+    arc = polyline_arclength(axis)
+    stem = cut_polyline(axis, float(arc[-1]) - 40.0)
+    tangent = (stem[-1] - stem[-2]) / np.linalg.norm(stem[-1] - stem[-2])
+    bent = np.vstack([stem, stem[-1] + np.outer(np.arange(1.0, 41.0), tangent)])
+    out = continue_on_circle(bent, redo_mm=40.0, fit_mm=50.0)
+    local = (out - (axis[0] - circle[0] @ rotation.T)) @ rotation
+    np.testing.assert_allclose(np.hypot(local[:, 0], local[:, 1]), 30.0, atol=1e-3)
+    np.testing.assert_allclose(local[:, 2], 0.0, atol=1e-3)
+    assert polyline_arclength(out)[-1] == pytest.approx(arc[-1], abs=0.05)  # chords of 2 mm steps
+    np.testing.assert_allclose(out[-1], axis[-1], atol=0.05)
+    # A straight line has no circle: it is continued straight, to the same end.
+    line = np.outer(np.linspace(0.0, 100.0, 51), rotation[:, 0])
+    np.testing.assert_allclose(continue_on_circle(line, redo_mm=20.0, fit_mm=40.0)[-1], line[-1], atol=1e-9)
