@@ -25,8 +25,12 @@ for the tip's), the tip is then bent to the pixels
 (:func:`pipeline.tube_tip.bend_tip_to_pixels`), the stem under it fitted
 again now that the tip is known (:func:`pipeline.tube_fit.refit_body`; also
 from the stem bridged where it lies near the tip, which the tip's edges
-pulled towards it, the better of the two kept), and the tip bent again
-against that stem. Each frame stands alone.
+pulled towards it), and the tip bent again against that stem. A tip lying
+on its stem has no readings of its own, so the tip where the curve's own
+course takes it (:func:`pipeline.tube_tip.continue_on_circle`) is bent too;
+these last hypotheses are compared by how their tubes match the grey levels
+(:func:`pipeline.tube_tip.coverage_mismatch`), which, unlike the IoU, tell a
+tip lying on the stem from one beside it. Each frame stands alone.
 """
 
 from __future__ import annotations

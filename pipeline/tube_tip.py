@@ -14,7 +14,10 @@ Where the tip lies against another part of the tube (a thick loop's tip on its
 stem), its side readings are pulled off it by the other part's edges, in every
 view that does not separate them. :func:`bend_tip_to_pixels` then bends and
 lengthens the curve's last few radii until the tube it describes, drawn with
-sub-pixel coverage, matches each view's grey levels near the tip.
+sub-pixel coverage, matches each view's grey levels near the tip; it starts
+where the fit left the tip, or where the curve's own course takes it
+(:func:`continue_on_circle`), and :func:`coverage_mismatch` compares whole
+tubes by the same measure.
 """
 
 from __future__ import annotations
