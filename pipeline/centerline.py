@@ -49,7 +49,13 @@ from .ordering import March, march_hull
 from .polyline import cut_polyline, polyline_arclength, resample_polyline
 from .quality import misfit_fractions, reprojection_iou, tube_mask
 from .tube_fit import TubeFit, centre_across, fit_tube, refit_body, trim_unexplained_tail
-from .tube_tip import bend_tip_to_pixels, continue_on_circle, coverage_mismatch, tip_meets_tube
+from .tube_tip import (
+    bend_tip_to_pixels,
+    continue_on_circle,
+    coverage_mismatch,
+    pixel_coverages,
+    tip_meets_tube,
+)
 
 __all__ = [
     "Centerline",
@@ -314,6 +320,8 @@ def fit_centerline(
         # views where the tip's tube touches it are now known, see
         # pipeline.tube_fit.refit_body), and the tip bent again against it.
         radius = best.radius_mm
+        # The grey levels read as coverage once for every bend and comparison.
+        coverages = pixel_coverages(contrasts, masks)
 
         def bend(axis_mm: FloatArray) -> FloatArray:
             # Only a bend that runs into the tube is refused, not one that comes
@@ -326,6 +334,7 @@ def fit_centerline(
                 contrasts,
                 radius,
                 rejects=lambda axis: self_intersects(axis, radius),
+                coverages=coverages,
             )
 
         bent = bend(best.points_mm)
@@ -372,7 +381,7 @@ def fit_centerline(
             # replaces the one the IoU chose only if its mismatch is
             # _COVERAGE_MARGIN lower: between near-equal tubes, the IoU's
             # choice held the median tip better (see the constant).
-            costs = coverage_mismatch(bents, cameras, masks, contrasts, radius)
+            costs = coverage_mismatch(bents, cameras, masks, contrasts, radius, coverages=coverages)
             other = int(np.argmin(costs))
             if costs[other] < (1.0 - _COVERAGE_MARGIN) * costs[first]:
                 first = other
@@ -388,9 +397,9 @@ def fit_centerline(
             continue_on_circle(best.points_mm, redo_mm=k * radius, fit_mm=_CIRCLE_FIT_RADII * radius)
             for k in _CONTINUE_RADII
         ]
-        costs = coverage_mismatch(continued, cameras, masks, contrasts, radius)
+        costs = coverage_mismatch(continued, cameras, masks, contrasts, radius, coverages=coverages)
         axes = [best.points_mm, bend(continued[int(np.argmin(costs))])]
-        costs = coverage_mismatch(axes, cameras, masks, contrasts, radius)
+        costs = coverage_mismatch(axes, cameras, masks, contrasts, radius, coverages=coverages)
         if costs[1] < (1.0 - _COVERAGE_MARGIN) * costs[0]:
             best = replace(best, points_mm=axes[1])
     return smooth_curve(best.points_mm, n_points=n_points), best

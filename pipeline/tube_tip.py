@@ -211,6 +211,7 @@ def bend_tip_to_pixels(
     *,
     spans_radii: Sequence[float] = _BEND_SPANS_RADII,
     rejects: Callable[[FloatArray], bool] | None = None,
+    coverages: Sequence[NDArray[np.float32]] | None = None,
 ) -> FloatArray:
     """The curve with its last few radii bent and lengthened to match the views' pixels.
 
@@ -236,6 +237,7 @@ def bend_tip_to_pixels(
     spans_radii : lengths of the bent part, in radii, one search each.
     rejects : a bent axis (K, 3) this returns True for is not taken (a tube
         that passes through itself, say).
+    coverages : the views' :func:`pixel_coverages`, if already read.
 
     Returns
     -------
@@ -243,7 +245,7 @@ def bend_tip_to_pixels(
     """
     pts = np.asarray(points_mm, dtype=np.float64)
     # The grey levels read as coverage once for all the spans.
-    seen = [_coverage(contrast, mask) for contrast, mask in zip(contrasts, masks, strict=True)]
+    seen = pixel_coverages(contrasts, masks) if coverages is None else coverages
     for span in spans_radii:
         pts = _bend_once(pts, cameras, seen, radius_mm, span * radius_mm, rejects)
     return pts
@@ -373,6 +375,8 @@ def coverage_mismatch(
     masks: Sequence[NDArray[np.bool_]],
     contrasts: Sequence[NDArray[np.float32]],
     radius_mm: float,
+    *,
+    coverages: Sequence[NDArray[np.float32]] | None = None,
 ) -> list[float]:
     """How far each of several tubes is from the views' grey levels: one cost each.
 
@@ -390,19 +394,22 @@ def coverage_mismatch(
     cameras, masks, contrasts : per camera: the camera, its (H, W) bool
         silhouette and (H, W) float32 foreground contrast.
     radius_mm : tube radius, mm (the same for all).
+    coverages : the views' :func:`pixel_coverages`, if already read.
 
     Returns
     -------
     One cost per axis (squared coverage, summed over pixels: lower is better).
     """
     costs = [0.0] * len(axes_mm)
-    for cam, contrast, mask in zip(cameras, contrasts, masks, strict=True):
+    if coverages is None:
+        coverages = pixel_coverages(contrasts, masks)
+    for cam, coverage in zip(cameras, coverages, strict=True):
         windows = [w for w in (_window(cam, axis, radius_mm) for axis in axes_mm) if w is not None]
         if len(windows) < len(axes_mm):
             continue  # a tube this view does not see whole: no fair comparison here
         x0, y0 = (min(w[0][i] for w in windows) for i in (0, 1))
         x1, y1 = (max(w[1][i] for w in windows) for i in (0, 1))
-        seen = _coverage(contrast, mask)[y0:y1, x0:x1]
+        seen = coverage[y0:y1, x0:x1]
         for n, axis in enumerate(axes_mm):
             canvas = np.zeros(((y1 - y0) * _SUPERSAMPLE, (x1 - x0) * _SUPERSAMPLE), np.uint8)
             _draw_tube(canvas, cam, *_tube_points(axis, radius_mm, flat_end=True), radius_mm, (x0, y0))
@@ -469,6 +476,14 @@ def _window(
     x0, y0 = (max(int(np.floor(v)), 0) for v in px.min(axis=0) - margin)
     x1, y1 = (min(int(np.ceil(v)), n) for v, n in zip(px.max(axis=0) + margin, (w, h), strict=True))
     return ((x0, y0), (x1, y1)) if x1 > x0 and y1 > y0 else None
+
+
+def pixel_coverages(
+    contrasts: Sequence[NDArray[np.float32]], masks: Sequence[NDArray[np.bool_]]
+) -> list[NDArray[np.float32]]:
+    """Per view, (H, W) float32 in [0, 1]: how much of each pixel the tube covers
+    (:func:`_coverage` of its (H, W) contrast and bool silhouette)."""
+    return [_coverage(contrast, mask) for contrast, mask in zip(contrasts, masks, strict=True)]
 
 
 def _coverage(contrast: NDArray[np.float32], mask: NDArray[np.bool_]) -> NDArray[np.float32]:
