@@ -116,11 +116,12 @@ _BRIDGE_MOVE_RADII = 1.5
 # the 12-frame r 9 ninety loop's median tip 0.65 / 0.74 / 0.65 / 0.65 mm.
 _COVERAGE_MARGIN = 0.02
 # Under a bent tip, the curve's last this many radii (one hypothesis each) are
-# redone along the circle its _CIRCLE_FIT_RADII radii before follow; the one
-# that matches the grey levels best is bent. Measured on the 150-frame r 9
-# ninety loop's 13 wrong-tip frames (tip 6-27 mm off): the best match came
-# from 3 radii back on 5 frames, 5 on 6, 8 on 1 (bent, 12 of 13 tips
-# within 5 mm); bending all three instead of the best cost ~170 ms a frame.
+# redone along the circle its _CIRCLE_FIT_RADII radii before follow, and the
+# best matches to the grey levels bent (see fit_centerline). Measured on the
+# 150-frame r 9 ninety loop: 13 frames with tips 6-27 mm off before, none
+# after (the chosen curve's continuations alone: 1, frame 33 at 14 mm; 3, 5
+# and 8 radii back each won on some frames); bending every continuation
+# instead of the best ones cost ~170 ms more a frame.
 _CONTINUE_RADII = (3.0, 5.0, 8.0)
 _CIRCLE_FIT_RADII = 6.0
 # Dense evaluation factor used to invert arc length.
@@ -389,19 +390,26 @@ def fit_centerline(
         # A tip lying on the stem has no side readings of its own, and the bend
         # searches near where the fit left it: the tip where the curve's own
         # course takes it (the circle the curve follows before it, followed to
-        # the same length, redone from a few lengths back; the one that best
-        # matches the grey levels) is bent too, and kept if it matches them
-        # better. Measured on the 150-frame r 9 ninety loop's wrong-tip
-        # frames: see _CONTINUE_RADII.
+        # the same length, redone from a few lengths back) is bent too, and
+        # kept if it matches the grey levels better. Of these continuations,
+        # of the chosen curve and of the other hypotheses' (bent) curves, the
+        # one that best matches the grey levels is bent, and the chosen
+        # curve's best too if that is another (a continuation's match before
+        # its bend ranks it only roughly). See _CONTINUE_RADII.
+        ordered = [bents[first]] + [b for n, b in enumerate(bents) if n != first]
         continued = [
-            continue_on_circle(best.points_mm, redo_mm=k * radius, fit_mm=_CIRCLE_FIT_RADII * radius)
+            continue_on_circle(stem, redo_mm=k * radius, fit_mm=_CIRCLE_FIT_RADII * radius)
+            for stem in ordered
             for k in _CONTINUE_RADII
         ]
         costs = coverage_mismatch(continued, cameras, masks, contrasts, radius, coverages=coverages)
-        axes = [best.points_mm, bend(continued[int(np.argmin(costs))])]
+        own = int(np.argmin(costs[: len(_CONTINUE_RADII)]))
+        tries = sorted({own, int(np.argmin(costs))})
+        axes = [best.points_mm] + [bend(continued[j]) for j in tries]
         costs = coverage_mismatch(axes, cameras, masks, contrasts, radius, coverages=coverages)
-        if costs[1] < (1.0 - _COVERAGE_MARGIN) * costs[0]:
-            best = replace(best, points_mm=axes[1])
+        other = int(np.argmin(costs))
+        if costs[other] < (1.0 - _COVERAGE_MARGIN) * costs[0]:
+            best = replace(best, points_mm=axes[other])
     return smooth_curve(best.points_mm, n_points=n_points), best
 
 
