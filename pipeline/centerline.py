@@ -407,9 +407,13 @@ def fit_centerline(
         tries = sorted({own, int(np.argmin(costs))})
         axes = [best.points_mm] + [bend(continued[j]) for j in tries]
         costs = coverage_mismatch(axes, cameras, masks, contrasts, radius, coverages=coverages)
-        other = int(np.argmin(costs))
-        if costs[other] < (1.0 - _COVERAGE_MARGIN) * costs[0]:
-            best = replace(best, points_mm=axes[other])
+        # No margin here (unlike between the stems above): where the tip hides,
+        # the matches differ by ~1 %, and the least one was the nearer tip more
+        # often. Measured, 150-frame r 9 ninety loop: 0.281 / 0.801 / 0.757 mm
+        # mean / p95 / median tip with a 2 % margin, 0.270 / 0.752 / 0.663
+        # without (smoothed tip jitter 2.8 -> 1.9 times the truth's); the 11
+        # other loops' median tips equal or lower.
+        best = replace(best, points_mm=axes[int(np.argmin(costs))])
     return smooth_curve(best.points_mm, n_points=n_points), best
 
 
