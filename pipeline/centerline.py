@@ -117,7 +117,7 @@ _BRIDGE_MOVE_RADII = 1.5
 _COVERAGE_MARGIN = 0.02
 # Under a bent tip, the curve's last this many radii (one hypothesis each) are
 # redone along the circle its _CIRCLE_FIT_RADII radii before follow, and the
-# best matches to the grey levels bent (see fit_centerline). Measured on the
+# best matches to the grey levels bent (see _continue_tip). Measured on the
 # 150-frame r 9 ninety loop: 13 frames with tips 6-27 mm off before, none
 # after (the chosen curve's continuations alone: 1, frame 33 at 14 mm; 3, 5
 # and 8 radii back each won on some frames); bending every continuation
@@ -389,32 +389,51 @@ def fit_centerline(
         best = replace(best, points_mm=bents[first])
         # A tip lying on the stem has no side readings of its own, and the bend
         # searches near where the fit left it: the tip where the curve's own
-        # course takes it (the circle the curve follows before it, followed to
-        # the same length, redone from a few lengths back) is bent too, and
-        # kept if it matches the grey levels better. Of these continuations,
-        # of the chosen curve and of the other hypotheses' (bent) curves, the
-        # one that best matches the grey levels is bent, and the chosen
-        # curve's best too if that is another (a continuation's match before
-        # its bend ranks it only roughly). See _CONTINUE_RADII.
+        # course takes it is tried too (see _continue_tip).
         ordered = [bents[first]] + [b for n, b in enumerate(bents) if n != first]
-        continued = [
-            continue_on_circle(stem, redo_mm=k * radius, fit_mm=_CIRCLE_FIT_RADII * radius)
-            for stem in ordered
-            for k in _CONTINUE_RADII
-        ]
-        costs = coverage_mismatch(continued, cameras, masks, contrasts, radius, coverages=coverages)
-        own = int(np.argmin(costs[: len(_CONTINUE_RADII)]))
-        tries = sorted({own, int(np.argmin(costs))})
-        axes = [best.points_mm] + [bend(continued[j]) for j in tries]
-        costs = coverage_mismatch(axes, cameras, masks, contrasts, radius, coverages=coverages)
-        # No margin here (unlike between the stems above): where the tip hides,
-        # the matches differ by ~1 %, and the least one was the nearer tip more
-        # often. Measured, 150-frame r 9 ninety loop: 0.281 / 0.801 / 0.757 mm
-        # mean / p95 / median tip with a 2 % margin, 0.270 / 0.752 / 0.663
-        # without (smoothed tip jitter 2.8 -> 1.9 times the truth's); the 11
-        # other loops' median tips equal or lower.
-        best = replace(best, points_mm=axes[int(np.argmin(costs))])
+        best = replace(
+            best, points_mm=_continue_tip(ordered, bend, cameras, masks, contrasts, radius, coverages)
+        )
     return smooth_curve(best.points_mm, n_points=n_points), best
+
+
+def _continue_tip(
+    curves_mm: Sequence[FloatArray],
+    bend: Callable[[FloatArray], FloatArray],
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    contrasts: Sequence[NDArray[np.float32]],
+    radius_mm: float,
+    coverages: Sequence[NDArray[np.float32]],
+) -> FloatArray:
+    """The chosen curve (``curves_mm[0]``), or one whose tip follows its own course, bent.
+
+    Each curve's last few radii (``_CONTINUE_RADII``) are redone along the
+    circle the part before follows (:func:`pipeline.tube_tip.continue_on_circle`);
+    of these continuations, of the chosen curve and of the other hypotheses'
+    curves (each (M_i, 3), bent, world frame, mm), the one that best matches
+    the grey levels (:func:`pipeline.tube_tip.coverage_mismatch`) is bent, and
+    the chosen curve's best too if that is another (a continuation's match
+    before its bend ranks it only roughly); the axis, (M, 3), that matches them
+    best is returned, the chosen curve's own included.
+    """
+    continued = [
+        continue_on_circle(curve, redo_mm=k * radius_mm, fit_mm=_CIRCLE_FIT_RADII * radius_mm)
+        for curve in curves_mm
+        for k in _CONTINUE_RADII
+    ]
+    costs = coverage_mismatch(continued, cameras, masks, contrasts, radius_mm, coverages=coverages)
+    own = int(np.argmin(costs[: len(_CONTINUE_RADII)]))
+    tries = sorted({own, int(np.argmin(costs))})
+    axes = [curves_mm[0]] + [bend(continued[j]) for j in tries]
+    costs = coverage_mismatch(axes, cameras, masks, contrasts, radius_mm, coverages=coverages)
+    # No margin here (unlike between the stems, see fit_centerline): where the
+    # tip hides, the matches differ by ~1 %, and the least one was the nearer
+    # tip more often. Measured, 150-frame r 9 ninety loop: 0.281 / 0.801 /
+    # 0.757 mm mean / p95 / median tip with a 2 % margin, 0.270 / 0.752 / 0.663
+    # without (smoothed tip jitter 2.8 -> 1.9 times the truth's); the 11 other
+    # loops' median tips equal or lower.
+    return axes[int(np.argmin(costs))]
 
 
 def _bridge_under_tip(points_mm: FloatArray, radius_mm: float, *, hold_from_mm: float) -> FloatArray:
