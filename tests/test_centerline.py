@@ -547,3 +547,32 @@ def test_bridge_under_tip_takes_out_a_bulge_towards_the_tip() -> None:
     c_shape = resample_polyline(_arc(length=200.0, bend_radius=110.0), 50)
     length = float(polyline_arclength(c_shape)[-1])
     assert _bridge_under_tip(c_shape, RADIUS, hold_from_mm=length - _HELD_TIP_RADII * RADIUS) is c_shape
+
+
+def test_continue_tip_brings_back_a_tip_the_bend_cannot(rendered_loop: tuple) -> None:
+    from pipeline.centerline import _continue_tip
+    from pipeline.tube_tip import _bend_end, _end_frame, bend_tip_to_pixels, pixel_coverages
+
+    curve, cams, masks, contrasts = rendered_loop
+    truth = resample_polyline(curve, 64)
+    arc = polyline_arclength(truth)
+    # The last 8 radii swung 4 radii out of the loop's plane and 1.5 radii
+    # short (the tip 18 mm off): the bend, which moves the tip at most 1.5
+    # radii from where it starts, stops 4.9 mm off.
+    start = arc[-1] - 8.0 * RADIUS
+    ahead = _end_frame(truth, arc, at_mm=float(arc[-1]), span_mm=24.0)
+    wrong = _bend_end(truth, arc, start, np.array([0.0, 4.0 * RADIUS]), -1.5 * RADIUS, ahead)
+    coverages = pixel_coverages(contrasts, masks)
+
+    def bend(axis: FloatArray) -> FloatArray:
+        return bend_tip_to_pixels(axis, cams, masks, contrasts, RADIUS, coverages=coverages)
+
+    assert np.linalg.norm(bend(wrong)[-1] - truth[-1]) > 2.0
+    # The loop is a circle drifting sideways: its continuation lands near the
+    # true tip and the bend finishes it. Measured 0.39 mm; bound: the bends'
+    # noise on rendered loops (0.25-1 mm at r 6 and below).
+    fixed = _continue_tip([wrong], bend, cams, masks, contrasts, RADIUS, coverages)
+    assert np.linalg.norm(fixed[-1] - truth[-1]) < 1.0
+    # The true curve itself is kept (or only nudged by the bend's last step).
+    kept = _continue_tip([truth], bend, cams, masks, contrasts, RADIUS, coverages)
+    assert np.linalg.norm(kept[-1] - truth[-1]) < 0.5
