@@ -346,39 +346,6 @@ def test_self_intersects_only_where_the_axis_comes_back_onto_itself() -> None:
     assert self_intersects(np.vstack([up, beside]), RADIUS, closest_radii=1.5)
 
 
-def test_consistent_drops_the_reading_the_solution_disagrees_with() -> None:
-    from pipeline.tube_fit import _consistent, _Sides, _solve_corrections
-
-    # Twenty samples along x, each read by two views: one along y, one along z
-    # (rows: the motion of the projection along each view's normal, per mm).
-    k = 20
-    pts = np.column_stack([np.arange(k) * 4.0, np.zeros(k), np.zeros(k)])
-    rows = np.zeros((k, 2, 3))
-    rows[:, 0, 1] = 1.0
-    rows[:, 1, 2] = 1.0
-    rng = np.random.default_rng(0)
-    offset = rng.normal(0.0, 0.05, (k, 2))  # edge noise, mm
-    offset[10, 0] = 4.0  # another part of the tube in view 0 at sample 10
-    radius = 6.0
-    sides = _Sides(
-        rows,
-        offset - radius,
-        offset + radius,
-        np.ones((k, 2, 2), dtype=bool),
-        radius,
-        np.full((1, 2), radius),
-    )
-    step = _solve_corrections(pts, sides, base_fixed=False, smoothness=0.5)
-    kept = _consistent(sides, step)
-    assert not kept.use[10, 0].any()
-    # Everything else stays: its residuals are noise, far under a quarter radius.
-    assert kept.readings == sides.readings - 2
-    again = _solve_corrections(pts, kept, base_fixed=False, smoothness=0.5)
-    # Without the outlier, sample 10 sits where its neighbours and the noise say.
-    assert abs(again[10, 1]) < 0.3 < abs(step[10, 1])
-    assert _consistent(kept, again) is kept
-
-
 def test_a_resumed_march_carries_on_from_the_given_curve_to_the_tip() -> None:
     from pipeline.ordering import march_hull
 

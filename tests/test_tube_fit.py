@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 
 from pipeline.evaluate import centerline_distances
 from pipeline.polyline import polyline_arclength, resample_polyline
-from pipeline.tube_fit import _crowded, _Sides, _solve_corrections, refit_body
+from pipeline.tube_fit import _consistent, _crowded, _Sides, _solve_corrections, refit_body
 
 FloatArray = NDArray[np.float64]
 RADIUS = 6.0
@@ -116,3 +116,19 @@ def test_refit_body_brings_a_bumped_stem_back_and_holds_the_tip(rendered_arc: tu
     assert held.sum() >= 6
     np.testing.assert_allclose(out[held], before[held], atol=1e-9)
     np.testing.assert_allclose(out[[0, -1]], bumped[[0, -1]], atol=1e-9)
+
+
+def test_consistent_drops_the_reading_the_solution_disagrees_with() -> None:
+    k = 20
+    offset = np.random.default_rng(0).normal(0.0, 0.05, (k, 2))  # edge noise, mm
+    offset[10, 0] = 4.0  # another part of the tube in view 0 at sample 10
+    pts, sides = _sides_along_x(k, offset)
+    step = _solve_corrections(pts, sides, base_fixed=False, smoothness=0.5)
+    kept = _consistent(sides, step)
+    assert not kept.use[10, 0].any()
+    # Everything else stays: its residuals are noise, far under a quarter radius.
+    assert kept.readings == sides.readings - 2
+    again = _solve_corrections(pts, kept, base_fixed=False, smoothness=0.5)
+    # Without the outlier, sample 10 sits where its neighbours and the noise say.
+    assert abs(again[10, 1]) < 0.3 < abs(step[10, 1])
+    assert _consistent(kept, again) is kept
