@@ -159,11 +159,7 @@ def fit_tube(
         obs = _read_sides(pts, cameras, contrasts, radius, spacing_mm, core=_FIRST_CORE if i == 0 else 0.6)
         if obs.readings >= 6:
             radius = obs.radius_mm
-            step = _solve_corrections(pts, obs, base_fixed=base_fixed, smoothness=smoothness)
-            kept = _consistent(obs, step) if robust else obs
-            if kept is not obs:
-                step = _solve_corrections(pts, kept, base_fixed=base_fixed, smoothness=smoothness)
-            pts = pts + step
+            pts = pts + _step(pts, obs, base_fixed=base_fixed, smoothness=smoothness, robust=robust)
         pts = refit_tip(pts, cameras, contrasts, radius, cap=cap, masks=masks, max_length_mm=max_length_mm)
     pts = _resampled(pts, spacing_mm)
     obs = _read_sides(pts, cameras, contrasts, radius, spacing_mm)
@@ -215,12 +211,27 @@ def refit_body(
         )
         if obs.readings < 6:
             break
-        step = _solve_corrections(pts, obs, base_fixed=base_fixed, smoothness=smoothness, held=held)
-        kept = _consistent(obs, step)
-        if kept is not obs:
-            step = _solve_corrections(pts, kept, base_fixed=base_fixed, smoothness=smoothness, held=held)
-        pts = pts + step
+        pts = pts + _step(pts, obs, base_fixed=base_fixed, smoothness=smoothness, held=held)
     return pts
+
+
+def _step(
+    pts: FloatArray,
+    obs: _Sides,
+    *,
+    base_fixed: bool,
+    smoothness: float,
+    robust: bool = True,
+    held: NDArray[np.bool_] | None = None,
+) -> FloatArray:
+    """(K, 3) Gauss-Newton correction of the samples ``pts`` (mm) from the readings
+    ``obs``; ``robust``: solved again without the readings the first solve
+    disagrees with (see :func:`_consistent`)."""
+    step = _solve_corrections(pts, obs, base_fixed=base_fixed, smoothness=smoothness, held=held)
+    kept = _consistent(obs, step) if robust else obs
+    if kept is not obs:
+        step = _solve_corrections(pts, kept, base_fixed=base_fixed, smoothness=smoothness, held=held)
+    return step
 
 
 def trim_unexplained_tail(
