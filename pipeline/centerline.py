@@ -12,7 +12,7 @@ Three steps, each its own module:
 
 Where the hull is ambiguous (a loop whose tip crosses its stem in the views)
 the march may choose wrong. A fitted tube that leaves part of a silhouette
-unexplained (:func:`pipeline.quality.misfit_fraction`), or whose parts come
+unexplained (:func:`pipeline.quality.misfit_fractions`), or whose parts come
 closer than a tube allows (a tip curled into its stem, which the stem hides in
 most views), is therefore not taken as it is: other hypotheses are fitted (the
 march coasting on its own course through the crowded hull; the fit without its
@@ -614,7 +614,7 @@ def _fit_march(
 
 
 def _misfit(fit: TubeFit, cameras: Sequence[Camera], masks: Sequence[NDArray[np.bool_]]) -> float:
-    """The worst view's :func:`~pipeline.quality.misfit_fraction` of a fitted tube (1 if no radius)."""
+    """The worst view's :func:`~pipeline.quality.misfit_fractions` of a fitted tube (1 if no radius)."""
     if not (np.isfinite(fit.radius_mm) and fit.radius_mm > 0):
         return 1.0
     return max(misfit_fractions(cameras, masks, fit.points_mm, fit.radius_mm))

@@ -117,50 +117,40 @@ def reprojection_iou(
     return tuple(silhouette_iou(tube, mask) for tube, mask in zip(tubes, masks, strict=True))
 
 
-def misfit_fraction(
-    camera: Camera, mask: NDArray[np.bool_], centerline_mm: FloatArray, radius_mm: float
-) -> float:
-    """Gross disagreement of the re-projected tube with one (H, W) silhouette.
-
-    Pixels of either that lie more than a pixel away from the other (silhouette
-    pixels the tube misses, tube pixels off the silhouette), as a fraction of the
-    silhouette's area. The drawn tube's round ends are left out of the stray
-    pixels (the real ends may be flat: a disc there strays by up to half its
-    area, which is not a misfit). Unlike 1 - IoU this does not grow with the
-    outline's length in pixels, so it means the same at any resolution: a fit
-    that follows the tube leaves ~0-2 %, one that misses a part of the tube or
-    strays off it, several %.
-    """
-    area = np.count_nonzero(mask)
-    if area == 0:
-        return 0.0
-    pts = np.asarray(centerline_mm, dtype=np.float64)
-    return _misfit_of(camera, mask, pts, tube_mask(camera, pts, radius_mm), radius_mm, int(area))
-
-
 def misfit_fractions(
     cameras: Sequence[Camera], masks: Sequence[NDArray[np.bool_]], centerline_mm: FloatArray, radius_mm: float
 ) -> tuple[float, ...]:
-    """:func:`misfit_fraction` in each camera (the same values), the tube drawn
-    by :func:`tube_masks`."""
+    """Gross disagreement of the re-projected tube with each (H, W) silhouette.
+
+    Per camera: pixels of either that lie more than a pixel away from the other
+    (silhouette pixels the tube misses, tube pixels off the silhouette), as a
+    fraction of the silhouette's area (0 where it is empty). The drawn tube's
+    round ends are left out of the stray pixels (the real ends may be flat: a
+    disc there strays by up to half its area, which is not a misfit). Unlike
+    1 - IoU this does not grow with the outline's length in pixels, so it means
+    the same at any resolution: a fit that follows the tube leaves ~0-2 %, one
+    that misses a part of the tube or strays off it, several %.
+    """
     pts = np.asarray(centerline_mm, dtype=np.float64)
     tubes = tube_masks(cameras, pts, radius_mm)
-    out = []
-    for cam, mask, tube in zip(cameras, masks, tubes, strict=True):
-        area = int(np.count_nonzero(mask))
-        out.append(_misfit_of(cam, mask, pts, tube, radius_mm, area) if area else 0.0)
-    return tuple(out)
+    views = zip(cameras, masks, tubes, strict=True)
+    return tuple(_misfit(cam, mask, pts, tube, radius_mm) for cam, mask, tube in views)
 
 
-def _misfit_of(
-    camera: Camera,
-    mask: NDArray[np.bool_],
-    pts: FloatArray,
-    tube: NDArray[np.bool_],
-    radius_mm: float,
-    area: int,
+def misfit_fraction(
+    camera: Camera, mask: NDArray[np.bool_], centerline_mm: FloatArray, radius_mm: float
 ) -> float:
-    """:func:`misfit_fraction` given the drawn tube and the silhouette's (nonzero) area."""
+    """:func:`misfit_fractions` in one camera."""
+    return misfit_fractions([camera], [mask], centerline_mm, radius_mm)[0]
+
+
+def _misfit(
+    camera: Camera, mask: NDArray[np.bool_], pts: FloatArray, tube: NDArray[np.bool_], radius_mm: float
+) -> float:
+    """:func:`misfit_fractions` in one camera, given its drawn tube (H, W) and the axis (N, 3) mm."""
+    area = np.count_nonzero(mask)
+    if area == 0:
+        return 0.0
     grow = np.ones((3, 3), np.uint8)
     missed = mask & ~cv2.dilate(tube.view(np.uint8), grow).view(bool)
     stray = tube & ~cv2.dilate(mask.view(np.uint8), grow).view(bool)
