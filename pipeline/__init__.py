@@ -9,16 +9,23 @@ Public API::
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .errors import PipelineError
-from .session import Session, load_session
+
+if TYPE_CHECKING:
+    from .session import Session, load_session
 
 __all__ = ["PipelineError", "Session", "load_recording", "load_session", "process_session"]
 
 
 def __getattr__(name: str) -> Any:
-    # Lazy: importing pipeline must not pull in rerun, mcap and joblib.
+    # Lazy: importing pipeline must not pull in rerun, mcap and joblib, nor OpenCV
+    # (``pipeline process`` starts its workers before it imports anything heavy).
+    if name in ("Session", "load_session"):
+        from . import session
+
+        return getattr(session, name)
     if name == "process_session":
         from .runner import process_session
 

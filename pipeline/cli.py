@@ -33,22 +33,26 @@ def _frame_range(text: str) -> tuple[int, int | None]:
 
 
 def _cmd_process(args: argparse.Namespace) -> int:
-    from .runner import process_session
-    from .session import load_session
+    from .workers import started_early
 
-    session = load_session(args.video_dir)
-    summary = process_session(
-        session,
-        out_dir=args.out,
-        jobs=args.jobs,
-        backend=args.backend,
-        scheduler=args.scheduler,
-        frames=args.frames,
-        images=not args.no_images,
-        force=args.force,
-        curve=args.curve,
-        progress=sys.stderr.isatty(),
-    )
+    # The workers spawn and import while this process loads the session and model.
+    with started_early(args.jobs, args.backend):
+        from .runner import process_session
+        from .session import load_session
+
+        session = load_session(args.video_dir)
+        summary = process_session(
+            session,
+            out_dir=args.out,
+            jobs=args.jobs,
+            backend=args.backend,
+            scheduler=args.scheduler,
+            frames=args.frames,
+            images=not args.no_images,
+            force=args.force,
+            curve=args.curve,
+            progress=sys.stderr.isatty(),
+        )
     for line in summary.lines():
         print(line)
     return summary.exit_code

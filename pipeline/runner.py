@@ -15,7 +15,6 @@ import contextlib
 import dataclasses
 import logging
 import math
-import os
 import signal
 import sys
 import time
@@ -29,6 +28,7 @@ from .frame_result import FrameResult
 from .frame_task import FrameFunction, FrameOutput, encode_silhouette, process_range
 from .outputs import RunSummary, Writers, compress_failures, output_error, prepare_outputs
 from .session import Session
+from .workers import effective_jobs, release_local_workers, start_local_workers, wait_for_local_workers
 
 __all__ = [
     "FrameOutput",
@@ -71,11 +71,6 @@ def frame_ranges(start: int, stop: int, n_workers: int) -> list[tuple[int, int]]
         ranges.append((at, at + size))
         at += size
     return ranges
-
-
-def _effective_jobs(jobs: int) -> int:
-    cpus = os.cpu_count() or 1
-    return max(1, cpus + 1 + jobs) if jobs < 0 else max(1, jobs)
 
 
 @contextlib.contextmanager
@@ -227,12 +222,13 @@ def process_session(
         )
         session = dataclasses.replace(session, settings=settings)
 
-    n_jobs = _effective_jobs(jobs)
+    n_jobs = effective_jobs(jobs)
     from joblib import delayed
 
-    # Local workers start now: they spawn and import the per-frame modules (~1 s)
-    # while the parent builds the model and opens the writers.
-    warm_up = _warm_up_workers(n_jobs) if backend == "loky" and n_jobs > 1 else None
+    if backend == "loky":
+        # Local workers start now (unless the command line started them already): they
+        # spawn and import the per-frame modules while the parent builds the model.
+        start_local_workers(n_jobs)
 
     if frame_fn is None:
         from .reconstruct import build_model
@@ -264,8 +260,8 @@ def process_session(
             _progress(stop - start, progress) as bar,
         ):
             ranges = frame_ranges(start, stop, n_workers)
-            for _ in warm_up or ():
-                pass  # long done: the workers were started before the model was built
+            if backend == "loky":
+                wait_for_local_workers()
             for span, outputs in _run_ranges(ranges, call, n_jobs):
                 if isinstance(outputs, str):
                     outputs = [FrameOutput(FrameResult.failed(i, outputs), None, None) for i in range(*span)]
@@ -292,40 +288,9 @@ def process_session(
     finally:
         if backend == "loky":
             # A run cut short kills its workers: they would finish their ranges first.
-            _release_loky_workers(kill=not finished)
+            release_local_workers(kill=not finished)
     wall = time.perf_counter() - t0
     return writer.summary(wall)
-
-
-def _import_frame_modules() -> None:
-    from . import reconstruct  # noqa: F401
-
-
-def _warm_up_workers(n_jobs: int) -> Iterator[None]:
-    """Start ``n_jobs`` loky workers importing the per-frame modules; returns at once.
-
-    The run's own ``Parallel`` calls reuse these workers (joblib keeps one reusable
-    loky executor per process, kept as long as its arguments do not change).
-    """
-    from joblib import Parallel, delayed
-
-    parallel = Parallel(n_jobs=n_jobs, backend="loky", return_as="generator_unordered")
-    return iter(parallel(delayed(_import_frame_modules)() for _ in range(n_jobs)))
-
-
-def _release_loky_workers(*, kill: bool = False) -> None:
-    """Stop this run's worker processes (``kill``: at once, without waiting for their tasks).
-
-    They hold the memory-mapped model (hundreds of MB for fine grids) and would
-    otherwise idle for minutes; and a later run in the same process (another session,
-    a changed environment) should start from fresh workers, not inherit these.
-    """
-    from joblib.externals.loky import reusable_executor
-
-    executor = getattr(reusable_executor, "_executor", None)  # loky keeps one per process
-    if executor is not None:
-        with contextlib.suppress(Exception):
-            executor.shutdown(wait=True, kill_workers=kill)
 
 
 def _frame_span(session: Session, frames: tuple[int, int | None] | None) -> tuple[int, int]:

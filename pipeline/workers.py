@@ -1,0 +1,93 @@
+"""The local worker processes of a run (loky): started as early as possible, released at the end.
+
+Spawning a worker and importing the per-frame modules into it takes ~0.8 s, more
+than the parent needs to load the session and build the model. So the command
+line starts the workers first thing, before it imports anything heavy itself, and
+the run picks them up: joblib keeps one reusable loky executor per process, which
+the run's ``Parallel`` calls reuse as long as the number of workers matches.
+Started at the top of ``pipeline process`` rather than after the model, the two
+workers of the 900-frame demo start reconstructing ~0.3 s sooner.
+
+Only this module keeps state between calls (the warm-up tasks in flight): loky's
+executor is one per process anyway.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import warnings
+from collections.abc import Iterator
+
+# The warm-up tasks of the workers started ahead of the run, and how many workers.
+_warm_up: Iterator[None] | None = None
+_warm_up_workers = 0
+
+
+def effective_jobs(jobs: int) -> int:
+    """Number of workers for ``jobs`` as joblib counts them: -1 = one per core, -2 = all but one, ..."""
+    cpus = os.cpu_count() or 1
+    return max(1, cpus + 1 + jobs) if jobs < 0 else max(1, jobs)
+
+
+def _import_frame_modules() -> None:
+    from . import reconstruct  # noqa: F401
+
+
+def start_local_workers(n_workers: int) -> None:
+    """Start ``n_workers`` loky workers importing the per-frame modules, and return at once.
+
+    Does nothing for fewer than two workers (one runs in the calling process) or when
+    as many are already starting.
+    """
+    global _warm_up, _warm_up_workers
+    if n_workers < 2 or (_warm_up is not None and _warm_up_workers == n_workers):
+        return
+    from joblib import Parallel, delayed
+
+    parallel = Parallel(n_jobs=n_workers, backend="loky", return_as="generator_unordered")
+    # Held until wait_for_local_workers: a generator dropped unfinished aborts its pool.
+    _warm_up = iter(parallel(delayed(_import_frame_modules)() for _ in range(n_workers)))
+    _warm_up_workers = n_workers
+
+
+def wait_for_local_workers() -> None:
+    """Return once the workers started by :func:`start_local_workers` are ready (at once if none)."""
+    global _warm_up
+    for _ in _warm_up or ():
+        pass
+    _warm_up = None
+
+
+def release_local_workers(*, kill: bool = False) -> None:
+    """Stop the worker processes (``kill``: at once, without waiting for their tasks).
+
+    They hold the memory-mapped model (hundreds of MB for fine grids) and would
+    otherwise idle for minutes; and a later run in the same process (another session,
+    a changed environment) should start from fresh workers, not inherit these.
+    """
+    global _warm_up
+    with warnings.catch_warnings():
+        # Dropping warm-up tasks still in flight (a run that never started) makes
+        # joblib warn that it cancelled them: intended here.
+        warnings.simplefilter("ignore")
+        _warm_up = None
+    from joblib.externals.loky import reusable_executor
+
+    executor = getattr(reusable_executor, "_executor", None)  # loky keeps one per process
+    if executor is not None:
+        with contextlib.suppress(Exception):
+            executor.shutdown(wait=True, kill_workers=kill)
+
+
+@contextlib.contextmanager
+def started_early(jobs: int, backend: str) -> Iterator[None]:
+    """Start the run's local workers now (``backend`` "loky" only); kill them if the
+    block fails before a run has taken them over (a session that does not load)."""
+    if backend == "loky":
+        start_local_workers(effective_jobs(jobs))
+    try:
+        yield
+    except BaseException:
+        release_local_workers(kill=True)
+        raise

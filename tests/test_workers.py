@@ -1,0 +1,70 @@
+"""Local workers: started ahead of a run, reused by it, never left behind."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+
+import psutil
+import pytest
+from joblib import Parallel, delayed
+
+from pipeline import workers
+from pipeline.cli import EXIT_BAD_INPUT, main
+
+
+def _loky_workers() -> list[psutil.Process]:
+    """Live loky worker processes of this test process (not loky's resource tracker)."""
+    found = []
+    for p in psutil.Process().children(recursive=True):
+        with contextlib.suppress(psutil.Error):
+            cmdline = " ".join(p.cmdline())
+            if p.is_running() and "loky" in cmdline and "resource_tracker" not in cmdline:
+                found.append(p)
+    return found
+
+
+@pytest.fixture(autouse=True)
+def _no_workers_left() -> Iterator[None]:
+    yield
+    workers.release_local_workers(kill=True)
+
+
+@pytest.mark.parametrize(("jobs", "expected"), [(1, 1), (3, 3), (0, 1), (-1, os.cpu_count() or 1)])
+def test_effective_jobs_counts_like_joblib(jobs: int, expected: int) -> None:
+    assert workers.effective_jobs(jobs) == expected
+
+
+def test_the_run_reuses_the_workers_started_ahead() -> None:
+    workers.start_local_workers(2)
+    workers.wait_for_local_workers()
+    started = {p.pid for p in _loky_workers()}
+    assert len(started) == 2
+    pids = Parallel(n_jobs=2, backend="loky")(delayed(os.getpid)() for _ in range(8))
+    assert set(pids) <= started
+
+
+def test_one_worker_starts_no_process() -> None:
+    workers.release_local_workers(kill=True)
+    psutil.wait_procs(_loky_workers(), timeout=10)
+    workers.start_local_workers(1)
+    workers.wait_for_local_workers()
+    assert not _loky_workers()
+
+
+def test_workers_started_for_a_session_that_does_not_load_are_killed(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The command line starts the workers before it reads the session: a bad
+    # session must not leave them running, nor add a warning to its one-line error.
+    session = str(tmp_path / "missing")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert main(["process", session, "--jobs", "2", "--out", str(tmp_path)]) == EXIT_BAD_INPUT
+    assert "missing" in capsys.readouterr().err
+    assert not [str(w.message) for w in caught]
+    _, alive = psutil.wait_procs(_loky_workers(), timeout=10)
+    assert not alive
