@@ -3,12 +3,19 @@
 from __future__ import annotations
 
 import argparse
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
 
+import psutil
 import pytest
 
 from pipeline import cli
 from pipeline.cli import EXIT_BAD_INPUT, EXIT_INTERNAL_ERROR, main
 from pipeline.errors import CalibrationError
+from pipeline.recording import load_recording
 
 
 @pytest.mark.parametrize(
@@ -76,3 +83,21 @@ def test_help_lists_every_command(capsys: pytest.CaptureFixture[str]) -> None:
     out = capsys.readouterr().out
     for command in ("process", "synth", "synth-calib", "calibrate", "evaluate"):
         assert command in out
+
+
+def test_a_run_from_the_command_line_exits_0_with_its_summary_on_stdout(
+    make_session: Callable[..., Path], tmp_path: Path
+) -> None:
+    # ``python -m pipeline`` leaves without the interpreter's teardown (pipeline.__main__):
+    # its summary must still reach a pipe, its outputs be complete, its workers gone.
+    session = make_session(tmp_path / "session")
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "pipeline", "process", str(session), "--out", str(out), "--jobs", "2"]
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}  # stdout block-buffered
+    proc = subprocess.run(command, capture_output=True, text=True, timeout=300, check=False, env=env)
+    assert proc.returncode == 0, proc.stderr
+    assert "frames: 4 processed, 4 ok" in proc.stdout and f"wrote {out / 'session.mcap'}" in proc.stdout, (
+        proc.stdout
+    )
+    assert load_recording(out / "session.mcap").complete
+    assert not [p for p in psutil.Process().children(recursive=True) if p.is_running()]
