@@ -115,6 +115,9 @@ def _run_ranges(
 ) -> Iterator[tuple[tuple[int, int], list[FrameOutput] | str]]:
     """Yield ``(range, outputs)`` in range order; ``(range, reason)`` for a range given up.
 
+    The first ranges go to the workers before this returns (the caller opens its
+    writers meanwhile); results are waited for as they are iterated.
+
     A task that dies (a killed worker, out of memory) or raises takes the pool's
     in-flight work with it. The unfinished ranges are run again in a fresh pool (the
     retry); if that breaks too, each remaining range runs alone, so that the ranges
@@ -123,7 +126,22 @@ def _run_ranges(
     """
     from joblib import Parallel
 
-    pending = list(ranges)
+    def dispatch(group: list[tuple[int, int]]) -> Iterator[list[FrameOutput]]:
+        return iter(Parallel(n_jobs=n_jobs, return_as="generator")(call(r) for r in group))
+
+    try:
+        started = dispatch(ranges) if ranges else None
+    except Exception:  # a pool broken from the start: the attempts below say why, and retry
+        started = None
+    return _attempts(list(ranges), dispatch, started)
+
+
+def _attempts(
+    pending: list[tuple[int, int]],
+    dispatch: Callable[[list[tuple[int, int]]], Iterator[list[FrameOutput]]],
+    started: Iterator[list[FrameOutput]] | None,
+) -> Iterator[tuple[tuple[int, int], list[FrameOutput] | str]]:
+    """The attempts of :func:`_run_ranges`; ``started``: the first one's results, if dispatched."""
     for attempt in ("parallel", "retry", "isolated"):
         if not pending:
             return
@@ -132,8 +150,8 @@ def _run_ranges(
         for group in groups:
             done = 0
             try:
-                parallel = Parallel(n_jobs=n_jobs, return_as="generator")
-                for outputs in parallel(call(r) for r in group):
+                results, started = (started if started is not None else dispatch(group)), None
+                for outputs in results:
                     yield group[done], outputs
                     done += 1
             except Exception as exc:  # TerminatedWorkerError, BrokenProcessPool, a task's error
@@ -151,6 +169,10 @@ def _run_ranges(
                 else:
                     survivors.extend(group[done:])
         pending = survivors
+
+
+def _failed_range(span: tuple[int, int], reason: str) -> list[FrameOutput]:
+    return [FrameOutput(FrameResult.failed(i, reason), None, None) for i in range(*span)]
 
 
 @contextlib.contextmanager
@@ -247,32 +269,31 @@ def process_session(
             model, videos, names, span[0], span[1], images=images, frame_fn=frame_fn
         )
 
-    try:
-        writer = Writers(session, mcap_path, rrd_path, images=images)
-    except OSError as exc:  # the disk filled up before the first frame
-        raise output_error(out_dir, exc) from None
+    writer: Writers | None = None
     done = 0
     finished = False
     try:
-        with (
-            _sigterm_as_interrupt(),
-            _backend(backend, scheduler, n_jobs, model) as n_workers,
-            _progress(stop - start, progress) as bar,
-        ):
+        with _sigterm_as_interrupt(), _backend(backend, scheduler, n_jobs, model) as n_workers:
             ranges = frame_ranges(start, stop, n_workers)
             if backend == "loky":
                 wait_for_local_workers()
-            for span, outputs in _run_ranges(ranges, call, n_jobs):
-                if isinstance(outputs, str):
-                    outputs = [FrameOutput(FrameResult.failed(i, outputs), None, None) for i in range(*span)]
-                for out in outputs:
-                    writer.write(out)
-                done += len(outputs)
-                bar.update(len(outputs))
+            results = _run_ranges(ranges, call, n_jobs)
+            # The writers open (importing Rerun, logging the cameras) while the workers
+            # start on the first ranges.
+            writer = Writers(session, mcap_path, rrd_path, images=images)
+            with _progress(stop - start, progress) as bar:
+                for span, outputs in results:
+                    if isinstance(outputs, str):  # a range given up: its frames fail
+                        outputs = _failed_range(span, outputs)
+                    for out in outputs:
+                        writer.write(out)
+                    done += len(outputs)
+                    bar.update(len(outputs))
         writer.finish()
         finished = True
     except KeyboardInterrupt:
-        writer.abort()
+        if writer is not None:
+            writer.abort()
         log.warning(
             "interrupted after %d of %d frames; temporary files removed, existing outputs untouched",
             done,
@@ -280,10 +301,12 @@ def process_session(
         )
         raise
     except OSError as exc:
-        writer.abort()
+        if writer is not None:
+            writer.abort()
         raise output_error(out_dir, exc) from None
     except BaseException:
-        writer.abort()
+        if writer is not None:
+            writer.abort()
         raise
     finally:
         if backend == "loky":
