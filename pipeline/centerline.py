@@ -30,7 +30,11 @@ on its stem has no readings of its own, so the tip where the curve's own
 course takes it (:func:`pipeline.tube_tip.continue_on_circle`) is bent too;
 these last hypotheses are compared by how their tubes match the grey levels
 (:func:`pipeline.tube_tip.coverage_mismatch`), which, unlike the IoU, tell a
-tip lying on the stem from one beside it. Each frame stands alone.
+tip lying on the stem from one beside it. A tip that then ends inside its
+stem may be a loop the march ran the wrong way round (it took the tip's end,
+lying beside the stem, for the loop's start): the loop run the other way is
+fitted and bent too, and kept if it matches the grey levels clearly better
+(:func:`_reverse_loop`). Each frame stands alone.
 """
 
 from __future__ import annotations
