@@ -34,7 +34,7 @@ tip lying on the stem from one beside it. A tip that then ends inside its
 stem may be a loop the march ran the wrong way round (it took the tip's end,
 lying beside the stem, for the loop's start): the loop run the other way is
 fitted and bent too, and kept if it matches the grey levels clearly better
-(:func:`_reverse_loop`). Each frame stands alone.
+(:func:`_free_tip_from_stem`). Each frame stands alone.
 """
 
 from __future__ import annotations
@@ -128,7 +128,7 @@ _COVERAGE_MARGIN = 0.02
 # instead of the best ones cost ~170 ms more a frame.
 _CONTINUE_RADII = (3.0, 5.0, 8.0)
 _CIRCLE_FIT_RADII = 6.0
-# A loop run the wrong way round (see _reverse_loop): its tip ends inside a
+# A loop run the wrong way round (see _free_tip_from_stem): its tip ends inside a
 # part at least this many radii before it along the curve (a tight loop of a
 # tube cannot bring its tip back to itself in fewer), and the true tip is
 # sought this many radii past the junction where the wrong course left the
@@ -145,6 +145,14 @@ _REVERSE_RADII = (3.0, 4.5, 6.0)
 # reversals that set a tip right matched them 15-37 % better; one that won
 # only by a better-fitted stem (tip 0.3 -> 21 mm, an r 9 loop) 2.7 %.
 _REVERSE_MARGIN = 0.10
+# A tip inside its stem that left the loop for it (see _free_tip_from_stem):
+# the last this many radii redone on the circle this many radii before follow.
+# Measured on the r 7 ninety loop's frame 149 (tip 28.6 mm off, left the loop
+# ~6.4 radii before its end): redone 8 radii on the circle of the 10 before,
+# refitted and bent, the tip comes to 0.5 mm (coverage mismatch 28 against
+# 150; the truth's 26); 5 or 11 radii, or a circle of 6, stay 13-47 mm off.
+_REDO_RADII = 8.0
+_REDO_FIT_RADII = 10.0
 # Dense evaluation factor used to invert arc length.
 _DENSE = 16
 
@@ -421,13 +429,14 @@ def fit_centerline(
             tube = fit_tube(track, cameras, contrasts, radius_mm=radius, base_fixed=base_known, masks=masks)
             return tube.points_mm
 
-        # A tip that ends inside the stem may be a loop run the wrong way round.
-        axis = _reverse_loop(best.points_mm, refit, bend, cameras, masks, contrasts, radius, coverages)
+        # A tip that ends inside the stem may be a loop run the wrong way
+        # round, or one that left its loop for the stem where they cross.
+        axis = _free_tip_from_stem(best.points_mm, refit, bend, cameras, masks, contrasts, radius, coverages)
         best = replace(best, points_mm=axis)
     return smooth_curve(best.points_mm, n_points=n_points), best
 
 
-def _reverse_loop(
+def _free_tip_from_stem(
     points_mm: FloatArray,
     refit: Callable[[FloatArray], FloatArray],
     bend: Callable[[FloatArray], FloatArray],
@@ -437,7 +446,8 @@ def _reverse_loop(
     radius_mm: float,
     coverages: Sequence[NDArray[np.float32]],
 ) -> FloatArray:
-    """The axis (M, 3), or the same loop run the other way round if that matches the grey levels better.
+    """The axis (M, 3), or, if its tip ends inside its stem, a course that keeps
+    it out, if that matches the grey levels better.
 
     Where a loop's tip comes back beside its stem, the march can take the
     tip's end for the loop's start where they meet: the curve then jumps from
@@ -450,7 +460,12 @@ def _reverse_loop(
     (the junction), then the loop backwards from its end to a sample
     ``_REVERSE_RADII`` radii past the junction (where the wrong course left
     the loop for the tip: the new tip), each refitted (``refit``) and bent
-    (``bend``); the axis that matches the grey levels best
+    (``bend``). Where the loop crosses the stem in the views that see it
+    edge-on, the march can also leave the loop for the stem: the curve's last
+    ``_REDO_RADII`` radii are then redone along the circle the
+    ``_REDO_FIT_RADII`` radii before follow
+    (:func:`pipeline.tube_tip.continue_on_circle`), refitted and bent too. The
+    axis that matches the grey levels best
     (:func:`pipeline.tube_tip.coverage_mismatch`), by ``_REVERSE_MARGIN``, wins.
     """
     pts = np.asarray(points_mm, dtype=np.float64)
@@ -473,6 +488,11 @@ def _reverse_loop(
             axes.append(bend(refit(np.vstack([pts[: j + 1], pts[i:][::-1]]))))
         except (ValueError, np.linalg.LinAlgError):
             continue
+    redone = continue_on_circle(pts, redo_mm=_REDO_RADII * radius_mm, fit_mm=_REDO_FIT_RADII * radius_mm)
+    try:
+        axes.append(bend(refit(redone)))
+    except (ValueError, np.linalg.LinAlgError):
+        pass
     if len(axes) == 1:
         return pts
     costs = coverage_mismatch(axes, cameras, masks, contrasts, radius_mm, coverages=coverages)

@@ -556,10 +556,10 @@ def _loop_back() -> FloatArray:
     return BASE + np.vstack([stem[:-1], circle])
 
 
-def test_reverse_loop_turns_a_loop_run_backwards_the_right_way() -> None:
+def test_free_tip_from_stem_turns_a_loop_run_backwards_the_right_way() -> None:
     from conftest import rig_cameras
 
-    from pipeline.centerline import _reverse_loop, self_intersects
+    from pipeline.centerline import _free_tip_from_stem, self_intersects
     from pipeline.settings import SilhouetteSettings
     from pipeline.silhouette import extract_silhouette
     from pipeline.synth.images import THRESHOLD_DARK, background_texture, render_frame
@@ -597,11 +597,11 @@ def test_reverse_loop_turns_a_loop_run_backwards_the_right_way() -> None:
     loop = truth[arc > 60.0 + 0.15 * 30.0]
     wrong = np.vstack([stem, loop[::-1]])
     assert np.linalg.norm(wrong[-1] - truth[-1]) > 20.0
-    fixed = _reverse_loop(wrong, refit, bend, cams, masks, contrasts, RADIUS, coverages)
+    fixed = _free_tip_from_stem(wrong, refit, bend, cams, masks, contrasts, RADIUS, coverages)
     # Measured 0.94 mm (mean distance 0.41 mm); bounds: the bends' noise on
     # rendered loops (0.25-1 mm at r 6) with a quarter radius of room; the
     # reversed curve's tip is 28 mm off.
     assert np.linalg.norm(fixed[-1] - truth[-1]) < 1.5
     assert centerline_distances(fixed, truth).mean() < 0.6
     # A tip that keeps apart from the stem is left alone, untouched.
-    assert _reverse_loop(truth, refit, bend, cams, masks, contrasts, RADIUS, coverages) is truth
+    assert _free_tip_from_stem(truth, refit, bend, cams, masks, contrasts, RADIUS, coverages) is truth
