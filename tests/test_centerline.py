@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 from numpy.typing import NDArray
@@ -556,7 +558,11 @@ def _loop_back() -> FloatArray:
     return BASE + np.vstack([stem[:-1], circle])
 
 
-def test_free_tip_from_stem_turns_a_loop_run_backwards_the_right_way() -> None:
+@pytest.fixture(scope="module")
+def free_tip() -> tuple[FloatArray, Callable[[FloatArray], FloatArray]]:
+    """The loop coming back beside its stem (:func:`_loop_back`), rendered: its
+    true axis (80 samples), and pipeline.centerline._free_tip_from_stem with
+    the refit and the bend fit_centerline gives it, as a function of an axis."""
     from conftest import rig_cameras
 
     from pipeline.centerline import _free_tip_from_stem, self_intersects
@@ -578,17 +584,20 @@ def test_free_tip_from_stem_turns_a_loop_run_backwards_the_right_way() -> None:
     def refit(axis: FloatArray) -> FloatArray:
         return fit_tube(axis, cams, contrasts, radius_mm=RADIUS, masks=masks).points_mm
 
-    def bend(axis: FloatArray) -> FloatArray:
-        return bend_tip_to_pixels(
-            axis,
-            cams,
-            masks,
-            contrasts,
-            RADIUS,
-            rejects=lambda a: self_intersects(a, RADIUS),
-            coverages=coverages,
-        )
+    def rejects(axis: FloatArray) -> bool:
+        return self_intersects(axis, RADIUS)
 
+    def bend(axis: FloatArray) -> FloatArray:
+        return bend_tip_to_pixels(axis, cams, masks, contrasts, RADIUS, rejects=rejects, coverages=coverages)
+
+    def free(axis: FloatArray) -> FloatArray:
+        return _free_tip_from_stem(axis, refit, bend, cams, masks, contrasts, RADIUS, coverages)
+
+    return truth, free
+
+
+def test_free_tip_from_stem_turns_a_loop_run_backwards_the_right_way(free_tip: tuple) -> None:
+    truth, free = free_tip
     # The march's mistake: up the stem, across to the tip where it lies beside
     # the stem, then round the loop backwards to its start, inside the stem
     # (its tip 0.8 radius from the stem's top, the true tip 2.8 radii away).
@@ -597,44 +606,18 @@ def test_free_tip_from_stem_turns_a_loop_run_backwards_the_right_way() -> None:
     loop = truth[arc > 60.0 + 0.15 * 30.0]
     wrong = np.vstack([stem, loop[::-1]])
     assert np.linalg.norm(wrong[-1] - truth[-1]) > 20.0
-    fixed = _free_tip_from_stem(wrong, refit, bend, cams, masks, contrasts, RADIUS, coverages)
+    fixed = free(wrong)
     # Measured 0.94 mm (mean distance 0.41 mm); bounds: the bends' noise on
     # rendered loops (0.25-1 mm at r 6) with a quarter radius of room; the
     # reversed curve's tip is 28 mm off.
     assert np.linalg.norm(fixed[-1] - truth[-1]) < 1.5
     assert centerline_distances(fixed, truth).mean() < 0.6
     # A tip that keeps apart from the stem is left alone, untouched.
-    assert _free_tip_from_stem(truth, refit, bend, cams, masks, contrasts, RADIUS, coverages) is truth
+    assert free(truth) is truth
 
 
-def test_free_tip_from_stem_brings_a_tip_that_left_its_loop_back_onto_it() -> None:
-    from conftest import rig_cameras
-
-    from pipeline.centerline import _free_tip_from_stem, self_intersects
-    from pipeline.settings import SilhouetteSettings
-    from pipeline.silhouette import extract_silhouette
-    from pipeline.synth.images import THRESHOLD_DARK, background_texture, render_frame
-    from pipeline.synth.rig import make_rig
-    from pipeline.tube_fit import fit_tube, foreground_contrast
-    from pipeline.tube_tip import bend_tip_to_pixels, pixel_coverages
-
-    truth = resample_polyline(_loop_back(), 80)
-    backgrounds = [background_texture(320, 240, seed=4, camera_index=i) for i in range(3)]
-    images = render_frame(make_rig(), _loop_back(), RADIUS, backgrounds, seed=4)
-    masks = [extract_silhouette(im, SilhouetteSettings(threshold=THRESHOLD_DARK)) for im in images]
-    contrasts = [foreground_contrast(im, polarity="dark") for im in images]
-    cams = rig_cameras()
-    coverages = pixel_coverages(contrasts, masks)
-
-    def refit(axis: FloatArray) -> FloatArray:
-        return fit_tube(axis, cams, contrasts, radius_mm=RADIUS, masks=masks).points_mm
-
-    def bend(axis: FloatArray) -> FloatArray:
-        def rejects(a: FloatArray) -> bool:
-            return self_intersects(a, RADIUS)
-
-        return bend_tip_to_pixels(axis, cams, masks, contrasts, RADIUS, rejects=rejects, coverages=coverages)
-
+def test_free_tip_from_stem_brings_a_tip_that_left_its_loop_back_onto_it(free_tip: tuple) -> None:
+    truth, free = free_tip
     # The march's other mistake: the loop's last 6 radii left for the stem
     # where they cross in a view, the tip ending inside the stem (17 mm off).
     arc = polyline_arclength(truth)
@@ -642,7 +625,7 @@ def test_free_tip_from_stem_brings_a_tip_that_left_its_loop_back_onto_it() -> No
     steps = np.linspace(0.0, 1.0, 12)[1:, None]
     wrong = np.vstack([kept, kept[-1] + steps * (BASE + np.array([0.0, 0.0, 50.0]) - kept[-1])])
     assert np.linalg.norm(wrong[-1] - truth[-1]) > 15.0
-    fixed = _free_tip_from_stem(wrong, refit, bend, cams, masks, contrasts, RADIUS, coverages)
+    fixed = free(wrong)
     # Measured 0.65 mm (mean distance 0.35 mm); bounds as for the reversed loop.
     assert np.linalg.norm(fixed[-1] - truth[-1]) < 1.5
     assert centerline_distances(fixed, truth).mean() < 0.6
