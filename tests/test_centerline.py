@@ -561,8 +561,9 @@ def _loop_back() -> FloatArray:
 @pytest.fixture(scope="module")
 def free_tip() -> tuple[FloatArray, Callable[[FloatArray], FloatArray]]:
     """The loop coming back beside its stem (:func:`_loop_back`), rendered: its
-    true axis (80 samples), and pipeline.centerline._free_tip_from_stem with
-    the refit and the bend fit_centerline gives it, as a function of an axis."""
+    true axis (80 samples), and pipeline.centerline._free_tip_from_stem, with
+    a tube fit for its refit and the tip bend for its bend, as a function of
+    an axis."""
     from conftest import rig_cameras
 
     from pipeline.centerline import _free_tip_from_stem, self_intersects
