@@ -6,7 +6,7 @@ line starts the workers first thing, before it imports anything heavy itself, an
 the run picks them up: joblib keeps one reusable loky executor per process, which
 the run's ``Parallel`` calls reuse as long as the number of workers matches.
 Started at the top of ``pipeline process`` rather than after the model, the two
-workers of the 900-frame demo start reconstructing ~0.3 s sooner.
+workers of the 900-frame demo start reconstructing 0.2-0.3 s sooner.
 
 Only this module keeps state between calls (the warm-up tasks in flight): loky's
 executor is one per process anyway.

@@ -287,9 +287,10 @@ def test_accuracy_table_covers_every_shape_and_an_unseen_set() -> None:
     cases = default_cases()
     assert {c.shape for c in cases if not c.unseen} == set(SHAPES)
     unseen = [c for c in cases if c.unseen]
-    assert {c.arrangement for c in unseen} == {"ninety"}
-    assert {c.radius_mm for c in unseen} == {4.0, 9.0}
-    assert "helix" in {c.shape for c in unseen} and "loop" in {c.shape for c in unseen}
+    assert {c.arrangement for c in unseen} == {"ninety", "oblique"}
+    assert {4.0, 9.0} <= {c.radius_mm for c in unseen}
+    assert {c.polarity for c in unseen} == {"dark", "bright"}
+    assert {c.shape for c in unseen} == set(SHAPES)
     assert len({c.name for c in cases}) == len(cases)
 
 
