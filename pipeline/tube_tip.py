@@ -23,6 +23,7 @@ tubes by the same measure.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Sequence
 
 import cv2
@@ -57,6 +58,11 @@ _END_DEGREE = 2
 _PIXEL_STEP_MM = 0.5
 _MIN_PIXELS = 4
 _PIXEL_WEIGHT = 0.5
+# (x, y) -> (-y, x) applied to (y, x): a quarter turn left.
+_QUARTER_LEFT = np.array([-1.0, 1.0])
+# A drawn uint8 level (0-255, averaged over the finer canvas) as float32
+# coverage: the table of its float32 quotients by 255.
+_LEVELS = np.arange(256, dtype=np.float32) / 255.0
 # cv2 drawing takes fixed-point coordinates with this many fractional bits.
 _DRAW_SHIFT = 4
 # cv2's filled circles and polygons take in every pixel their outline touches:
@@ -94,6 +100,13 @@ _BEND_STEPS_MM = (8.0, 4.0, 2.0, 1.0, 0.5, 0.25)
 _MAX_BEND_RADII = 1.5
 _SUPERSAMPLE = 4
 _RING_POINTS = 24
+# A bend's cost summed over some views in another order than its total's
+# stops the search's evaluation only if it exceeds the best by this factor:
+# the orders' sums differ by a few units in the last place (~1e-16 each).
+_PARTIAL_MARGIN = 1.0 + 1e-9
+# The rings' unit circle, (_RING_POINTS, 1) each.
+_RING_COS = np.cos(np.linspace(0.0, 2.0 * np.pi, _RING_POINTS, endpoint=False))[:, None]
+_RING_SIN = np.sin(np.linspace(0.0, 2.0 * np.pi, _RING_POINTS, endpoint=False))[:, None]
 _WINDOW_PX = 20.0
 # Parts of the tube fewer than this many radii (along the curve) before the
 # bent part are its own neighbours, not another part that it can lie on.
@@ -268,7 +281,7 @@ def _bend_once(
     keep = max(start - radius_mm, 0.0)
     first = max(int(np.searchsorted(arc, keep)) - 1, 0)
     body = cut_polyline(pts, keep)
-    ahead = _end_frame(pts, arc, at_mm=float(arc[-1]), span_mm=_END_SPAN_MM)
+    bender = _end_bender(pts, arc, start, _end_frame(pts, arc, at_mm=float(arc[-1]), span_mm=_END_SPAN_MM))
     windows = []
     for cam, coverage in zip(cameras, coverages, strict=True):
         window = _window(cam, pts[first:], radius_mm)
@@ -295,19 +308,56 @@ def _bend_once(
             tried[key] = mismatch(p, below)
         return tried[key]
 
+    view_cameras = [window[0] for window in windows]
+
+    # The body's levels, once per view: a bend's drawing changes only the
+    # blocks it touches, which alone are averaged again (see _levels).
+    fixed_levels = [_levels(window[2]) for window in windows]
+
+    def view_cost(view: int, discs: FloatArray, outline: FloatArray, pixels: FloatArray) -> float:
+        cam, seen, fixed, origin = windows[view]
+        canvas = fixed.copy()
+        x0, y0, x1, y1 = _draw_tube(canvas, cam, discs, outline, radius_mm, origin, pixels=pixels)
+        levels = fixed_levels[view].copy()
+        x0, y0 = x0 // _SUPERSAMPLE, y0 // _SUPERSAMPLE
+        x1, y1 = -(-x1 // _SUPERSAMPLE), -(-y1 // _SUPERSAMPLE)
+        if x1 > x0 and y1 > y0:
+            s = _SUPERSAMPLE
+            levels[y0:y1, x0:x1] = _levels(canvas[y0 * s : y1 * s, x0 * s : x1 * s])
+        return _level_difference(levels, seen)
+
+    # Views are drawn in the order of their share of the best bend's cost, the
+    # largest first: a bend that cannot win is then found out in fewer views.
+    order = list(range(len(windows)))
+
     def mismatch(p: FloatArray, below: float) -> float:
+        """The bend's cost, summed over the views in their own order; or, once
+        the views drawn so far reach ``below``, their partial sum (the others
+        can only add: the bend cannot win, and the search compares a kept
+        cost only with a lower best)."""
         if np.hypot(p[0], p[1]) > _MAX_BEND_RADII * radius_mm or abs(p[2]) > _MAX_BEND_RADII * radius_mm:
             return np.inf
-        bent = _bend_end(pts, arc, start, p[:2], float(p[2]), ahead)
+        bent = bender(p[:2], float(p[2]))
         discs, outline = _tube_points(bent[first:], radius_mm, flat_end=True)
+        # Projected in all views in one go (the same pixels as view by view).
+        pixels = project_in_views(view_cameras, np.vstack([discs, outline]))
+        parts = [0.0] * len(windows)
+        partial = 0.0
+        for view in order[:-1]:
+            parts[view] = view_cost(view, discs, outline, pixels[view])
+            partial += parts[view]
+            # Summed in another order than the total, the partial sum may
+            # differ from a sum of the same parts in its last bits: the margin.
+            if partial >= below * _PARTIAL_MARGIN:
+                return partial
+        parts[order[-1]] = view_cost(order[-1], discs, outline, pixels[order[-1]])
         total = 0.0
-        for cam, seen, fixed, origin in windows:
-            canvas = fixed.copy()
-            _draw_tube(canvas, cam, discs, outline, radius_mm, origin)
-            drawn = cv2.resize(canvas, seen.shape[::-1], interpolation=cv2.INTER_AREA).astype(np.float32)
-            total += float(np.sum((drawn / 255.0 - seen) ** 2))
-        if total < below and rejects is not None and rejects(bent):
-            return np.inf
+        for part in parts:
+            total += part
+        if total < below:
+            if rejects is not None and rejects(bent):
+                return np.inf
+            order[:] = sorted(order, key=lambda view: -parts[view])
         return total
 
     p, best = np.zeros(3), cost(np.zeros(3), np.inf)
@@ -323,7 +373,7 @@ def _bend_once(
                     if c < best:
                         best, p, improved = c, q, True
     _log.debug("tip bent by %s mm across, %+.2f mm longer (cost %.1f)", p[:2], p[2], best)
-    return _bend_end(pts, arc, start, p[:2], float(p[2]), ahead) if p.any() else pts
+    return bender(p[:2], float(p[2])) if p.any() else pts
 
 
 def continue_on_circle(points_mm: FloatArray, *, redo_mm: float, fit_mm: float) -> FloatArray:
@@ -413,8 +463,7 @@ def coverage_mismatch(
         for n, axis in enumerate(axes_mm):
             canvas = np.zeros(((y1 - y0) * _SUPERSAMPLE, (x1 - x0) * _SUPERSAMPLE), np.uint8)
             _draw_tube(canvas, cam, *_tube_points(axis, radius_mm, flat_end=True), radius_mm, (x0, y0))
-            drawn = cv2.resize(canvas, seen.shape[::-1], interpolation=cv2.INTER_AREA).astype(np.float32)
-            costs[n] += float(np.sum((drawn / 255.0 - seen) ** 2))
+            costs[n] += _squared_difference(canvas, seen)
     return costs
 
 
@@ -543,13 +592,13 @@ def _tube_points(axis_mm: FloatArray, radius_mm: float, *, flat_end: bool) -> tu
     else:
         discs = axis_mm[:1]
     end, back = axis_mm[-1], discs[-1]
-    if not flat_end or not np.linalg.norm(end - back) > 0:
+    gap = end - back
+    if not flat_end or not gap.dot(gap) > 0:
         return discs, np.zeros((0, 3))
-    angle = np.linspace(0.0, 2.0 * np.pi, _RING_POINTS, endpoint=False)
     rings = []
     for centre, tangent in zip((back, end), _end_tangents(axis_mm, arc, radius_mm), strict=True):
         n1, n2 = _normals(tangent)
-        rings.append(centre + radius_mm * (np.cos(angle)[:, None] * n1 + np.sin(angle)[:, None] * n2))
+        rings.append(centre + radius_mm * (_RING_COS * n1 + _RING_SIN * n2))
     return discs, np.vstack(rings)
 
 
@@ -569,7 +618,12 @@ def _end_tangents(axis_mm: FloatArray, arc: FloatArray, radius_mm: float) -> tup
     if sel.sum() < 3:
         chord = axis_mm[-1] - axis_mm[0]
         return chord, chord
-    v = np.vander(s[sel], 3, increasing=True)
+    x = s[sel]
+    # np.vander(x, 3, increasing=True)'s columns (1, x, x x), without its overhead.
+    v = np.empty((len(x), 3))
+    v[:, 0] = 1.0
+    v[:, 1] = x
+    v[:, 2] = x * x
     # The normal equations (3 x 3, well conditioned on a few mm): a tenth of lstsq's cost.
     coef = np.linalg.solve(v.T @ v, v.T @ axis_mm[sel])
     return coef[1] - 2.0 * radius_mm * coef[2], coef[1]
@@ -582,33 +636,79 @@ def _draw_tube(
     outline_mm: FloatArray,
     radius_mm: float,
     origin: tuple[int, int],
-) -> None:
+    *,
+    pixels: FloatArray | None = None,
+) -> tuple[int, int, int, int]:
     """Draw (255) a tube given by :func:`_tube_points` on a ``_SUPERSAMPLE``-times
-    finer canvas whose pixel (0, 0) is the image's pixel ``origin`` (x, y)."""
+    finer canvas whose pixel (0, 0) is the image's pixel ``origin`` (x, y);
+    ``pixels``: the (D + O, 2) projection of its discs and outline, if known.
+
+    Returns the canvas rectangle (x0, y0, x1, y1), half-open, that holds every
+    canvas pixel drawn (with a margin)."""
     one = _SUPERSAMPLE * (1 << _DRAW_SHIFT)
     # Pixel centres sit at integer coordinates; on the finer canvas pixel (u, v)'s
     # centre is at s u + (s - 1) / 2.
     offset = np.asarray(origin, dtype=np.float64) - (_SUPERSAMPLE - 1) / (2 * _SUPERSAMPLE)
     focal = cam.focal_px
-    px = (cam.project(np.vstack([discs_mm, outline_mm])) - offset) * one
+    if pixels is None:
+        pixels = cam.project(np.vstack([discs_mm, outline_mm]))
+    px = (pixels - offset) * one
     # cv2 fills what its outlines touch: shapes come out too large (see _CIRCLE_BIAS).
     bias = _CIRCLE_BIAS * (1 << _DRAW_SHIFT)
-    radii = np.round(focal * radius_mm / cam.to_camera(discs_mm)[:, 2] * one - bias)
-    centres = np.round(px[: len(discs_mm)]).astype(np.int64)
+    # Array methods (.round()), not np.round's wrapper: this runs for every
+    # bend tried in every view.
+    radii = (focal * radius_mm / cam.to_camera(discs_mm)[:, 2] * one - bias).round()
+    centres = px[: len(discs_mm)].round().astype(np.int64)
+    # What is drawn, in fixed point: x0, y0, x1, y1 (plain ints: few shapes).
+    box = [np.iinfo(np.int64).max] * 2 + [np.iinfo(np.int64).min] * 2
     for (cx, cy), r in zip(centres.tolist(), radii.astype(np.int64).tolist(), strict=True):
         cv2.circle(canvas, (cx, cy), r, 255, -1, cv2.LINE_8, _DRAW_SHIFT)
+        box = [min(box[0], cx - r), min(box[1], cy - r), max(box[2], cx + r), max(box[3], cy + r)]
     if len(outline_mm):
         hull = cv2.convexHull(px[len(discs_mm) :].astype(np.float32))[:, 0, :].astype(np.float64)
-        hull = _shrink_convex(hull, _POLYGON_BIAS * (1 << _DRAW_SHIFT))
-        cv2.fillConvexPoly(canvas, np.round(hull).astype(np.int32), 255, cv2.LINE_8, _DRAW_SHIFT)
+        hull = _shrink_convex(hull, _POLYGON_BIAS * (1 << _DRAW_SHIFT)).round().astype(np.int32)
+        cv2.fillConvexPoly(canvas, hull, 255, cv2.LINE_8, _DRAW_SHIFT)
+        x, y, w, h = cv2.boundingRect(hull)
+        box = [min(box[0], x), min(box[1], y), max(box[2], x + w), max(box[3], y + h)]
+    # In canvas pixels, two more on each side: cv2 fills what its outlines touch.
+    height, width = canvas.shape
+    return (
+        max((box[0] >> _DRAW_SHIFT) - 2, 0),
+        max((box[1] >> _DRAW_SHIFT) - 2, 0),
+        min((box[2] >> _DRAW_SHIFT) + 3, width),
+        min((box[3] >> _DRAW_SHIFT) + 3, height),
+    )
+
+
+def _squared_difference(canvas: NDArray[np.uint8], seen: NDArray[np.float32]) -> float:
+    """Sum over the image's pixels of (drawn coverage - ``seen``)^2: the
+    ``_SUPERSAMPLE``-times finer (h s, w s) uint8 ``canvas`` (0 / 255) averaged
+    to (h, w) ``seen``'s pixels, float32."""
+    return _level_difference(_levels(canvas), seen)
+
+
+def _levels(canvas: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """(h, w) uint8: each ``_SUPERSAMPLE`` x ``_SUPERSAMPLE`` block of the (h s, w s)
+    canvas averaged (each block on its own: any part of the canvas whose sides
+    are multiples of s gives the same levels as the whole)."""
+    h, w = canvas.shape
+    levels = cv2.resize(canvas, (w // _SUPERSAMPLE, h // _SUPERSAMPLE), interpolation=cv2.INTER_AREA)
+    return np.asarray(levels, dtype=np.uint8)
+
+
+def _level_difference(levels: NDArray[np.uint8], seen: NDArray[np.float32]) -> float:
+    """Sum over the pixels of ((h, w) uint8 ``levels`` as coverage - (h, w) float32 ``seen``)^2."""
+    return float(np.sum((_LEVELS[levels] - seen) ** 2))
 
 
 def _shrink_convex(polygon: FloatArray, by: float) -> FloatArray:
     """(P, 2) convex polygon with every edge moved inwards by ``by`` (same units)."""
     # Concatenations, not np.roll: this runs for every bend tried in every view.
+    # Few, whole-array operations (np.add.reduce, not np.sum; no column_stack):
+    # this runs for every bend tried in every view.
     ahead = np.concatenate((polygon[1:], polygon[:1]))
     edge = ahead - polygon
-    length = np.sqrt(edge[:, 0] ** 2 + edge[:, 1] ** 2)
+    length = np.sqrt(np.add.reduce(edge * edge, axis=1))
     keep = length > 1e-9
     if not keep.all():
         polygon, edge, length = polygon[keep], edge[keep], length[keep]
@@ -616,11 +716,12 @@ def _shrink_convex(polygon: FloatArray, by: float) -> FloatArray:
     if len(polygon) < 3:
         return polygon
     # Twice the signed area: positive when the polygon turns left (counter-clockwise).
-    turn = float(np.sum(polygon[:, 0] * ahead[:, 1] - ahead[:, 0] * polygon[:, 1]))
-    inward = np.column_stack((-edge[:, 1], edge[:, 0])) * (np.sign(turn) / length)[:, None]
+    turn = float(np.add.reduce(polygon[:, 0] * ahead[:, 1] - ahead[:, 0] * polygon[:, 1]))
+    # (-dy, dx): the edge turned a quarter left (the sign flips are exact).
+    inward = edge[:, ::-1] * _QUARTER_LEFT * (np.sign(turn) / length)[:, None]
     before = np.concatenate((inward[-1:], inward[:-1]))
     # A vertex moves so that both its edges move by ``by``: along the bisector.
-    return polygon + (before + inward) * (by / (1.0 + np.sum(before * inward, axis=1)))[:, None]
+    return polygon + (before + inward) * (by / (1.0 + np.add.reduce(before * inward, axis=1)))[:, None]
 
 
 def _bend_end(
@@ -636,32 +737,52 @@ def _bend_end(
     ``start``), then lengthened by ``longer`` mm along its own continuation
     ``ahead`` (u mm past the end -> points, see :func:`_end_frame`), bent alike,
     or cut if ``longer`` is negative."""
+    return _end_bender(pts, arc, start, ahead)(across, longer)
+
+
+def _end_bender(
+    pts: FloatArray, arc: FloatArray, start: float, ahead: Callable[[FloatArray], FloatArray]
+) -> Callable[[FloatArray, float], FloatArray]:
+    """:func:`_bend_end` of one axis as a function of (``across``, ``longer``):
+    what does not depend on the bend (the end's normals, the weights along the
+    axis, the continuation's origin) is worked out once, for the many bends a
+    search tries."""
     n1, n2 = _normals(pts[-1] - pts[-2])
-    offset = across[0] * n1 + across[1] * n2
     span = float(arc[-1]) - start
-    w = np.clip((arc - start) / span, 0.0, None) ** 2
-    out = pts + w[:, None] * offset[None, :]
-    if longer < 0:
-        return cut_polyline(out, float(arc[-1]) + longer)
-    if longer > 0:
-        u = np.append(np.arange(2.0, longer, 2.0), longer)
-        # The continuation is a least-squares fit: shifted to start at the end.
-        more = ahead(u) - ahead(np.zeros(1)) + pts[-1]
-        return np.vstack([out, more + (((arc[-1] + u - start) / span) ** 2)[:, None] * offset[None, :]])
-    return out
+    w = (np.clip((arc - start) / span, 0.0, None) ** 2)[:, None]
+    origin = ahead(np.zeros(1))
+
+    def bent(across: FloatArray, longer: float) -> FloatArray:
+        offset = across[0] * n1 + across[1] * n2
+        out = pts + w * offset[None, :]
+        if longer < 0:
+            return cut_polyline(out, float(arc[-1]) + longer)
+        if longer > 0:
+            u = np.append(np.arange(2.0, longer, 2.0), longer)
+            # The continuation is a least-squares fit: shifted to start at the end.
+            more = ahead(u) - origin + pts[-1]
+            return np.vstack([out, more + (((arc[-1] + u - start) / span) ** 2)[:, None] * offset[None, :]])
+        return out
+
+    return bent
 
 
 def _normals(direction: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Two unit vectors perpendicular to (3,) ``direction`` and to each other."""
-    t = direction / np.linalg.norm(direction)
-    # t x e_k for the axis e_k least along t, written out (np.cross is slow on
-    # single vectors, and this runs for every bend tried).
-    k = int(np.argmin(np.abs(t)))
+    # np.linalg.norm's own arithmetic (sqrt of x.dot(x)), and plain floats
+    # for the rest: np.cross and per-element NumPy scalars are slow on single
+    # vectors, and this runs for every bend tried.
+    t = direction / math.sqrt(direction.dot(direction))
+    tx, ty, tz = t.tolist()
+    # t x e_k for the axis e_k least along t (the first such, as np.argmin), written out.
+    size = [abs(tx), abs(ty), abs(tz)]
+    k = size.index(min(size))
     i, j = (k + 1) % 3, (k + 2) % 3
     n1 = np.zeros(3)
     n1[i], n1[j] = t[j], -t[i]
-    n1 /= np.linalg.norm(n1)
-    n2 = np.array([t[1] * n1[2] - t[2] * n1[1], t[2] * n1[0] - t[0] * n1[2], t[0] * n1[1] - t[1] * n1[0]])
+    n1 /= math.sqrt(n1.dot(n1))
+    a, b, c = n1.tolist()
+    n2 = np.array([ty * c - tz * b, tz * a - tx * c, tx * b - ty * a])
     return n1, n2
 
 
