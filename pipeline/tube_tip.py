@@ -659,11 +659,17 @@ def _draw_tube(
     # bend tried in every view.
     radii = (focal * radius_mm / cam.to_camera(discs_mm)[:, 2] * one - bias).round()
     centres = px[: len(discs_mm)].round().astype(np.int64)
-    # What is drawn, in fixed point: x0, y0, x1, y1 (plain ints: few shapes).
-    box = [np.iinfo(np.int64).max] * 2 + [np.iinfo(np.int64).min] * 2
-    for (cx, cy), r in zip(centres.tolist(), radii.astype(np.int64).tolist(), strict=True):
+    discs = list(zip(centres.tolist(), radii.astype(np.int64).tolist(), strict=True))
+    for (cx, cy), r in discs:
         cv2.circle(canvas, (cx, cy), r, 255, -1, cv2.LINE_8, _DRAW_SHIFT)
-        box = [min(box[0], cx - r), min(box[1], cy - r), max(box[2], cx + r), max(box[3], cy + r)]
+    # What is drawn, in fixed point: x0, y0, x1, y1 (plain ints: few shapes).
+    far = 1 << 62
+    box = [
+        min((cx - r for (cx, _), r in discs), default=far),
+        min((cy - r for (_, cy), r in discs), default=far),
+        max((cx + r for (cx, _), r in discs), default=-far),
+        max((cy + r for (_, cy), r in discs), default=-far),
+    ]
     if len(outline_mm):
         hull = cv2.convexHull(px[len(discs_mm) :].astype(np.float32))[:, 0, :].astype(np.float64)
         hull = _shrink_convex(hull, _POLYGON_BIAS * (1 << _DRAW_SHIFT)).round().astype(np.int32)
