@@ -672,17 +672,19 @@ def _draw_tube(
     # bend tried in every view.
     radii = (focal * radius_mm / cam.to_camera(discs_mm)[:, 2] * one - bias).round()
     centres = px[: len(discs_mm)].round().astype(np.int64)
-    discs = list(zip(centres.tolist(), radii.astype(np.int64).tolist(), strict=True))
-    for (cx, cy), r in discs:
-        cv2.circle(canvas, (cx, cy), r, 255, -1, cv2.LINE_8, _DRAW_SHIFT)
     # What is drawn, in fixed point: x0, y0, x1, y1 (plain ints: few shapes).
     far = 1 << 62
-    box = [
-        min((cx - r for (cx, _), r in discs), default=far),
-        min((cy - r for (_, cy), r in discs), default=far),
-        max((cx + r for (cx, _), r in discs), default=-far),
-        max((cy + r for (_, cy), r in discs), default=-far),
-    ]
+    box = [far, far, -far, -far]
+    for (cx, cy), r in zip(centres.tolist(), radii.astype(np.int64).tolist(), strict=True):
+        cv2.circle(canvas, (cx, cy), r, 255, -1, cv2.LINE_8, _DRAW_SHIFT)
+        if cx - r < box[0]:
+            box[0] = cx - r
+        if cy - r < box[1]:
+            box[1] = cy - r
+        if cx + r > box[2]:
+            box[2] = cx + r
+        if cy + r > box[3]:
+            box[3] = cy + r
     if len(outline_mm):
         hull = cv2.convexHull(px[len(discs_mm) :].astype(np.float32))[:, 0, :].astype(np.float64)
         hull = _shrink_convex(hull, _POLYGON_BIAS * (1 << _DRAW_SHIFT)).round().astype(np.int32)
@@ -738,9 +740,12 @@ def _shrink_convex(polygon: FloatArray, by: float) -> FloatArray:
     if len(polygon) < 3:
         return polygon
     # Twice the signed area: positive when the polygon turns left (counter-clockwise).
-    turn = float(np.add.reduce(polygon[:, 0] * ahead[:, 1] - ahead[:, 0] * polygon[:, 1]))
+    # (x y', y x') per vertex: the products of the shoelace formula.
+    cross = polygon * ahead[:, ::-1]
+    turn = float(np.add.reduce(cross[:, 0] - cross[:, 1]))
+    sign = 1.0 if turn > 0 else -1.0 if turn < 0 else turn  # np.sign's, 0 and NaN included
     # (-dy, dx): the edge turned a quarter left (the sign flips are exact).
-    inward = edge[:, ::-1] * _QUARTER_LEFT * (np.sign(turn) / length)[:, None]
+    inward = edge[:, ::-1] * _QUARTER_LEFT * (sign / length)[:, None]
     before = np.concatenate((inward[-1:], inward[:-1]))
     # A vertex moves so that both its edges move by ``by``: along the bisector.
     return polygon + (before + inward) * (by / (1.0 + np.add.reduce(before * inward, axis=1)))[:, None]
