@@ -20,6 +20,8 @@ from pipeline.tube_tip import (
     _coverage,
     _draw_tube,
     _end_tangents,
+    _levels,
+    _normals,
     _shrink_convex,
     _tube_points,
     bend_tip_to_pixels,
@@ -242,3 +244,88 @@ def test_continue_on_circle_follows_an_arc_and_a_straight_line(seed: int) -> Non
     # A straight line has no circle: it is continued straight, to the same end.
     line = np.outer(np.linspace(0.0, 100.0, 51), rotation[:, 0])
     np.testing.assert_allclose(continue_on_circle(line, redo_mm=20.0, fit_mm=40.0)[-1], line[-1], atol=1e-9)
+
+
+def test_bend_search_that_stops_early_finds_the_same_bend(monkeypatch: pytest.MonkeyPatch) -> None:
+    # A bend that cannot win is left after the views that already show it
+    # (their partial cost reaches the best one): the search must end on the
+    # same axis, bit for bit, as when every view of every bend is drawn, and
+    # draw fewer views. The start: the true tube with its last 30 mm moved a
+    # radius sideways, so the search has a way to go.
+    from conftest import rig_cameras
+
+    import pipeline.tube_tip as tube_tip
+
+    radius = 6.0
+    curve = _arc(60.0, _plane(4))
+    exact = _exact("ninety", curve, radius)
+    contrasts = [(100.0 * c).astype(np.float32) for c in exact]
+    masks = [c >= 0.5 for c in exact]
+    axis = np.vstack([curve[::8], curve[-1]])
+    arc = polyline_arclength(axis)
+    normal = np.cross(axis[-1] - axis[-2], [0.0, 0.0, 1.0])
+    moved = axis + (np.clip((arc - (arc[-1] - 30.0)) / 30.0, 0.0, None) ** 2)[:, None] * (
+        radius * normal / np.linalg.norm(normal)
+    )
+    drawn = {"views": 0}
+    level_difference = tube_tip._level_difference
+
+    def counted(levels: NDArray[np.uint8], seen: NDArray[np.float32]) -> float:
+        drawn["views"] += 1
+        return level_difference(levels, seen)
+
+    monkeypatch.setattr(tube_tip, "_level_difference", counted)
+    cameras = rig_cameras("ninety")
+    early = bend_tip_to_pixels(moved, cameras, masks, contrasts, radius)
+    views_early = drawn["views"]
+    drawn["views"] = 0
+    monkeypatch.setattr(tube_tip, "_PARTIAL_MARGIN", np.inf)
+    every = bend_tip_to_pixels(moved, cameras, masks, contrasts, radius)
+    assert np.array_equal(early, every)
+    assert views_early < drawn["views"]
+    # ... and the bend did move the tip back towards the truth.
+    assert np.linalg.norm(early[-1] - curve[-1]) < 0.5 * np.linalg.norm(moved[-1] - curve[-1])
+
+
+def test_levels_of_a_part_of_the_canvas_are_those_of_the_whole() -> None:
+    # Each pixel's level averages its own s x s block only: the levels of any
+    # block-aligned part (what a bend redraws) equal that part of the whole's.
+    rng = np.random.default_rng(3)
+    canvas = np.zeros((120 * _SUPERSAMPLE, 160 * _SUPERSAMPLE), np.uint8)
+    for _ in range(30):
+        centre = tuple(int(v) for v in rng.integers(0, 160 * _SUPERSAMPLE * 16, 2))
+        cv2.circle(canvas, centre, int(rng.integers(16, 40 * 16)), 255, -1, cv2.LINE_8, 4)
+    whole = _levels(canvas)
+    assert whole.shape == (120, 160) and 0 < whole.mean() < 255
+    for _ in range(20):
+        x0, y0 = rng.integers(0, 150), rng.integers(0, 110)
+        x1, y1 = x0 + rng.integers(1, 160 - x0 + 1), y0 + rng.integers(1, 120 - y0 + 1)
+        s = _SUPERSAMPLE
+        part = _levels(canvas[y0 * s : y1 * s, x0 * s : x1 * s])
+        assert np.array_equal(part, whole[y0:y1, x0:x1])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_draw_tube_box_holds_every_pixel_it_draws(seed: int) -> None:
+    # Random tube ends seen by a pinhole camera: nothing drawn outside the
+    # returned box, which is far smaller than the canvas (else it saves nothing).
+    cam = _pinhole(300.0)
+    rng = np.random.default_rng(seed)
+    axis = _arc(40.0 + 20.0 * seed, _plane(seed), length_mm=30.0) - CENTRE + rng.normal(0.0, 5.0, 3)
+    canvas = np.zeros((120 * _SUPERSAMPLE, 160 * _SUPERSAMPLE), np.uint8)
+    x0, y0, x1, y1 = _draw_tube(canvas, cam, *_tube_points(axis, 4.0, flat_end=True), 4.0, (0, 0))
+    inside = np.zeros_like(canvas, dtype=bool)
+    inside[y0:y1, x0:x1] = True
+    assert canvas[inside].any() and not canvas[~inside].any()
+    assert (x1 - x0) * (y1 - y0) < 0.5 * canvas.size
+
+
+def test_normals_are_orthonormal_to_the_direction() -> None:
+    # Random directions and the axes themselves (where two components are 0).
+    rng = np.random.default_rng(5)
+    for direction in [*rng.standard_normal((20, 3)), *np.eye(3), -np.eye(3)[1]]:
+        n1, n2 = _normals(direction)
+        t = direction / np.linalg.norm(direction)
+        frame = np.stack([t, n1, n2])
+        # Unit vectors built from unit vectors: a few ulps of rounding.
+        np.testing.assert_allclose(frame @ frame.T, np.eye(3), atol=1e-12)
