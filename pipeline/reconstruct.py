@@ -4,27 +4,25 @@ Pure: arrays in, a :class:`~pipeline.frame_result.FrameResult` out; no logging,
 no files. A frame that cannot be reconstructed is a result with status "empty"
 or "failed" and a reason, never an exception. What never changes over a session
 (cameras, settings, the voxel grid and its lookup tables, background images) is
-a :class:`SessionModel`, built once in the parent and sent to every worker.
+a :class:`~pipeline.model.SessionModel`, built once in the parent and sent to every worker.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .camera import Camera
 from .centerline import Centerline, fit_centerline, radius_from_silhouettes, smooth_curve
 from .frame_result import FrameResult
-from .hull import HullGrid, build_grid, carve, voxel_centers_mm
+from .hull import carve, voxel_centers_mm
+from .model import SessionModel
+from .model import build_model as build_model  # re-exported: build the model, then reconstruct frames
 from .ordering import infer_base
 from .quality import reprojection_iou
-from .session import Session
-from .settings import Settings
 from .silhouette import extract_silhouette
 from .tube_fit import foreground_contrast
 
@@ -33,26 +31,6 @@ from .tube_fit import foreground_contrast
 MIN_VOXELS = 8
 # Radius used to start the search when neither session.toml nor the silhouettes give one (mm).
 _FALLBACK_RADIUS_MM = 6.0
-
-
-@dataclass(frozen=True, eq=False)
-class SessionModel:
-    """What every frame of a session shares; built once, pickled to workers."""
-
-    cameras: tuple[Camera, ...]
-    settings: Settings
-    grid: HullGrid
-    backgrounds: tuple[NDArray[np.uint8] | None, ...]
-
-
-def build_model(session: Session) -> SessionModel:
-    """The per-session model: cameras, settings, voxel grid with its lookup tables."""
-    return SessionModel(
-        cameras=session.cameras,
-        settings=session.settings,
-        grid=build_grid(session.cameras, session.settings.workspace),
-        backgrounds=session.backgrounds,
-    )
 
 
 def frame_silhouettes(images: Sequence[NDArray[np.uint8]], model: SessionModel) -> list[NDArray[np.bool_]]:

@@ -253,7 +253,7 @@ def process_session(
         start_local_workers(n_jobs)
 
     if frame_fn is None:
-        from .reconstruct import build_model
+        from .model import build_model
 
         model: Any = build_model(session)
     else:

@@ -25,7 +25,8 @@ from ..baseline_curve import polyfit_centerline
 from ..camera import Camera
 from ..frame_result import FrameResult
 from ..hull import HullGrid, build_grid, carve, carve_brute_force, voxel_centers_mm
-from ..reconstruct import SessionModel, build_model, reconstruct_with_silhouettes
+from ..model import SessionModel, build_model
+from ..reconstruct import reconstruct_with_silhouettes
 from ..runner import process_range
 from ..session import Session
 from ..settings import Workspace

@@ -1,0 +1,40 @@
+"""The per-session model: what every frame of a session shares, built once.
+
+Cameras, settings, the voxel grid with its per-camera lookup tables and the
+background images never change over a session: the parent builds them once and
+sends them to every worker. Kept apart from the per-frame path
+(:mod:`pipeline.reconstruct`) so that a run's parent can build the model and give
+the workers their first frames without importing the centreline's modules (SciPy).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .camera import Camera
+from .hull import HullGrid, build_grid
+from .session import Session
+from .settings import Settings
+
+
+@dataclass(frozen=True, eq=False)
+class SessionModel:
+    """What every frame of a session shares; built once, pickled to workers."""
+
+    cameras: tuple[Camera, ...]
+    settings: Settings
+    grid: HullGrid
+    backgrounds: tuple[NDArray[np.uint8] | None, ...]
+
+
+def build_model(session: Session) -> SessionModel:
+    """The per-session model: cameras, settings, voxel grid with its lookup tables."""
+    return SessionModel(
+        cameras=session.cameras,
+        settings=session.settings,
+        grid=build_grid(session.cameras, session.settings.workspace),
+        backgrounds=session.backgrounds,
+    )
