@@ -299,13 +299,16 @@ def fit_centerline(
     def fit(march: March, robust: bool = True) -> TubeFit:
         return _fit_march(march.points_mm, cameras, masks, contrasts, radius_mm, voxel_mm, base_known, robust)
 
-    scores: dict[int, float] = {}
+    scores: dict[int, tuple[TubeFit, float]] = {}
 
     def standing(candidate: TubeFit) -> float:
         # Candidates are ranked more than once: each is drawn and scored once.
+        # The candidate is kept with its score: a dropped one's id could be
+        # given to a new candidate, which would inherit its score (the result
+        # then depended on the frames processed before).
         if id(candidate) not in scores:
-            scores[id(candidate)] = _standing(candidate, cameras, masks)
-        return scores[id(candidate)]
+            scores[id(candidate)] = (candidate, _standing(candidate, cameras, masks))
+        return scores[id(candidate)][1]
 
     march = march_hull(points_mm, base_mm, radius_mm=radius_mm, voxel_mm=voxel_mm, refine=refine)
     best = fit(march)
