@@ -100,9 +100,11 @@ _BEND_STEPS_MM = (8.0, 4.0, 2.0, 1.0, 0.5, 0.25)
 _MAX_BEND_RADII = 1.5
 _SUPERSAMPLE = 4
 _RING_POINTS = 24
-# A bend's cost summed over some views in another order than its total's
-# stops the search's evaluation only if it exceeds the best by this factor:
-# the orders' sums differ by a few units in the last place (~1e-16 each).
+# The bend search stops drawing a bend's views once those drawn sum to this
+# factor times the best bend's cost: the views are drawn in another order than
+# the total sums them in, and the two sums of the same parts may differ in their
+# last bits (~1e-16 relative), so a bend is dropped only where its full total
+# could not have come out below the best either.
 _PARTIAL_MARGIN = 1.0 + 1e-9
 # The rings' unit circle, (_RING_POINTS, 1) each.
 _RING_COS = np.cos(np.linspace(0.0, 2.0 * np.pi, _RING_POINTS, endpoint=False))[:, None]
@@ -727,9 +729,8 @@ def _level_difference(levels: NDArray[np.uint8], seen: NDArray[np.float32]) -> f
 
 def _shrink_convex(polygon: FloatArray, by: float) -> FloatArray:
     """(P, 2) convex polygon with every edge moved inwards by ``by`` (same units)."""
-    # Concatenations, not np.roll: this runs for every bend tried in every view.
-    # Few, whole-array operations (np.add.reduce, not np.sum; no column_stack):
-    # this runs for every bend tried in every view.
+    # Few whole-array operations (concatenations, not np.roll; np.add.reduce,
+    # not np.sum; no column_stack): this runs for every bend tried in every view.
     ahead = np.concatenate((polygon[1:], polygon[:1]))
     edge = ahead - polygon
     length = np.sqrt(np.add.reduce(edge * edge, axis=1))
