@@ -24,15 +24,10 @@ JAC_EPS_MM = 1e-3
 MIN_CONTRAST = 12.0
 
 
-def project_with_jacobian(cam: Camera, pts: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Pixels (K, 2) and the projection's Jacobian (K, 2, 3) px/mm, by finite differences."""
-    px, jac = project_with_jacobians([cam], pts)
-    return px[0], jac[0]
-
-
 def project_with_jacobians(cameras: Sequence[Camera], pts: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """:func:`project_with_jacobian` in C cameras at once: pixels (C, K, 2) and
-    Jacobians (C, K, 2, 3) px/mm (the shifted points built once for all)."""
+    """Pixels (C, K, 2) of points (K, 3) mm in C cameras, and the projection's
+    Jacobians (C, K, 2, 3) px/mm by finite differences (the shifted points built
+    once for all cameras)."""
     k = len(pts)
     shifted = np.concatenate([pts] + [pts + JAC_EPS_MM * e for e in np.eye(3)])
     px = project_in_views(cameras, shifted).reshape(len(cameras), 4, k, 2)
@@ -60,24 +55,14 @@ def sample_image(image: NDArray[np.float32], xy: FloatArray) -> FloatArray:
     return np.asarray(out, dtype=np.float64).reshape(shape)
 
 
-def sample_lines(
-    image: NDArray[np.float32], start_px: FloatArray, direction: FloatArray, steps: FloatArray
-) -> FloatArray:
-    """(K, S) bilinear samples of ``image`` along K lines: at ``start_px`` (K, 2) +
-    ``steps`` (S,) x ``direction`` (K, 2), px; edge pixels repeat, as :func:`sample_image`.
-
-    One cv2.remap with (K, S) maps built directly, per axis: no (K, S, 2) array to
-    build, cast and split (the same sample positions, so the same values).
-    """
-    return sample_lines_in([image], start_px[None], direction[None], steps)[0]
-
-
 def sample_lines_in(
     images: Sequence[NDArray[np.float32]], start_px: FloatArray, direction: FloatArray, steps: FloatArray
 ) -> FloatArray:
-    """(C, K, S) :func:`sample_lines` in C images at once, ``start_px`` and
-    ``direction`` (C, K, 2): the maps of all images built by one array call per
-    axis, one cv2.remap per image into one array."""
+    """(C, K, S) bilinear samples of C images along K lines each: at ``start_px``
+    (C, K, 2) + ``steps`` (S,) x ``direction`` (C, K, 2), px; edge pixels repeat,
+    as :func:`sample_image`. The maps of all images are built by one array call per
+    axis (no (C, K, S, 2) array to build, cast and split), one cv2.remap per image
+    into one array."""
     maps = []
     for axis in range(2):
         at = start_px[..., axis, None] + steps * direction[..., axis, None]
@@ -130,12 +115,12 @@ def side_edges(
     ok = np.isfinite(bg) & (top - bg >= MIN_CONTRAST)
     bg = np.where(ok, bg, top)
     ahead = np.arange(s)[None, :] > start[:, None]  # both passes search past the peak
-    pos, hit = _crossing_ahead(both, ahead, 0.5 * (top + bg), 1)
+    pos, hit = crossing(both, ahead, 0.5 * (top + bg), 1)
     # The rim's shade, one pixel inside the first estimate (not past the peak).
     rim_at = np.minimum(np.maximum(pos - 1.0 / step, np.minimum(start, pos)), np.maximum(start, pos))
     rim = interp_rows(both, rim_at)
     rim = np.where(rim - bg >= MIN_CONTRAST, rim, top)
-    pos, hit2 = _crossing_ahead(both, ahead, 0.5 * (rim + bg), 1)
+    pos, hit2 = crossing(both, ahead, 0.5 * (rim + bg), 1)
     found = ok & hit & hit2
     left = steps[0] + (s - 1 - pos[:k]) * step
     right = steps[0] + pos[k:] * step
@@ -178,20 +163,11 @@ def interp_rows(profile: FloatArray, at: FloatArray) -> FloatArray:
 
 
 def crossing(
-    profile: FloatArray, start: NDArray[np.intp], level: FloatArray, side: int
-) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """First fractional index from ``start`` towards ``side`` (+1/-1) where each row of
-    (K, S) ``profile`` falls below ``level`` (K,), and whether it does."""
-    idx = np.arange(profile.shape[1])[None, :]
-    ahead = idx > start[:, None] if side > 0 else idx < start[:, None]
-    return _crossing_ahead(profile, ahead, level, side)
-
-
-def _crossing_ahead(
     profile: FloatArray, ahead: NDArray[np.bool_], level: FloatArray, side: int
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """:func:`crossing` with the (K, S) mask of the samples past each row's start
-    given (computed once for several levels)."""
+    """First fractional index, among the samples ``ahead`` (K, S) bool (those past
+    each row's start), towards ``side`` (+1/-1), where each row of (K, S)
+    ``profile`` falls below ``level`` (K,); and whether it does."""
     k, s = profile.shape
     below = (profile < level[:, None]) & ahead
     if side > 0:

@@ -137,13 +137,6 @@ def misfit_fractions(
     return tuple(_misfit(cam, mask, pts, tube, radius_mm) for cam, mask, tube in views)
 
 
-def misfit_fraction(
-    camera: Camera, mask: NDArray[np.bool_], centerline_mm: FloatArray, radius_mm: float
-) -> float:
-    """:func:`misfit_fractions` in one camera."""
-    return misfit_fractions([camera], [mask], centerline_mm, radius_mm)[0]
-
-
 def _misfit(
     camera: Camera, mask: NDArray[np.bool_], pts: FloatArray, tube: NDArray[np.bool_], radius_mm: float
 ) -> float:
