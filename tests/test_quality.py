@@ -101,7 +101,7 @@ def test_masks_in_all_views_equal_the_per_view_ones() -> None:
     cams = rig_cameras()
     curve = shape_centerlines("helix", 12, base_mm=BASE)[7]
     # The same discs projected the same way (project_in_views is OpenCV's
-    # arithmetic): identical masks and figures, no tolerance.
+    # arithmetic): identical masks, no tolerance.
     # ~100 and ~25 discs: over and under project_in_views' array threshold (48 points).
     for axis in (curve, curve[: len(curve) // 4]):
         for batched, cam in zip(tube_masks(cams, axis, 5.0), cams, strict=True):

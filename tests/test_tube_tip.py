@@ -8,6 +8,8 @@ of a flat-ended tube, by ray casting with 3 x 3 rays on its rim.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import cv2
 import numpy as np
 import pytest
@@ -191,14 +193,18 @@ def test_bend_leaves_a_true_free_tip_where_it_is(seed: int) -> None:
     assert np.linalg.norm(bent[-1] - curve[-1]) <= 0.26
 
 
-def test_coverage_mismatch_ranks_the_true_tube_first() -> None:
-    # Against exact coverage, the true tube's mismatch is what drawing at 4x
-    # supersampling leaves along all its edges, in three views; a tube whose
-    # last 30 mm is moved sideways by a radius (the tip beside where it is),
-    # or cut 6 mm short, adds whole pixels near its end. Measured: 20 / 55 /
-    # 59; asserted with room: more than twice.
-    from conftest import rig_cameras
+class _TipAside(NamedTuple):
+    radius_mm: float
+    curve_mm: FloatArray  # (P, 3) the true centreline
+    axis_mm: FloatArray  # (M, 3) its coarse axis
+    moved_mm: FloatArray  # (M, 3) the axis, its last 30 mm moved a radius sideways
+    masks: list[NDArray[np.bool_]]  # (H, W) per view
+    contrasts: list[NDArray[np.float32]]  # (H, W) per view
 
+
+def _tip_moved_aside() -> _TipAside:
+    """A 60 mm arc of a 6 mm tube seen exactly on the "ninety" rig, and its axis
+    with the tip moved aside (growing as the square of the arc length)."""
     radius = 6.0
     curve = _arc(60.0, _plane(4))
     exact = _exact("ninety", curve, radius)
@@ -210,7 +216,19 @@ def test_coverage_mismatch_ranks_the_true_tube_first() -> None:
     moved = axis + (np.clip((arc - (arc[-1] - 30.0)) / 30.0, 0.0, None) ** 2)[:, None] * (
         radius * normal / np.linalg.norm(normal)
     )
-    short = cut_polyline(axis, float(arc[-1]) - 6.0)
+    return _TipAside(radius, curve, axis, moved, masks, contrasts)
+
+
+def test_coverage_mismatch_ranks_the_true_tube_first() -> None:
+    # Against exact coverage, the true tube's mismatch is what drawing at 4x
+    # supersampling leaves along all its edges, in three views; a tube whose
+    # last 30 mm is moved sideways by a radius (the tip beside where it is),
+    # or cut 6 mm short, adds whole pixels near its end. Measured: 20 / 55 /
+    # 59; asserted with room: more than twice.
+    from conftest import rig_cameras
+
+    radius, _, axis, moved, masks, contrasts = _tip_moved_aside()
+    short = cut_polyline(axis, float(polyline_arclength(axis)[-1]) - 6.0)
     costs = coverage_mismatch([axis, moved, short], rig_cameras("ninety"), masks, contrasts, radius)
     assert costs[0] > 0.0
     assert costs[1] > 2.0 * costs[0] and costs[2] > 2.0 * costs[0]
@@ -256,17 +274,7 @@ def test_bend_search_that_stops_early_finds_the_same_bend(monkeypatch: pytest.Mo
 
     import pipeline.tube_tip as tube_tip
 
-    radius = 6.0
-    curve = _arc(60.0, _plane(4))
-    exact = _exact("ninety", curve, radius)
-    contrasts = [(100.0 * c).astype(np.float32) for c in exact]
-    masks = [c >= 0.5 for c in exact]
-    axis = np.vstack([curve[::8], curve[-1]])
-    arc = polyline_arclength(axis)
-    normal = np.cross(axis[-1] - axis[-2], [0.0, 0.0, 1.0])
-    moved = axis + (np.clip((arc - (arc[-1] - 30.0)) / 30.0, 0.0, None) ** 2)[:, None] * (
-        radius * normal / np.linalg.norm(normal)
-    )
+    radius, curve, _, moved, masks, contrasts = _tip_moved_aside()
     drawn = {"views": 0}
     level_difference = tube_tip._level_difference
 
