@@ -191,17 +191,20 @@ def _cross_validated_spline(
     y = curves[active].reshape(len(x), -1)
     coarse = _cv_errors(x, y, _LAMBDAS).mean(axis=1)
     fine = _LAMBDAS[int(np.argmin(coarse))] * _REFINE
-    errors = _cv_errors(x, y, fine)
-    best = int(np.argmin(errors.mean(axis=1)))
+    lambdas, errors = list(fine), list(_cv_errors(x, y, fine))
+    best = int(np.argmin([e.mean() for e in errors]))
     step = float(_REFINE[1] / _REFINE[0])
-    chosen = float(fine[best])
-    while chosen < _LAMBDAS[-1]:
-        growth = _cv_errors(x, y, np.array([chosen * step]))[0] - errors[best]
+    chosen = best
+    while lambdas[chosen] < _LAMBDAS[-1]:
+        if chosen + 1 == len(lambdas):  # past the fine grid: one more quarter decade
+            lambdas.append(lambdas[-1] * step)
+            errors.append(_cv_errors(x, y, np.array(lambdas[-1:]))[0])
+        growth = errors[chosen + 1] - errors[best]
         if growth.mean() > _SE_FRACTION * growth.std(ddof=1) / np.sqrt(len(growth)):
             break
-        chosen *= step
+        chosen += 1
     fitted_share = (_CV_PERIOD - 2 * _CV_GAP + 1) / _CV_PERIOD
-    spline = make_smoothing_spline(x, y, lam=chosen / fitted_share)
+    spline = make_smoothing_spline(x, y, lam=float(lambdas[chosen]) / fitted_share)
     return np.asarray(spline(offsets), dtype=np.float64).reshape(curves.shape)
 
 
