@@ -3,8 +3,8 @@
 Cameras, settings, the voxel grid with its per-camera lookup tables and the
 background images never change over a session: the parent builds them once and
 sends them to every worker. Kept apart from the per-frame path
-(:mod:`pipeline.reconstruct`) so that a run's parent can build the model and give
-the workers their first frames without importing the centreline's modules (SciPy).
+(:mod:`pipeline.reconstruct`): building it needs the cameras and the grid, not
+the centreline's modules.
 """
 
 from __future__ import annotations

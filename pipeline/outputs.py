@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from .errors import OutputError
 from .frame_task import FrameOutput
 from .session import Session
+from .smoothing import smooth_centerlines
 
 log = logging.getLogger(__name__)
 
@@ -139,8 +140,6 @@ def _check_rrd_complete(partial: Path, final: Path) -> None:
 
 
 def _smooth(centerlines_mm: NDArray[np.float64], times_s: NDArray[np.float64]) -> NDArray[np.float64] | None:
-    from .smoothing import smooth_centerlines  # imported when the writers open (SciPy)
-
     try:
         return np.asarray(smooth_centerlines(centerlines_mm, times_s), dtype=np.float64)
     except Exception as exc:  # the per-frame results are safe: lose the extra, not the run
@@ -155,11 +154,9 @@ class Writers:
 
     def __init__(self, session: Session, mcap_path: Path, rrd_path: Path, *, images: bool) -> None:
         # Imported here, not with this module: a run's parent opens its writers once
-        # the workers have their first frames, so Rerun's and SciPy's imports (the
-        # smoothing's, needed at the end) no longer hold the workers up.
+        # the workers have their first frames, so Rerun's import no longer holds them up.
         import rerun as rr
 
-        from . import smoothing  # noqa: F401
         from .record_mcap import McapRecorder
         from .record_rerun import RerunRecorder, default_blueprint
 
