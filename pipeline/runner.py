@@ -150,7 +150,8 @@ def _attempts(
         for group in groups:
             done = 0
             try:
-                results, started = (started if started is not None else dispatch(group)), None
+                results = started if started is not None else dispatch(group)
+                started = None  # the first attempt's results serve only once
                 for outputs in results:
                     yield group[done], outputs
                     done += 1
