@@ -28,7 +28,13 @@ from .frame_result import FrameResult
 from .frame_task import FrameFunction, FrameOutput, encode_silhouette, process_range
 from .outputs import RunSummary, Writers, compress_failures, output_error, prepare_outputs
 from .session import Session
-from .workers import effective_jobs, release_local_workers, start_local_workers, wait_for_local_workers
+from .workers import (
+    effective_jobs,
+    release_local_workers,
+    shared_with_local_workers,
+    start_local_workers,
+    wait_for_local_workers,
+)
 
 __all__ = [
     "FrameOutput",
@@ -74,14 +80,19 @@ def frame_ranges(start: int, stop: int, n_workers: int) -> list[tuple[int, int]]
 
 
 @contextlib.contextmanager
-def _backend(backend: str, scheduler: str | None, n_jobs: int, model: Any) -> Iterator[int]:
-    """joblib's parallel_config for ``backend``, yielding the number of workers; for Dask,
-    a client for the run (and a local cluster when no scheduler is given)."""
+def _backend(backend: str, scheduler: str | None, n_jobs: int, model: Any) -> Iterator[tuple[int, Any]]:
+    """joblib's parallel_config for ``backend``, yielding the number of workers and the
+    model to hand them; for Dask, a client for the run (and a local cluster when no
+    scheduler is given)."""
     import joblib
 
     if backend in ("loky", "threading"):
         with joblib.parallel_config(backend=backend, n_jobs=n_jobs):
-            yield n_jobs
+            if backend == "loky" and n_jobs > 1:
+                with shared_with_local_workers(model) as shared:
+                    yield n_jobs, shared
+            else:
+                yield n_jobs, model
         return
     from distributed import Client, LocalCluster
 
@@ -101,7 +112,7 @@ def _backend(backend: str, scheduler: str | None, n_jobs: int, model: Any) -> It
         # The model is scattered to the workers once, not shipped with every range.
         with joblib.parallel_config(backend="dask", client=client, scatter=[model]):
             workers = len(client.scheduler_info().get("workers", {}))
-            yield max(1, workers)
+            yield max(1, workers), model
     finally:
         client.close()
         if cluster is not None:
@@ -263,18 +274,19 @@ def process_session(
     # Absolute paths: Dask workers may run elsewhere (with the session at the same path).
     videos = tuple(p.resolve() for p in session.video_paths)
 
-    def call(span: tuple[int, int]) -> Any:
-        # The model is a positional argument of its own: loky memory-maps its arrays and
-        # Dask scatters it once (joblib's dask backend scatters arguments, not closures).
-        return delayed(process_range)(
-            model, videos, names, span[0], span[1], images=images, frame_fn=frame_fn
-        )
-
     writer: Writers | None = None
     done = 0
-    finished = False
     try:
-        with _sigterm_as_interrupt(), _backend(backend, scheduler, n_jobs, model) as n_workers:
+        with _sigterm_as_interrupt(), _backend(backend, scheduler, n_jobs, model) as (n_workers, shared):
+
+            def call(span: tuple[int, int]) -> Any:
+                # The model is a positional argument of its own: the local workers map
+                # its arrays, Dask scatters it once (joblib's dask backend scatters
+                # arguments, not closures).
+                return delayed(process_range)(
+                    shared, videos, names, span[0], span[1], images=images, frame_fn=frame_fn
+                )
+
             ranges = frame_ranges(start, stop, n_workers)
             if backend == "loky":
                 wait_for_local_workers()
@@ -291,7 +303,6 @@ def process_session(
                     done += len(outputs)
                     bar.update(len(outputs))
         writer.finish()
-        finished = True
     except KeyboardInterrupt:
         if writer is not None:
             writer.abort()
@@ -311,8 +322,7 @@ def process_session(
         raise
     finally:
         if backend == "loky":
-            # A run cut short kills its workers: they would finish their ranges first.
-            release_local_workers(kill=not finished)
+            release_local_workers()
     wall = time.perf_counter() - t0
     return writer.summary(wall)
 

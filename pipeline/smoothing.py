@@ -4,7 +4,8 @@ Each centreline point (same index = same arc-length fraction along the curve) is
 smoothed over time by a cubic smoothing spline (``scipy.interpolate.
 make_smoothing_spline``) through the session's good frames, on their real
 timestamps. Its one parameter, the smoothing weight, is chosen from the data by
-cross-validation over the whole session: slow, noisy motion gets a stiff spline,
+cross-validation over the whole session (whose splines are solved in Reinsch's
+form, :func:`_spline_predictions`): slow, noisy motion gets a stiff spline,
 fast motion a supple one, and noise-free motion is left alone. One weight serves
 the whole session: a recording that alternates very slow and very fast motion
 gets a compromise between the two.
@@ -54,6 +55,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import make_smoothing_spline
+from scipy.linalg import solveh_banded
 
 FloatArray = NDArray[np.float64]
 
@@ -217,16 +219,56 @@ def _cv_errors(x: FloatArray, y: FloatArray, lambdas: FloatArray) -> FloatArray:
     _CV_GAP away, never extrapolating.
     """
     classes = np.arange(len(x)) % _CV_PERIOD
-    errors: list[list[FloatArray]] = [[] for _ in lambdas]
+    errors: list[FloatArray] = []
     for held_out in range(0, _CV_PERIOD, 2):
         distance = np.abs(classes - held_out)
         distance = np.minimum(distance, _CV_PERIOD - distance)
         fit, test = distance >= _CV_GAP, distance == 0
         test &= (x > x[fit][0]) & (x < x[fit][-1])
-        for row, lam in zip(errors, lambdas, strict=True):
-            spline = make_smoothing_spline(x[fit], y[fit], lam=float(lam))
-            row.append(np.sum((spline(x[test]) - y[test]) ** 2, axis=1))
-    return np.array([np.concatenate(row) for row in errors])
+        predicted = _spline_predictions(x[fit], y[fit], x[test], lambdas)
+        errors.append(np.sum((predicted - y[test]) ** 2, axis=2))
+    return np.concatenate(errors, axis=1)
+
+
+def _spline_predictions(x: FloatArray, y: FloatArray, x_new: FloatArray, lambdas: FloatArray) -> FloatArray:
+    """(L, T, M) values at ``x_new`` of the cubic smoothing splines through ``(x, y)``, one per weight.
+
+    x : (K,) increasing, K >= 3; y : (K, M); x_new : (T,) within [x[0], x[-1]].
+    Each spline minimises ``sum((y - f(x))**2) + lam * integral(f''**2)``, as
+    ``make_smoothing_spline(x, y, lam=lam)`` does (same curves, to rounding), but in
+    Reinsch's form (Green & Silverman 1994, ch. 2): the values g and second
+    derivatives gamma of the natural spline at the knots solve the banded system
+    ``(R + lam Q'Q) gamma = Q'y``, ``g = y - lam Q gamma``. Everything but that
+    solve is built once for all weights. The cross-validation fits ~70 splines per
+    session and SciPy rebuilds its matrices for each; this way the smoothing of the
+    900-frame demo, serial at the end of a run, takes 0.14 s instead of 0.25 s.
+    """
+    h = np.diff(x)
+    inv_h = 1.0 / h
+    # Q (K, K-2) second differences: column j is 1/h_j, -1/h_j - 1/h_j+1, 1/h_j+1 in rows j..j+2.
+    q = np.stack([inv_h[:-1], -(inv_h[:-1] + inv_h[1:]), inv_h[1:]])
+    qty = q[0, :, None] * y[:-2] + q[1, :, None] * y[1:-1] + q[2, :, None] * y[2:]
+    qtq = ((q**2).sum(axis=0), q[1, :-1] * q[0, 1:] + q[2, :-1] * q[1, 1:], q[2, :-2] * q[0, 2:])
+    r_diagonal, r_off = (h[:-1] + h[1:]) / 3.0, h[1:-1] / 6.0  # R, tridiagonal
+    # Each new point in its knot interval [x_i, x_i+1], and the cubic's weights there
+    # on g_i, g_i+1, gamma_i, gamma_i+1.
+    i = np.clip(np.searchsorted(x, x_new, side="right") - 1, 0, len(x) - 2)
+    a, b, hi = (x_new - x[i])[:, None], (x[i + 1] - x_new)[:, None], h[i][:, None]
+    w_g0, w_g1 = b / hi, a / hi
+    w_gamma0, w_gamma1 = -a * b / 6.0 * (1.0 + w_g0), -a * b / 6.0 * (1.0 + w_g1)
+
+    out = np.empty((len(lambdas), len(x_new), y.shape[1]))
+    band = np.zeros((3, len(x) - 2))  # upper banded form for solveh_banded
+    gamma = np.zeros_like(y)  # a natural spline's ends have gamma = 0
+    slopes = np.zeros((len(x) + 1, y.shape[1]))  # (gamma_j+1 - gamma_j) / h_j, 0-padded
+    for values, lam in zip(out, lambdas, strict=True):
+        band[2], band[1, 1:], band[0, 2:] = r_diagonal + lam * qtq[0], r_off + lam * qtq[1], lam * qtq[2]
+        gamma[1:-1] = solveh_banded(band, qty, check_finite=False)
+        slopes[1:-1] = np.diff(gamma, axis=0) * inv_h[:, None]
+        g0 = y[i] - lam * (slopes[i + 1] - slopes[i])  # (Q gamma)_j = slopes_j+1 - slopes_j
+        g1 = y[i + 1] - lam * (slopes[i + 2] - slopes[i + 1])
+        values[:] = w_g0 * g0 + w_g1 * g1 + w_gamma0 * gamma[i] + w_gamma1 * gamma[i + 1]
+    return out
 
 
 def _surrounded(active: NDArray[np.bool_], half_window: int, count: int) -> NDArray[np.bool_]:

@@ -7,9 +7,10 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 from numpy.typing import NDArray
+from scipy.interpolate import make_smoothing_spline
 
 from pipeline.evaluate import tip_jitter
-from pipeline.smoothing import smooth_centerlines
+from pipeline.smoothing import _spline_predictions, smooth_centerlines
 
 FPS = 30.0
 LENGTH_MM = 100.0
@@ -114,6 +115,20 @@ def test_polynomial_motion_is_kept_exactly_with_uneven_timestamps() -> None:
     # Noise-free: cross-validation picks the most supple spline (weight 1e-6 in frame
     # steps), which misses a degree-6 motion of ~10 mm by ~1e-7 mm.
     np.testing.assert_allclose(smoothed, curves, atol=1e-5)
+
+
+@pytest.mark.parametrize("lam", [1e-6, 1e-2, 1.0, 1e2, 1e4])
+def test_cross_validation_splines_are_scipys_smoothing_splines(lam: float) -> None:
+    # The cross-validation solves its splines in Reinsch's form; they must be the
+    # curves make_smoothing_spline fits (uneven knots, several series, new points
+    # anywhere inside, on a knot included).
+    rng = np.random.default_rng(7)
+    x = np.cumsum(rng.uniform(0.5, 2.0, 40))
+    y = np.cumsum(rng.normal(0.0, 1.0, (40, 5)), axis=0)
+    x_new = np.concatenate([rng.uniform(x[0], x[-1], 30), x[[0, 7, -1]]])
+    expected = make_smoothing_spline(x, y, lam=lam)(x_new)
+    (got,) = _spline_predictions(x, y, x_new, np.array([lam]))
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-8 * np.abs(y).max())
 
 
 def test_failed_frames_stay_nan_and_do_not_poison_neighbours() -> None:

@@ -8,6 +8,7 @@ import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import psutil
 import pytest
 from joblib import Parallel, delayed
@@ -30,7 +31,7 @@ def _loky_workers() -> list[psutil.Process]:
 @pytest.fixture(autouse=True)
 def _no_workers_left() -> Iterator[None]:
     yield
-    workers.release_local_workers(kill=True)
+    workers.release_local_workers()
 
 
 @pytest.mark.parametrize(("jobs", "expected"), [(1, 1), (3, 3), (0, 1), (-1, os.cpu_count() or 1)])
@@ -48,7 +49,7 @@ def test_the_run_reuses_the_workers_started_ahead() -> None:
 
 
 def test_one_worker_starts_no_process() -> None:
-    workers.release_local_workers(kill=True)
+    workers.release_local_workers()
     psutil.wait_procs(_loky_workers(), timeout=10)
     workers.start_local_workers(1)
     workers.wait_for_local_workers()
@@ -68,3 +69,21 @@ def test_workers_started_for_a_session_that_does_not_load_are_killed(
     assert not [str(w.message) for w in caught]
     _, alive = psutil.wait_procs(_loky_workers(), timeout=10)
     assert not alive
+
+
+def _backing_file(array: np.ndarray) -> str | None:
+    return getattr(array, "filename", None)
+
+
+def test_a_shared_model_is_mapped_by_the_workers_from_one_file_removed_afterwards() -> None:
+    model = {"voxels": np.arange(1_000_000, dtype=np.int32), "name": "demo"}
+    with workers.shared_with_local_workers(model) as shared:
+        assert shared["name"] == "demo"
+        np.testing.assert_array_equal(shared["voxels"], model["voxels"])
+        path = Path(_backing_file(shared["voxels"]) or "")
+        assert path.is_file()
+        # Passed by reference: the workers map this very file, not a copy of their own.
+        seen = Parallel(n_jobs=2, backend="loky")(delayed(_backing_file)(shared["voxels"]) for _ in range(4))
+        assert {Path(f or "") for f in seen} == {path}
+    workers.release_local_workers()
+    assert not path.exists()

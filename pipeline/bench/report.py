@@ -53,7 +53,7 @@ class EndToEndRun:
     exit_code : its exit status (0 all frames ok or empty).
     peak_rss_mb : peak of the summed RSS of the process tree (psutil sampling), MiB.
     cpu_s : user + sys CPU time of the process tree, seconds.
-    walls_s : wall times of every repeat of this run, seconds; the run reported
+    walls_s : wall times of every repeat of this run, in the order run, seconds; the run reported
         (``wall_s`` and the rest) is the median one.
     """
 

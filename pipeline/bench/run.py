@@ -111,22 +111,24 @@ def run_bench(
         report.decode_floor_s = decode_floor(session.video_paths, frames=n)
         report.decode_frames = n
 
-        def timed(directory: Path, jobs: int, voxel_mm: float, label: str) -> EndToEndRun:
-            runs = [
-                run_process(directory, tmp / "out", jobs=jobs, frames=n, voxel_mm=voxel_mm, label=label)
-                for _ in range(repeats)
-            ]
-            runs.sort(key=lambda r: r.wall_s)
-            median = runs[len(runs) // 2]
-            peak = max(r.peak_rss_mb for r in runs)
-            return replace(median, peak_rss_mb=peak, walls_s=tuple(r.wall_s for r in runs))
-
-        for jobs in (1, 2):
-            label = f"{session.settings.workspace.voxel_mm:g} mm, {jobs} worker{'s' * (jobs > 1)}"
-            report.end_to_end.append(timed(demo_dir, jobs, 2.0, label))
+        voxel = f"{session.settings.workspace.voxel_mm:g} mm"
+        configs = [(demo_dir, jobs, 2.0, f"{voxel}, {jobs} worker{'s' * (jobs > 1)}") for jobs in (1, 2)]
         if fine_end_to_end:
             fine = voxel_session(demo_dir, tmp / "demo_1mm", voxel_mm=1.0)
-            report.end_to_end.append(timed(fine, 2, 1.0, "1 mm, 2 workers"))
+            configs.append((fine, 2, 1.0, "1 mm, 2 workers"))
+        # Round after round of every configuration, not all runs of one then the next:
+        # a shared machine's speed drifts by ~10 % over minutes, and the 2/1-worker
+        # ratio compares runs that should see the same machine.
+        runs: list[list[EndToEndRun]] = [[] for _ in configs]
+        for _ in range(repeats):
+            for (directory, jobs, voxel_mm, label), done in zip(configs, runs, strict=True):
+                done.append(
+                    run_process(directory, tmp / "out", jobs=jobs, frames=n, voxel_mm=voxel_mm, label=label)
+                )
+        for done in runs:
+            median = sorted(done, key=lambda r: r.wall_s)[len(done) // 2]
+            peak = max(r.peak_rss_mb for r in done)
+            report.end_to_end.append(replace(median, peak_rss_mb=peak, walls_s=tuple(r.wall_s for r in done)))
 
         log.info("timing the per-frame stages on %d frames", min(stage_frames, n))
         stages = time_stages(session, tmp / "stages", frames=min(stage_frames, n))
