@@ -25,8 +25,11 @@ from typing import TypeVar
 
 T = TypeVar("T")
 
-# Where the shared model's file goes when the machine has it: memory, not disk.
+# Where the shared model's file goes, as joblib would put its own copy: in memory when
+# the machine has a shared-memory folder with room to spare (containers often mount a
+# small one), else in the temporary folder; JOBLIB_TEMP_FOLDER overrides both.
 _SHARED_MEMORY_DIR = Path("/dev/shm")
+_SHARED_MEMORY_MIN_FREE_BYTES = 2_000_000_000
 
 # The warm-up tasks of the workers started ahead of the run, and how many workers.
 _warm_up: Iterator[None] | None = None
@@ -105,11 +108,22 @@ def shared_with_local_workers(obj: T) -> Iterator[T]:
     """
     import joblib
 
-    where = _SHARED_MEMORY_DIR if os.access(_SHARED_MEMORY_DIR, os.W_OK) else None
-    with tempfile.TemporaryDirectory(prefix="pipeline-model-", dir=where) as tmp:
+    with tempfile.TemporaryDirectory(prefix="pipeline-model-", dir=_shared_folder()) as tmp:
         path = Path(tmp) / "model.joblib"
         joblib.dump(obj, path)
         yield joblib.load(path, mmap_mode="r")
+
+
+def _shared_folder() -> str | None:
+    """The folder for the shared model (None: the system's temporary folder)."""
+    if "JOBLIB_TEMP_FOLDER" in os.environ:
+        return os.environ["JOBLIB_TEMP_FOLDER"]
+    try:
+        stats = os.statvfs(_SHARED_MEMORY_DIR)
+    except (OSError, AttributeError):  # no such folder, or not a POSIX system
+        return None
+    roomy = stats.f_bsize * stats.f_bavail > _SHARED_MEMORY_MIN_FREE_BYTES
+    return str(_SHARED_MEMORY_DIR) if roomy and os.access(_SHARED_MEMORY_DIR, os.W_OK) else None
 
 
 @contextlib.contextmanager

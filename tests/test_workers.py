@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import tempfile
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -87,3 +88,18 @@ def test_a_shared_model_is_mapped_by_the_workers_from_one_file_removed_afterward
         assert {Path(f or "") for f in seen} == {path}
     workers.release_local_workers()
     assert not path.exists()
+
+
+def test_the_shared_model_goes_where_joblib_would_put_its_own(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    model = {"voxels": np.zeros(10, np.int32)}
+    monkeypatch.setenv("JOBLIB_TEMP_FOLDER", str(tmp_path))
+    with workers.shared_with_local_workers(model) as shared:
+        assert Path(_backing_file(shared["voxels"]) or "").parent.parent == tmp_path
+    # No shared-memory folder (or one without room): the system's temporary folder.
+    monkeypatch.delenv("JOBLIB_TEMP_FOLDER")
+    monkeypatch.setattr(workers, "_SHARED_MEMORY_DIR", tmp_path / "no-such-folder")
+    with workers.shared_with_local_workers(model) as shared:
+        folder = Path(_backing_file(shared["voxels"]) or "").parent.parent
+        assert folder == Path(tempfile.gettempdir())

@@ -74,7 +74,7 @@ def run_bench(
     original_frames: int = 10,
     scaling_frames: int = 20,
     fine_end_to_end: bool = True,
-    repeats: int = 3,
+    repeats: int = 5,
     work_dir: Path | None = None,
 ) -> BenchReport:
     """Measure everything ``make bench`` reports on the session in ``demo_dir``.
