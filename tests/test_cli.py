@@ -15,6 +15,7 @@ from pipeline import cli
 from pipeline.cli import EXIT_BAD_INPUT, EXIT_INTERNAL_ERROR, main
 from pipeline.errors import CalibrationError
 from pipeline.recording import load_recording
+from pipeline.synth.session_render import MIN_PARALLEL_FRAMES
 
 
 @pytest.mark.parametrize(
@@ -99,3 +100,14 @@ def test_a_run_from_the_command_line_exits_0_with_its_summary_on_stdout(
         proc.stdout
     )
     assert load_recording(out / "session.mcap").complete
+
+
+def test_a_command_that_leaves_a_worker_pool_running_still_exits(tmp_path: Path) -> None:
+    # `synth` renders longer sessions on a joblib pool it never shuts down itself; the fast
+    # exit must still stop the pool's manager thread (it once waited forever on it, so
+    # `make process` on a fresh clone never got past rendering the demo).
+    frames = str(MIN_PARALLEL_FRAMES)
+    command = [sys.executable, "-m", "pipeline", "synth", str(tmp_path / "s"), "--frames", frames]
+    proc = subprocess.run(command, capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "s" / "calibration.toml").is_file()
