@@ -193,6 +193,24 @@ def _convert(source: str, section: str, key: str, value: Any) -> Any:
     return value
 
 
+def _check_base_in_workspace(s: Settings, source: str) -> None:
+    """The base must lie in the carving box (to within two voxels or the tube's radius, as a
+    base on the box's floor may): the centreline starts from the hull around it, and a
+    base outside leaves every frame without one, for a reason no frame could name."""
+    base, ws = s.manipulator.base_mm, s.workspace
+    if base is None:  # "auto": found from the data
+        return
+    slack = max(2.0 * ws.voxel_mm, s.manipulator.radius_mm or 0.0)
+    lo = [o - slack for o in ws.origin_mm]
+    hi = [o + n + slack for o, n in zip(ws.origin_mm, ws.size_mm, strict=True)]
+    if not all(a <= b <= c for a, b, c in zip(lo, base, hi, strict=True)):
+        box = " x ".join(f"{o:g}..{o + n:g}" for o, n in zip(ws.origin_mm, ws.size_mm, strict=True))
+        raise SettingsError(
+            f"{source}: [manipulator] base_mm {_short(list(base))} is outside the workspace box "
+            f"({box} mm); move base_mm or [workspace] origin_mm/size_mm so that the box holds the base"
+        )
+
+
 def _validate(s: Settings, source: str) -> None:
     ws = s.workspace
     if ws.voxel_mm <= 0:
@@ -224,6 +242,7 @@ def _validate(s: Settings, source: str) -> None:
     r = s.manipulator.radius_mm
     if r is not None and r <= 0:
         raise SettingsError(f"{source}: [manipulator] radius_mm must be > 0, got {r}")
+    _check_base_in_workspace(s, source)
     if s.centerline.method not in CURVE_METHODS:
         raise SettingsError(
             f"{source}: [centerline] method {s.centerline.method!r} unknown; use one of {CURVE_METHODS}"

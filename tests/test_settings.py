@@ -61,6 +61,13 @@ def test_a_fine_grid_under_the_limit_is_accepted() -> None:
     assert s.workspace.estimated_bytes(3) < MAX_GRID_BYTES
 
 
+@pytest.mark.parametrize("base_mm", [[128, 128, 0], [0, 256, 100], [128, 128, -6]])
+def test_a_base_in_the_box_or_just_below_its_floor_is_accepted(base_mm: list[float]) -> None:
+    # The default tube radius (6 mm) is the slack: a mount just under the box's floor.
+    doc = {"manipulator": {"base_mm": base_mm, "radius_mm": 6.0}}
+    assert settings_from_dict(doc).manipulator.base_mm == tuple(base_mm)
+
+
 @pytest.mark.parametrize(
     ("doc", "needles"),
     [
@@ -81,6 +88,8 @@ def test_a_fine_grid_under_the_limit_is_accepted() -> None:
         ({"silhouette": {"min_area_px": -1}}, ("min_area_px", ">= 0")),
         ({"manipulator": {"radius_mm": 0}}, ("radius_mm", "> 0")),
         ({"manipulator": {"base_mm": "middle"}}, ("base_mm", "list of 3 numbers")),
+        ({"manipulator": {"base_mm": [128, 128, -50]}}, ("base_mm [128.0, 128.0, -50.0]", "0..256 x")),
+        ({"workspace": {"origin_mm": [0, 0, 40]}}, ("base_mm", "outside the workspace box", "40..296")),
         ({"centerline": {"method": "spline"}}, ("'spline'", "fit", "polyfit")),
         ({"centerline": {"points": 3}}, ("points", "4-10000")),
         ({"session": {"start_time": "yesterday"}}, ("start_time", "RFC 3339")),
