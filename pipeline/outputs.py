@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from .errors import OutputError
 from .frame_task import FrameOutput
+from .quality import DOUBTFUL_IOU, is_doubtful
 from .session import Session
 from .smoothing import smooth_centerlines
 
@@ -35,6 +36,8 @@ class RunSummary:
 
     frames_failed : (frame index, reason) for every failed frame, in order.
     outputs : (path, size in bytes) of each file written.
+    frames_doubtful : indices of "ok" frames whose tube re-projects poorly onto some
+        camera's silhouette (``quality.is_doubtful``), in order.
     exit_code : 0 when every frame is ok or empty, 1 when some failed.
     """
 
@@ -44,6 +47,7 @@ class RunSummary:
     wall_s: float
     fps: float
     outputs: list[tuple[Path, int]] = field(default_factory=list)
+    frames_doubtful: list[int] = field(default_factory=list)
 
     @property
     def exit_code(self) -> int:
@@ -57,9 +61,26 @@ class RunSummary:
             f"{len(self.frames_failed)} failed",
         ]
         out += [f"  failed {span}: {reason}" for span, reason in compress_failures(self.frames_failed)]
+        if self.frames_doubtful:
+            spans = [span for span, _ in compress_failures([(i, "") for i in self.frames_doubtful])]
+            shown = ", ".join(spans[:_SPANS_SHOWN]) + (", ..." if len(spans) > _SPANS_SHOWN else "")
+            out.append(
+                f"  doubtful: {len(self.frames_doubtful)} of the ok frames ({shown}) re-project poorly "
+                f"onto a camera's silhouette (IoU < {DOUBTFUL_IOU:g}): check [silhouette] method, "
+                "threshold and polarity in session.toml, and that the workspace holds the whole tube"
+            )
+        if total and self.frames_empty == total:
+            out.append(
+                "  no tube in any frame: check [silhouette] polarity (dark or bright tube) and "
+                "threshold in session.toml"
+            )
         out.append(f"time: {self.wall_s:.1f} s wall, {self.fps:.1f} frames/s")
         out += [f"wrote {path} ({_human_size(size)})" for path, size in self.outputs]
         return out
+
+
+# Frame spans listed in the summary's "doubtful" line before it says "...".
+_SPANS_SHOWN = 6
 
 
 def compress_failures(failed: Sequence[tuple[int, str]]) -> list[tuple[str, str]]:
@@ -169,6 +190,7 @@ class Writers:
         self.curves: list[NDArray[np.float64] | None] = []
         self.counts = {"ok": 0, "empty": 0}
         self.failed: list[tuple[int, str]] = []
+        self.doubtful: list[int] = []
         try:
             self._mcap_file = _open_partial(mcap_path)
             meta = {
@@ -204,6 +226,8 @@ class Writers:
             self.failed.append((result.index, result.reason))
         else:
             self.counts[result.status] = self.counts.get(result.status, 0) + 1
+        if result.status == "ok" and is_doubtful(result.iou):
+            self.doubtful.append(result.index)
 
     def _smoothed(self) -> NDArray[np.float64] | None:
         lengths = {len(c) for c in self.curves if c is not None}
@@ -258,4 +282,5 @@ class Writers:
             wall_s=wall_s,
             fps=n / wall_s if wall_s > 0 else 0.0,
             outputs=[(p, p.stat().st_size) for p in (self.mcap_path, self.rrd_path)],
+            frames_doubtful=list(self.doubtful),
         )

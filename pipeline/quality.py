@@ -20,11 +20,23 @@ from .polyline import resample_polyline, vector_norms
 
 FloatArray = NDArray[np.float64]
 
+# Below this IoU in some camera a frame's curve is doubtful. Measured on 27 synthetic
+# sessions (every shape, both rigs, tube radii 4-9 mm, 2-4 cameras, 320-640 px wide) and
+# their re-encodings: the worst camera of a good frame scores >= 0.78; frames tens of mm
+# off (a threshold on the wrong side of the tube's grey level, Otsu splitting the
+# background, 160x120 images) score 0.003-0.38, a few up to 0.69.
+DOUBTFUL_IOU = 0.7
+
 # cv2 drawing takes fixed-point coordinates with this many fractional bits.
 _SHIFT = 4
 # Spacing of the discs that make up the drawn tube, as a fraction of the radius:
 # discs closer than r/2 leave no visible scallops between them.
 _DISC_SPACING = 0.5
+
+
+def is_doubtful(iou: Sequence[float]) -> bool:
+    """Whether a frame's per-camera IoUs say its curve is not to be trusted (DOUBTFUL_IOU)."""
+    return bool(iou) and min(iou) < DOUBTFUL_IOU
 
 
 def tube_mask(

@@ -8,6 +8,7 @@ repairs.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import io
 import itertools
@@ -352,3 +353,33 @@ def test_end_to_end_mcap_converts_to_a_valid_rrd_with_points(
         and "Points3D:positions" in chunk.to_record_batch().schema.names
     )
     assert rows == E2E_FRAMES  # one point cloud per frame, as Points3D
+
+
+def test_the_summary_names_doubtful_frames_and_a_run_without_any_tube() -> None:
+    doubtful = runner.RunSummary(
+        frames_ok=20, frames_empty=0, frames_failed=[], wall_s=1.0, fps=20.0, frames_doubtful=[2, 3, 4, 9]
+    )
+    (line,) = [line for line in doubtful.lines() if "doubtful" in line]
+    assert "4 of the ok frames (2-4, 9)" in line and "[silhouette] method, threshold and polarity" in line
+    assert doubtful.exit_code == 0  # a hint, not a failure: the curves are still recorded
+    empty = runner.RunSummary(frames_ok=0, frames_empty=5, frames_failed=[], wall_s=1.0, fps=5.0)
+    assert any("no tube in any frame" in line and "polarity" in line for line in empty.lines())
+    assert not any("doubtful" in line or "no tube" in line for line in doubtful.lines()[:1])
+
+
+def poorly_fitting_rod(index: int, images: Sequence[Any], model: Any) -> tuple[FrameResult, list[np.ndarray]]:
+    """fixed_rod, whose tube misses the silhouettes of camera 1 on odd frames."""
+    result, masks = fixed_rod(index, images, model)
+    return dataclasses.replace(result, iou=(0.95, 0.2 if index % 2 else 0.9, 0.93)), masks
+
+
+def test_a_run_counts_the_frames_whose_tube_misses_a_silhouette(short_session: Path, tmp_path: Path) -> None:
+    summary = runner.process_session(
+        load_session(short_session),
+        out_dir=tmp_path,
+        jobs=1,
+        frames=(2, 8),
+        progress=False,
+        frame_fn=poorly_fitting_rod,
+    )
+    assert summary.frames_doubtful == [3, 5, 7] and summary.frames_ok == 6
