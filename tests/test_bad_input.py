@@ -247,8 +247,10 @@ def test_grid_too_large_says_how_much_memory(session: Path, capsys: pytest.Captu
 
 
 def test_workspace_not_seen_by_a_camera(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    # A box 3 m to the side of the rig: every camera looks elsewhere.
-    (session / "session.toml").write_text("[workspace]\norigin_mm = [3000.0, 0.0, 0.0]\n")
+    # A box 3 m to the side of the rig, its base with it: every camera looks elsewhere.
+    (session / "session.toml").write_text(
+        "[workspace]\norigin_mm = [3000.0, 0.0, 0.0]\n[manipulator]\nbase_mm = [3128.0, 128.0, 0.0]\n"
+    )
     assert_rejected(session, capsys, "does not see the workspace", "camera 'cam", "session.toml")
 
 

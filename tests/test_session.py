@@ -118,8 +118,10 @@ def test_workspace_behind_a_camera_is_refused(session: Path) -> None:
         cam0.center_mm - 128.0
     )
     origin = ", ".join(f"{v:.1f}" for v in behind - 5.0)
+    base = ", ".join(f"{v:.1f}" for v in behind)  # the base goes with the box
     (session / "session.toml").write_text(
         f"[workspace]\norigin_mm = [{origin}]\nsize_mm = [10.0, 10.0, 10.0]\nvoxel_mm = 1.0\n"
+        f"[manipulator]\nbase_mm = [{base}]\n"
     )
     with pytest.raises(SessionError, match="camera 'cam0' does not see the workspace"):
         load_session(session)
