@@ -114,6 +114,10 @@ def _open_partial(path: Path) -> IO[bytes]:
 
 def prepare_outputs(out_dir: Path, name: str, force: bool) -> tuple[Path, Path]:
     """Check, before any work, that the outputs can be written; return their final paths."""
+    for folder in (out_dir, *out_dir.parents):
+        if folder.exists() and not folder.is_dir():
+            where = "" if folder == out_dir else f" (in {out_dir})"
+            raise OutputError(f"{folder}: is a file, not a directory{where}; give --out a directory")
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

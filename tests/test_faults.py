@@ -252,8 +252,10 @@ def test_output_path_under_a_file_is_an_error_before_any_work(tmp_path: Path) ->
     session = build_session(tmp_path / "take", frames=2)
     (tmp_path / "file").write_text("not a directory")
     # Tests run as root, so chmod cannot make a directory unwritable: a path under a file can't exist.
-    with pytest.raises(OutputError, match=r"file/out: cannot create the output directory"):
+    with pytest.raises(OutputError, match=r"file: is a file, not a directory \(in .*file/out\); give --out"):
         _run(session, tmp_path / "file" / "out")
+    with pytest.raises(OutputError, match=r"file: is a file, not a directory; give --out a directory"):
+        _run(session, tmp_path / "file")
 
 
 class _FullDisk:
