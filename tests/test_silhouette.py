@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from numpy.typing import NDArray
@@ -35,6 +36,25 @@ def test_methods_find_the_shapes_in_both_polarities(method: str, polarity: str) 
         threshold = 110
     settings = SilhouetteSettings(method=method, threshold=threshold, polarity=polarity)
     # Noise of 3 grey levels never crosses a level 70 away: the mask is exact.
+    np.testing.assert_array_equal(extract_silhouette(image, settings, morphology=False), truth)
+
+
+@pytest.mark.parametrize("polarity", ["dark", "bright"])
+def test_otsu_finds_a_thin_tube_on_a_textured_scene(polarity: str) -> None:
+    # A 6-pixel tube (0.6 % of the image, as in the synthetic views) on clouds spanning
+    # grey levels 110-220: one Otsu split falls inside the clouds and marks about half
+    # the image; the recursive split must find the tube, and only the tube.
+    rng = np.random.default_rng(3)
+    clouds = cv2.GaussianBlur(rng.normal(0.0, 1.0, (240, 320)), (0, 0), 12)
+    clouds = 110 + 110 * (clouds - clouds.min()) / np.ptp(clouds)
+    truth = np.zeros((240, 320), bool)
+    truth[60:140, 150:156] = True
+    image = np.clip(np.where(truth, 50 + rng.normal(0, 4, truth.shape), clouds), 0, 255).astype(np.uint8)
+    if polarity == "bright":
+        image = 255 - image
+    one_split, _ = cv2.threshold(image, 0, 1, cv2.THRESH_OTSU | cv2.THRESH_BINARY)
+    assert 0.2 < np.mean(image <= one_split) < 0.8  # the case that defeats plain Otsu
+    settings = SilhouetteSettings(method="otsu", polarity=polarity, min_area_px=0)
     np.testing.assert_array_equal(extract_silhouette(image, settings, morphology=False), truth)
 
 
