@@ -97,7 +97,27 @@ def probe_video(path: Path) -> VideoInfo:
             raise VideoError(f"{path}: has no frame rate; re-export it with a fixed fps")
     finally:
         cap.release()
+    count = _counted_frames(path) or count
     return VideoInfo(path=Path(path), width=width, height=height, fps=fps, frame_count=max(count, 1))
+
+
+def _counted_frames(path: Path) -> int | None:
+    """The first video stream's packets, demuxed without decoding, where the container
+    keeps no frame count (Matroska, WebM); None where it keeps one (MP4, AVI), or where
+    the file cannot be demuxed to its end (OpenCV's count stands).
+
+    OpenCV estimates a count the container does not keep as its duration x fps, and a
+    Matroska duration runs from time 0: a stream that starts 2 s in was counted 60 frames
+    too long, and those frames "failed" as cut short.
+    """
+    try:
+        with av.open(str(path)) as container:
+            stream = container.streams.video[0]
+            if stream.frames > 0:
+                return None
+            return sum(1 for packet in container.demux(stream) if packet.size > 0)
+    except (av.error.FFmpegError, OSError, IndexError):
+        return None
 
 
 def read_frames(path: Path, start: int, stop: int) -> Iterator[tuple[int, NDArray[np.uint8] | None]]:

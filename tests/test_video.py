@@ -254,3 +254,20 @@ def test_ffmpeg_messages_are_quiet_until_debug_asks(monkeypatch: pytest.MonkeyPa
         assert av.logging.get_level() == av.logging.WARNING
     finally:
         av.logging.set_level(None)
+
+
+def test_a_matroska_stream_that_starts_late_counts_its_own_frames(tmp_path: Path) -> None:
+    # Matroska keeps no frame count, and its duration runs from time 0: OpenCV's
+    # estimate (duration x fps) counted the 2 s before the first frame as 60 more.
+    path = tmp_path / "late.mkv"
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("mpeg4", rate=30)
+        stream.width, stream.height, stream.pix_fmt = 96, 64, "yuv420p"
+        for i, image in enumerate(_moving_texture()):
+            frame = av.VideoFrame.from_ndarray(np.dstack([image] * 3), format="bgr24")
+            frame.pts = 60 + i  # time base 1/30 s: the first frame at 2 s
+            container.mux(stream.encode(frame))
+        container.mux(stream.encode(None))
+    assert video.probe_video(path).frame_count == N_FRAMES
+    frames = [image for _, image in read_frames(path, 0, N_FRAMES)]
+    assert len(frames) == N_FRAMES and all(image is not None for image in frames)
