@@ -17,6 +17,7 @@ import dataclasses
 import json
 import logging
 import math
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -270,6 +271,12 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
     if not file.is_file():
         where = f"{path} holds no ground_truth.npz" if path.is_dir() else f"{path} does not exist"
         raise EvaluationError(f"ground truth: {where}; give a ground_truth.npz or the session directory")
+    with open(file, "rb") as head:
+        if head.read(4) != b"PK\x03\x04":  # every .npz is a zip archive
+            raise EvaluationError(
+                f"{file}: is not a ground_truth.npz (a NumPy .npz archive); give the one "
+                "`pipeline synth` wrote, or the session directory that holds it"
+            )
     try:
         with np.load(file) as data:
             if "centerlines" not in data:
@@ -280,7 +287,7 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
                 if "timestamps_s" in data
                 else None
             )
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # cut short or damaged
         raise EvaluationError(f"{file}: not a readable .npz file ({exc})") from None
     if centerlines.ndim != 3 or centerlines.shape[2] != 3:
         raise EvaluationError(f"{file}: 'centerlines' has shape {centerlines.shape}, expected (F, M, 3)")

@@ -139,10 +139,12 @@ def _read(stream: Any, path: Path) -> Recording:
                     smoothed[record.log_time] = _curve_from_update(message)
     except _TRUNCATION_ERRORS as exc:
         if not metrics and not metadata:
-            raise RecordingError(f"{path}: not a readable MCAP recording ({exc})") from None
-        log.warning(
-            "%s: truncated or damaged after frame %d; read what precedes it", path, max(metrics, default=-1)
-        )
+            why = " ".join(str(exc).split()) or type(exc).__name__
+            raise RecordingError(f"{path}: not a readable MCAP recording ({why})") from None
+        if metrics:
+            log.warning("%s: truncated or damaged after frame %d; read what precedes it", path, max(metrics))
+        else:
+            log.warning("%s: truncated or damaged before its first frame", path)
     if not complete:
         log.warning("%s: no footer (the run did not finish); %d frames read", path, len(metrics))
     return _assemble(path, metadata, metrics, points, curves, smoothed, complete)

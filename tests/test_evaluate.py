@@ -191,8 +191,11 @@ def test_missing_inputs_are_user_errors(tmp_path: Path) -> None:
     with pytest.raises(EvaluationError, match="does not exist"):
         load_ground_truth(tmp_path / "nope.npz")
     (tmp_path / "bad.npz").write_text("not a zip")
-    with pytest.raises(EvaluationError, match=r"not a readable \.npz"):
+    with pytest.raises(EvaluationError, match=r"bad\.npz: is not a ground_truth\.npz \(a NumPy \.npz"):
         load_ground_truth(tmp_path / "bad.npz")
+    (tmp_path / "cut.npz").write_bytes(b"PK\x03\x04 and then nothing")
+    with pytest.raises(EvaluationError, match=r"cut\.npz: not a readable \.npz"):
+        load_ground_truth(tmp_path / "cut.npz")
     np.savez(tmp_path / "other.npz", x=np.zeros(3))
     with pytest.raises(EvaluationError, match="no 'centerlines' array"):
         load_ground_truth(tmp_path / "other.npz")
