@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from .errors import OutputError
 from .frame_task import FrameOutput
-from .quality import DOUBTFUL_IOU, is_doubtful
+from .quality import DOUBTFUL_IOU, is_doubtful, reaches_walls
 from .session import Session
 from .smoothing import smooth_centerlines
 
@@ -38,6 +38,8 @@ class RunSummary:
     outputs : (path, size in bytes) of each file written.
     frames_doubtful : indices of "ok" frames whose tube re-projects poorly onto some
         camera's silhouette (``quality.is_doubtful``), in order.
+    frames_at_walls : indices of "ok" frames whose hull lies against a wall of the
+        workspace box other than the base's (``quality.reaches_walls``), in order.
     exit_code : 0 when every frame is ok or empty, 1 when some failed.
     """
 
@@ -48,6 +50,7 @@ class RunSummary:
     fps: float
     outputs: list[tuple[Path, int]] = field(default_factory=list)
     frames_doubtful: list[int] = field(default_factory=list)
+    frames_at_walls: list[int] = field(default_factory=list)
 
     @property
     def exit_code(self) -> int:
@@ -62,12 +65,17 @@ class RunSummary:
         ]
         out += [f"  failed {span}: {reason}" for span, reason in compress_failures(self.frames_failed)]
         if self.frames_doubtful:
-            spans = [span for span, _ in compress_failures([(i, "") for i in self.frames_doubtful])]
-            shown = ", ".join(spans[:_SPANS_SHOWN]) + (", ..." if len(spans) > _SPANS_SHOWN else "")
             out.append(
-                f"  doubtful: {len(self.frames_doubtful)} of the ok frames ({shown}) re-project poorly "
-                f"onto a camera's silhouette (IoU < {DOUBTFUL_IOU:g}): check [silhouette] method, "
-                "threshold and polarity in session.toml, and that the workspace holds the whole tube"
+                f"  doubtful: {len(self.frames_doubtful)} of the ok frames ({_spans(self.frames_doubtful)}) "
+                f"re-project poorly onto a camera's silhouette (IoU < {DOUBTFUL_IOU:g}): check "
+                "[silhouette] method, threshold and polarity in session.toml"
+            )
+        if self.frames_at_walls:
+            out.append(
+                f"  at the walls: in {len(self.frames_at_walls)} of the ok frames "
+                f"({_spans(self.frames_at_walls)}) the hull reaches a wall of the workspace box, "
+                "where the tube may go on out of sight and its curve end short: enlarge [workspace] "
+                "size_mm, or move origin_mm"
             )
         if total and self.frames_empty == total:
             out.append(
@@ -83,10 +91,18 @@ class RunSummary:
 _SPANS_SHOWN = 6
 
 
+def _spans(frames: Sequence[int]) -> str:
+    """ "2-4, 9, ..." for frames [2, 3, 4, 9, ...]: the first _SPANS_SHOWN spans."""
+    spans = [span for span, _ in compress_failures([(i, "") for i in frames])]
+    return ", ".join(spans[:_SPANS_SHOWN]) + (", ..." if len(spans) > _SPANS_SHOWN else "")
+
+
 def compress_failures(failed: Sequence[tuple[int, str]]) -> list[tuple[str, str]]:
-    """[(3, "x"), (4, "x"), (5, "x"), (9, "y")] -> [("3-5", "x"), ("9", "y")]."""
+    """[(3, "x"), (4, "x"), (5, "x"), (9, "y")] -> [("3-5", "x"), ("9", "y")]; a reason's
+    own "frame N: " prefix goes (the span names the frames), so that alike reasons merge."""
     spans: list[tuple[int, int, str]] = []
     for index, reason in sorted(failed):
+        reason = reason.removeprefix(f"frame {index}: ")
         if spans and spans[-1][1] == index - 1 and spans[-1][2] == reason:
             spans[-1] = (spans[-1][0], index, reason)
         else:
@@ -195,6 +211,7 @@ class Writers:
         self.counts = {"ok": 0, "empty": 0}
         self.failed: list[tuple[int, str]] = []
         self.doubtful: list[int] = []
+        self.at_walls: list[int] = []
         try:
             self._mcap_file = _open_partial(mcap_path)
             meta = {
@@ -232,6 +249,10 @@ class Writers:
             self.counts[result.status] = self.counts.get(result.status, 0) + 1
         if result.status == "ok" and is_doubtful(result.iou):
             self.doubtful.append(result.index)
+        curve = result.centerline_mm
+        if result.status == "ok" and curve is not None and len(curve):
+            if reaches_walls(result.points_mm, self.session.settings.workspace, curve[0]):
+                self.at_walls.append(result.index)
 
     def _smoothed(self) -> NDArray[np.float64] | None:
         lengths = {len(c) for c in self.curves if c is not None}
@@ -287,4 +308,5 @@ class Writers:
             fps=n / wall_s if wall_s > 0 else 0.0,
             outputs=[(p, p.stat().st_size) for p in (self.mcap_path, self.rrd_path)],
             frames_doubtful=list(self.doubtful),
+            frames_at_walls=list(self.at_walls),
         )

@@ -13,10 +13,11 @@ from collections.abc import Sequence
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .camera import Camera, project_in_views
 from .polyline import resample_polyline, vector_norms
+from .settings import Workspace
 
 FloatArray = NDArray[np.float64]
 
@@ -37,6 +38,27 @@ _DISC_SPACING = 0.5
 def is_doubtful(iou: Sequence[float]) -> bool:
     """Whether a frame's per-camera IoUs say its curve is not to be trusted (DOUBTFUL_IOU)."""
     return bool(iou) and min(iou) < DOUBTFUL_IOU
+
+
+def reaches_walls(points_mm: NDArray[np.floating], workspace: Workspace, base_mm: ArrayLike) -> bool:
+    """Whether occupied voxels lie against a wall of the carving box other than the base's.
+
+    points_mm : (P, 3) occupied voxel centres, world frame, mm.
+    base_mm : (3,) the curve's base; the wall nearest it is where the tube is mounted.
+
+    The box cuts off whatever leaves it: a hull against another wall says the tube may
+    go on beyond it, and its curve ends short there.
+    """
+    pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+    lo = np.asarray(workspace.origin_mm, dtype=np.float64)
+    hi = lo + np.asarray(workspace.size_mm, dtype=np.float64)
+    base = np.asarray(base_mm, dtype=np.float64)
+    # Walls as (axis, side): side 0 the low wall, 1 the high one; the base's is the nearest.
+    gaps = np.stack([base - lo, hi - base], axis=1)  # (3, 2)
+    base_wall = np.unravel_index(int(np.argmin(np.abs(gaps))), gaps.shape)
+    on_wall = np.stack([pts < lo + workspace.voxel_mm, pts > hi - workspace.voxel_mm], axis=2)  # (P, 3, 2)
+    on_wall[:, base_wall[0], base_wall[1]] = False
+    return bool(on_wall.any())
 
 
 def tube_mask(

@@ -193,14 +193,21 @@ def _convert(source: str, section: str, key: str, value: Any) -> Any:
     return value
 
 
+# How far outside the box the base may lie, in tube radii (the march from the base looks
+# for the hull within about that); the radius assumed when session.toml gives none.
+_BASE_SLACK_RADII = 3.0
+_TYPICAL_RADIUS_MM = 6.0
+
+
 def _check_base_in_workspace(s: Settings, source: str) -> None:
-    """The base must lie in the carving box (to within two voxels or the tube's radius, as a
-    base on the box's floor may): the centreline starts from the hull around it, and a
-    base outside leaves every frame without one, for a reason no frame could name."""
+    """The base must lie in the carving box, or near enough for the centreline to find the
+    hull from it: within three tube radii (a mount below a box that leaves the mount
+    hardware out works; 15 mm below did, 40 mm did not). A base farther out leaves every
+    frame without a curve, for a reason no frame could name."""
     base, ws = s.manipulator.base_mm, s.workspace
     if base is None:  # "auto": found from the data
         return
-    slack = max(2.0 * ws.voxel_mm, s.manipulator.radius_mm or 0.0)
+    slack = max(2.0 * ws.voxel_mm, _BASE_SLACK_RADII * (s.manipulator.radius_mm or _TYPICAL_RADIUS_MM))
     lo = [o - slack for o in ws.origin_mm]
     hi = [o + n + slack for o, n in zip(ws.origin_mm, ws.size_mm, strict=True)]
     if not all(a <= b <= c for a, b, c in zip(lo, base, hi, strict=True)):

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from conftest import rig_cameras
 
+from pipeline import quality
 from pipeline.quality import (
     misfit_fractions,
     reprojection_iou,
@@ -13,7 +14,7 @@ from pipeline.quality import (
     tube_mask,
     tube_masks,
 )
-from pipeline.settings import SilhouetteSettings
+from pipeline.settings import SilhouetteSettings, Workspace
 from pipeline.silhouette import extract_silhouette
 from pipeline.synth.images import THRESHOLD_DARK, render_frame
 from pipeline.synth.rig import make_rig
@@ -106,3 +107,17 @@ def test_masks_in_all_views_equal_the_per_view_ones() -> None:
     for axis in (curve, curve[: len(curve) // 4]):
         for batched, cam in zip(tube_masks(cams, axis, 5.0), cams, strict=True):
             np.testing.assert_array_equal(batched, tube_mask(cam, axis, 5.0))
+
+
+def test_a_hull_against_a_wall_other_than_the_bases_is_reported() -> None:
+    box = Workspace(origin_mm=(-50.0, 0.0, 10.0), size_mm=(100.0, 100.0, 100.0), voxel_mm=2.0)
+    base = np.array([0.0, 50.0, 10.0])  # on the floor
+    column = np.column_stack([np.zeros(40), np.full(40, 50.0), 11.0 + 2.0 * np.arange(40)])  # z 11..89
+    assert not quality.reaches_walls(column, box, base)  # on the base's wall only
+    assert quality.reaches_walls(np.vstack([column, [[0.0, 50.0, 109.0]]]), box, base)  # the ceiling
+    assert quality.reaches_walls(np.vstack([column, [[-49.0, 50.0, 60.0]]]), box, base)  # a side
+    assert not quality.reaches_walls(np.vstack([column, [[-47.0, 50.0, 60.0]]]), box, base)  # a voxel in
+    # A base on a side wall makes that wall the mount's, and the floor a wall like the others.
+    side_base = np.array([-50.0, 50.0, 60.0])
+    assert not quality.reaches_walls(np.array([[-49.0, 50.0, 60.0]]), box, side_base)
+    assert quality.reaches_walls(np.array([[0.0, 50.0, 11.0]]), box, side_base)

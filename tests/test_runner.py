@@ -76,6 +76,9 @@ def test_ranges_shrink_towards_the_end() -> None:
 def test_summary_compresses_failed_frames_into_ranges() -> None:
     failed = [(3, "x"), (4, "x"), (5, "x"), (9, "y"), (10, "x")]
     assert runner.compress_failures(failed) == [("3-5", "x"), ("9", "y"), ("10", "x")]
+    # Reasons that name their own frame still merge into one span.
+    own = [(i, f"frame {i}: the hull holds no tube near the base") for i in range(7)]
+    assert runner.compress_failures(own) == [("0-6", "the hull holds no tube near the base")]
     summary = runner.RunSummary(
         frames_ok=10,
         frames_empty=2,
@@ -365,6 +368,11 @@ def test_the_summary_names_doubtful_frames_and_a_run_without_any_tube() -> None:
     empty = runner.RunSummary(frames_ok=0, frames_empty=5, frames_failed=[], wall_s=1.0, fps=5.0)
     assert any("no tube in any frame" in line and "polarity" in line for line in empty.lines())
     assert not any("doubtful" in line or "no tube" in line for line in doubtful.lines()[:1])
+    walls = runner.RunSummary(
+        frames_ok=9, frames_empty=0, frames_failed=[], wall_s=1.0, fps=9.0, frames_at_walls=[0, 1, 5]
+    )
+    (line,) = [line for line in walls.lines() if "walls" in line]
+    assert "in 3 of the ok frames (0-1, 5)" in line and "enlarge [workspace]" in line
 
 
 def poorly_fitting_rod(index: int, images: Sequence[Any], model: Any) -> tuple[FrameResult, list[np.ndarray]]:

@@ -61,9 +61,9 @@ def test_a_fine_grid_under_the_limit_is_accepted() -> None:
     assert s.workspace.estimated_bytes(3) < MAX_GRID_BYTES
 
 
-@pytest.mark.parametrize("base_mm", [[128, 128, 0], [0, 256, 100], [128, 128, -6]])
+@pytest.mark.parametrize("base_mm", [[128, 128, 0], [0, 256, 100], [128, 128, -17]])
 def test_a_base_in_the_box_or_just_below_its_floor_is_accepted(base_mm: list[float]) -> None:
-    # The default tube radius (6 mm) is the slack: a mount just under the box's floor.
+    # Three tube radii (18 mm) of slack: a mount under a box that leaves the mount out.
     doc = {"manipulator": {"base_mm": base_mm, "radius_mm": 6.0}}
     assert settings_from_dict(doc).manipulator.base_mm == tuple(base_mm)
 
