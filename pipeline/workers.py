@@ -18,7 +18,6 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
-import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TypeVar
@@ -82,10 +81,13 @@ def release_local_workers() -> None:
     for nothing; after a failure or Ctrl-C their work is no longer wanted.
     """
     global _warm_up
-    with warnings.catch_warnings():
-        # Dropping warm-up tasks still in flight (a run that never started) makes
-        # joblib warn that it cancelled them: intended here.
-        warnings.simplefilter("ignore")
+    if _warm_up is not None:
+        # A run that never started (a session that does not load): its workers are still
+        # importing. They are let finish (under a second) rather than killed with the
+        # warm-up tasks in flight, which races loky's manager thread (a KeyError
+        # traceback from that thread on stderr, below the one-line error).
+        with contextlib.suppress(Exception):
+            wait_for_local_workers()
         _warm_up = None
     from joblib.externals.loky import reusable_executor
 
