@@ -90,11 +90,18 @@ def _one_frame(
     frame_fn: FrameFunction,
     encode_images: bool,
     decode_s: float,
+    why_missing: dict[str, str],
 ) -> FrameOutput:
+    """``why_missing`` : camera name -> why its image is None ("" when not known)."""
     missing = [name for name, im in zip(camera_names, images, strict=True) if im is None]
     masks: Sequence[Mask] | None = None
     if missing:
-        reason = f"camera {', '.join(missing)}: frame could not be decoded (video truncated or damaged)"
+        by_reason: dict[str, list[str]] = {}
+        for name in missing:
+            by_reason.setdefault(why_missing.get(name) or "frame could not be decoded", []).append(name)
+        reason = "; ".join(
+            f"camera{'s' * (len(names) > 1)} {', '.join(names)}: {why}" for why, names in by_reason.items()
+        )
         result = FrameResult.failed(index, reason)
     else:
         try:
@@ -123,7 +130,13 @@ def process_range(
         from .reconstruct import reconstruct_with_silhouettes
 
         frame_fn = reconstruct_with_silhouettes
-    readers = [read_frames(Path(p), start, stop) for p in video_paths]
+    # Why a camera has no image for a frame goes into that frame's reason, and so into the
+    # run's summary (merged over frames, in order), not into each worker's log.
+    problems: list[dict[int, str]] = [{} for _ in video_paths]
+    readers = [
+        read_frames(Path(p), start, stop, problems=found)
+        for p, found in zip(video_paths, problems, strict=True)
+    ]
     outputs = []
     frames = zip(*readers, strict=True)
     try:
@@ -135,7 +148,8 @@ def process_range(
             index = decoded[0][0]
             images_ = [image for _, image in decoded]
             decode_s = time.perf_counter() - t0
-            outputs.append(_one_frame(index, images_, model, camera_names, frame_fn, images, decode_s))
+            why = {name: found.get(index, "") for name, found in zip(camera_names, problems, strict=True)}
+            outputs.append(_one_frame(index, images_, model, camera_names, frame_fn, images, decode_s, why))
     finally:
         for reader in readers:
             close = getattr(reader, "close", None)  # release the decoders now, not at GC

@@ -120,13 +120,17 @@ def _counted_frames(path: Path) -> int | None:
         return None
 
 
-def read_frames(path: Path, start: int, stop: int) -> Iterator[tuple[int, NDArray[np.uint8] | None]]:
+def read_frames(
+    path: Path, start: int, stop: int, *, problems: dict[int, str] | None = None
+) -> Iterator[tuple[int, NDArray[np.uint8] | None]]:
     """Yield ``(index, grey image or None)`` for every frame ``start <= index < stop``, in order.
 
     Parameters
     ----------
     path : the video file.
     start, stop : frame range; frame ``i`` is the one the container times at ``i / fps``.
+    problems : where given, each frame that gets None has its reason put here (frame
+        index -> reason, set before the None is yielded) instead of in the log.
 
     Yields
     ------
@@ -134,7 +138,8 @@ def read_frames(path: Path, start: int, stop: int) -> Iterator[tuple[int, NDArra
     image : (H, W) uint8 grey image (OpenCV's BGR-to-grey of the decoded picture), or
         None where the file cannot provide that frame: cut short, a packet lost in
         damaged bytes or rejected by the decoder, or an inter-coded frame that would be
-        decoded from a damaged reference. Why is logged once per call, naming the frames.
+        decoded from a damaged reference. Why goes into ``problems``, or (without it) is
+        logged once per call, naming the frames.
 
     Notes
     -----
@@ -146,31 +151,35 @@ def read_frames(path: Path, start: int, stop: int) -> Iterator[tuple[int, NDArra
     """
     if stop <= start:
         return
-    problems: dict[int, str] = {}
+    logged = problems is None
+    found: dict[int, str] = {} if problems is None else problems
     try:
         container = av.open(str(path))
     except (av.error.FFmpegError, OSError) as exc:  # probe_video reports this before a run
-        log.warning("%s: cannot be opened (%s); frames %d-%d failed", path, exc, start, stop - 1)
+        if logged:
+            log.warning("%s: cannot be opened (%s); frames %d-%d failed", path, exc, start, stop - 1)
         for i in range(start, stop):
+            found[i] = f"cannot be opened ({exc})"
             yield i, None
         return
     try:
         expected = start
         if container.streams.video:
-            for index, image in _decode(container, container.streams.video[0], start, stop, problems):
+            for index, image in _decode(container, container.streams.video[0], start, stop, found):
                 if index < expected:  # a repeated timestamp: keep the first
                     continue
                 for lost in range(expected, index):
-                    problems.setdefault(lost, "missing from the stream")
+                    found.setdefault(lost, "missing from the stream")
                     yield lost, None
                 yield index, image
                 expected = index + 1
         for i in range(expected, stop):
-            problems.setdefault(i, "not in the file (cut short?)")
+            found.setdefault(i, "not in the file (cut short?)")
             yield i, None
     finally:
         container.close()
-        _log_problems(path, {i: r for i, r in problems.items() if start <= i < stop})
+        if logged:
+            _log_problems(path, {i: r for i, r in found.items() if start <= i < stop})
 
 
 class _FrameIndex:
