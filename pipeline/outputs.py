@@ -87,7 +87,7 @@ class RunSummary:
         return out
 
 
-# Frame spans listed in the summary's "doubtful" line before it says "...".
+# Frame spans a summary line (doubtful frames, frames at the walls) lists before "...".
 _SPANS_SHOWN = 6
 
 
