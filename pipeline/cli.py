@@ -12,6 +12,7 @@ import logging
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import NoReturn
 
 from .errors import PipelineError
 
@@ -117,8 +118,17 @@ def _board(text: str) -> tuple[int, int]:
     return int(cols), int(rows)
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, with a usage mistake on one line like every other error (exit status 2),
+    pointing to ``--help`` instead of printing the whole usage above it. Subcommands'
+    parsers are of this class too (argparse makes them of their parent's)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_BAD_INPUT, f"error: {self.prog}: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="python -m pipeline",
         description="3-D centreline of a continuum manipulator from three calibrated cameras.",
     )

@@ -36,7 +36,10 @@ def test_bad_argument_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> No
     with pytest.raises(SystemExit) as exit_info:
         main(["process", "somewhere", "--frames", "9:3"])
     assert exit_info.value.code == 2  # argparse's usage-error status, the same as bad input
-    assert "START:STOP" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    # One line, like every other error, pointing to the subcommand's help.
+    assert err.count("\n") == 1 and err.startswith("error: python -m pipeline process: ")
+    assert "START:STOP" in err and err.rstrip().endswith("(see python -m pipeline process --help)")
 
 
 def _raising(exc: BaseException) -> object:
