@@ -271,13 +271,13 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
     if not file.is_file():
         where = f"{path} holds no ground_truth.npz" if path.is_dir() else f"{path} does not exist"
         raise EvaluationError(f"ground truth: {where}; give a ground_truth.npz or the session directory")
-    with open(file, "rb") as head:
-        if head.read(4) != b"PK\x03\x04":  # every .npz is a zip archive
-            raise EvaluationError(
-                f"{file}: is not a ground_truth.npz (a NumPy .npz archive); give the one "
-                "`pipeline synth` wrote, or the session directory that holds it"
-            )
     try:
+        with open(file, "rb") as head:
+            if head.read(4) != b"PK\x03\x04":  # every .npz is a zip archive
+                raise EvaluationError(
+                    f"{file}: is not a ground_truth.npz (a NumPy .npz archive); give the one "
+                    "`pipeline synth` wrote, or the session directory that holds it"
+                )
         with np.load(file) as data:
             if "centerlines" not in data:
                 raise EvaluationError(f"{file}: no 'centerlines' array; is this a synthetic ground truth?")
