@@ -356,6 +356,9 @@ def fit_centerline(
         # The grey levels read as coverage once for every bend and comparison.
         coverages = pixel_coverages(contrasts, masks)
 
+        def mismatch(axes_mm: Sequence[FloatArray]) -> list[float]:
+            return coverage_mismatch(axes_mm, cameras, masks, contrasts, radius, coverages=coverages)
+
         def bend(axis_mm: FloatArray) -> FloatArray:
             # Only a bend that runs into the tube is refused, not one that comes
             # close (as candidates are, above): the search's path from a tip
@@ -414,7 +417,7 @@ def fit_centerline(
             # replaces the one the IoU chose only if its mismatch is
             # _COVERAGE_MARGIN lower: between near-equal tubes, the IoU's
             # choice held the median tip better (see the constant).
-            costs = coverage_mismatch(bents, cameras, masks, contrasts, radius, coverages=coverages)
+            costs = mismatch(bents)
             other = int(np.argmin(costs))
             if costs[other] < (1.0 - _COVERAGE_MARGIN) * costs[first]:
                 first = other
@@ -423,9 +426,7 @@ def fit_centerline(
         # searches near where the fit left it: the tip where the curve's own
         # course takes it is tried too (see _continue_tip).
         ordered = [bents[first]] + [b for n, b in enumerate(bents) if n != first]
-        best = replace(
-            best, points_mm=_continue_tip(ordered, bend, cameras, masks, contrasts, radius, coverages)
-        )
+        best = replace(best, points_mm=_continue_tip(ordered, bend, mismatch, radius))
 
         def refit(axis_mm: FloatArray) -> FloatArray:
             track = robust_track(axis_mm)
@@ -434,7 +435,7 @@ def fit_centerline(
 
         # A tip that ends inside the stem may be a loop run the wrong way
         # round, or one that left its loop for the stem where they cross.
-        axis = _free_tip_from_stem(best.points_mm, refit, bend, cameras, masks, contrasts, radius, coverages)
+        axis = _free_tip_from_stem(best.points_mm, refit, bend, mismatch, radius)
         best = replace(best, points_mm=axis)
     return smooth_curve(best.points_mm, n_points=n_points), best
 
@@ -443,11 +444,8 @@ def _free_tip_from_stem(
     points_mm: FloatArray,
     refit: Callable[[FloatArray], FloatArray],
     bend: Callable[[FloatArray], FloatArray],
-    cameras: Sequence[Camera],
-    masks: Sequence[NDArray[np.bool_]],
-    contrasts: Sequence[NDArray[np.float32]],
+    mismatch: Callable[[Sequence[FloatArray]], list[float]],
     radius_mm: float,
-    coverages: Sequence[NDArray[np.float32]],
 ) -> FloatArray:
     """The axis (M, 3), or, if its tip ends inside its stem, a course that keeps
     it out, if that matches the grey levels better.
@@ -468,8 +466,8 @@ def _free_tip_from_stem(
     ``_REDO_RADII`` radii are then redone along the circle the
     ``_REDO_FIT_RADII`` radii before follow
     (:func:`pipeline.tube_tip.continue_on_circle`), refitted and bent too. The
-    axis that matches the grey levels best
-    (:func:`pipeline.tube_tip.coverage_mismatch`), by ``_REVERSE_MARGIN``, wins.
+    axis that matches the grey levels best (``mismatch``, the frame's
+    :func:`pipeline.tube_tip.coverage_mismatch`), by ``_REVERSE_MARGIN``, wins.
     """
     pts = np.asarray(points_mm, dtype=np.float64)
     arc = polyline_arclength(pts)
@@ -498,7 +496,7 @@ def _free_tip_from_stem(
         pass
     if len(axes) == 1:
         return pts
-    costs = coverage_mismatch(axes, cameras, masks, contrasts, radius_mm, coverages=coverages)
+    costs = mismatch(axes)
     other = int(np.argmin(costs))
     return axes[other] if costs[other] < (1.0 - _REVERSE_MARGIN) * costs[0] else pts
 
@@ -506,11 +504,8 @@ def _free_tip_from_stem(
 def _continue_tip(
     curves_mm: Sequence[FloatArray],
     bend: Callable[[FloatArray], FloatArray],
-    cameras: Sequence[Camera],
-    masks: Sequence[NDArray[np.bool_]],
-    contrasts: Sequence[NDArray[np.float32]],
+    mismatch: Callable[[Sequence[FloatArray]], list[float]],
     radius_mm: float,
-    coverages: Sequence[NDArray[np.float32]],
 ) -> FloatArray:
     """The chosen curve (``curves_mm[0]``), or one whose tip follows its own course, bent.
 
@@ -518,7 +513,8 @@ def _continue_tip(
     circle the part before follows (:func:`pipeline.tube_tip.continue_on_circle`);
     of these continuations, of the chosen curve and of the other hypotheses'
     curves (each (M_i, 3), bent, world frame, mm), the one that best matches
-    the grey levels (:func:`pipeline.tube_tip.coverage_mismatch`) is bent, and
+    the grey levels (``mismatch``, the frame's
+    :func:`pipeline.tube_tip.coverage_mismatch`) is bent, and
     the chosen curve's best too if that is another (a continuation's match
     before its bend ranks it only roughly); the axis, (M, 3), that matches them
     best is returned, the chosen curve's own included.
@@ -528,11 +524,11 @@ def _continue_tip(
         for curve in curves_mm
         for k in _CONTINUE_RADII
     ]
-    costs = coverage_mismatch(continued, cameras, masks, contrasts, radius_mm, coverages=coverages)
+    costs = mismatch(continued)
     own = int(np.argmin(costs[: len(_CONTINUE_RADII)]))
     tries = sorted({own, int(np.argmin(costs))})
     axes = [curves_mm[0]] + [bend(continued[j]) for j in tries]
-    costs = coverage_mismatch(axes, cameras, masks, contrasts, radius_mm, coverages=coverages)
+    costs = mismatch(axes)
     # No margin here (unlike between the stems, see fit_centerline): where the
     # tip hides, the matches differ by ~1 %, and the least one was the nearer
     # tip more often. Measured, 150-frame r 9 ninety loop: 0.281 / 0.801 /

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import pytest
@@ -520,7 +520,13 @@ def test_bridge_under_tip_takes_out_a_bulge_towards_the_tip() -> None:
 
 def test_continue_tip_brings_back_a_tip_the_bend_cannot(rendered_loop: tuple) -> None:
     from pipeline.centerline import _continue_tip
-    from pipeline.tube_tip import _bend_end, _end_frame, bend_tip_to_pixels, pixel_coverages
+    from pipeline.tube_tip import (
+        _bend_end,
+        _end_frame,
+        bend_tip_to_pixels,
+        coverage_mismatch,
+        pixel_coverages,
+    )
 
     curve, cams, masks, contrasts = rendered_loop
     truth = resample_polyline(curve, 64)
@@ -536,14 +542,17 @@ def test_continue_tip_brings_back_a_tip_the_bend_cannot(rendered_loop: tuple) ->
     def bend(axis: FloatArray) -> FloatArray:
         return bend_tip_to_pixels(axis, cams, masks, contrasts, RADIUS, coverages=coverages)
 
+    def mismatch(axes: Sequence[FloatArray]) -> list[float]:
+        return coverage_mismatch(axes, cams, masks, contrasts, RADIUS, coverages=coverages)
+
     assert np.linalg.norm(bend(wrong)[-1] - truth[-1]) > 2.0
     # The loop is a circle drifting sideways: its continuation lands near the
     # true tip and the bend finishes it. Measured 0.39 mm; bound: the bends'
     # noise on rendered loops (0.25-1 mm at r 6 and below).
-    fixed = _continue_tip([wrong], bend, cams, masks, contrasts, RADIUS, coverages)
+    fixed = _continue_tip([wrong], bend, mismatch, RADIUS)
     assert np.linalg.norm(fixed[-1] - truth[-1]) < 1.0
     # The true curve itself is kept (or only nudged by the bend's last step).
-    kept = _continue_tip([truth], bend, cams, masks, contrasts, RADIUS, coverages)
+    kept = _continue_tip([truth], bend, mismatch, RADIUS)
     assert np.linalg.norm(kept[-1] - truth[-1]) < 0.5
 
 
@@ -572,7 +581,7 @@ def free_tip() -> tuple[FloatArray, Callable[[FloatArray], FloatArray]]:
     from pipeline.synth.images import THRESHOLD_DARK, background_texture, render_frame
     from pipeline.synth.rig import make_rig
     from pipeline.tube_fit import fit_tube, foreground_contrast
-    from pipeline.tube_tip import bend_tip_to_pixels, pixel_coverages
+    from pipeline.tube_tip import bend_tip_to_pixels, coverage_mismatch, pixel_coverages
 
     truth = resample_polyline(_loop_back(), 80)
     backgrounds = [background_texture(320, 240, seed=4, camera_index=i) for i in range(3)]
@@ -591,8 +600,11 @@ def free_tip() -> tuple[FloatArray, Callable[[FloatArray], FloatArray]]:
     def bend(axis: FloatArray) -> FloatArray:
         return bend_tip_to_pixels(axis, cams, masks, contrasts, RADIUS, rejects=rejects, coverages=coverages)
 
+    def mismatch(axes: Sequence[FloatArray]) -> list[float]:
+        return coverage_mismatch(axes, cams, masks, contrasts, RADIUS, coverages=coverages)
+
     def free(axis: FloatArray) -> FloatArray:
-        return _free_tip_from_stem(axis, refit, bend, cams, masks, contrasts, RADIUS, coverages)
+        return _free_tip_from_stem(axis, refit, bend, mismatch, RADIUS)
 
     return truth, free
 
