@@ -98,11 +98,9 @@ def _spans(frames: Sequence[int]) -> str:
 
 
 def compress_failures(failed: Sequence[tuple[int, str]]) -> list[tuple[str, str]]:
-    """[(3, "x"), (4, "x"), (5, "x"), (9, "y")] -> [("3-5", "x"), ("9", "y")]; a reason's
-    own "frame N: " prefix goes (the span names the frames), so that alike reasons merge."""
+    """[(3, "x"), (4, "x"), (5, "x"), (9, "y")] -> [("3-5", "x"), ("9", "y")]."""
     spans: list[tuple[int, int, str]] = []
     for index, reason in sorted(failed):
-        reason = reason.removeprefix(f"frame {index}: ")
         if spans and spans[-1][1] == index - 1 and spans[-1][2] == reason:
             spans[-1] = (spans[-1][0], index, reason)
         else:

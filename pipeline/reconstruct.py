@@ -49,7 +49,7 @@ def reconstruct_frame(
     """One frame, from its grey images (one per camera, None if undecodable)."""
     for cam, image in zip(model.cameras, images, strict=True):
         if image is None:
-            return FrameResult.failed(index, f"frame {index}: camera {cam.name!r} image could not be decoded")
+            return FrameResult.failed(index, f"camera {cam.name!r} image could not be decoded")
     result, _ = reconstruct_with_silhouettes(index, [im for im in images if im is not None], model)
     return result
 
@@ -96,7 +96,7 @@ def reconstruct_from_silhouettes(
             return FrameResult(
                 index=index,
                 status="empty",
-                reason=f"frame {index}: nothing seen by camera {cam.name!r}",
+                reason=f"nothing seen by camera {cam.name!r}",
                 timings_s=timings,
             )
     points = voxel_centers_mm(model.settings.workspace, carve(model.grid, masks))
@@ -105,13 +105,13 @@ def reconstruct_from_silhouettes(
         return FrameResult(
             index=index,
             status="empty",
-            reason=f"frame {index}: the silhouettes share no voxel of the workspace",
+            reason="the silhouettes share no voxel of the workspace",
             timings_s=timings,
         )
     if len(points) < MIN_VOXELS:
         return FrameResult.failed(
             index,
-            f"frame {index}: only {len(points)} occupied voxels, too few for a curve",
+            f"only {len(points)} occupied voxels, too few for a curve",
             points_mm=points,
             timings_s=timings,
         )
@@ -120,7 +120,7 @@ def reconstruct_from_silhouettes(
     except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
         # Numerical trouble with this frame's data is a failed frame, not a crash.
         return FrameResult.failed(
-            index, f"frame {index}: centreline fit failed: {exc}", points_mm=points, timings_s=timings
+            index, f"centreline fit failed: {exc}", points_mm=points, timings_s=timings
         )
 
 

@@ -76,9 +76,6 @@ def test_ranges_shrink_towards_the_end() -> None:
 def test_summary_compresses_failed_frames_into_ranges() -> None:
     failed = [(3, "x"), (4, "x"), (5, "x"), (9, "y"), (10, "x")]
     assert runner.compress_failures(failed) == [("3-5", "x"), ("9", "y"), ("10", "x")]
-    # Reasons that name their own frame still merge into one span.
-    own = [(i, f"frame {i}: the hull holds no tube near the base") for i in range(7)]
-    assert runner.compress_failures(own) == [("0-6", "the hull holds no tube near the base")]
     summary = runner.RunSummary(
         frames_ok=10,
         frames_empty=2,
