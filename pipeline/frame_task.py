@@ -90,15 +90,16 @@ def _one_frame(
     frame_fn: FrameFunction,
     encode_images: bool,
     decode_s: float,
-    why_missing: dict[str, str],
+    problems: Sequence[dict[int, str]],
 ) -> FrameOutput:
-    """``why_missing`` : camera name -> why its image is None ("" when not known)."""
-    missing = [name for name, im in zip(camera_names, images, strict=True) if im is None]
+    """``problems`` : per camera, frame index -> why its image is None (read_frames')."""
+    missing = [k for k, im in enumerate(images) if im is None]
     masks: Sequence[Mask] | None = None
     if missing:
         by_reason: dict[str, list[str]] = {}
-        for name in missing:
-            by_reason.setdefault(why_missing.get(name) or "frame could not be decoded", []).append(name)
+        for k in missing:
+            why = problems[k].get(index, "frame could not be decoded")
+            by_reason.setdefault(why, []).append(camera_names[k])
         reason = "; ".join(
             f"camera{'s' * (len(names) > 1)} {', '.join(names)}: {why}" for why, names in by_reason.items()
         )
@@ -148,8 +149,9 @@ def process_range(
             index = decoded[0][0]
             images_ = [image for _, image in decoded]
             decode_s = time.perf_counter() - t0
-            why = {name: found.get(index, "") for name, found in zip(camera_names, problems, strict=True)}
-            outputs.append(_one_frame(index, images_, model, camera_names, frame_fn, images, decode_s, why))
+            outputs.append(
+                _one_frame(index, images_, model, camera_names, frame_fn, images, decode_s, problems)
+            )
     finally:
         for reader in readers:
             close = getattr(reader, "close", None)  # release the decoders now, not at GC

@@ -119,9 +119,7 @@ def reconstruct_from_silhouettes(
         return _curve_and_quality(index, images, masks, points, model, timings)
     except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
         # Numerical trouble with this frame's data is a failed frame, not a crash.
-        return FrameResult.failed(
-            index, f"centreline fit failed: {exc}", points_mm=points, timings_s=timings
-        )
+        return FrameResult.failed(index, f"centreline fit failed: {exc}", points_mm=points, timings_s=timings)
 
 
 def _curve_and_quality(
