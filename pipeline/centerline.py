@@ -50,7 +50,7 @@ from scipy.spatial import cKDTree
 
 from .camera import Camera
 from .ordering import March, march_hull
-from .polyline import cut_polyline, polyline_arclength, resample_polyline
+from .polyline import cut_polyline, polyline_arclength, resample_polyline, self_intersects
 from .quality import misfit_fractions, reprojection_iou, tube_mask
 from .tube_fit import TubeFit, centre_across, fit_tube, refit_body, trim_unexplained_tail
 from .tube_tip import (
@@ -720,23 +720,6 @@ def _misfit(fit: TubeFit, cameras: Sequence[Camera], masks: Sequence[NDArray[np.
     if not (np.isfinite(fit.radius_mm) and fit.radius_mm > 0):
         return 1.0
     return max(misfit_fractions(cameras, masks, fit.points_mm, fit.radius_mm))
-
-
-def self_intersects(points_mm: FloatArray, radius_mm: float, *, closest_radii: float = 1.0) -> bool:
-    """Whether an (M, 3) axis comes back within ``closest_radii`` radii of itself (mm, world frame).
-
-    Two parts of a tube of radius r cannot have axes closer than 2 r (the
-    default, half that, leaves room for a fit a few mm off where they nearly
-    touch); parts closer than 4 r along the curve (a bend) are not compared.
-    NaN radius: False.
-    """
-    if not np.isfinite(radius_mm):
-        return False
-    pts = np.asarray(points_mm, dtype=np.float64)
-    s = polyline_arclength(pts)
-    apart = np.abs(s[:, None] - s[None, :]) > 4.0 * radius_mm
-    gap = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=-1)
-    return bool((apart & (gap < closest_radii * radius_mm)).any())
 
 
 def _passes_through_itself(fit: TubeFit) -> bool:

@@ -32,6 +32,10 @@ class FrameResult:
     radius_mm : tube radius estimated from the silhouettes, NaN when unknown.
     fit_residual_mm : RMS residual of the curve fit, NaN when unknown.
     iou : per-camera IoU of the re-projected tube with the silhouette (camera order).
+    tracked : the curve was fitted from the previous frames' (:mod:`pipeline.tracking`),
+        not initialised from the hull.
+    suspect_reason : why the curve may be wrong, judged without ground truth
+        (:func:`pipeline.quality.suspect_reason`); "" when nothing says so.
     timings_s : stage name -> seconds spent on this frame.
     """
 
@@ -46,11 +50,17 @@ class FrameResult:
     radius_mm: float = float("nan")
     fit_residual_mm: float = float("nan")
     iou: tuple[float, ...] = ()
+    tracked: bool = False
+    suspect_reason: str = ""
     timings_s: dict[str, float] = field(default_factory=dict)
 
     @property
     def voxel_count(self) -> int:
         return len(self.points_mm)
+
+    @property
+    def suspect(self) -> bool:
+        return bool(self.suspect_reason)
 
     @property
     def tip_mm(self) -> NDArray[np.float64] | None:

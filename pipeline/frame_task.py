@@ -12,6 +12,7 @@ import dataclasses
 import struct
 import time
 import zlib
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .frame_result import FrameResult
+from .tracking import WARMUP_FRAMES, segment_start, track_start
 from .video import read_frames
 
 JPEG_QUALITY = 85
@@ -84,17 +86,15 @@ def _encode_jpeg(image: Image | None) -> bytes:
 
 def _one_frame(
     index: int,
-    images: list[Image | None],
+    images: Sequence[Image | None],
     model: Any,
     camera_names: Sequence[str],
-    frame_fn: FrameFunction,
-    encode_images: bool,
-    decode_s: float,
+    fit: Callable[[int, Sequence[Image]], tuple[FrameResult, Sequence[Mask] | None]],
     problems: Sequence[dict[int, str]],
-) -> FrameOutput:
-    """``problems`` : per camera, frame index -> why its image is None (read_frames')."""
+) -> tuple[FrameResult, Sequence[Mask] | None]:
+    """One frame's result and silhouettes; ``problems``: per camera, frame index -> why
+    its image is None (read_frames')."""
     missing = [k for k, im in enumerate(images) if im is None]
-    masks: Sequence[Mask] | None = None
     if missing:
         by_reason: dict[str, list[str]] = {}
         for k in missing:
@@ -103,12 +103,20 @@ def _one_frame(
         reason = "; ".join(
             f"camera{'s' * (len(names) > 1)} {', '.join(names)}: {why}" for why, names in by_reason.items()
         )
-        result = FrameResult.failed(index, reason)
-    else:
-        try:
-            result, masks = frame_fn(index, [im for im in images if im is not None], model)
-        except Exception as exc:  # a frame's failure is data, never the end of the run
-            result = FrameResult.failed(index, f"{type(exc).__name__}: {exc}")
+        return FrameResult.failed(index, reason), None
+    try:
+        return fit(index, [im for im in images if im is not None])
+    except Exception as exc:  # a frame's failure is data, never the end of the run
+        return FrameResult.failed(index, f"{type(exc).__name__}: {exc}"), None
+
+
+def _output(
+    result: FrameResult,
+    masks: Sequence[Mask] | None,
+    images: Sequence[Image | None],
+    encode_images: bool,
+    decode_s: float,
+) -> FrameOutput:
     t0 = time.perf_counter()
     jpegs = tuple(_encode_jpeg(im) for im in images) if encode_images else None
     pngs = None if masks is None else tuple(encode_silhouette(m) for m in masks)
@@ -126,18 +134,40 @@ def process_range(
     images: bool = True,
     frame_fn: FrameFunction | None = None,
 ) -> list[FrameOutput]:
-    """Decode frames ``start <= i < stop`` of every video and process them (one task)."""
-    if frame_fn is None:
-        from .reconstruct import reconstruct_with_silhouettes
+    """Decode frames ``start <= i < stop`` of every video and process them (one task).
 
-        frame_fn = reconstruct_with_silhouettes
+    The default computation tracks the tube from frame to frame
+    (:mod:`pipeline.tracking`): the task decodes from the start of its first
+    frame's track, and restarts the track, from the frames before, at each
+    segment it enters, so that every frame's curve is the one any other split
+    of the work would give. A replacement ``frame_fn`` sees each frame alone.
+    """
+    tracked = frame_fn is None
+    compute: Callable[..., tuple[FrameResult, Sequence[Mask] | None]]
+    if frame_fn is None:
+        from .reconstruct import reconstruct_with_silhouettes as compute
+    else:
+        compute = frame_fn
+    first = track_start(start) if tracked else start
     # Why a camera has no image for a frame goes into that frame's reason, and so into the
     # run's summary (merged over frames, in order), not into each worker's log.
     problems: list[dict[int, str]] = [{} for _ in video_paths]
     readers = [
-        read_frames(Path(p), start, stop, problems=found)
+        read_frames(Path(p), first, stop, problems=found)
         for p, found in zip(video_paths, problems, strict=True)
     ]
+    track: list[FrameResult] = []
+    segment: int | None = None  # the segment whose track is running
+    recent: deque[tuple[int, list[Image | None]]] = deque(maxlen=WARMUP_FRAMES)
+
+    def fit(index: int, grey: Sequence[Image]) -> tuple[FrameResult, Sequence[Mask] | None]:
+        return compute(index, grey, model, track[-2:]) if tracked else compute(index, grey, model)
+
+    def step(index: int, images_: list[Image | None]) -> tuple[FrameResult, Sequence[Mask] | None]:
+        result, masks = _one_frame(index, images_, model, camera_names, fit, problems)
+        track.append(result)
+        return result, masks
+
     outputs = []
     frames = zip(*readers, strict=True)
     try:
@@ -149,9 +179,20 @@ def process_range(
             index = decoded[0][0]
             images_ = [image for _, image in decoded]
             decode_s = time.perf_counter() - t0
-            outputs.append(
-                _one_frame(index, images_, model, camera_names, frame_fn, images, decode_s, problems)
-            )
+            # The frames before ``start`` are the first segment's warm-up.
+            if tracked and segment_start(max(index, start)) != segment:
+                if segment is not None:
+                    # A new segment: its track starts again from the frames before it.
+                    track.clear()
+                    for before, grey in recent:
+                        if before >= track_start(index):
+                            step(before, grey)
+                segment = segment_start(max(index, start))
+            result, masks = step(index, images_)
+            del track[:-2]
+            recent.append((index, images_))
+            if index >= start:
+                outputs.append(_output(result, masks, images_, images, decode_s))
     finally:
         for reader in readers:
             close = getattr(reader, "close", None)  # release the decoders now, not at GC

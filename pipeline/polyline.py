@@ -53,3 +53,30 @@ def cut_polyline(points_mm: FloatArray, length_mm: float) -> FloatArray:
     i = int(np.floor(at))
     end = pts[i] + (at - i) * (pts[min(i + 1, len(pts) - 1)] - pts[i])
     return np.vstack([pts[keep], end])
+
+
+def self_intersects(points_mm: FloatArray, radius_mm: float, *, closest_radii: float = 1.0) -> bool:
+    """Whether an (M, 3) axis comes back within ``closest_radii`` radii of itself (mm, world frame).
+
+    Two parts of a tube of radius r cannot have axes closer than 2 r (the
+    default, half that, leaves room for a fit a few mm off where they nearly
+    touch); parts closer than 4 r along the curve (a bend) are not compared.
+    NaN radius: False.
+    """
+    if not np.isfinite(radius_mm):
+        return False
+    pts = np.asarray(points_mm, dtype=np.float64)
+    s = polyline_arclength(pts)
+    apart = np.abs(s[:, None] - s[None, :]) > 4.0 * radius_mm
+    gap = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=-1)
+    return bool((apart & (gap < closest_radii * radius_mm)).any())
+
+
+def axis_gap_mm(a_mm: FloatArray, b_mm: FloatArray, n_points: int = 64) -> float:
+    """Largest distance (mm) between two (M, 3) axes at the same arc length from their
+    bases, over the shorter one's length (a longer or shorter tip is not a gap)."""
+    length = min(polyline_arclength(a_mm)[-1], polyline_arclength(b_mm)[-1])
+    gap = resample_polyline(cut_polyline(a_mm, length), n_points) - resample_polyline(
+        cut_polyline(b_mm, length), n_points
+    )
+    return float(np.max(np.linalg.norm(gap, axis=1)))

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .camera import Camera, project_in_views
-from .polyline import resample_polyline, vector_norms
+from .polyline import axis_gap_mm, polyline_arclength, resample_polyline, self_intersects, vector_norms
 from .settings import Workspace
 
 FloatArray = NDArray[np.float64]
@@ -27,6 +27,17 @@ FloatArray = NDArray[np.float64]
 # off (a threshold on the wrong side of the tube's grey level, Otsu splitting the
 # background, 160x120 images) score 0.003-0.38, a few up to 0.69.
 DOUBTFUL_IOU = 0.7
+
+# A frame is suspect (see suspect_reason) where its tube leaves more than this
+# fraction of some silhouette unexplained (misfit_fractions) ...
+SUSPECT_MISFIT = 0.02
+# ... where two of its parts come closer than this many radii (a tube cannot
+# pass through itself) ...
+SUSPECT_CLOSEST_RADII = 1.5
+# ... where it lies farther than this many radii from its track's prediction ...
+SUSPECT_JUMP_RADII = 1.0
+# ... or where its length changed by more than this fraction since the frame before.
+SUSPECT_LENGTH_CHANGE = 0.03
 
 # cv2 drawing takes fixed-point coordinates with this many fractional bits.
 _SHIFT = 4
@@ -191,3 +202,43 @@ def _misfit(
             cv2.circle(ends, (round(x * 16), round(y * 16)), round(radius_px * 16), 1, -1, cv2.LINE_8, 4)
     stray &= ends == 0
     return (np.count_nonzero(missed) + np.count_nonzero(stray)) / area
+
+
+def suspect_reason(
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    centerline_mm: FloatArray,
+    radius_mm: float,
+    *,
+    iou: Sequence[float],
+    predicted_mm: FloatArray | None = None,
+    previous_length_mm: float = math.nan,
+) -> str:
+    """Why a frame's curve (N, 3) mm may be wrong, without ground truth; "" if nothing says so.
+
+    The tube re-projects poorly (:func:`is_doubtful`) or leaves part of a
+    silhouette unexplained (``SUSPECT_MISFIT``); it passes through itself; it
+    lies far from what the track predicted (``predicted_mm``, (M, 3) mm, None
+    where the frame was not tracked); or its length jumped since the frame
+    before (``previous_length_mm``). The reasons found are joined by "; ".
+    """
+    names = [cam.name for cam in cameras]
+    reasons = []
+    if is_doubtful(iou):
+        worst = int(np.argmin(iou))
+        reasons.append(f"camera {names[worst]} re-projects poorly (IoU {iou[worst]:.2f})")
+    misfit = misfit_fractions(cameras, masks, centerline_mm, radius_mm)
+    worst = int(np.argmax(misfit))
+    if misfit[worst] > SUSPECT_MISFIT:
+        share = 100 * misfit[worst]
+        reasons.append(f"camera {names[worst]} sees {share:.0f} % of its silhouette unexplained")
+    if self_intersects(centerline_mm, radius_mm, closest_radii=SUSPECT_CLOSEST_RADII):
+        reasons.append("the tube passes through itself")
+    if predicted_mm is not None:
+        gap = axis_gap_mm(centerline_mm, predicted_mm)
+        if gap > SUSPECT_JUMP_RADII * radius_mm:
+            reasons.append(f"{gap:.1f} mm from its track's prediction")
+    length = float(polyline_arclength(centerline_mm)[-1])
+    if abs(length - previous_length_mm) > SUSPECT_LENGTH_CHANGE * previous_length_mm:
+        reasons.append(f"length changed by {length - previous_length_mm:+.1f} mm in one frame")
+    return "; ".join(reasons)

@@ -16,14 +16,15 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .centerline import Centerline, fit_centerline, radius_from_silhouettes, smooth_curve
+from .centerline import fit_centerline, radius_from_silhouettes, smooth_curve
 from .frame_result import FrameResult
 from .hull import carve, voxel_centers_mm
 from .model import SessionModel
 from .model import build_model as build_model  # re-exported: build the model, then reconstruct frames
 from .ordering import infer_base
-from .quality import reprojection_iou
+from .quality import reprojection_iou, suspect_reason
 from .silhouette import extract_silhouette
+from .tracking import predict_axis, track_tube
 from .tube_fit import foreground_contrast
 
 # Fewer occupied voxels than this cannot hold a tube: the frame is "failed"
@@ -44,18 +45,24 @@ def frame_silhouettes(images: Sequence[NDArray[np.uint8]], model: SessionModel) 
 
 
 def reconstruct_frame(
-    index: int, images: Sequence[NDArray[np.uint8] | None], model: SessionModel
+    index: int,
+    images: Sequence[NDArray[np.uint8] | None],
+    model: SessionModel,
+    previous: Sequence[FrameResult] = (),
 ) -> FrameResult:
     """One frame, from its grey images (one per camera, None if undecodable)."""
     for cam, image in zip(model.cameras, images, strict=True):
         if image is None:
             return FrameResult.failed(index, f"camera {cam.name!r} image could not be decoded")
-    result, _ = reconstruct_with_silhouettes(index, [im for im in images if im is not None], model)
+    result, _ = reconstruct_with_silhouettes(index, [im for im in images if im is not None], model, previous)
     return result
 
 
 def reconstruct_with_silhouettes(
-    index: int, images: Sequence[NDArray[np.uint8]], model: SessionModel
+    index: int,
+    images: Sequence[NDArray[np.uint8]],
+    model: SessionModel,
+    previous: Sequence[FrameResult] = (),
 ) -> tuple[FrameResult, list[NDArray[np.bool_]]]:
     """:func:`frame_silhouettes` + :func:`reconstruct_from_silhouettes`, with the
     silhouette time recorded under "silhouette"; the silhouettes are returned too
@@ -63,7 +70,7 @@ def reconstruct_with_silhouettes(
     start = time.perf_counter()
     masks = frame_silhouettes(images, model)
     elapsed = time.perf_counter() - start
-    result = reconstruct_from_silhouettes(index, images, masks, model)
+    result = reconstruct_from_silhouettes(index, images, masks, model, previous)
     result.timings_s["silhouette"] = elapsed
     return result, masks
 
@@ -73,6 +80,7 @@ def reconstruct_from_silhouettes(
     images: Sequence[NDArray[np.uint8]],
     masks: Sequence[NDArray[np.bool_]],
     model: SessionModel,
+    previous: Sequence[FrameResult] = (),
 ) -> FrameResult:
     """Hull, centreline and quality figures of one frame from its silhouettes.
 
@@ -82,6 +90,8 @@ def reconstruct_from_silhouettes(
     images : per camera (H, W) uint8 grey image (the tube fit reads its edges).
     masks : per camera (H, W) bool silhouette.
     model : the session's model.
+    previous : the track's results before this frame, oldest first
+        (:mod:`pipeline.tracking`); empty: the frame is fitted from the hull alone.
 
     Returns
     -------
@@ -116,7 +126,7 @@ def reconstruct_from_silhouettes(
             timings_s=timings,
         )
     try:
-        return _curve_and_quality(index, images, masks, points, model, timings)
+        return _curve_and_quality(index, images, masks, points, model, timings, previous)
     except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
         # Numerical trouble with this frame's data is a failed frame, not a crash.
         return FrameResult.failed(index, f"centreline fit failed: {exc}", points_mm=points, timings_s=timings)
@@ -129,6 +139,7 @@ def _curve_and_quality(
     points: NDArray[np.float32],
     model: SessionModel,
     timings: dict[str, float],
+    previous: Sequence[FrameResult],
 ) -> FrameResult:
     settings = model.settings
     cameras = model.cameras
@@ -144,6 +155,8 @@ def _curve_and_quality(
         ws = settings.workspace
         base = infer_base(pts, np.asarray(ws.origin_mm), np.asarray(ws.size_mm), radius_mm=radius_guess)
     n_points = settings.centerline.points
+    predicted: NDArray[np.float64] | None = None
+    tracked = False
     if settings.centerline.method == "polyfit":
         curve = smooth_curve(_polyfit()(pts, base if known else None, n_points=n_points), n_points=n_points)
         radius, residual = radius_guess, float("nan")
@@ -156,17 +169,26 @@ def _curve_and_quality(
             )
             for image, bg in zip(images, model.backgrounds, strict=True)
         ]
-        curve, fit = fit_centerline(
-            pts,
-            cameras,
-            masks,
-            contrasts,
-            base_mm=base,
-            base_known=known,
-            radius_mm=radius_guess,
-            voxel_mm=settings.workspace.voxel_mm,
-            n_points=n_points,
-        )
+        predicted = predict_axis(previous)
+        fit = None
+        if predicted is not None:
+            fit = track_tube(
+                predicted, cameras, masks, contrasts, radius_mm=previous[-1].radius_mm, base_known=known
+            )
+            tracked = fit is not None
+        if fit is None:
+            _, fit = fit_centerline(
+                pts,
+                cameras,
+                masks,
+                contrasts,
+                base_mm=base,
+                base_known=known,
+                radius_mm=radius_guess,
+                voxel_mm=settings.workspace.voxel_mm,
+                n_points=n_points,
+            )
+        curve = smooth_curve(fit.points_mm, n_points=n_points)
         radius, residual = fit.radius_mm, fit.residual_mm
     timings["centerline"] = time.perf_counter() - start
     start = time.perf_counter()
@@ -174,19 +196,16 @@ def _curve_and_quality(
         raise ValueError("the curve has non-finite points")
     draw_radius = radius if np.isfinite(radius) else radius_guess
     iou = reprojection_iou(cameras, masks, curve.points_mm, draw_radius)
+    reason = suspect_reason(
+        cameras,
+        masks,
+        curve.points_mm,
+        draw_radius,
+        iou=iou,
+        predicted_mm=predicted,
+        previous_length_mm=previous[-1].length_mm if previous else float("nan"),
+    )
     timings["quality"] = time.perf_counter() - start
-    return _ok(index, points, curve, radius, residual, iou, timings)
-
-
-def _ok(
-    index: int,
-    points: NDArray[np.float32],
-    curve: Centerline,
-    radius: float,
-    residual: float,
-    iou: tuple[float, ...],
-    timings: dict[str, float],
-) -> FrameResult:
     return FrameResult(
         index=index,
         status="ok",
@@ -198,6 +217,8 @@ def _ok(
         radius_mm=float(radius),
         fit_residual_mm=float(residual),
         iou=iou,
+        tracked=tracked,
+        suspect_reason=reason,
         timings_s=timings,
     )
 

@@ -98,6 +98,12 @@ METRICS_SCHEMA: dict[str, Any] = {
             "description": "camera name -> IoU of the re-projected tube with the silhouette",
         },
         "voxel_count": {"type": "integer", "minimum": 0},
+        "tracked": {"type": "boolean", "description": "fitted from the previous frames, not from the hull"},
+        "suspect": {"type": "boolean", "description": "the curve may be wrong (see suspect_reason)"},
+        "suspect_reason": {
+            "type": "string",
+            "description": "why the curve may be wrong; empty if nothing says so",
+        },
         "timings_s": {"type": "object", "additionalProperties": {"type": "number"}},
     },
     "required": ["frame", "status", "reason", "voxel_count"],
@@ -138,6 +144,9 @@ def frame_metrics(result: FrameResult, camera_names: Sequence[str]) -> dict[str,
         "fit_residual_m": _finite_or_none(float(_metres(result.fit_residual_mm))),
         "iou": {name: _finite_or_none(v) for name, v in zip(camera_names, result.iou, strict=False)},
         "voxel_count": int(result.voxel_count),
+        "tracked": bool(result.tracked),
+        "suspect": result.suspect,
+        "suspect_reason": result.suspect_reason,
         "timings_s": {k: float(v) for k, v in result.timings_s.items()},
     }
 

@@ -16,7 +16,7 @@ Entities::
     world/centerline                        LineStrips3D, base -> tip
     world/centerline_smoothed               LineStrips3D, after temporal smoothing
     world/tip                               Points3D
-    plots/tip/{x,y,z}, plots/length, plots/curvature, plots/iou/<name>, plots/voxels   Scalars
+    plots/tip/{x,y,z}, plots/length, plots/curvature, plots/iou/<name>, plots/voxels, plots/suspect   Scalars
 
 Timelines: ``frame`` (sequence: frame index) and ``time`` (timestamp of the frame).
 """
@@ -75,6 +75,7 @@ def default_blueprint(camera_names: Sequence[str]) -> rrb.Blueprint:
         rrb.TimeSeriesView(origin="plots/curvature", name="mean curvature (1/mm)"),
         rrb.TimeSeriesView(origin="plots/iou", name="re-projection IoU"),
         rrb.TimeSeriesView(origin="plots/voxels", name="voxels"),
+        rrb.TimeSeriesView(origin="plots/suspect", name="suspect (1: the curve may be wrong)"),
     )
     return rrb.Blueprint(
         rrb.Vertical(
@@ -297,7 +298,10 @@ class RerunRecorder:
         self._series.add(result.index, time_ns, self._scalars(result))
 
     def _scalars(self, result: FrameResult) -> dict[str, float]:
-        values: dict[str, float] = {"plots/voxels": float(result.voxel_count)}
+        values: dict[str, float] = {
+            "plots/voxels": float(result.voxel_count),
+            "plots/suspect": float(result.suspect),
+        }
         tip = result.tip_mm if result.status == "ok" else None
         if tip is not None:
             values.update({f"plots/tip/{a}": float(v) for a, v in zip("xyz", tip, strict=True)})

@@ -28,6 +28,7 @@ from .frame_result import FrameResult
 from .frame_task import FrameFunction, FrameOutput, encode_silhouette, process_range
 from .outputs import RunSummary, Writers, compress_failures, output_error, prepare_outputs
 from .session import Session
+from .tracking import SEGMENT_FRAMES, segment_start
 from .workers import (
     effective_jobs,
     release_local_workers,
@@ -48,11 +49,12 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-# Ranges of this many frames at most: long enough that one seek per range is
-# negligible, short enough that every worker gets several (load balance, retries).
-MAX_RANGE_FRAMES = 100
-# ... and at least this many (a range costs a task and three seeks).
-MIN_RANGE_FRAMES = 8
+# Ranges of this many frames at most (three tracking segments): long enough that
+# one seek per range is negligible, short enough that every worker gets several
+# (load balance, retries).
+MAX_RANGE_FRAMES = 3 * SEGMENT_FRAMES
+# ... and at least a segment: a range costs a task, three seeks and its track's warm-up.
+MIN_RANGE_FRAMES = SEGMENT_FRAMES
 BACKENDS = ("loky", "threading", "dask")
 DASK_CONNECT_TIMEOUT_S = 10
 
@@ -64,7 +66,9 @@ def frame_ranges(start: int, stop: int, n_workers: int) -> list[tuple[int, int]]
     (within MIN_RANGE_FRAMES..MAX_RANGE_FRAMES): long ranges while much is left,
     short ones at the end (guided self-scheduling), so that the workers run out
     of work within a short range of each other instead of one idling while
-    another finishes a long one.
+    another finishes a long one. Ranges end where a tracking segment does
+    (:mod:`pipeline.tracking`) wherever they can, so that no segment's track
+    is started twice.
     """
     ranges: list[tuple[int, int]] = []
     share = 2 * max(1, n_workers)
@@ -72,6 +76,8 @@ def frame_ranges(start: int, stop: int, n_workers: int) -> list[tuple[int, int]]
     while at < stop:
         left = stop - at
         size = min(MAX_RANGE_FRAMES, max(MIN_RANGE_FRAMES, math.ceil(left / share)))
+        if segment_start(at + size) > at:
+            size = segment_start(at + size) - at
         if left - size < MIN_RANGE_FRAMES:  # no stub of a range at the end
             size = left
         ranges.append((at, at + size))

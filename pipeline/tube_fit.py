@@ -49,8 +49,10 @@ _PROFILE_STEP_PX = 0.5
 _MIN_OWNED_PX = 3
 # cv2 drawing takes fixed-point coordinates with this many fractional bits.
 _DRAW_SHIFT = 4
-# How far from the rough curve (in radii) the first round seeks the tube's peak.
+# How far from the rough curve (in radii) the first round seeks the tube's peak,
+# and the later rounds (the curve is on the tube by then).
 _FIRST_CORE = 1.6
+_CORE = 0.6
 # A reading whose residual after a first solve exceeds this many radii (or this
 # many robust standard deviations of all residuals, if larger) is an outlier.
 _OUTLIER_RADII = 0.25
@@ -121,6 +123,8 @@ def fit_tube(
     masks: Sequence[NDArray[np.bool_]] | None = None,
     max_length_mm: float = np.inf,
     robust: bool = True,
+    seek_radii: float = _FIRST_CORE,
+    crowd_margin_px: float = _CROWD_MARGIN_PX,
 ) -> TubeFit:
     """Move ``curve_mm`` so that the tube around it projects onto every silhouette.
 
@@ -144,6 +148,11 @@ def fit_tube(
         end: the tube lies inside the hull).
     robust : after each solve, drop the readings it disagrees with and solve
         again (see :func:`_consistent`).
+    seek_radii : how far from ``curve_mm`` (in radii) the first round seeks the
+        tube's peak: farther for a rough curve from the hull than for a
+        tracked prediction.
+    crowd_margin_px : a reading is dropped where another part's projected tube
+        comes within this many pixels of the sample's (see :func:`_crowded`).
 
     Returns
     -------
@@ -156,7 +165,15 @@ def fit_tube(
         # The first round looks for the tube's peak within 1.6 radii of the
         # rough curve (the march may be a few mm off in crowded hull), later
         # rounds within 0.6 (the curve is on the tube by then).
-        obs = _read_sides(pts, cameras, contrasts, radius, spacing_mm, core=_FIRST_CORE if i == 0 else 0.6)
+        obs = _read_sides(
+            pts,
+            cameras,
+            contrasts,
+            radius,
+            spacing_mm,
+            core=seek_radii if i == 0 else _CORE,
+            crowd_margin_px=crowd_margin_px,
+        )
         if obs.readings >= 6:
             radius = obs.radius_mm
             pts = pts + _step(pts, obs, base_fixed=base_fixed, smoothness=smoothness, robust=robust)

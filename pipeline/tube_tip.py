@@ -225,6 +225,7 @@ def bend_tip_to_pixels(
     radius_mm: float,
     *,
     spans_radii: Sequence[float] = _BEND_SPANS_RADII,
+    steps_mm: Sequence[float] = _BEND_STEPS_MM,
     rejects: Callable[[FloatArray], bool] | None = None,
     coverages: Sequence[NDArray[np.float32]] | None = None,
 ) -> FloatArray:
@@ -250,6 +251,8 @@ def bend_tip_to_pixels(
         silhouette and (H, W) float32 foreground contrast.
     radius_mm : tube radius, mm.
     spans_radii : lengths of the bent part, in radii, one search each.
+    steps_mm : the pattern search's steps, largest first: how far from
+        ``points_mm`` the tip is sought.
     rejects : a bent axis (K, 3) this returns True for is not taken (a tube
         that passes through itself, say).
     coverages : the views' :func:`pixel_coverages`, if already read.
@@ -262,7 +265,7 @@ def bend_tip_to_pixels(
     # The grey levels read as coverage once for all the spans.
     seen = pixel_coverages(contrasts, masks) if coverages is None else coverages
     for span in spans_radii:
-        pts = _bend_once(pts, cameras, seen, radius_mm, span * radius_mm, rejects)
+        pts = _bend_once(pts, cameras, seen, radius_mm, span * radius_mm, rejects, steps_mm)
     return pts
 
 
@@ -273,6 +276,7 @@ def _bend_once(
     radius_mm: float,
     span_mm: float,
     rejects: Callable[[FloatArray], bool] | None,
+    steps_mm: Sequence[float],
 ) -> FloatArray:
     """One search of :func:`bend_tip_to_pixels`, bending the last ``span_mm``;
     ``coverages``: per camera, (H, W) float32 from :func:`_coverage`."""
@@ -363,7 +367,7 @@ def _bend_once(
         return total
 
     p, best = np.zeros(3), cost(np.zeros(3), np.inf)
-    for step in _BEND_STEPS_MM:
+    for step in steps_mm:
         improved = True
         while improved:
             improved = False
