@@ -40,6 +40,8 @@ class RunSummary:
         camera's silhouette (``quality.is_doubtful``), in order.
     frames_at_walls : indices of "ok" frames whose hull lies against a wall of the
         workspace box other than the base's (``quality.reaches_walls``), in order.
+    frames_suspect : (frame index, reason) of "ok" frames whose curve may be wrong
+        (``FrameResult.suspect_reason``), in order.
     exit_code : 0 when every frame is ok or empty, 1 when some failed.
     """
 
@@ -51,6 +53,7 @@ class RunSummary:
     outputs: list[tuple[Path, int]] = field(default_factory=list)
     frames_doubtful: list[int] = field(default_factory=list)
     frames_at_walls: list[int] = field(default_factory=list)
+    frames_suspect: list[tuple[int, str]] = field(default_factory=list)
 
     @property
     def exit_code(self) -> int:
@@ -64,6 +67,13 @@ class RunSummary:
             f"{len(self.frames_failed)} failed",
         ]
         out += [f"  failed {span}: {reason}" for span, reason in compress_failures(self.frames_failed)]
+        if self.frames_suspect:
+            first, why = self.frames_suspect[0]
+            frames = [i for i, _ in self.frames_suspect]
+            out.append(
+                f"  suspect: {len(frames)} of the ok frames ({_spans(frames)}) may be wrong "
+                f"(frame {first}: {why}); each frame's metrics say why (suspect_reason)"
+            )
         if self.frames_doubtful:
             out.append(
                 f"  doubtful: {len(self.frames_doubtful)} of the ok frames ({_spans(self.frames_doubtful)}) "
@@ -209,6 +219,7 @@ class Writers:
         self.counts = {"ok": 0, "empty": 0}
         self.failed: list[tuple[int, str]] = []
         self.doubtful: list[int] = []
+        self.suspect: list[tuple[int, str]] = []
         self.at_walls: list[int] = []
         try:
             self._mcap_file = _open_partial(mcap_path)
@@ -247,6 +258,8 @@ class Writers:
             self.counts[result.status] = self.counts.get(result.status, 0) + 1
         if result.status == "ok" and is_doubtful(result.iou):
             self.doubtful.append(result.index)
+        if result.status == "ok" and result.suspect:
+            self.suspect.append((result.index, result.suspect_reason))
         curve = result.centerline_mm
         if result.status == "ok" and curve is not None and len(curve):
             if reaches_walls(result.points_mm, self.session.settings.workspace, curve[0]):
@@ -307,4 +320,5 @@ class Writers:
             outputs=[(p, p.stat().st_size) for p in (self.mcap_path, self.rrd_path)],
             frames_doubtful=list(self.doubtful),
             frames_at_walls=list(self.at_walls),
+            frames_suspect=list(self.suspect),
         )
