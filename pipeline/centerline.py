@@ -272,6 +272,7 @@ def fit_centerline(
     radius_mm: float,
     voxel_mm: float,
     n_points: int = 64,
+    cap: str = "flat",
 ) -> tuple[Centerline, TubeFit]:
     """The whole centreline step: hull -> ordered polyline -> tube fit -> spline.
 
@@ -286,6 +287,7 @@ def fit_centerline(
     radius_mm : first guess of the tube radius, mm.
     voxel_mm : voxel edge, mm.
     n_points : samples of the resulting curve.
+    cap : the tube's end, "flat" or "round" (a hemisphere around the axis' end).
 
     Returns
     -------
@@ -297,7 +299,9 @@ def fit_centerline(
         return centre_across(point, direction, cameras, contrasts, radius_mm=radius_mm)
 
     def fit(march: March, robust: bool = True) -> TubeFit:
-        return _fit_march(march.points_mm, cameras, masks, contrasts, radius_mm, voxel_mm, base_known, robust)
+        return _fit_march(
+            march.points_mm, cameras, masks, contrasts, radius_mm, voxel_mm, base_known, robust, cap
+        )
 
     scores: dict[int, tuple[TubeFit, float]] = {}
 
@@ -357,7 +361,7 @@ def fit_centerline(
         coverages = pixel_coverages(contrasts, masks)
 
         def mismatch(axes_mm: Sequence[FloatArray]) -> list[float]:
-            return coverage_mismatch(axes_mm, cameras, masks, contrasts, radius, coverages=coverages)
+            return coverage_mismatch(axes_mm, cameras, masks, contrasts, radius, coverages=coverages, cap=cap)
 
         def bend(axis_mm: FloatArray) -> FloatArray:
             # Only a bend that runs into the tube is refused, not one that comes
@@ -371,6 +375,7 @@ def fit_centerline(
                 radius,
                 rejects=lambda axis: self_intersects(axis, radius),
                 coverages=coverages,
+                cap=cap,
             )
 
         bent = bend(best.points_mm)
@@ -430,7 +435,9 @@ def fit_centerline(
 
         def refit(axis_mm: FloatArray) -> FloatArray:
             track = robust_track(axis_mm)
-            tube = fit_tube(track, cameras, contrasts, radius_mm=radius, base_fixed=base_known, masks=masks)
+            tube = fit_tube(
+                track, cameras, contrasts, radius_mm=radius, base_fixed=base_known, masks=masks, cap=cap
+            )
             return tube.points_mm
 
         # A tip that ends inside the stem may be a loop run the wrong way
@@ -688,6 +695,7 @@ def _fit_march(
     voxel_mm: float,
     base_known: bool,
     robust: bool = True,
+    cap: str = "flat",
 ) -> TubeFit:
     """A march's polyline -> trimmed, cut before the hull's overshoot, fitted tube."""
     if len(track) < 3:
@@ -712,6 +720,7 @@ def _fit_march(
         masks=masks,
         max_length_mm=hull_end,
         robust=robust,
+        cap=cap,
     )
 
 

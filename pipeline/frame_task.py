@@ -84,6 +84,22 @@ def _encode_jpeg(image: Image | None) -> bytes:
     return jpeg.tobytes() if ok else b""
 
 
+def decode_frames(paths: Sequence[Path], indices: Sequence[int]) -> list[tuple[int, list[Image]]]:
+    """(index, per camera grey image) of each frame of ``indices`` that every video provides."""
+    out = []
+    for index in indices:
+        images = []
+        for path in paths:
+            reader = read_frames(Path(path), index, index + 1, problems={})
+            images.append(next(reader, (index, None))[1])
+            close = getattr(reader, "close", None)  # release the decoder now, not at GC
+            if close is not None:
+                close()
+        if all(image is not None for image in images):
+            out.append((index, [image for image in images if image is not None]))
+    return out
+
+
 def _one_frame(
     index: int,
     images: Sequence[Image | None],

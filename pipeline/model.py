@@ -28,6 +28,9 @@ class SessionModel:
     settings: Settings
     grid: HullGrid
     backgrounds: tuple[NDArray[np.uint8] | None, ...]
+    # The tube's end the fit assumes, "flat" or "round": the settings' choice, or
+    # what pipeline.tip_shape chose from the session's frames for "auto".
+    tip: str = "flat"
 
 
 def build_model(session: Session) -> SessionModel:
@@ -37,4 +40,5 @@ def build_model(session: Session) -> SessionModel:
         settings=session.settings,
         grid=build_grid(session.cameras, session.settings.workspace),
         backgrounds=session.backgrounds,
+        tip=session.settings.manipulator.tip if session.settings.manipulator.tip != "auto" else "flat",
     )

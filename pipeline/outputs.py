@@ -42,6 +42,7 @@ class RunSummary:
         workspace box other than the base's (``quality.reaches_walls``), in order.
     frames_suspect : (frame index, reason) of "ok" frames whose curve may be wrong
         (``FrameResult.suspect_reason``), in order.
+    tip : the tube end the fit assumed, and how it was chosen ("" when not told).
     exit_code : 0 when every frame is ok or empty, 1 when some failed.
     """
 
@@ -54,6 +55,7 @@ class RunSummary:
     frames_doubtful: list[int] = field(default_factory=list)
     frames_at_walls: list[int] = field(default_factory=list)
     frames_suspect: list[tuple[int, str]] = field(default_factory=list)
+    tip: str = ""
 
     @property
     def exit_code(self) -> int:
@@ -67,6 +69,8 @@ class RunSummary:
             f"{len(self.frames_failed)} failed",
         ]
         out += [f"  failed {span}: {reason}" for span, reason in compress_failures(self.frames_failed)]
+        if self.tip:
+            out.append(f"  tube end: {self.tip}")
         if self.frames_suspect:
             first, why = self.frames_suspect[0]
             frames = [i for i, _ in self.frames_suspect]

@@ -22,9 +22,9 @@ from .hull import carve, voxel_centers_mm
 from .model import SessionModel
 from .model import build_model as build_model  # re-exported: build the model, then reconstruct frames
 from .ordering import infer_base
-from .quality import reprojection_iou, suspect_reason
+from .quality import misfit_fractions, reprojection_iou, suspect_reason
 from .silhouette import extract_silhouette
-from .tracking import predict_axis, track_tube
+from .tracking import TrackedFit, predict_axis, track_tube
 from .tube_fit import foreground_contrast
 
 # Fewer occupied voxels than this cannot hold a tube: the frame is "failed"
@@ -40,6 +40,18 @@ def frame_silhouettes(images: Sequence[NDArray[np.uint8]], model: SessionModel) 
     use_bg = sil.method == "background"
     return [
         extract_silhouette(image, sil, background=bg if use_bg else None)
+        for image, bg in zip(images, model.backgrounds, strict=True)
+    ]
+
+
+def frame_contrasts(images: Sequence[NDArray[np.uint8]], model: SessionModel) -> list[NDArray[np.float32]]:
+    """Per camera (H, W) float32 "how much tube" of one frame's grey images
+    (:func:`pipeline.tube_fit.foreground_contrast`), which the fit reads."""
+    sil = model.settings.silhouette
+    return [
+        foreground_contrast(
+            image, polarity=sil.polarity, background=bg if sil.method == "background" else None
+        )
         for image, bg in zip(images, model.backgrounds, strict=True)
     ]
 
@@ -161,23 +173,23 @@ def _curve_and_quality(
         curve = smooth_curve(_polyfit()(pts, base if known else None, n_points=n_points), n_points=n_points)
         radius, residual = radius_guess, float("nan")
     else:
-        contrasts = [
-            foreground_contrast(
-                image,
-                polarity=settings.silhouette.polarity,
-                background=bg if settings.silhouette.method == "background" else None,
-            )
-            for image, bg in zip(images, model.backgrounds, strict=True)
-        ]
+        contrasts = frame_contrasts(images, model)
         predicted = predict_axis(previous)
-        fit = None
-        if predicted is not None:
-            fit = track_tube(
-                predicted, cameras, masks, contrasts, radius_mm=previous[-1].radius_mm, base_known=known
+
+        def track(start_mm: NDArray[np.float64], radius_mm: float) -> TrackedFit:
+            return track_tube(
+                start_mm, cameras, masks, contrasts, radius_mm=radius_mm, base_known=known, cap=model.tip
             )
-            tracked = fit is not None
-        if fit is None:
-            _, fit = fit_centerline(
+
+        held = track(predicted, previous[-1].radius_mm) if predicted is not None else None
+        if held is not None and held.fit is not None and not held.lost:
+            fit, tracked = held.fit, True
+        else:
+            # A track starts here, or was lost: the tube from the hull, fitted
+            # again as a tracked frame would be; of that, the hull's own fit
+            # and the lost track's, the one that leaves least of the
+            # silhouettes unexplained.
+            _, init = fit_centerline(
                 pts,
                 cameras,
                 masks,
@@ -187,7 +199,16 @@ def _curve_and_quality(
                 radius_mm=radius_guess,
                 voxel_mm=settings.workspace.voxel_mm,
                 n_points=n_points,
+                cap=model.tip,
             )
+            options = [track(init.points_mm, init.radius_mm)]
+            if held is not None:
+                options.append(held)
+            if np.isfinite(init.radius_mm) and init.radius_mm > 0:
+                misfit = max(misfit_fractions(cameras, masks, init.points_mm, init.radius_mm))
+                options.append(TrackedFit(init, misfit, ""))
+            best = min(options, key=lambda o: o.misfit)
+            fit = best.fit if best.fit is not None else init
         curve = smooth_curve(fit.points_mm, n_points=n_points)
         radius, residual = fit.radius_mm, fit.residual_mm
     timings["centerline"] = time.perf_counter() - start
@@ -202,7 +223,8 @@ def _curve_and_quality(
         curve.points_mm,
         draw_radius,
         iou=iou,
-        predicted_mm=predicted,
+        # A prediction from a suspect frame says nothing of this one's.
+        predicted_mm=predicted if previous and not previous[-1].suspect else None,
         previous_length_mm=previous[-1].length_mm if previous else float("nan"),
     )
     timings["quality"] = time.perf_counter() - start

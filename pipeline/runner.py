@@ -25,7 +25,7 @@ from typing import Any
 
 from .errors import SessionError, SettingsError
 from .frame_result import FrameResult
-from .frame_task import FrameFunction, FrameOutput, encode_silhouette, process_range
+from .frame_task import FrameFunction, FrameOutput, decode_frames, encode_silhouette, process_range
 from .outputs import RunSummary, Writers, compress_failures, output_error, prepare_outputs
 from .session import Session
 from .tracking import SEGMENT_FRAMES, segment_start
@@ -270,10 +270,18 @@ def process_session(
         # spawn and import the per-frame modules while the parent builds the model.
         start_local_workers(n_jobs)
 
+    tip = ""
     if frame_fn is None:
         from .model import build_model
 
         model: Any = build_model(session)
+        settings = session.settings
+        if settings.manipulator.tip == "auto" and settings.centerline.method == "fit":
+            from .tip_shape import choose_tip, sample_frames
+
+            choice = choose_tip(model, decode_frames(session.video_paths, sample_frames(start, stop)))
+            model = dataclasses.replace(model, tip=choice.tip)
+            tip = choice.describe()
     else:
         model = session  # a replacement frame function gets the session as its model
     names = tuple(c.name for c in session.cameras)
@@ -330,7 +338,7 @@ def process_session(
         if backend == "loky":
             release_local_workers()
     wall = time.perf_counter() - t0
-    return writer.summary(wall)
+    return dataclasses.replace(writer.summary(wall), tip=tip)
 
 
 def _frame_span(session: Session, frames: tuple[int, int | None] | None) -> tuple[int, int]:

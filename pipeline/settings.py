@@ -19,6 +19,7 @@ from .errors import SettingsError
 SILHOUETTE_METHODS = ("threshold", "otsu", "background")
 POLARITIES = ("dark", "bright")
 CURVE_METHODS = ("fit", "polyfit")
+TIP_SHAPES = ("flat", "round", "auto")
 
 # A grid is refused when its per-session tables would not fit comfortably in memory.
 MAX_GRID_BYTES = 8 * 1024**3
@@ -62,6 +63,9 @@ class SilhouetteSettings:
 class ManipulatorSettings:
     base_mm: tuple[float, float, float] | None = (128.0, 128.0, 0.0)
     radius_mm: float | None = 6.0
+    # The tube's end: "flat" (cut square), "round" (a hemisphere, whose centre is the
+    # backbone's end) or "auto" (chosen once per session from its frames).
+    tip: str = "auto"
 
 
 @dataclass(frozen=True)
@@ -249,6 +253,10 @@ def _validate(s: Settings, source: str) -> None:
     r = s.manipulator.radius_mm
     if r is not None and r <= 0:
         raise SettingsError(f"{source}: [manipulator] radius_mm must be > 0, got {r}")
+    if s.manipulator.tip not in TIP_SHAPES:
+        raise SettingsError(
+            f"{source}: [manipulator] tip {s.manipulator.tip!r} unknown; use one of {TIP_SHAPES}"
+        )
     _check_base_in_workspace(s, source)
     if s.centerline.method not in CURVE_METHODS:
         raise SettingsError(

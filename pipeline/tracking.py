@@ -19,7 +19,7 @@ backend the run uses.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -45,6 +45,9 @@ WARMUP_FRAMES = 3
 TRACK_ROUNDS = 2
 # ... seeking the tube's peak this close to the prediction (radii).
 TRACK_SEEK_RADII = 0.6
+# A fit that moved farther than this many radii from its prediction is given as
+# many rounds again, from where it got to.
+TRACK_SETTLED_RADII = 0.5
 # With every part where the prediction puts it, the crowding test knows where
 # another part's blurred edges reach a sample's: two edges' worth, not one
 # (the margin pipeline.tube_fit.refit_body uses once a loop's tip is placed).
@@ -96,6 +99,21 @@ def predict_axis(previous: Sequence[FrameResult]) -> FloatArray | None:
     return axis
 
 
+@dataclass(frozen=True)
+class TrackedFit:
+    """A tube fitted from a prediction.
+
+    fit : the fitted tube; None where the fit found no radius.
+    misfit : the worst view's share of its silhouette the tube leaves
+        unexplained (:func:`pipeline.quality.misfit_fractions`); inf without a fit.
+    lost : why the track is lost here ("" where it holds).
+    """
+
+    fit: TubeFit | None
+    misfit: float
+    lost: str
+
+
 def track_tube(
     predicted_mm: FloatArray,
     cameras: Sequence[Camera],
@@ -105,40 +123,46 @@ def track_tube(
     radius_mm: float,
     base_known: bool,
     cap: str = "flat",
-) -> TubeFit | None:
-    """The tube fitted from its prediction (N, 3) mm, or None where the track is lost.
+) -> TrackedFit:
+    """The tube fitted from its prediction (N, 3) mm, and whether the track holds.
 
-    A few rounds of :func:`pipeline.tube_fit.fit_tube` from the prediction; the
-    track is lost (the caller initialises again from the hull) where the fit
-    leaves part of a silhouette unexplained, passes through itself, or jumped
-    from the prediction (``LOST_*``).
+    A few rounds of :func:`pipeline.tube_fit.fit_tube` from the prediction,
+    seeking the tube's sides near it; where the tip then lies against another
+    part in some view, whose edges pull its side readings, the tip is placed by
+    the grey levels instead (:func:`pipeline.tube_tip.bend_tip_to_pixels`).
+    The track is lost (the caller initialises again from the hull) where the
+    fit leaves part of a silhouette unexplained, passes through itself, or
+    jumped from the prediction (``LOST_*``). ``cap``: the tube's end, "flat"
+    or "round".
     """
     if not (np.isfinite(radius_mm) and radius_mm > 0):
-        return None
-    fit = fit_tube(
-        predicted_mm,
-        cameras,
-        contrasts,
-        radius_mm=radius_mm,
-        base_fixed=base_known,
-        masks=masks,
-        iterations=TRACK_ROUNDS,
-        cap=cap,
-        seek_radii=TRACK_SEEK_RADII,
-        crowd_margin_px=TRACK_CROWD_MARGIN_PX,
-    )
+        return TrackedFit(None, np.inf, "no radius to track")
+
+    def rounds(start_mm: FloatArray, radius: float) -> TubeFit:
+        return fit_tube(
+            start_mm,
+            cameras,
+            contrasts,
+            radius_mm=radius,
+            base_fixed=base_known,
+            masks=masks,
+            iterations=TRACK_ROUNDS,
+            cap=cap,
+            seek_radii=TRACK_SEEK_RADII,
+            crowd_margin_px=TRACK_CROWD_MARGIN_PX,
+        )
+
+    fit = rounds(predicted_mm, radius_mm)
+    if (
+        np.isfinite(fit.radius_mm)
+        and axis_gap_mm(fit.points_mm, predicted_mm) > TRACK_SETTLED_RADII * radius_mm
+    ):
+        # A prediction this far off (fast motion) has not settled in a few rounds.
+        fit = rounds(fit.points_mm, fit.radius_mm)
     radius = fit.radius_mm
     if not (np.isfinite(radius) and radius > 0) or len(fit.points_mm) < 3:
-        return None
-    if max(misfit_fractions(cameras, masks, fit.points_mm, radius)) > LOST_MISFIT:
-        return None
-    if self_intersects(fit.points_mm, radius, closest_radii=LOST_CLOSEST_RADII):
-        return None
-    if axis_gap_mm(fit.points_mm, predicted_mm) > LOST_JUMP_RADII * radius:
-        return None
+        return TrackedFit(None, np.inf, "the fit read no tube")
     if tip_meets_tube(fit.points_mm, cameras, radius):
-        # The tip lies against another part in some views, whose edges pull its
-        # side readings: it is placed by the grey levels instead.
         bent = bend_tip_to_pixels(
             fit.points_mm,
             cameras,
@@ -147,6 +171,15 @@ def track_tube(
             radius,
             rejects=lambda axis: self_intersects(axis, radius),
             steps_mm=TRACK_BEND_STEPS_MM,
+            cap=cap,
         )
         fit = replace(fit, points_mm=bent)
-    return fit
+    misfit = max(misfit_fractions(cameras, masks, fit.points_mm, radius))
+    lost = ""
+    if misfit > LOST_MISFIT:
+        lost = "leaves part of a silhouette unexplained"
+    elif self_intersects(fit.points_mm, radius, closest_radii=LOST_CLOSEST_RADII):
+        lost = "passes through itself"
+    elif axis_gap_mm(fit.points_mm, predicted_mm) > LOST_JUMP_RADII * radius:
+        lost = "jumped from its prediction"
+    return TrackedFit(fit, misfit, lost)

@@ -139,7 +139,7 @@ def fit_tube(
     iterations : Gauss-Newton rounds (each re-reads the images).
     smoothness : weight of the second difference of the corrections, relative to
         one camera's reading of one sample.
-    cap : shape of the tube's end, "hemisphere" or "flat": how far its silhouette
+    cap : shape of the tube's end, "flat" or "round" (a hemisphere): how far its silhouette
         reaches past the axis' end.
     masks : per camera (H, W) bool silhouettes, if known: they let a view whose
         end is hidden in another part of the tube still place it (see

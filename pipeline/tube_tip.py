@@ -195,7 +195,7 @@ def refit_tip(
             if len(read) and _min_distance(others_px, read) < radius_mm * px_per_mm + 1.0:
                 edge = None
         if edge is not None:
-            cap_mm = radius_mm / sin_view if cap == "hemisphere" else radius_mm * cos_view / sin_view
+            cap_mm = radius_mm / sin_view if cap == "round" else radius_mm * cos_view / sin_view
             estimates.append(edge - cap_mm)
             weights.append(sin_view**2)
         elif masks is not None:
@@ -206,7 +206,7 @@ def refit_tip(
                 # A disc centred on the axis' end reaches r past it, a flat
                 # end's outline r cos / sin (along the line, in mm): the
                 # difference, in mm along the line.
-                extra = 0.0 if cap == "hemisphere" else radius_mm * (1.0 - cos_view) / sin_view
+                extra = 0.0 if cap == "round" else radius_mm * (1.0 - cos_view) / sin_view
                 estimates.append(stop + extra - lead)
                 weights.append(_PIXEL_WEIGHT * sin_view**2)
     shift = _weighted_median(np.asarray(estimates), np.asarray(weights)) if estimates else 0.0
@@ -228,6 +228,7 @@ def bend_tip_to_pixels(
     steps_mm: Sequence[float] = _BEND_STEPS_MM,
     rejects: Callable[[FloatArray], bool] | None = None,
     coverages: Sequence[NDArray[np.float32]] | None = None,
+    cap: str = "flat",
 ) -> FloatArray:
     """The curve with its last few radii bent and lengthened to match the views' pixels.
 
@@ -256,6 +257,7 @@ def bend_tip_to_pixels(
     rejects : a bent axis (K, 3) this returns True for is not taken (a tube
         that passes through itself, say).
     coverages : the views' :func:`pixel_coverages`, if already read.
+    cap : the tube's end, "flat" or "round" (a hemisphere around the axis' end).
 
     Returns
     -------
@@ -265,7 +267,7 @@ def bend_tip_to_pixels(
     # The grey levels read as coverage once for all the spans.
     seen = pixel_coverages(contrasts, masks) if coverages is None else coverages
     for span in spans_radii:
-        pts = _bend_once(pts, cameras, seen, radius_mm, span * radius_mm, rejects, steps_mm)
+        pts = _bend_once(pts, cameras, seen, radius_mm, span * radius_mm, rejects, steps_mm, cap == "flat")
     return pts
 
 
@@ -277,6 +279,7 @@ def _bend_once(
     span_mm: float,
     rejects: Callable[[FloatArray], bool] | None,
     steps_mm: Sequence[float],
+    flat_end: bool,
 ) -> FloatArray:
     """One search of :func:`bend_tip_to_pixels`, bending the last ``span_mm``;
     ``coverages``: per camera, (H, W) float32 from :func:`_coverage`."""
@@ -344,7 +347,7 @@ def _bend_once(
         if np.hypot(p[0], p[1]) > _MAX_BEND_RADII * radius_mm or abs(p[2]) > _MAX_BEND_RADII * radius_mm:
             return np.inf
         bent = bender(p[:2], float(p[2]))
-        discs, outline = _tube_points(bent[first:], radius_mm, flat_end=True)
+        discs, outline = _tube_points(bent[first:], radius_mm, flat_end=flat_end)
         # Projected in all views in one go (the same pixels as view by view).
         pixels = project_in_views(view_cameras, np.vstack([discs, outline]))
         parts = [0.0] * len(windows)
@@ -433,6 +436,7 @@ def coverage_mismatch(
     radius_mm: float,
     *,
     coverages: Sequence[NDArray[np.float32]] | None = None,
+    cap: str | Sequence[str] = "flat",
 ) -> list[float]:
     """How far each of several tubes is from the views' grey levels: one cost each.
 
@@ -451,12 +455,14 @@ def coverage_mismatch(
         silhouette and (H, W) float32 foreground contrast.
     radius_mm : tube radius, mm (the same for all).
     coverages : the views' :func:`pixel_coverages`, if already read.
+    cap : the tubes' end, "flat" or "round"; or one per axis.
 
     Returns
     -------
     One cost per axis (squared coverage, summed over pixels: lower is better).
     """
     costs = [0.0] * len(axes_mm)
+    caps = [cap] * len(axes_mm) if isinstance(cap, str) else list(cap)
     if coverages is None:
         coverages = pixel_coverages(contrasts, masks)
     for cam, coverage in zip(cameras, coverages, strict=True):
@@ -468,7 +474,8 @@ def coverage_mismatch(
         seen = coverage[y0:y1, x0:x1]
         for n, axis in enumerate(axes_mm):
             canvas = np.zeros(((y1 - y0) * _SUPERSAMPLE, (x1 - x0) * _SUPERSAMPLE), np.uint8)
-            _draw_tube(canvas, cam, *_tube_points(axis, radius_mm, flat_end=True), radius_mm, (x0, y0))
+            points = _tube_points(axis, radius_mm, flat_end=caps[n] == "flat")
+            _draw_tube(canvas, cam, *points, radius_mm, (x0, y0))
             costs[n] += _squared_difference(canvas, seen)
     return costs
 
