@@ -23,6 +23,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import pyarrow as pa
 import pytest
 from conftest import build_session, write_video
 
@@ -429,6 +430,22 @@ def test_end_to_end_mcap_converts_to_a_valid_rrd_with_points(
         and "Points3D:positions" in chunk.to_record_batch().schema.names
     )
     assert rows == E2E_FRAMES  # one point cloud per frame, as Points3D
+    # The centreline comes through as its ordered samples, base first, one row per frame.
+    rec = load_recording(out / "demo.mcap")
+    entity = "/reconstruction/centerline_points"
+    table = (
+        RrdReader(converted)
+        .stream()
+        .collect()
+        .reader(index="message_log_time", contents=entity)
+        .to_arrow_table()
+    )
+    times_ns = table.column("message_log_time").cast(pa.int64()).to_pylist()
+    samples = dict(zip(times_ns, table.column(f"{entity}:Points3D:positions").to_pylist(), strict=True))
+    assert sorted(samples) == rec.timestamps_ns.tolist()
+    for row, time_ns in enumerate(rec.timestamps_ns.tolist()):
+        # Rerun keeps float32 metres: ~1e-8 m at 0.3 m.
+        np.testing.assert_allclose(samples[time_ns], rec.centerlines_m[row], atol=1e-7)
 
 
 def test_the_summary_names_doubtful_frames_and_a_run_without_any_tube() -> None:
