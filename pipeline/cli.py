@@ -93,7 +93,10 @@ def _cmd_process(args: argparse.Namespace) -> int:
     if args.json == "-":
         print(json.dumps(summary.to_dict(), indent=2))
     elif args.json is not None:
-        Path(args.json).write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
+        try:
+            Path(args.json).write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
+        except OSError as exc:  # the recordings are written; only the summary file is lost
+            raise OutputError(f"{args.json}: cannot write the JSON summary ({exc.strerror or exc})") from None
     return summary.exit_code
 
 
