@@ -22,4 +22,4 @@ def _exit(code: int) -> None:
     os._exit(code)
 
 
-_exit(main())
+_exit(main(prog="python -m pipeline"))

@@ -3,25 +3,50 @@
 Each subcommand parses its arguments and calls one library function. A
 :class:`PipelineError` becomes one line on stderr and exit status 2; anything
 else is a bug: one line and exit status 3, its traceback only with ``--debug``.
+Global options (``--debug``) are accepted before or after the subcommand.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
+import os
 import sys
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import NoReturn
 
-from .errors import PipelineError
+from .errors import OutputError, PipelineError
 
 log = logging.getLogger("pipeline")
 
 EXIT_OK, EXIT_FRAMES_FAILED, EXIT_BAD_INPUT, EXIT_INTERNAL_ERROR = 0, 1, 2, 3
+# How the program names itself in usage and error lines: the console script's name;
+# ``python -m pipeline`` passes its own (pipeline.__main__).
+PROG = "pipeline"
+# Where a run's wall time starts when the OS cannot tell when this process started.
+_IMPORTED_AT = time.perf_counter()
+
+
+def _process_started_at() -> float:
+    """The ``time.perf_counter()`` reading of this process's start, so that a run's wall
+    time includes the interpreter's start and the imports (~1 s of a 9 s run); the time
+    of this module's import where the OS does not say (not Linux)."""
+    try:
+        with open("/proc/self/stat", encoding="ascii") as f:
+            # Field 22, starttime, in clock ticks since boot; counted after the ")" that
+            # closes field 2 (the command name, which may hold spaces).
+            start_ticks = int(f.read().rsplit(")", 1)[1].split()[19])
+        age_s = time.clock_gettime(time.CLOCK_BOOTTIME) - start_ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, AttributeError):
+        return _IMPORTED_AT
+    return time.perf_counter() - max(0.0, age_s)
 
 
 def _frame_range(text: str) -> tuple[int, int | None]:
+    """START:STOP -> (START, STOP): frames START <= i < STOP; either may be left out."""
     start, sep, stop = text.partition(":")
     try:
         lo = int(start) if start else 0
@@ -36,8 +61,13 @@ def _frame_range(text: str) -> tuple[int, int | None]:
 def _cmd_process(args: argparse.Namespace) -> int:
     from .workers import started_early
 
+    started_at = _process_started_at()
+    if args.json not in (None, "-"):
+        _check_json_path(Path(args.json))
+    # --scheduler names a Dask scheduler: it implies --backend dask (checked in main).
+    backend = args.backend or ("dask" if args.scheduler else "loky")
     # The workers spawn and import while this process loads the session and model.
-    with started_early(args.jobs, args.backend):
+    with started_early(args.jobs, backend):
         from .runner import process_session
         from .session import load_session
 
@@ -46,17 +76,38 @@ def _cmd_process(args: argparse.Namespace) -> int:
             session,
             out_dir=args.out,
             jobs=args.jobs,
-            backend=args.backend,
+            backend=backend,
             scheduler=args.scheduler,
             frames=args.frames,
             images=not args.no_images,
             force=args.force,
             curve=args.curve,
             progress=sys.stderr.isatty(),
+            started_at=started_at,
         )
+    # The failures and warnings go to stderr, where scripts and logs look for them; the rest
+    # to stdout, unless stdout carries the JSON summary.
+    problems = set(summary.problem_lines())
     for line in summary.lines():
-        print(line)
+        print(line, file=sys.stderr if line in problems or args.json == "-" else sys.stdout)
+    if args.json == "-":
+        print(json.dumps(summary.to_dict(), indent=2))
+    elif args.json is not None:
+        try:
+            Path(args.json).write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
+        except OSError as exc:  # the recordings are written; only the summary file is lost
+            raise OutputError(f"{args.json}: cannot write the JSON summary ({exc.strerror or exc})") from None
     return summary.exit_code
+
+
+def _check_json_path(path: Path) -> None:
+    """Before the run: the JSON summary can be written to ``path`` (its folder exists)."""
+    if path.is_dir():
+        raise OutputError(f"{path}: is a directory; give --json a file name (or - for stdout)")
+    if not path.parent.is_dir():
+        raise OutputError(
+            f"{path}: folder {path.parent} does not exist; give --json a file in an existing one"
+        )
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
@@ -127,38 +178,82 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_BAD_INPUT, f"error: {self.prog}: {message} (see {self.prog} --help)\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("pipeline")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown version"
+
+
+def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     parser = _Parser(
-        prog="python -m pipeline",
-        description="3-D centreline of a continuum manipulator from three calibrated cameras.",
+        prog=prog,
+        description="3-D centreline of a continuum manipulator from three calibrated cameras. "
+        "Geometry in millimetres in the world frame of calibration.toml (metres in the .mcap); "
+        "frame ranges START:STOP include START and exclude STOP.",
+        epilog=f"Global options may also follow the command. '{prog} COMMAND --help' for a command's "
+        "options. Exit status: 0 done; 1 some frames failed, or no tube in any frame; 2 bad input; "
+        "3 internal error (a bug); 130 interrupted.",
     )
     parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    # The same global options on every subcommand, so that they may also follow it. SUPPRESS:
+    # left out after the subcommand, they do not reset what was given before it.
+    common = _Parser(add_help=False)
+    common.add_argument(
+        "--debug", action="store_true", default=argparse.SUPPRESS, help="show tracebacks and debug logging"
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser(
         "process",
+        parents=[common],
         help="reconstruct every frame of a session into .mcap and .rrd",
         description="Decode the session's videos, reconstruct every frame in parallel and write "
-        "OUT/<session>.mcap and OUT/<session>.rrd. Exit 0: all frames ok or empty; "
-        "1: some frames failed; 2: bad input (nothing written).",
+        "OUT/<session>.mcap and OUT/<session>.rrd, then a summary (failures and warnings on "
+        "stderr). Exit 0: all frames ok or empty, some tube found; 1: some frames failed, or no "
+        "tube in any frame; 2: bad input (nothing written).",
     )
     p.add_argument("video_dir", type=Path, help="session directory: calibration.toml + one video per camera")
     p.add_argument(
-        "--out", type=Path, default=Path("recordings"), help="output directory (default: recordings)"
+        "-o", "--out", type=Path, default=Path("recordings"), help="output directory (default: recordings)"
     )
-    p.add_argument("--jobs", type=int, default=-1, help="parallel workers; -1 = one per core (default)")
+    p.add_argument(
+        "-j",
+        "--jobs",
+        type=int,
+        default=-1,
+        help="parallel workers; -1 = one per core (default), -2 = all cores but one",
+    )
     p.add_argument(
         "--backend",
         choices=("loky", "threading", "dask"),
-        default="loky",
-        help="joblib backend: loky = local processes (default), threading, dask = a Dask cluster",
+        default=None,
+        help="joblib backend: loky = local processes (default), threading, dask = a Dask cluster "
+        "(--scheduler's, or a local one)",
     )
     p.add_argument(
         "--scheduler",
         metavar="ADDRESS",
-        help="Dask scheduler address, e.g. tcp://host:8786 (with --backend dask)",
+        help="Dask scheduler address, e.g. tcp://host:8786; implies --backend dask",
     )
-    p.add_argument("--frames", type=_frame_range, metavar="START:STOP", help="process only these frames")
+    p.add_argument(
+        "--frames",
+        type=_frame_range,
+        metavar="START:STOP",
+        help="process only frames START <= i < STOP (STOP excluded, counted from 0); "
+        "START or STOP may be left out: 100: or :300",
+    )
+    p.add_argument(
+        "--json",
+        nargs="?",
+        const="-",
+        metavar="FILE",
+        help="also write the run's summary as JSON to FILE, or to stdout with - or no FILE "
+        "(the text summary then goes to stderr)",
+    )
     p.add_argument(
         "--no-images",
         action="store_true",
@@ -171,12 +266,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="centreline method: fit (ours, default) or polyfit (the original method, a baseline)",
     )
-    p.set_defaults(func=_cmd_process)
+    p.set_defaults(func=_cmd_process, usage_error=p.error)
 
     from .synth_names import SHAPES
 
     p = sub.add_parser(
         "synth",
+        parents=[common],
         help="render a synthetic three-camera session with ground truth",
         description="Render a session directory (calibration.toml, three videos, session.toml, "
         "backgrounds) of a moving tube, plus OUT_DIR/ground_truth.npz.",
@@ -197,6 +293,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "synth-calib",
+        parents=[common],
         help="render chessboard or ChArUco calibration images for the synthetic rig",
         description="Write OUT_DIR/<camera>/intrinsics/*.png, OUT_DIR/<camera>/world.png, "
         "OUT_DIR/board.toml and the true cameras as OUT_DIR/truth_calibration.toml.",
@@ -215,6 +312,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "calibrate",
+        parents=[common],
         help="calibrate the cameras from board images into calibration.toml",
         description="Read CALIB_DIR/<camera>/intrinsics/* and CALIB_DIR/<camera>/world.*, calibrate "
         "every camera into the world frame of the board in world.*, and write calibration.toml "
@@ -244,6 +342,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "evaluate",
+        parents=[common],
         help="accuracy of a recording against ground truth",
         description="Compare the centrelines in RECORDING.mcap with GROUND_TRUTH.npz (or a session "
         "directory holding ground_truth.npz): centreline, tip, base and length errors, jitter.",
@@ -255,9 +354,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
+    parser = build_parser(prog)
     args = parser.parse_args(argv)
+    if getattr(args, "scheduler", None) and args.backend not in (None, "dask"):
+        args.usage_error(f"--scheduler runs on a Dask cluster: drop --backend {args.backend}, or use dask")
     logging.basicConfig(
         level=logging.DEBUG if args.debug else logging.INFO,
         format="%(levelname)s: %(message)s",

@@ -43,7 +43,7 @@ class RunSummary:
     frames_suspect : (frame index, reason) of "ok" frames whose curve may be wrong
         (``FrameResult.suspect_reason``), in order.
     tip : the tube end the fit assumed, and how it was chosen ("" when not told).
-    exit_code : 0 when every frame is ok or empty, 1 when some failed.
+    exit_code : 0 when every frame is ok or empty, 1 when some failed or none holds a tube.
     """
 
     frames_ok: int
@@ -58,19 +58,32 @@ class RunSummary:
     tip: str = ""
 
     @property
+    def frames_total(self) -> int:
+        return self.frames_ok + self.frames_empty + len(self.frames_failed)
+
+    @property
     def exit_code(self) -> int:
-        return 1 if self.frames_failed else 0
+        # A run that found no tube anywhere produced nothing to analyse: not a success.
+        return 1 if self.frames_failed or self.frames_ok == 0 else 0
 
     def lines(self) -> list[str]:
-        """The closing summary, one line per fact."""
-        total = self.frames_ok + self.frames_empty + len(self.frames_failed)
+        """The closing summary, one line per fact; :meth:`problem_lines` among them."""
+        total = self.frames_total
         out = [
             f"frames: {total} processed, {self.frames_ok} ok, {self.frames_empty} empty, "
             f"{len(self.frames_failed)} failed",
         ]
-        out += [f"  failed {span}: {reason}" for span, reason in compress_failures(self.frames_failed)]
         if self.tip:
             out.append(f"  tube end: {self.tip}")
+        out += self.problem_lines()
+        out.append(f"time: {self.wall_s:.1f} s wall, {self.fps:.1f} frames/s")
+        out += [f"wrote {path} ({_human_size(size)})" for path, size in self.outputs]
+        return out
+
+    def problem_lines(self) -> list[str]:
+        """The summary's failure and warning lines: failed frames, suspect frames, doubtful
+        frames, frames at the walls, no tube found."""
+        out = [f"  failed {span}: {reason}" for span, reason in compress_failures(self.frames_failed)]
         if self.frames_suspect:
             first, why = self.frames_suspect[0]
             frames = [i for i, _ in self.frames_suspect]
@@ -91,14 +104,36 @@ class RunSummary:
                 "where the tube may go on out of sight and its curve end short: enlarge [workspace] "
                 "size_mm, or move origin_mm"
             )
-        if total and self.frames_empty == total:
+        if self.frames_ok == 0 and self.frames_empty:
             out.append(
                 "  no tube in any frame: check [silhouette] polarity (dark or bright tube) and "
                 "threshold in session.toml"
             )
-        out.append(f"time: {self.wall_s:.1f} s wall, {self.fps:.1f} frames/s")
-        out += [f"wrote {path} ({_human_size(size)})" for path, size in self.outputs]
         return out
+
+    def to_dict(self) -> dict[str, Any]:
+        """The summary as JSON-ready data (``process --json``): the counts, the failed frames
+        with their reasons, the suspect frames with theirs, the doubtful frames and those at
+        the walls, the tube end assumed, the problem lines,
+        wall time (s), frames per second, the outputs (path, bytes) and the exit status."""
+        return {
+            "frames": {
+                "processed": self.frames_total,
+                "ok": self.frames_ok,
+                "empty": self.frames_empty,
+                "failed": len(self.frames_failed),
+            },
+            "failed": [{"frame": index, "reason": reason} for index, reason in self.frames_failed],
+            "suspect": [{"frame": index, "reason": reason} for index, reason in self.frames_suspect],
+            "doubtful": list(self.frames_doubtful),
+            "at_walls": list(self.frames_at_walls),
+            "tip": self.tip,
+            "problems": [line.strip() for line in self.problem_lines()],
+            "wall_s": self.wall_s,
+            "fps": self.fps,
+            "outputs": [{"path": str(path), "bytes": size} for path, size in self.outputs],
+            "exit_code": self.exit_code,
+        }
 
 
 # Frame spans a summary line (doubtful frames, frames at the walls) lists before "...".

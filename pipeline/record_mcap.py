@@ -9,6 +9,10 @@ Topics (log_time = publish_time = the frame's timestamp, ns since the Unix epoch
 - ``/reconstruction/points``       foxglove.PointCloud, occupied voxel centres (x, y, z float32)
 - ``/reconstruction/centerline``   foxglove.SceneUpdate, entity "centerline", one LINE_STRIP base -> tip
 - ``/reconstruction/centerline_smoothed``  the same after temporal smoothing (written at the end)
+- ``/reconstruction/centerline_points``, ``/reconstruction/centerline_smoothed_points``  foxglove.PointCloud,
+  the same curves as their ordered samples (x, y, z float64, red, green, blue, alpha uint8), base
+  first; no points where a frame has no curve. Tools that convert PointCloud but not SceneUpdate
+  (Rerun's MCAP importer) keep the result this way.
 - ``/reconstruction/metrics``      JSON (jsonschema :data:`METRICS_SCHEMA`), one message per frame,
   written last for its frame so a frame whose metrics survive a truncation has all its messages
 - ``/tf``                          foxglove.FrameTransforms, world -> each camera (static, first frame)
@@ -52,6 +56,8 @@ WORLD_FRAME = "world"
 POINTS_TOPIC = "/reconstruction/points"
 CENTERLINE_TOPIC = "/reconstruction/centerline"
 SMOOTHED_TOPIC = "/reconstruction/centerline_smoothed"
+CENTERLINE_POINTS_TOPIC = "/reconstruction/centerline_points"
+SMOOTHED_POINTS_TOPIC = "/reconstruction/centerline_smoothed_points"
 METRICS_TOPIC = "/reconstruction/metrics"
 TF_TOPIC = "/tf"
 CENTERLINE_ENTITY = "centerline"
@@ -67,6 +73,16 @@ _POINT_FIELDS = tuple(
     for i, axis in enumerate("xyz")
 )
 _POINT_STRIDE = 12
+# A centreline sample: float64 x, y, z metres (the curves' own precision, as in the SceneUpdate),
+# then its colour as four uint8, which Foxglove and Rerun both read from these field names.
+_SAMPLE_DTYPE = np.dtype([("xyz_m", "<f8", 3), ("rgba", "u1", 4)])
+_SAMPLE_FIELDS = tuple(
+    PackedElementField(name=axis, offset=8 * i, type=PackedElementField.FLOAT64)
+    for i, axis in enumerate("xyz")
+) + tuple(
+    PackedElementField(name=channel, offset=24 + i, type=PackedElementField.UINT8)
+    for i, channel in enumerate(("red", "green", "blue", "alpha"))
+)
 _CENTERLINE_COLOR = Color(r=1.0, g=0.55, b=0.0, a=1.0)
 _SMOOTHED_COLOR = Color(r=0.2, g=0.6, b=1.0, a=1.0)
 _CENTERLINE_THICKNESS_M = 0.004
@@ -201,6 +217,24 @@ def point_cloud(points_mm: NDArray[np.float32], time_ns: int) -> PointCloud:
     )
 
 
+def centerline_cloud(curve_mm: NDArray[np.float64] | None, time_ns: int, color: Color) -> PointCloud:
+    """(N, 3) centreline samples (world frame, mm, base first) -> a PointCloud of them in that
+    order, in metres and ``color``; no points when ``curve_mm`` is None or not finite."""
+    if curve_mm is None or not np.isfinite(curve_mm).all():
+        curve_mm = np.zeros((0, 3))
+    samples = np.zeros(len(curve_mm), _SAMPLE_DTYPE)
+    samples["xyz_m"] = _metres(curve_mm)
+    samples["rgba"] = [round(255 * c) for c in (color.r, color.g, color.b, color.a)]
+    return PointCloud(
+        timestamp=_timestamp(time_ns),
+        frame_id=WORLD_FRAME,
+        pose=_identity_pose(),
+        point_stride=_SAMPLE_DTYPE.itemsize,
+        fields=_SAMPLE_FIELDS,
+        data=samples.tobytes(),
+    )
+
+
 def camera_transform(camera: Camera, time_ns: int) -> FrameTransform:
     """world -> camera as Foxglove expects it: the camera's pose in the world frame.
 
@@ -327,6 +361,7 @@ class McapRecorder:
         self._write(
             CENTERLINE_TOPIC, _line_update(curve, time_ns, CENTERLINE_ENTITY, _CENTERLINE_COLOR), time_ns
         )
+        self._write(CENTERLINE_POINTS_TOPIC, centerline_cloud(curve, time_ns, _CENTERLINE_COLOR), time_ns)
         metrics = json.dumps(frame_metrics(result, self._names), allow_nan=False).encode()
         self._writer.add_message(
             channel_id=self._json_channel(METRICS_TOPIC), log_time=time_ns, publish_time=time_ns, data=metrics
@@ -337,6 +372,8 @@ class McapRecorder:
         for curve, time_ns in zip(centerlines_mm, times_ns, strict=True):
             update = _line_update(curve, int(time_ns), SMOOTHED_ENTITY, _SMOOTHED_COLOR)
             self._write(SMOOTHED_TOPIC, update, int(time_ns))
+            cloud = centerline_cloud(curve, int(time_ns), _SMOOTHED_COLOR)
+            self._write(SMOOTHED_POINTS_TOPIC, cloud, int(time_ns))
 
     def finish(self) -> None:
         """Write the summary section and footer; the sink stays open."""

@@ -6,9 +6,12 @@ recording whose writer was killed mid-write is read up to its last complete chun
 Example::
 
     rec = pipeline.load_recording("recordings/demo.mcap")
-    ok = rec.statuses == "ok"
+    table = rec.metrics_table()                   # (F,) NumPy columns, one per metric
+    ok = table["status"] == "ok"
     tips_m = rec.centerlines_m[ok, -1]            # (F_ok, 3) tip positions, metres
-    print(rec.frame_indices[ok][:5], tips_m[:5])
+    print(table["frame"][ok][:5], tips_m[:5], table["iou/cam0"][ok].min())
+
+Other MCAP readers decode the metrics channel (JSON) with :class:`JsonDecoderFactory`.
 """
 
 from __future__ import annotations
@@ -16,15 +19,18 @@ from __future__ import annotations
 import json
 import logging
 import struct
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import zstandard
+from mcap.decoder import DecoderFactory as McapDecoderFactory
 from mcap.exceptions import McapError
 from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader
+from mcap.well_known import MessageEncoding
 from mcap_protobuf.decoder import DecoderFactory
 from numpy.typing import NDArray
 
@@ -32,6 +38,7 @@ from .errors import RecordingError
 from .record_mcap import (
     CENTERLINE_TOPIC,
     METADATA_NAME,
+    METRICS_SCHEMA,
     METRICS_TOPIC,
     POINTS_TOPIC,
     SMOOTHED_TOPIC,
@@ -72,6 +79,82 @@ class Recording:
 
     def __len__(self) -> int:
         return len(self.frame_indices)
+
+    def metrics_table(self) -> dict[str, NDArray[Any]]:
+        """The per-frame metrics as columns, each an (F,) array in frame order.
+
+        ``timestamp_ns``, ``frame`` and ``voxel_count`` int64; ``status`` and ``reason``
+        str; ``length_m``, ``mean_curvature_per_m``, ``radius_m``, ``fit_residual_m``
+        float64; nested figures under ``key/name``: ``tip_m/x`` (``/y``, ``/z``),
+        ``iou/<camera>``, ``timings_s/<stage>``. NaN where a figure is unknown (null in
+        the file, or absent from a frame). ``pandas.DataFrame(rec.metrics_table())``
+        makes it a data frame.
+        """
+        names = dict.fromkeys(_schema_columns(self.camera_names))
+        rows = [_flatten(m) for m in self.metrics]
+        for row in rows:
+            names.update(dict.fromkeys(row))
+        table = {"timestamp_ns": self.timestamps_ns.copy()}
+        table.update({name: _column([row.get(name) for row in rows]) for name in names})
+        return table
+
+
+class JsonDecoderFactory(McapDecoderFactory):
+    """Decodes JSON channels, such as ``/reconstruction/metrics``, into dicts for the plain
+    mcap reader, which has no JSON decoder of its own::
+
+        from mcap.reader import make_reader
+        from mcap_protobuf.decoder import DecoderFactory
+        from pipeline.recording import JsonDecoderFactory
+
+        with open("recordings/demo.mcap", "rb") as f:
+            reader = make_reader(f, decoder_factories=[DecoderFactory(), JsonDecoderFactory()])
+            for _, _, _, metrics in reader.iter_decoded_messages(topics=["/reconstruction/metrics"]):
+                print(metrics["frame"], metrics["iou"])
+    """
+
+    def decoder_for(self, message_encoding: str, schema: Schema | None) -> Callable[[bytes], Any] | None:
+        return json.loads if message_encoding == MessageEncoding.JSON else None
+
+
+def _schema_columns(camera_names: Sequence[str]) -> list[str]:
+    """The metrics' columns every recording has, whatever its frames hold (in schema order)."""
+    names: list[str] = []
+    for key in METRICS_SCHEMA["properties"]:
+        if key == "tip_m":
+            names += [f"{key}/{axis}" for axis in "xyz"]
+        elif key == "iou":
+            names += [f"{key}/{name}" for name in camera_names]
+        elif key != "timings_s":  # its stages are whatever the frames recorded
+            names.append(key)
+    return names
+
+
+def _flatten(metrics: dict[str, Any]) -> dict[str, Any]:
+    """One frame's metrics with nested figures under ``key/name`` (``tip_m/x``, ``iou/cam0``)."""
+    flat: dict[str, Any] = {}
+    for key, value in metrics.items():
+        if isinstance(value, dict):
+            flat.update({f"{key}/{name}": v for name, v in value.items()})
+        elif isinstance(value, list):
+            flat.update({f"{key}/{axis}": v for axis, v in zip("xyz", value, strict=False)})
+        elif value is not None:  # unknown: left out, as absent figures are (NaN in the column)
+            flat[key] = value
+    return flat
+
+
+def _column(values: list[Any]) -> NDArray[Any]:
+    """A column's values (None where unknown) -> bool, int64 or str when every value is one
+    of those, str with "" for a missing string; otherwise float64 with NaN for unknown."""
+    known = [v for v in values if v is not None]
+    complete = len(known) == len(values)
+    if known and all(isinstance(v, str) for v in known):
+        return np.array([v if v is not None else "" for v in values], dtype=np.str_)
+    if complete and known and all(isinstance(v, bool) for v in known):
+        return np.array(values, dtype=bool)
+    if complete and known and all(isinstance(v, int) and not isinstance(v, bool) for v in known):
+        return np.array(values, dtype=np.int64)
+    return np.array([np.nan if v is None else float(v) for v in values], dtype=np.float64)
 
 
 # What a truncated or torn file raises while its records are parsed.

@@ -17,6 +17,7 @@ import logging
 import math
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -57,6 +58,7 @@ MAX_RANGE_FRAMES = 3 * SEGMENT_FRAMES
 MIN_RANGE_FRAMES = SEGMENT_FRAMES
 BACKENDS = ("loky", "threading", "dask")
 DASK_CONNECT_TIMEOUT_S = 10
+PROGRESS_REDRAW_S = 0.5
 
 
 def frame_ranges(start: int, stop: int, n_workers: int) -> list[tuple[int, int]]:
@@ -224,6 +226,7 @@ def process_session(
     curve: str | None = None,
     progress: bool = True,
     frame_fn: FrameFunction | None = None,
+    started_at: float | None = None,
 ) -> RunSummary:
     """Reconstruct every frame of ``session`` into ``out_dir/<name>.mcap`` and ``.rrd``.
 
@@ -238,10 +241,13 @@ def process_session(
     images : store the camera images (JPEG) in the recordings.
     force : replace existing outputs (atomically, at the end of the run).
     curve : centreline method, overriding session.toml ("fit" or "polyfit").
-    progress : show a progress bar on stderr.
+    progress : show a progress bar on stderr, from the start of the run, advancing as each
+        frame is written, with the frame rate and the time left.
     frame_fn : replaces the per-frame computation (tests, experiments): called as
         ``frame_fn(index, images, session)`` and returning (FrameResult, silhouettes or
         None); must be picklable (a module-level function or a partial of one).
+    started_at : the ``time.perf_counter()`` reading the summary's wall time and the progress
+        bar's clock count from (the command line passes its process's start); default: now.
 
     Raises
     ------
@@ -249,7 +255,7 @@ def process_session(
         writable, or the disk filled up; temporary files are removed.
     KeyboardInterrupt : Ctrl-C or SIGTERM, after removing temporary files.
     """
-    t0 = time.perf_counter()
+    t0 = time.perf_counter() if started_at is None else started_at
     if backend not in BACKENDS:
         raise SettingsError(f"backend {backend!r} unknown; use one of {', '.join(BACKENDS)}")
     out_dir = Path(out_dir)
@@ -270,18 +276,25 @@ def process_session(
         # spawn and import the per-frame modules while the parent builds the model.
         start_local_workers(n_jobs)
 
+    # Shown from here on, while the model is built and the workers start, not only from
+    # the first results.
+    bar = _progress_bar(stop - start, progress, elapsed_s=time.perf_counter() - t0)
     tip = ""
     if frame_fn is None:
         from .model import build_model
 
-        model: Any = build_model(session)
-        settings = session.settings
-        if settings.manipulator.tip == "auto" and settings.centerline.method == "fit":
-            from .tip_shape import choose_tip, sample_frames
+        try:
+            model: Any = build_model(session)
+            settings = session.settings
+            if settings.manipulator.tip == "auto" and settings.centerline.method == "fit":
+                from .tip_shape import choose_tip, sample_frames
 
-            choice = choose_tip(model, decode_frames(session.video_paths, sample_frames(start, stop)))
-            model = dataclasses.replace(model, tip=choice.tip)
-            tip = choice.describe()
+                choice = choose_tip(model, decode_frames(session.video_paths, sample_frames(start, stop)))
+                model = dataclasses.replace(model, tip=choice.tip)
+                tip = choice.describe()
+        except BaseException:
+            bar.close()  # ended on its own line, before the error's
+            raise
     else:
         model = session  # a replacement frame function gets the session as its model
     names = tuple(c.name for c in session.cameras)
@@ -308,14 +321,14 @@ def process_session(
             # The writers open (importing Rerun, logging the cameras) while the workers
             # start on the first ranges.
             writer = Writers(session, mcap_path, rrd_path, images=images)
-            with _progress(stop - start, progress) as bar:
+            with bar:
                 for span, outputs in results:
                     if isinstance(outputs, str):  # a range given up: its frames fail
                         outputs = _failed_range(span, outputs)
                     for out in outputs:
                         writer.write(out)
-                    done += len(outputs)
-                    bar.update(len(outputs))
+                        done += 1
+                        bar.update(1)
         writer.finish()
     except KeyboardInterrupt:
         if writer is not None:
@@ -335,6 +348,7 @@ def process_session(
             writer.abort()
         raise
     finally:
+        bar.close()
         if backend == "loky":
             release_local_workers()
     wall = time.perf_counter() - t0
@@ -355,14 +369,27 @@ def _frame_span(session: Session, frames: tuple[int, int | None] | None) -> tupl
     return start, stop
 
 
-@contextlib.contextmanager
-def _progress(total: int, enabled: bool) -> Iterator[Any]:
+def _progress_bar(total: int, enabled: bool, *, elapsed_s: float = 0.0) -> Any:
+    """A tqdm bar of ``total`` frames on stderr (frames/s and time left), its clock started
+    ``elapsed_s`` ago, redrawn every PROGRESS_REDRAW_S until it is closed."""
     from tqdm import tqdm
 
     bar = tqdm(
         total=total, unit="frame", file=sys.stderr, disable=not enabled, dynamic_ncols=True, smoothing=0.1
     )
-    try:
-        yield bar
-    finally:
-        bar.close()
+    if enabled:
+        bar.start_t -= elapsed_s  # tqdm's own clock (time.time) counts from its creation
+        bar.refresh()
+        # Frames arrive a range at a time: without redraws the clock would stand still
+        # while the workers start and reconstruct their first ranges.
+        threading.Thread(target=_redraw, args=(bar,), daemon=True, name="progress-redraw").start()
+    return bar
+
+
+def _redraw(bar: Any) -> None:
+    while True:
+        time.sleep(PROGRESS_REDRAW_S)
+        with bar.get_lock():  # the lock close() takes to draw the last line: no redraw after it
+            if bar.disable:  # closed
+                return
+            bar.refresh(nolock=True)

@@ -3,19 +3,27 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import importlib.metadata
+import json
 import os
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
-from pipeline import cli
-from pipeline.cli import EXIT_BAD_INPUT, EXIT_INTERNAL_ERROR, main
+from pipeline import cli, runner, session, workers
+from pipeline.cli import EXIT_BAD_INPUT, EXIT_FRAMES_FAILED, EXIT_INTERNAL_ERROR, main
 from pipeline.errors import CalibrationError
+from pipeline.outputs import RunSummary
 from pipeline.recording import load_recording
 from pipeline.synth.session_render import MIN_PARALLEL_FRAMES
+
+PIPELINE = str(Path(sys.executable).parent / "pipeline")  # the console script
 
 
 @pytest.mark.parametrize(
@@ -38,8 +46,8 @@ def test_bad_argument_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> No
     assert exit_info.value.code == 2  # argparse's usage-error status, the same as bad input
     err = capsys.readouterr().err
     # One line, like every other error, pointing to the subcommand's help.
-    assert err.count("\n") == 1 and err.startswith("error: python -m pipeline process: ")
-    assert "START:STOP" in err and err.rstrip().endswith("(see python -m pipeline process --help)")
+    assert err.count("\n") == 1 and err.startswith("error: pipeline process: ")
+    assert "START:STOP" in err and err.rstrip().endswith("(see pipeline process --help)")
 
 
 def _raising(exc: BaseException) -> object:
@@ -71,6 +79,155 @@ def test_debug_lets_a_bug_through(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(cli, "_cmd_evaluate", _raising(ZeroDivisionError("division by zero")))
     with pytest.raises(ZeroDivisionError):
         main(["--debug", "evaluate", "r.mcap", "gt.npz"])
+
+
+def test_debug_may_follow_the_subcommand(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(cli, "_cmd_evaluate", _raising(ZeroDivisionError("division by zero")))
+    with pytest.raises(ZeroDivisionError):
+        main(["evaluate", "r.mcap", "gt.npz", "--debug"])
+
+
+def test_version(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--version"])
+    assert exit_info.value.code == 0
+    assert capsys.readouterr().out == f"pipeline {importlib.metadata.version('pipeline')}\n"
+
+
+def test_process_help_states_the_frame_range_convention(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["process", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "START <= i < STOP (STOP excluded" in out
+    assert "-o OUT, --out OUT" in out and "-j JOBS, --jobs JOBS" in out and "--json [FILE]" in out
+
+
+@pytest.mark.parametrize(
+    ("command", "usage"),
+    [([sys.executable, "-m", "pipeline"], "usage: python -m pipeline "), ([PIPELINE], "usage: pipeline ")],
+)
+def test_the_program_names_itself_as_invoked(command: list[str], usage: str) -> None:
+    proc = subprocess.run([*command, "--help"], capture_output=True, text=True, timeout=60, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith(usage)
+
+
+def test_a_run_counts_its_wall_time_from_the_process_start() -> None:
+    # Half a second passes before the CLI is even imported: the wall time must include it.
+    code = (
+        "import time; time.sleep(0.5); from pipeline import cli; "
+        "print(time.perf_counter() - cli._process_started_at())"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
+    )
+    assert 0.5 <= float(proc.stdout) < 30.0
+
+
+class _FakeRun:
+    """Stands in for load_session and process_session; keeps what the CLI passed."""
+
+    def __init__(self, summary: RunSummary) -> None:
+        self.summary = summary
+        self.kwargs: dict[str, Any] = {}
+
+    def process_session(self, session: object, **kwargs: Any) -> RunSummary:
+        self.kwargs = kwargs
+        return self.summary
+
+
+def _fake_run(monkeypatch: pytest.MonkeyPatch, summary: RunSummary) -> _FakeRun:
+    fake = _FakeRun(summary)
+    monkeypatch.setattr(runner, "process_session", fake.process_session)
+    monkeypatch.setattr(session, "load_session", lambda directory: directory)
+    monkeypatch.setattr(workers, "started_early", lambda jobs, backend: contextlib.nullcontext())
+    return fake
+
+
+OK_RUN = RunSummary(frames_ok=4, frames_empty=0, frames_failed=[], wall_s=2.0, fps=2.0)
+
+
+def test_short_options_and_the_scheduler_reach_the_run(monkeypatch: pytest.MonkeyPatch) -> None:
+    fake = _fake_run(monkeypatch, OK_RUN)
+    before = time.perf_counter()
+    assert main(["process", "s", "-o", "elsewhere", "-j", "3", "--scheduler", "tcp://host:8786"]) == 0
+    assert (fake.kwargs["out_dir"], fake.kwargs["jobs"]) == (Path("elsewhere"), 3)
+    # --scheduler implies --backend dask
+    assert (fake.kwargs["backend"], fake.kwargs["scheduler"]) == ("dask", "tcp://host:8786")
+    assert fake.kwargs["started_at"] < before  # the process started before this call
+    assert main(["process", "s"]) == 0 and fake.kwargs["backend"] == "loky"
+
+
+def test_scheduler_with_another_backend_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["process", "s", "--scheduler", "tcp://host:8786", "--backend", "threading"])
+    assert exit_info.value.code == EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--scheduler" in err and "--backend threading" in err
+
+
+FAILED_RUN = RunSummary(
+    frames_ok=2,
+    frames_empty=0,
+    frames_failed=[
+        (2, "camera cam1: frame could not be decoded"),
+        (3, "camera cam1: frame could not be decoded"),
+    ],
+    wall_s=2.0,
+    fps=2.0,
+    frames_doubtful=[1],
+    outputs=[(Path("out/s.mcap"), 10)],
+)
+
+
+def test_failures_and_warnings_go_to_stderr_the_rest_to_stdout(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _fake_run(monkeypatch, FAILED_RUN)
+    assert main(["process", "s"]) == EXIT_FRAMES_FAILED
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == FAILED_RUN.problem_lines()
+    assert (
+        "failed 2-3: camera cam1: frame could not be decoded" in captured.err and "doubtful" in captured.err
+    )
+    assert captured.out.splitlines() == [line for line in FAILED_RUN.lines() if line not in captured.err]
+    assert captured.out.startswith("frames: 4 processed") and "wrote out/s.mcap" in captured.out
+
+
+def test_a_run_without_any_tube_exits_1_with_the_reason_on_stderr(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _fake_run(monkeypatch, RunSummary(frames_ok=0, frames_empty=4, frames_failed=[], wall_s=1.0, fps=4.0))
+    assert main(["process", "s"]) == EXIT_FRAMES_FAILED
+    captured = capsys.readouterr()
+    assert "no tube in any frame" in captured.err and "polarity" in captured.err
+    assert "no tube" not in captured.out
+
+
+def test_json_summary_to_stdout_or_a_file(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    _fake_run(monkeypatch, FAILED_RUN)
+    assert main(["process", "s", "--json"]) == EXIT_FRAMES_FAILED
+    captured = capsys.readouterr()
+    # stdout holds the JSON alone; the text summary moves to stderr.
+    assert json.loads(captured.out) == FAILED_RUN.to_dict()
+    assert "frames: 4 processed" in captured.err
+    target = tmp_path / "summary.json"
+    assert main(["process", "s", "--json", str(target)]) == EXIT_FRAMES_FAILED
+    data = json.loads(target.read_text())
+    assert data["frames"]["failed"] == 2 and data["exit_code"] == 1 and data["doubtful"] == [1]
+    assert "frames: 4 processed" in capsys.readouterr().out
+
+
+def test_json_to_a_missing_folder_fails_before_the_run(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    fake = _fake_run(monkeypatch, OK_RUN)
+    assert main(["process", "s", "--json", str(tmp_path / "no" / "summary.json")]) == EXIT_BAD_INPUT
+    assert fake.kwargs == {}  # never started
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "does not exist" in err and err.count("\n") == 1
 
 
 def test_interrupt_exits_130(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:

@@ -175,12 +175,12 @@ def test_truncated_video_run_exits_1_and_names_the_frames(
     session = build_session(tmp_path / "cut", frames=8, settings=COARSE)
     _cut(session / "cam2.avi", 0.6)
     assert _cli_process(session, tmp_path / "out") == EXIT_FRAMES_FAILED
-    out = capsys.readouterr().out
+    err = capsys.readouterr().err
     rec = load_recording(tmp_path / "out" / "cut.mcap")
     failed = np.flatnonzero(rec.statuses == "failed")
     assert len(failed) and (rec.statuses[: failed[0]] == "ok").all()
-    # One line per span and reason, in frame order, the last one the frames past the cut.
-    lines = [line for line in out.splitlines() if line.startswith("  failed ")]
+    # One line per span and reason on stderr, in frame order, the last one the frames past the cut.
+    lines = [line for line in err.splitlines() if line.startswith("  failed ")]
     assert lines and all(": camera cam2: " in line for line in lines)
     assert lines[-1].endswith(f"{failed[-1]}: camera cam2: not in the file (cut short?)")
 

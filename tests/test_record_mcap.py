@@ -16,6 +16,7 @@ from typing import Any
 
 import jsonschema
 import numpy as np
+import pyarrow as pa
 import pytest
 from conftest import rig_cameras
 from mcap.reader import make_reader
@@ -53,12 +54,19 @@ def _result(i: int) -> FrameResult:
     )
 
 
+def _smoothed(i: int) -> np.ndarray:
+    """Frame i's smoothed curve, (5, 3) mm; NaN where the frame has no curve (2 and 4)."""
+    return CURVE_MM + i + 0.5 if _result(i).status == "ok" else np.full_like(CURVE_MM, np.nan)
+
+
 def _write(*, images: bool = True) -> bytes:
     buf = io.BytesIO()
     recorder = McapRecorder(buf, rig_cameras(), images=images, chunk_size=2000)
     for i in range(N_FRAMES):
         jpegs = [b"\xff\xd8fake-jpeg-%d" % i] * 3
         recorder.write_frame(_result(i), T0_NS + i * DT_NS, jpegs=jpegs)
+    times_ns = [T0_NS + i * DT_NS for i in range(N_FRAMES)]
+    recorder.write_smoothed(np.stack([_smoothed(i) for i in range(N_FRAMES)]), times_ns)
     recorder.finish()
     return buf.getvalue()
 
@@ -91,6 +99,9 @@ def test_topics_and_schemas(mcap_bytes: bytes) -> None:
     expected = {
         ("/reconstruction/points", "foxglove.PointCloud", "protobuf"),
         ("/reconstruction/centerline", "foxglove.SceneUpdate", "protobuf"),
+        ("/reconstruction/centerline_smoothed", "foxglove.SceneUpdate", "protobuf"),
+        ("/reconstruction/centerline_points", "foxglove.PointCloud", "protobuf"),
+        ("/reconstruction/centerline_smoothed_points", "foxglove.PointCloud", "protobuf"),
         ("/reconstruction/metrics", "pipeline.FrameMetrics", "jsonschema"),
         ("/tf", "foxglove.FrameTransforms", "protobuf"),
     }
@@ -144,6 +155,35 @@ def test_frames_without_a_curve_delete_the_line(mcap_bytes: bytes) -> None:
     updates = [m[5] for m in _messages(mcap_bytes) if m[0] == "/reconstruction/centerline"]
     assert [len(u.entities) for u in updates] == [1, 1, 0, 1, 0, 1]
     assert updates[2].deletions[0].id == "centerline"
+
+
+def _samples(cloud: Any) -> np.ndarray:
+    """A centreline PointCloud's x, y, z -> (N, 3) float64, read through its field table."""
+    offsets = {f.name: (f.offset, f.type) for f in cloud.fields}
+    assert {offsets[a][1] for a in "xyz"} == {8}  # FLOAT64
+    raw = np.frombuffer(cloud.data, np.uint8).reshape(-1, cloud.point_stride)
+    return np.column_stack([raw[:, offsets[a][0] : offsets[a][0] + 8].copy().view("<f8") for a in "xyz"])
+
+
+def test_centrelines_are_also_point_clouds_of_their_ordered_samples(mcap_bytes: bytes) -> None:
+    messages = _messages(mcap_bytes)
+    for topic, curve, rgba in (
+        ("/reconstruction/centerline_points", lambda i: CURVE_MM + i, (255, 140, 0, 255)),
+        ("/reconstruction/centerline_smoothed_points", _smoothed, (51, 153, 255, 255)),
+    ):
+        clouds = [(m[3], m[5]) for m in messages if m[0] == topic]
+        assert [t for t, _ in clouds] == [T0_NS + i * DT_NS for i in range(N_FRAMES)], topic
+        for i, (_, cloud) in enumerate(clouds):
+            assert cloud.frame_id == "world" and cloud.pose.orientation.w == 1.0
+            if i in (2, 4):  # no curve: no points, so a viewer shows none rather than the last one
+                assert cloud.data == b""
+                continue
+            # Base first and float64 metres, exactly the SceneUpdate's numbers.
+            np.testing.assert_allclose(_samples(cloud), curve(i) / 1000.0, rtol=1e-12)
+            offsets = {f.name: f.offset for f in cloud.fields}
+            raw = np.frombuffer(cloud.data, np.uint8).reshape(-1, cloud.point_stride)
+            colours = raw[:, [offsets[c] for c in ("red", "green", "blue", "alpha")]]
+            assert {tuple(c) for c in colours.tolist()} == {rgba}
 
 
 def test_metrics_follow_their_schema(mcap_bytes: bytes) -> None:
@@ -215,3 +255,22 @@ def test_rerun_converts_the_mcap_into_a_valid_rrd(mcap_bytes: bytes, tmp_path: P
     chunks = [c for c in RrdReader(dst).stream() if c.entity_path == "/reconstruction/points"]
     columns = {name for c in chunks for name in c.to_record_batch().schema.names}
     assert "Points3D:positions" in columns
+    # The centrelines, which Rerun's importer does not take from a SceneUpdate, arrive as
+    # the ordered samples of their PointClouds, one row per frame.
+    for entity, curve in (
+        ("/reconstruction/centerline_points", lambda i: CURVE_MM + i),
+        ("/reconstruction/centerline_smoothed_points", _smoothed),
+    ):
+        table = RrdReader(dst).stream().collect().reader(index="message_log_time", contents=entity)
+        rows = table.to_arrow_table()
+        times_ns = rows.column("message_log_time").cast(pa.int64()).to_pylist()
+        positions = rows.column(f"{entity}:Points3D:positions").to_pylist()
+        got = dict(zip(times_ns, positions, strict=True))
+        assert sorted(got) == [T0_NS + i * DT_NS for i in range(N_FRAMES)], entity
+        for i in range(N_FRAMES):
+            samples = got[T0_NS + i * DT_NS]
+            if i in (2, 4):
+                assert samples == [], (entity, i)
+            else:
+                # Rerun keeps float32: 0.15 m to ~1e-8 m.
+                np.testing.assert_allclose(samples, curve(i) / 1000.0, atol=1e-7)

@@ -17,6 +17,7 @@ import pipeline
 from pipeline.errors import PipelineError
 from pipeline.frame_result import FrameResult
 from pipeline.record_mcap import McapRecorder
+from pipeline.recording import JsonDecoderFactory
 
 T0_NS = 1_600_000_000_000_000_000
 DT_NS = 40_000_000
@@ -34,7 +35,14 @@ def _result(i: int, rng: np.random.Generator) -> FrameResult:
     if i in FAILED:
         return FrameResult.failed(i, "worker died twice")
     points = rng.uniform(0, 256, (20 + i, 3)).astype(np.float32)
-    return FrameResult(index=i, status="ok", points_mm=points, centerline_mm=_curve(i), iou=(1.0, 0.5, 0.25))
+    return FrameResult(
+        index=i,
+        status="ok",
+        points_mm=points,
+        centerline_mm=_curve(i),
+        iou=(1.0, 0.5, 0.25),
+        timings_s={"carve": 0.001 * i},
+    )
 
 
 @pytest.fixture(scope="module")
@@ -107,6 +115,46 @@ def test_loader_agrees_with_the_plain_mcap_reader(written: tuple[Path, list[Fram
             np.testing.assert_array_equal(rec.centerlines_m[row], curves[t])
         else:
             assert np.isnan(rec.centerlines_m[row]).all()
+
+
+def test_metrics_table_has_one_column_per_figure_and_camera(written: tuple[Path, list[FrameResult]]) -> None:
+    path, _ = written
+    rec = pipeline.load_recording(path)
+    table = rec.metrics_table()
+    assert {len(column) for column in table.values()} == {N_FRAMES}
+    np.testing.assert_array_equal(table["timestamp_ns"], rec.timestamps_ns)
+    np.testing.assert_array_equal(table["frame"], np.arange(N_FRAMES))
+    assert table["frame"].dtype == np.int64 and table["voxel_count"].dtype == np.int64
+    np.testing.assert_array_equal(table["status"], rec.statuses)
+    failed = np.isin(np.arange(N_FRAMES), sorted(FAILED))
+    assert set(table["reason"][failed]) == {"worker died twice"} and set(table["reason"][~failed]) == {""}
+    for k, name in enumerate(("cam0", "cam1", "cam2")):
+        column = table[f"iou/{name}"]
+        assert column.dtype == np.float64
+        np.testing.assert_array_equal(column[~failed], (1.0, 0.5, 0.25)[k])
+        assert np.isnan(column[failed]).all()  # a failed frame has no IoU: NaN, not a number
+    tips_m = np.column_stack([table[f"tip_m/{axis}"] for axis in "xyz"])
+    np.testing.assert_array_equal(tips_m[~failed], rec.centerlines_m[~failed, -1])
+    assert np.isnan(tips_m[failed]).all()
+    for name in ("length_m", "mean_curvature_per_m", "radius_m", "fit_residual_m"):
+        assert table[name].dtype == np.float64
+    # Every column matches the frame's JSON; a stage a failed frame never ran is NaN.
+    for row, metrics in enumerate(rec.metrics):
+        assert table["voxel_count"][row] == metrics["voxel_count"]
+        if failed[row]:
+            assert np.isnan(table["timings_s/carve"][row])
+        else:
+            assert table["timings_s/carve"][row] == metrics["timings_s"]["carve"] == 0.001 * row
+
+
+def test_the_plain_mcap_reader_decodes_the_metrics_with_the_documented_decoder(
+    written: tuple[Path, list[FrameResult]],
+) -> None:
+    path, _ = written
+    with path.open("rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory(), JsonDecoderFactory()])
+        decoded = [m for *_, m in reader.iter_decoded_messages(topics=["/reconstruction/metrics"])]
+    assert decoded == pipeline.load_recording(path).metrics
 
 
 def test_a_file_cut_mid_write_reads_up_to_its_last_complete_chunk(

@@ -12,15 +12,18 @@ import dataclasses
 import functools
 import io
 import itertools
+import json
 import os
 import subprocess
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
+import pyarrow as pa
 import pytest
 from conftest import build_session, write_video
 
@@ -88,6 +91,13 @@ def test_summary_compresses_failed_frames_into_ranges() -> None:
     assert lines[0] == "frames: 17 processed, 10 ok, 2 empty, 5 failed"
     assert "  failed 3-5: x" in lines and "wrote a.mcap (2.0 KiB)" in lines
     assert summary.exit_code == 1
+    assert summary.problem_lines() == ["  failed 3-5: x", "  failed 9: y", "  failed 10: x"]
+    data = json.loads(json.dumps(summary.to_dict()))  # JSON-ready as it is
+    assert data["frames"] == {"processed": 17, "ok": 10, "empty": 2, "failed": 5}
+    assert data["failed"][:2] == [{"frame": 3, "reason": "x"}, {"frame": 4, "reason": "x"}]
+    assert data["problems"] == ["failed 3-5: x", "failed 9: y", "failed 10: x"]
+    assert data["outputs"] == [{"path": "a.mcap", "bytes": 2048}]
+    assert (data["wall_s"], data["fps"], data["exit_code"]) == (2.0, 8.5, 1)
 
 
 # --- frame-accurate seeking ------------------------------------------------------------------
@@ -191,6 +201,73 @@ def test_a_run_writes_every_frame_in_order_at_its_timestamp(short_session: Path,
     # A fixed curve is its own temporal average.
     assert rec.smoothed_centerlines_m is not None
     np.testing.assert_allclose(rec.smoothed_centerlines_m, rec.centerlines_m, atol=1e-12)
+
+
+class _RecordedBar:
+    """Stands in for the progress bar; notes when it was made and every step."""
+
+    def __init__(self, events: list[Any], total: int, elapsed_s: float) -> None:
+        self.events = events
+        events.append(("created", total, elapsed_s))
+
+    def update(self, n: int) -> None:
+        self.events.append(("update", n))
+
+    def close(self) -> None:
+        self.events.append(("closed",))
+
+    def __enter__(self) -> _RecordedBar:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _noting_frames(
+    events: list[Any], index: int, images: Sequence[Any], model: Any
+) -> tuple[FrameResult, Any]:
+    events.append(("frame", index))
+    return fixed_rod(index, images, model)
+
+
+def test_the_progress_bar_starts_with_the_run_and_advances_frame_by_frame(
+    short_session: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    events: list[Any] = []
+    monkeypatch.setattr(
+        runner, "_progress_bar", lambda total, enabled, *, elapsed_s: _RecordedBar(events, total, elapsed_s)
+    )
+    started_at = time.perf_counter() - 100.0  # as if the process had started 100 s ago
+    summary = runner.process_session(
+        load_session(short_session),
+        out_dir=tmp_path,
+        backend="threading",  # the frame function runs here and notes its frames among the bar's events
+        jobs=1,
+        frames=(1, 9),
+        frame_fn=functools.partial(_noting_frames, events),
+        started_at=started_at,
+    )
+    kind, total, elapsed_s = events[0]
+    assert (kind, total) == ("created", 8) and elapsed_s >= 100.0  # before any frame, clock from the start
+    assert [e for e in events if e[0] == "update"] == [("update", 1)] * 8  # one step per frame written
+    assert ("closed",) in events
+    assert summary.wall_s >= 100.0 and summary.fps == pytest.approx(8 / summary.wall_s)
+
+
+def test_the_progress_bar_draws_on_stderr_from_the_start(
+    short_session: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    runner.process_session(
+        load_session(short_session),
+        out_dir=tmp_path,
+        jobs=1,
+        frames=(0, 4),
+        progress=True,
+        frame_fn=fixed_rod,
+    )
+    err = capsys.readouterr().err
+    assert err.index("0/4") < err.index("4/4")  # drawn at 0 before the first frame, then to the end
+    assert "frame/s" in err
 
 
 class _WatchOutputs:
@@ -355,6 +432,22 @@ def test_end_to_end_mcap_converts_to_a_valid_rrd_with_points(
         and "Points3D:positions" in chunk.to_record_batch().schema.names
     )
     assert rows == E2E_FRAMES  # one point cloud per frame, as Points3D
+    # The centreline comes through as its ordered samples, base first, one row per frame.
+    rec = load_recording(out / "demo.mcap")
+    entity = "/reconstruction/centerline_points"
+    table = (
+        RrdReader(converted)
+        .stream()
+        .collect()
+        .reader(index="message_log_time", contents=entity)
+        .to_arrow_table()
+    )
+    times_ns = table.column("message_log_time").cast(pa.int64()).to_pylist()
+    samples = dict(zip(times_ns, table.column(f"{entity}:Points3D:positions").to_pylist(), strict=True))
+    assert sorted(samples) == rec.timestamps_ns.tolist()
+    for row, time_ns in enumerate(rec.timestamps_ns.tolist()):
+        # Rerun keeps float32 metres: ~1e-8 m at 0.3 m.
+        np.testing.assert_allclose(samples[time_ns], rec.centerlines_m[row], atol=1e-7)
 
 
 def test_the_summary_names_doubtful_frames_and_a_run_without_any_tube() -> None:
@@ -365,7 +458,8 @@ def test_the_summary_names_doubtful_frames_and_a_run_without_any_tube() -> None:
     assert "4 of the ok frames (2-4, 9)" in line and "[silhouette] method, threshold and polarity" in line
     assert doubtful.exit_code == 0  # a hint, not a failure: the curves are still recorded
     empty = runner.RunSummary(frames_ok=0, frames_empty=5, frames_failed=[], wall_s=1.0, fps=5.0)
-    assert any("no tube in any frame" in line and "polarity" in line for line in empty.lines())
+    assert any("no tube in any frame" in line and "polarity" in line for line in empty.problem_lines())
+    assert empty.exit_code == 1  # nothing found is not a success
     assert not any("doubtful" in line or "no tube" in line for line in doubtful.lines()[:1])
     walls = runner.RunSummary(
         frames_ok=9, frames_empty=0, frames_failed=[], wall_s=1.0, fps=9.0, frames_at_walls=[0, 1, 5]
