@@ -39,6 +39,15 @@ GT_KEYS = {
     "R",
     "t",
     "image_size",
+    "tip",
+    "profile",
+    "radius_profile_mm",
+    "length_mm",
+    "disk_arc_mm",
+    "disk_radius_mm",
+    "disk_thickness_mm",
+    "distractor_camera",
+    "flicker_gain",
 }
 
 
