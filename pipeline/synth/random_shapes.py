@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from ..errors import PipelineError
 from .poses import outside_box, self_contact
 from .radius_profiles import RadiusProfile, disks_of, max_radius, radius_along
-from .shapes import _rotation
+from .shapes import rotation
 
 PERIOD_FRAMES = 300  # 10 s at 30 fps
 BEND_LIMIT_RADII = 3.0  # a tube cannot bend tighter than this many radii
@@ -185,7 +185,7 @@ def shape_at(
     # World-from-body frame at the base: tangent +z, first normal +x, binormal +y.
     frame = np.broadcast_to(np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]), (n, 3, 3)).copy()
     out = np.zeros((n, points, 3))
-    turn = _rotation(h * rates)  # (F, S, 3, 3)
+    turn = rotation(h * rates)  # (F, S, 3, 3)
     for i in range(points - 1):
         step = _step_displacement(rates[:, i], h)
         out[:, i + 1] = out[:, i] + np.einsum("fij,fj->fi", frame, step)
