@@ -3,6 +3,7 @@
 Usage::
 
     python -m pipeline.accuracy_table [--frames 60] [--out recordings/accuracy] [--jobs -1]
+    python -m pipeline.accuracy_table --draw SEED --cases N [--frames 150]
 
 For each case it renders a synthetic session (or reuses the one rendered before
 with the same parameters), processes it twice, with our centreline and with the
@@ -11,6 +12,11 @@ against the ground truth, prints a Markdown table and writes
 OUT/accuracy.json. The "unseen" cases use what the project was not developed on:
 the other camera arrangement ("ninety"), thinner and thicker tubes (4 to 9 mm),
 a bright tube on a dark scene, and other seeds (sensor noise, textures).
+
+With ``--draw SEED --cases N`` the table is instead N cases drawn from SEED by
+:func:`pipeline.synth.variety.draw_cases` (random and named shapes, round and flat
+tube ends, radius profiles, both rigs, two and three cameras, a distractor, flicker),
+one row per case with its description.
 """
 
 from __future__ import annotations
@@ -23,10 +29,14 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from functools import partial
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .errors import PipelineError
 from .evaluate import TARGETS, EvaluationReport, evaluate_recording
 from .synth_names import SHAPES
+
+if TYPE_CHECKING:
+    from .synth.variety import Case as DrawnCase
 
 log = logging.getLogger(__name__)
 
@@ -75,39 +85,54 @@ def default_cases() -> list[Case]:
 class CaseResult:
     """A case's evaluation with our centreline and with the polyfit baseline."""
 
-    case: Case
+    case: Case | DrawnCase
     frames: int
     ours: EvaluationReport
     polyfit: EvaluationReport | None
 
 
-def prepare_session(case: Case, root: Path, frames: int, *, jobs: int = -1) -> Path:
+def prepare_session(case: Case | DrawnCase, root: Path, frames: int, *, jobs: int = -1) -> Path:
     """Render ``case`` into ``root/<name>`` unless a complete identical rendering is there."""
     from .synth import render_session
+    from .synth.variety import Case as DrawnCase
+    from .synth.variety import render_case
 
     directory = root / case.name
-    wanted = {**asdict(case), "frames": frames}
+    # Through JSON and back, so that tuples compare equal to the lists read from the stamp.
+    wanted = json.loads(json.dumps({**asdict(case), "frames": frames}))
     stamp = directory / _STAMP
     if stamp.is_file() and json.loads(stamp.read_text()) == wanted:
         log.info("%s: reusing the rendered session", case.name)
         return directory
     log.info("%s: rendering %d frames", case.name, frames)
-    render_session(
-        directory,
-        shape=case.shape,
-        frames=frames,
-        seed=case.seed,
-        radius_mm=case.radius_mm,
-        arrangement=case.arrangement,
-        polarity=case.polarity,
-        progress=False,
-        jobs=jobs,
-    )
+    if isinstance(case, DrawnCase):
+        render_case(case, directory, frames, jobs=jobs)
+    else:
+        render_session(
+            directory,
+            shape=case.shape,
+            frames=frames,
+            seed=case.seed,
+            radius_mm=case.radius_mm,
+            arrangement=case.arrangement,
+            polarity=case.polarity,
+            progress=False,
+            jobs=jobs,
+        )
     stamp.write_text(json.dumps(wanted))
     return directory
 
 
-def run_case(case: Case, root: Path, frames: int, *, jobs: int = -1, polyfit: bool = True) -> CaseResult:
+def _row_labels(case: Case | DrawnCase) -> tuple[str, str]:
+    """The table's session and rig cells."""
+    if isinstance(case, Case):
+        return (f"{case.name} (unseen)" if case.unseen else case.name), case.arrangement
+    return case.describe(), f"{case.arrangement}, {case.cameras} cameras"
+
+
+def run_case(
+    case: Case | DrawnCase, root: Path, frames: int, *, jobs: int = -1, polyfit: bool = True
+) -> CaseResult:
     """Render (or reuse), process with each centreline method, and evaluate one case."""
     from .runner import process_session
     from .session import load_session
@@ -154,10 +179,10 @@ def format_table(results: Sequence[CaseResult]) -> str:
     rows = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     for r in results:
         ours, smooth, base = r.ours, r.ours.smoothed, r.polyfit
-        name = f"{r.case.name} (unseen)" if r.case.unseen else r.case.name
+        name, rig = _row_labels(r.case)
         cells = [
             name,
-            r.case.arrangement,
+            rig,
             f"{r.case.radius_mm:g}",
             _num(ours.mean_mm),
             _num(ours.p95_mm),
@@ -207,13 +232,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=60, help="frames per session (default 60)")
     parser.add_argument("--out", type=Path, default=Path("recordings/accuracy"), help="working directory")
     parser.add_argument("--jobs", type=int, default=-1, help="parallel workers (-1: one per core)")
-    parser.add_argument("--cases", nargs="+", metavar="NAME", help="only these cases (default: all)")
+    parser.add_argument(
+        "--cases",
+        nargs="+",
+        metavar="NAME",
+        help="only these cases (default: all); with --draw, one number: how many cases to draw (default 10)",
+    )
+    parser.add_argument(
+        "--draw",
+        type=int,
+        metavar="SEED",
+        help="instead of the default cases, a random draw of the synthetic variety from SEED",
+    )
     parser.add_argument("--no-polyfit", action="store_true", help="skip the polyfit baseline")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
 
-    cases = default_cases()
-    if args.cases:
+    cases: Sequence[Case | DrawnCase] = default_cases()
+    if args.draw is not None:
+        from .synth.variety import draw_cases
+
+        if args.cases and (len(args.cases) != 1 or not args.cases[0].isdigit()):
+            parser.error(f"with --draw, --cases takes one number of cases, got {' '.join(args.cases)}")
+        cases = draw_cases(args.draw, int(args.cases[0]) if args.cases else 10)
+    elif args.cases:
         unknown = sorted(set(args.cases) - {c.name for c in cases})
         if unknown:
             parser.error(

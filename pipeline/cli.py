@@ -112,7 +112,17 @@ def _check_json_path(path: Path) -> None:
 
 def _cmd_synth(args: argparse.Namespace) -> int:
     from .synth import render_session
+    from .synth.session_render import SceneOptions
 
+    width, height = (int(v) for v in args.size.split("x"))
+    options = SceneOptions(
+        tip=args.tip,
+        profile=args.profile,
+        cameras=args.cameras,
+        size=(width, height),
+        distractor=args.distractor,
+        flicker=args.flicker,
+    )
     render_session(
         args.out_dir,
         shape=args.shape,
@@ -121,6 +131,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         polarity=args.polarity,
         radius_mm=args.radius_mm,
         arrangement=args.arrangement,
+        options=options,
     )
     return EXIT_OK
 
@@ -268,19 +279,45 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     )
     p.set_defaults(func=_cmd_process, usage_error=p.error)
 
-    from .synth_names import SHAPES
+    from .synth_names import IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
 
     p = sub.add_parser(
         "synth",
         parents=[common],
         help="render a synthetic three-camera session with ground truth",
-        description="Render a session directory (calibration.toml, three videos, session.toml, "
+        description="Render a session directory (calibration.toml, one video per camera, session.toml, "
         "backgrounds) of a moving tube, plus OUT_DIR/ground_truth.npz.",
     )
     p.add_argument("out_dir", type=Path, help="session directory to write")
-    p.add_argument("--shape", choices=SHAPES, default="bend_rotate", help="motion of the manipulator")
+    p.add_argument(
+        "--shape",
+        choices=(*SHAPES, RANDOM_SHAPE),
+        default="bend_rotate",
+        help="motion of the manipulator ('random': a smooth random shape and motion drawn from --seed)",
+    )
+    p.add_argument(
+        "--tip", choices=TIPS, default="flat", help="tube end: flat cut or round (hemispherical) cap"
+    )
+    p.add_argument(
+        "--profile",
+        choices=PROFILES,
+        default="uniform",
+        help="radius along the tube: uniform, tapered (to 0.6 at the tip), disks (1.5x, 2 mm thick, every "
+        "20 mm) or step (to 0.7 half way)",
+    )
+    p.add_argument("--cameras", type=int, choices=(2, 3), default=3, help="cameras in the rig (default 3)")
+    p.add_argument(
+        "--size",
+        choices=[f"{w}x{h}" for w, h in IMAGE_SIZES],
+        default="320x240",
+        help="image size in pixels (default 320x240)",
+    )
+    p.add_argument("--distractor", action="store_true", help="a dark object in one camera's background")
+    p.add_argument("--flicker", action="store_true", help="scene brightness varying frame to frame (4 %%)")
     p.add_argument("--frames", type=int, default=900, help="number of frames at 30 fps (default 900)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (noise, textures)")
+    p.add_argument(
+        "--seed", type=int, default=0, help="random seed (noise, textures; the shape for --shape random)"
+    )
     p.add_argument(
         "--polarity",
         choices=("dark", "bright"),

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .radius_profiles import Disks
 from .raycast import Tube, camera_rays, cone_candidates, cone_candidates_brute, intersect, ray_directions
 from .rig import SynthCamera
 
@@ -25,6 +26,10 @@ RIM_SUPERSAMPLE = 3
 # camera keeps the side away from the key light from going flat.
 LIGHT_DIR = np.array([0.35, -0.45, 1.0]) / np.linalg.norm([0.35, -0.45, 1.0])
 KEY_WEIGHT = 0.65
+# Flicker: the whole scene's brightness scales by up to this fraction, independently
+# per frame (mains-frequency lighting beating against the frame rate). At 4 % the
+# brightest tube (73) and the darkest background (110) stay clear of THRESHOLD_DARK.
+FLICKER = 0.04
 
 
 def threshold_for(polarity: str) -> int:
@@ -34,12 +39,14 @@ def threshold_for(polarity: str) -> int:
 
 def background_texture(width: int, height: int, *, seed: int, camera_index: int) -> NDArray[np.float64]:
     """A smooth random texture, fixed per (seed, camera): (H, W) float64 grey levels
-    spanning BACKGROUND_GREY (polarity "dark")."""
+    spanning BACKGROUND_GREY (polarity "dark"). Its features scale with the image, so
+    that a larger image shows the same scene more finely."""
     rng = np.random.default_rng([seed, camera_index, 7])
     tex = np.zeros((height, width))
+    scale = width / 320.0
     # Blurred white noise at three scales: blotches, patches and fine grain.
     for sigma, weight in ((24.0, 1.0), (8.0, 0.5), (2.0, 0.15)):
-        layer = cv2.GaussianBlur(rng.standard_normal((height, width)), (0, 0), sigma)
+        layer = cv2.GaussianBlur(rng.standard_normal((height, width)), (0, 0), sigma * scale)
         tex += weight * layer / layer.std()
     # A gentle illumination gradient, different per camera.
     angle = rng.uniform(0.0, 2.0 * np.pi)
@@ -47,6 +54,14 @@ def background_texture(width: int, height: int, *, seed: int, camera_index: int)
     tex += 0.8 * (np.cos(angle) * (u / width - 0.5) + np.sin(angle) * (v / height - 0.5))
     lo, hi = BACKGROUND_GREY
     return lo + (hi - lo) * (tex - tex.min()) / (tex.max() - tex.min())
+
+
+def flicker_gains(seed: int, frames: int) -> NDArray[np.float64]:
+    """Each frame's scene brightness factor, (F,) in [1 - FLICKER, 1 + FLICKER]; drawn per
+    frame from (seed, frame) so that a frame renders the same on its own."""
+    return np.array(
+        [1.0 + FLICKER * np.random.default_rng([seed, f, 0xF11C]).uniform(-1.0, 1.0) for f in range(frames)]
+    )
 
 
 def _shade(normal: NDArray[np.float64], dirs: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -108,7 +123,13 @@ def tube_coverage(
 
 
 def tube_mask(
-    camera: SynthCamera, centerline_mm: NDArray[np.float64], radius_mm: float, *, supersample: int = 1
+    camera: SynthCamera,
+    centerline_mm: NDArray[np.float64],
+    radius_mm: float | NDArray[np.float64],
+    *,
+    supersample: int = 1,
+    tip: str = "flat",
+    disks: Disks | None = None,
 ) -> NDArray[np.bool_]:
     """The exact analytic silhouette of a tube.
 
@@ -116,16 +137,17 @@ def tube_mask(
     ----------
     camera : the true camera.
     centerline_mm : (N, 3) float64, world frame, base -> tip.
-    radius_mm : tube radius.
+    radius_mm : tube radius, one or (N,) per centreline point.
     supersample : 1 = the pixel centre's ray decides; k > 1 = rim pixels are in the
         mask when at least half of their k x k sub-pixel rays hit.
+    tip, disks : the tube's end ("flat" or "round") and spacer disks (see :class:`Tube`).
 
     Returns
     -------
     (H, W) bool.
     """
     coverage, _ = tube_coverage(
-        camera, Tube.from_centerline(centerline_mm, radius_mm), supersample=supersample
+        camera, Tube.from_centerline(centerline_mm, radius_mm, tip=tip, disks=disks), supersample=supersample
     )
     return coverage >= 0.5
 
@@ -133,7 +155,7 @@ def tube_mask(
 def render_frame(
     cameras: list[SynthCamera],
     centerline_mm: NDArray[np.float64],
-    radius_mm: float,
+    radius_mm: float | NDArray[np.float64],
     backgrounds: list[NDArray[np.float64]],
     *,
     polarity: str = "dark",
@@ -141,6 +163,9 @@ def render_frame(
     frame_index: int = 0,
     noise_sigma: float = NOISE_SIGMA,
     supersample: int = RIM_SUPERSAMPLE,
+    tip: str = "flat",
+    disks: Disks | None = None,
+    gain: float = 1.0,
 ) -> list[NDArray[np.uint8]]:
     """One frame per camera, before video compression.
 
@@ -148,7 +173,7 @@ def render_frame(
     ----------
     cameras : the true cameras.
     centerline_mm : (N, 3) float64, world frame, base -> tip.
-    radius_mm : tube radius.
+    radius_mm : tube radius, one or (N,) per centreline point.
     backgrounds : per camera, (H, W) float64 grey levels (polarity "dark"),
         from :func:`background_texture`.
     polarity : "dark" (dark tube on a light scene) or "bright" (the negative).
@@ -156,18 +181,22 @@ def render_frame(
         so any frame renders the same on its own as in a whole session.
     noise_sigma : Gaussian sensor noise, grey levels.
     supersample : sub-pixel rays per side on the silhouette rim (anti-aliasing).
+    tip, disks : the tube's end ("flat" or "round") and spacer disks (see :class:`Tube`).
+    gain : the scene's brightness factor (flicker), applied before the sensor noise.
 
     Returns
     -------
     per camera, (H, W) uint8.
     """
-    tube = Tube.from_centerline(centerline_mm, radius_mm)
+    tube = Tube.from_centerline(centerline_mm, radius_mm, tip=tip, disks=disks)
     images = []
     for c, (camera, background) in enumerate(zip(cameras, backgrounds, strict=True)):
         coverage, grey = tube_coverage(camera, tube, supersample=supersample)
         img = background * (1.0 - coverage) + grey * coverage
         if polarity == "bright":
             img = 255.0 - img
+        if gain != 1.0:
+            img = gain * img
         rng = np.random.default_rng([seed, frame_index, c])
         img = img + noise_sigma * rng.standard_normal(img.shape)
         images.append(np.clip(np.rint(img), 0, 255).astype(np.uint8))

@@ -1,26 +1,30 @@
 """Exact ray casting of a tube along a polyline, as seen by a true (distorted) camera.
 
-The tube is the union of capsules (a cylinder per polyline segment plus a ball at
-every joint: the exact swept tube of the polyline), cut flat at both ends by the
-planes perpendicular to the end segments (a flat tip cap; the base is cut at the
-mount). Each pixel's ray goes through its *distorted* position: the pixel is
-undistorted with our own fixed-point inverse of the OpenCV model, so the renderer
-shares no projection code with the reconstruction.
+The tube is the union of balls swept along a polyline with a radius varying linearly
+between its vertices (a tapered capsule per segment: a cone frustum between two balls;
+a plain capsule where the radius is constant), cut flat at the base (the mount) and,
+for a flat tip, at the tip, by the planes perpendicular to the end segments; a round
+tip keeps its end ball. Spacer disks are short closed cylinders added to the union.
+Each pixel's ray goes through its *distorted* position: the pixel is undistorted with
+our own fixed-point inverse of the OpenCV model, so the renderer shares no projection
+code with the reconstruction.
 
-Culling: the capsules are grouped in chunks of CHUNK_SEGMENTS; a KD-tree over the
+Culling: the segments are grouped in chunks of CHUNK_SEGMENTS; a KD-tree over the
 unit ray directions of the pixel centres returns, per chunk, only the rays inside
 the cone that the chunk's bounding ball subtends at the camera.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from ..synth_names import TIPS
+from .radius_profiles import Disks
+from .ray_pieces import Hits, ball_hits, cone_hits, disc_hits, nearest, short_cylinder_hits
 from .rig import SynthCamera
 
 CHUNK_SEGMENTS = 10
@@ -116,142 +120,171 @@ def camera_rays(camera: SynthCamera) -> CameraRays:
 
 @dataclass(frozen=True)
 class Tube:
-    """Capsule-chain geometry of a tube, precomputed from its centreline (mm, world frame).
+    """Tapered-capsule-chain geometry of a tube, precomputed from its centreline (mm, world frame).
+
+    The tube is the union of the balls centred on the polyline whose radius varies
+    linearly between the vertices' radii (each segment the convex hull of its two end
+    balls: a cone frustum tangent to both, plus the balls), cut flat at the base and,
+    for ``tip == "flat"``, at the tip; a "round" tip keeps its end ball (a hemispherical
+    cap centred on the backbone's end). Spacer disks are closed cylinders added to it.
 
     start : (S, 3) segment starts; axis : (S, 3) unit directions; length : (S,);
-    joints : (S-1, 3) interior joint centres (ball of ``radius`` each);
-    chunk_center : (M, 3), chunk_radius : (M,) bounding balls of CHUNK_SEGMENTS segments.
+    radii : (S+1,) radius at each vertex;
+    cone_c0, cone_c1, cone_lo, cone_hi : (S,) each segment's frustum, radius c0 + c1 h
+    for lo <= h <= hi along the segment (see :func:`ray_pieces.cone_hits`);
+    joints : (J, 3) ball centres (interior vertices, and the tip for a round end),
+    joint_radii : (J,); base_cap_mm, tip_cap_mm : radii of the flat end faces;
+    disk_center : (D, 3), disk_axis : (D, 3) unit, disk_radius_mm, disk_thickness_mm;
+    chunk_center : (M, 3), chunk_radius : (M,) bounding balls of CHUNK_SEGMENTS segments,
+    then of each disk.
     """
 
     start: NDArray[np.float64]
     axis: NDArray[np.float64]
     length: NDArray[np.float64]
+    radii: NDArray[np.float64]
+    cone_c0: NDArray[np.float64]
+    cone_c1: NDArray[np.float64]
+    cone_lo: NDArray[np.float64]
+    cone_hi: NDArray[np.float64]
     joints: NDArray[np.float64]
-    radius: float
+    joint_radii: NDArray[np.float64]
+    tip: str
+    base_cap_mm: float
+    tip_cap_mm: float
+    disk_center: NDArray[np.float64]
+    disk_axis: NDArray[np.float64]
+    disk_radius_mm: float
+    disk_thickness_mm: float
     arc_mm: NDArray[np.float64]  # (S+1,) arc length at each polyline vertex
     chunk_center: NDArray[np.float64]
     chunk_radius: NDArray[np.float64]
 
     @classmethod
-    def from_centerline(cls, centerline_mm: NDArray[np.float64], radius_mm: float) -> Tube:
+    def from_centerline(
+        cls,
+        centerline_mm: NDArray[np.float64],
+        radius_mm: float | NDArray[np.float64],
+        *,
+        tip: str = "flat",
+        disks: Disks | None = None,
+    ) -> Tube:
+        """The tube around ``centerline_mm`` (N, 3); ``radius_mm`` is one radius or (N,) per vertex."""
+        if tip not in TIPS:
+            raise ValueError(f"unknown tip {tip!r}; use one of {TIPS}")
         pts = np.asarray(centerline_mm, dtype=np.float64)
+        radii = np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), (len(pts),)).copy()
         seg = np.diff(pts, axis=0)
         length = np.linalg.norm(seg, axis=1)
         if np.any(length <= 0):
             raise ValueError("centreline has repeated points")
+        axis = seg / length[:, None]
         arc = np.concatenate([[0.0], np.cumsum(length)])
-        centers, radii = [], []
-        for lo in range(0, len(seg), CHUNK_SEGMENTS):
-            chunk_pts = pts[lo : lo + CHUNK_SEGMENTS + 1]
+        c0, c1, lo, hi = _frustums(radii, length)
+        centers, bounds = [], []
+        for first in range(0, len(seg), CHUNK_SEGMENTS):
+            chunk_pts = pts[first : first + CHUNK_SEGMENTS + 1]
             c = 0.5 * (chunk_pts.min(axis=0) + chunk_pts.max(axis=0))
             centers.append(c)
-            radii.append(np.linalg.norm(chunk_pts - c, axis=1).max() + radius_mm)
+            bounds.append(
+                np.linalg.norm(chunk_pts - c, axis=1).max() + radii[first : first + CHUNK_SEGMENTS + 1].max()
+            )
+        disk_center, disk_axis = _disk_poses(pts, axis, arc, disks)
+        disk_radius = 0.0 if disks is None else disks.radius_mm
+        disk_thickness = 0.0 if disks is None else disks.thickness_mm
+        centers.extend(disk_center)
+        bounds.extend([float(np.hypot(disk_radius, 0.5 * disk_thickness))] * len(disk_center))
+        last = len(pts) if tip == "round" else len(pts) - 1
         return cls(
             start=pts[:-1],
-            axis=seg / length[:, None],
+            axis=axis,
             length=length,
-            joints=pts[1:-1],
-            radius=float(radius_mm),
+            radii=radii,
+            cone_c0=c0,
+            cone_c1=c1,
+            cone_lo=lo,
+            cone_hi=hi,
+            joints=pts[1:last],
+            joint_radii=radii[1:last],
+            tip=tip,
+            base_cap_mm=_end_face_radius(radii[0], c0[0], c1[0], lo[0], hi[0], 0.0),
+            tip_cap_mm=_end_face_radius(radii[-1], c0[-1], c1[-1], lo[-1], hi[-1], length[-1]),
+            disk_center=disk_center,
+            disk_axis=disk_axis,
+            disk_radius_mm=float(disk_radius),
+            disk_thickness_mm=float(disk_thickness),
             arc_mm=arc,
             chunk_center=np.array(centers),
-            chunk_radius=np.array(radii),
+            chunk_radius=np.array(bounds),
         )
 
     @property
     def n_chunks(self) -> int:
         return len(self.chunk_center)
 
+    @property
+    def n_segment_chunks(self) -> int:
+        return -(-len(self.length) // CHUNK_SEGMENTS)
+
     def chunk_slice(self, m: int) -> slice:
         return slice(m * CHUNK_SEGMENTS, min((m + 1) * CHUNK_SEGMENTS, len(self.length)))
 
 
-Hits = tuple[NDArray[np.float64], NDArray[np.float64]]  # distance (P,) (inf: miss), unit normal (P, 3)
-# Which candidate surface points (..., 3) lie on the flat-ended tube.
-Keep = Callable[[NDArray[np.float64]], NDArray[np.bool_]]
+def _frustums(
+    radii: NDArray[np.float64], length: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Each segment's cone frustum tangent to its two end balls: (c0, c1, lo, hi), each (S,).
+
+    With slope m = (r_b - r_a) / L the tangent cone's radius is (r_a + m h) / sqrt(1 - m^2)
+    and it touches the balls at h = -r_a m and h = L - r_b m. Where |m| >= 1 one ball holds
+    the other and the segment has no cone (an empty range).
+    """
+    ra, rb = radii[:-1], radii[1:]
+    m = (rb - ra) / length
+    has_cone = np.abs(m) < 1.0
+    cos_a = np.sqrt(np.where(has_cone, 1.0 - m * m, 1.0))
+    # For equal radii m = 0 and these are exactly (r, 0, 0, L): the plain cylinder.
+    lo = np.where(has_cone, -ra * m, np.inf)
+    hi = np.where(has_cone, length - rb * m, -np.inf)
+    return ra / cos_a, m / cos_a, lo, hi
 
 
-def _nearest(t: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
-    """Per ray (row), the index and distance of the nearest of several pieces (columns)."""
-    if t.shape[1] == 0:
-        return np.zeros(len(t), np.intp), np.full(len(t), np.inf)
-    k = np.argmin(t, axis=1)
-    return k, t[np.arange(len(t)), k]
+def _end_face_radius(r_end: float, c0: float, c1: float, lo: float, hi: float, h_face: float) -> float:
+    """Radius of the tube's section by an end plane at axial coordinate ``h_face`` of the end
+    segment: the frustum's radius there where the frustum reaches the plane, else the end ball's."""
+    return float(c0 + c1 * h_face) if lo <= h_face <= hi else float(r_end)
 
 
-def _unit(v: NDArray[np.float64]) -> NDArray[np.float64]:
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def _cylinder_hits(o: NDArray[np.float64], d: NDArray[np.float64], tube: Tube, sl: slice, keep: Keep) -> Hits:
-    """Nearest entry into the finite cylinders of segments ``sl``; ``keep(points)``
-    (P, S, 3) -> bool says which entry points lie on the tube."""
-    a, u, L, r = tube.start[sl], tube.axis[sl], tube.length[sl], tube.radius
-    w = o - a  # (S, 3): every ray starts at the camera centre
-    du = d @ u.T  # (P, S)
-    wu = np.einsum("ij,ij->i", w, u)  # (S,)
-    # |w_perp + t d_perp|^2 = r^2, with the half-b form of the quadratic.
-    A = 1.0 - du * du
-    B = d @ w.T - du * wu
-    C = np.einsum("ij,ij->i", w, w) - wu * wu - r * r
-    disc = B * B - A * C
-    with np.errstate(invalid="ignore", divide="ignore"):
-        t = (-B - np.sqrt(disc)) / A
-        h = wu + t * du  # axial coordinate of the entry point
-        ok = (disc >= 0) & (A > 1e-12) & (t > 0) & (h >= 0) & (h <= L)
-        ok &= keep(o + t[..., None] * d[:, None, :])
-    k, t_min = _nearest(np.where(ok, t, np.inf))
-    rows = np.arange(len(d))
-    hit = o + t_min[:, None] * d
-    axis_pt = a[k] + h[rows, k][:, None] * u[k]
-    return t_min, _unit(hit - axis_pt)
-
-
-def _ball_hits(
-    o: NDArray[np.float64], d: NDArray[np.float64], centers: NDArray[np.float64], r: float, keep: Keep
-) -> Hits:
-    """Nearest entry into balls of radius ``r`` at ``centers`` (J, 3)."""
-    w = o - centers  # (J, 3)
-    b = d @ w.T  # (P, J)
-    disc = b * b - (np.einsum("ij,ij->i", w, w) - r * r)
-    with np.errstate(invalid="ignore"):
-        t = -b - np.sqrt(disc)
-        ok = (disc >= 0) & (t > 0) & keep(o + t[..., None] * d[:, None, :])
-    k, t_min = _nearest(np.where(ok, t, np.inf))
-    hit = o + t_min[:, None] * d
-    return t_min, _unit(hit - centers[k]) if len(centers) else np.zeros_like(hit)
-
-
-def _cap_hits(
-    o: NDArray[np.float64],
-    d: NDArray[np.float64],
-    center: NDArray[np.float64],
-    normal: NDArray[np.float64],
-    r: float,
-) -> Hits:
-    """Hits on a flat disc of radius ``r`` (an end cap) whose outward normal is ``normal``."""
-    dn = d @ normal
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = ((center - o) @ normal) / dn
-        hit = o + t[:, None] * d
-        ok = (np.abs(dn) > 1e-12) & (t > 0) & (np.linalg.norm(hit - center, axis=1) <= r)
-    return np.where(ok, t, np.inf), np.broadcast_to(normal, d.shape)
+def _disk_poses(
+    pts: NDArray[np.float64], axis: NDArray[np.float64], arc: NDArray[np.float64], disks: Disks | None
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Centres (D, 3) and unit axes (D, 3) of the disks: on the polyline at their arc
+    positions, perpendicular to the segment they sit on."""
+    if disks is None or len(disks.arc_mm) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    s = np.clip(np.asarray(disks.arc_mm, dtype=np.float64), 0.0, arc[-1])
+    seg = np.clip(np.searchsorted(arc, s, side="right") - 1, 0, len(axis) - 1)
+    return pts[seg] + (s - arc[seg])[:, None] * axis[seg], axis[seg]
 
 
 def _chunk_hits(tube: Tube, m: int, o: NDArray[np.float64], d: NDArray[np.float64]) -> Hits:
-    """Nearest hit of rays ``d`` (P, 3) with chunk ``m`` of the tube (and its end caps)."""
+    """Nearest hit of rays ``d`` (P, 3) with chunk ``m`` of the tube (and its end faces)."""
+    if m >= tube.n_segment_chunks:
+        disk = m - tube.n_segment_chunks
+        return short_cylinder_hits(
+            o, d, tube.disk_center[disk], tube.disk_axis[disk], tube.disk_radius_mm, tube.disk_thickness_mm
+        )
     sl = tube.chunk_slice(m)
-    r = tube.radius
-    clip = END_CLIP_RADII * r
     base_pt, base_n = tube.start[0], -tube.axis[0]
     tip_pt = tube.start[-1] + tube.axis[-1] * tube.length[-1]
     tip_n = tube.axis[-1]
-    near_base = tube.arc_mm[sl.start] < clip
-    near_tip = tube.arc_mm[sl.stop] > tube.arc_mm[-1] - clip
+    near_base = tube.arc_mm[sl.start] < END_CLIP_RADII * tube.radii[0]
+    flat_tip = tube.tip == "flat"
+    near_tip = flat_tip and tube.arc_mm[sl.stop] > tube.arc_mm[-1] - END_CLIP_RADII * tube.radii[-1]
 
     def keep(points: NDArray[np.float64]) -> NDArray[np.bool_]:
-        # Near an end, an entry point beyond the end plane is not on the (flat-ended)
-        # tube; rays that cross the plane inside the tube hit the cap instead.
+        # Near a flat end, an entry point beyond the end plane is not on the tube;
+        # rays that cross the plane inside the tube hit the end face instead.
         ok = np.ones(points.shape[:-1], bool)
         if near_base:
             ok &= (points - base_pt) @ base_n <= 1e-9
@@ -259,14 +292,27 @@ def _chunk_hits(tube: Tube, m: int, o: NDArray[np.float64], d: NDArray[np.float6
             ok &= (points - tip_pt) @ tip_n <= 1e-9
         return ok
 
-    # Joint j (the end of segment j) is an interior joint for j < S - 1.
-    joints = tube.joints[sl.start : min(sl.stop, len(tube.joints))]
-    pieces = [_cylinder_hits(o, d, tube, sl, keep), _ball_hits(o, d, joints, r, keep)]
+    # Joint j (the end of segment j) is a ball for j < S - 1, and for j = S - 1 at a round tip.
+    joints = slice(sl.start, min(sl.stop, len(tube.joints)))
+    pieces = [
+        cone_hits(
+            o,
+            d,
+            tube.start[sl],
+            tube.axis[sl],
+            tube.cone_c0[sl],
+            tube.cone_c1[sl],
+            tube.cone_lo[sl],
+            tube.cone_hi[sl],
+            keep,
+        ),
+        ball_hits(o, d, tube.joints[joints], tube.joint_radii[joints], keep),
+    ]
     if near_base:
-        pieces.append(_cap_hits(o, d, base_pt, base_n, r))
+        pieces.append(disc_hits(o, d, base_pt, base_n, tube.base_cap_mm))
     if near_tip:
-        pieces.append(_cap_hits(o, d, tip_pt, tip_n, r))
-    k, t = _nearest(np.stack([p[0] for p in pieces], axis=1))
+        pieces.append(disc_hits(o, d, tip_pt, tip_n, tube.tip_cap_mm))
+    k, t = nearest(np.stack([p[0] for p in pieces], axis=1))
     normal = np.stack([p[1] for p in pieces], axis=1)[np.arange(len(d)), k]
     return t, normal
 

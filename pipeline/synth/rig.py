@@ -1,4 +1,4 @@
-"""The synthetic camera rig: three cameras placed like the original set-up.
+"""The synthetic camera rig: three cameras placed like the original set-up (or two of them).
 
 Shared by the session renderer and the calibration-board renderer so that both
 film with the same (true) cameras. Deliberately independent of
@@ -56,20 +56,36 @@ def look_at(center_mm: NDArray[np.float64], target_mm: NDArray[np.float64]) -> N
     return np.stack([x, y, z])
 
 
-def make_rig(arrangement: str = "oblique") -> list[SynthCamera]:
-    """The three true cameras of ``arrangement`` ("oblique" or "ninety")."""
+def make_rig(
+    arrangement: str = "oblique", *, size: tuple[int, int] = IMAGE_SIZE, cameras: int = 3
+) -> list[SynthCamera]:
+    """The true cameras of ``arrangement`` ("oblique" or "ninety").
+
+    size : (width, height) px, a multiple of 320x240: the same lenses on a finer sensor
+        (focal lengths scaled; principal points scaled about pixel corners, OpenCV's
+        pixel-centre convention: c' = s (c + 0.5) - 0.5).
+    cameras : 3, or 2 for the rig without its last camera.
+    """
     if arrangement not in ARRANGEMENTS:
         raise ValueError(f"unknown arrangement {arrangement!r}; use one of {tuple(ARRANGEMENTS)}")
+    if cameras not in (2, 3):
+        raise ValueError(f"a rig has 2 or 3 cameras, got {cameras}")
+    w, h = size
+    scale = w / IMAGE_SIZE[0]
+    if w * IMAGE_SIZE[1] != h * IMAGE_SIZE[0] or scale < 1 or scale != int(scale):
+        raise ValueError(f"image size must be a whole multiple of {IMAGE_SIZE}, got {size}")
     cams = []
-    w, h = IMAGE_SIZE
-    for i, (az_deg, dist_mm, el_deg, f_px) in enumerate(ARRANGEMENTS[arrangement]):
+    for i, (az_deg, dist_mm, el_deg, f_px) in enumerate(ARRANGEMENTS[arrangement][:cameras]):
         az, el = np.radians(az_deg), np.radians(el_deg)
         offset = dist_mm * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
         center = WORKSPACE_CENTER_MM + offset
         R = look_at(center, WORKSPACE_CENTER_MM)
-        K = np.array(
-            [[f_px, 0.0, w / 2 - 0.5 + 1.5 * (i - 1)], [0.0, f_px * 1.002, h / 2 - 0.5 - i], [0, 0, 1]]
-        )
+        # Principal points a little off centre, per lens; at 320x240 (scale 1) these are
+        # exactly w/2 - 0.5 + 1.5 (i - 1) and h/2 - 0.5 - i.
+        cx = scale * (IMAGE_SIZE[0] / 2 + 1.5 * (i - 1)) - 0.5
+        cy = scale * (IMAGE_SIZE[1] / 2 - i) - 0.5
+        f = f_px * scale
+        K = np.array([[f, 0.0, cx], [0.0, f * 1.002, cy], [0, 0, 1]])
         # Mild barrel distortion, slightly different per lens.
         dist = np.array([-0.08 - 0.02 * i, 0.03, 0.0005 * (i - 1), -0.0004, 0.0])
         cams.append(SynthCamera(f"cam{i}", w, h, K, dist, R, -R @ center))

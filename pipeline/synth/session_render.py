@@ -1,4 +1,4 @@
-"""Render a synthetic session directory: three videos, calibration, settings, ground truth.
+"""Render a synthetic session directory: the videos, calibration, settings, ground truth.
 
 The directory is in the project's input format (see CONTRACT.md) plus
 ``ground_truth.npz``. Frames are rendered in parallel over contiguous frame
@@ -7,9 +7,11 @@ chunks; the parent writes them in order to one mp4v video per camera.
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import logging
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,9 +23,12 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from ..errors import PipelineError
-from ..synth_names import SHAPES
-from .images import background_texture, render_frame, threshold_for
-from .raycast import project_points
+from ..synth_names import IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
+from .distractor import paint_distractor, place_distractor
+from .images import background_texture, flicker_gains, render_frame, threshold_for
+from .poses import out_of_view, outside_box, self_contact
+from .radius_profiles import Disks, RadiusProfile, disks_of, radius_along
+from .random_shapes import draw_shape, shape_at
 from .rig import ARRANGEMENTS, SynthCamera, calibration_document, make_rig
 from .shapes import shape_centerlines
 
@@ -39,43 +44,21 @@ CENTERLINE_POINTS = 200
 MIN_PARALLEL_FRAMES = 60
 
 
-def _unit_tangents(centerlines_mm: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Unit tangents of polylines, (..., N, 3) -> (..., N, 3); second-order at the ends."""
-    tangent = np.gradient(centerlines_mm, axis=-2, edge_order=2)
-    return tangent / np.linalg.norm(tangent, axis=-1, keepdims=True)
-
-
-def tube_surface_points(
-    centerlines_mm: NDArray[np.float64], radius_mm: float, *, ring: int = 16
-) -> NDArray[np.float64]:
-    """Points on the rims of the tube's cross-section discs (perpendicular to the tangent).
-
-    centerlines_mm : (..., N, 3) float64 -> (..., N * ring, 3) float64 mm.
-    """
-    tangent = _unit_tangents(centerlines_mm)
-    helper = np.where(np.abs(tangent[..., 2:3]) < 0.9, [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
-    n1 = np.cross(tangent, helper)
-    n1 /= np.linalg.norm(n1, axis=-1, keepdims=True)
-    n2 = np.cross(tangent, n1)
-    a = np.linspace(0.0, 2.0 * np.pi, ring, endpoint=False)[:, None]
-    offsets = np.cos(a) * n1[..., None, :] + np.sin(a) * n2[..., None, :]  # (..., N, ring, 3)
-    points = centerlines_mm[..., None, :] + radius_mm * offsets
-    return points.reshape(*centerlines_mm.shape[:-2], -1, 3)
-
-
-def check_poses(centerlines_mm: NDArray[np.float64], radius_mm: float, cameras: list[SynthCamera]) -> None:
+def check_poses(
+    centerlines_mm: NDArray[np.float64],
+    radius_mm: float | NDArray[np.float64],
+    cameras: list[SynthCamera],
+    *,
+    tip: str = "flat",
+    disks: Disks | None = None,
+) -> None:
     """Raise PipelineError unless every frame's tube lies inside the workspace cube and
     inside every camera's image, and never runs into itself.
 
-    centerlines_mm : (F, N, 3) float64, world frame.
+    centerlines_mm : (F, N, 3) float64, world frame; radius_mm : one radius or (N,) per point.
     """
-    # A disc of radius r perpendicular to the unit tangent T reaches r * sqrt(1 - T_i^2)
-    # along axis i; the discs (with the flat caps) sweep the whole tube, so this bound is exact.
-    reach = radius_mm * np.sqrt(np.clip(1.0 - _unit_tangents(centerlines_mm) ** 2, 0.0, None))
     lo, hi = WORKSPACE_ORIGIN_MM, WORKSPACE_ORIGIN_MM + WORKSPACE_SIZE_MM
-    # 1e-3 mm: the base disc lies exactly on the floor z = 0, and finite-difference
-    # tangents tilt it by ~(kappa h)^2, far below 1e-3 mm at its rim.
-    outside = np.any((centerlines_mm - reach < lo - 1e-3) | (centerlines_mm + reach > hi + 1e-3), axis=(1, 2))
+    outside = outside_box(centerlines_mm, radius_mm, lo, hi, tip=tip, disks=disks)
     if outside.any():
         raise PipelineError(
             f"synthetic frame {int(np.argmax(outside))}: the tube leaves the "
@@ -83,21 +66,14 @@ def check_poses(centerlines_mm: NDArray[np.float64], radius_mm: float, cameras: 
         )
     # Self-contact: points more than 4 radii apart along the tube (farther than any of
     # our bends can bring back within a diameter) must stay a diameter apart.
-    sub = centerlines_mm[:, ::4]
-    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(sub[0], axis=0), axis=1))])
-    apart = np.abs(arc[:, None] - arc[None]) > 4.0 * radius_mm
-    gaps = np.linalg.norm(sub[:, :, None] - sub[:, None], axis=-1)
-    touching = np.any(apart & (gaps < 2.0 * radius_mm), axis=(1, 2))
+    widest = max(float(np.max(radius_mm)), 0.0 if disks is None else disks.radius_mm)
+    touching = self_contact(centerlines_mm, min_gap_mm=2.0 * widest, min_arc_mm=4.0 * widest)
     if touching.any():
         raise PipelineError(
             f"synthetic frame {int(np.argmax(touching))}: the tube runs into itself; use a smaller radius"
         )
-    # In view: rims of every other disc (2.5 mm apart) at 12 points; the workspace
-    # itself projects 30 px or more inside every image, so this sampling is ample.
-    pts = tube_surface_points(centerlines_mm[:, ::2], radius_mm, ring=12)
     for cam in cameras:
-        uv = project_points(cam, pts)
-        off = np.any((uv < 0) | (uv > [cam.width - 1, cam.height - 1]), axis=(1, 2))
+        off = out_of_view(centerlines_mm, radius_mm, cam, tip=tip, disks=disks)
         if off.any():
             raise PipelineError(
                 f"synthetic frame {int(np.argmax(off))}: the tube leaves the image of camera {cam.name}"
@@ -127,14 +103,25 @@ def write_npz_deterministic(path: Path, arrays: dict[str, Any]) -> None:
             zf.writestr(zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0)), buf.getvalue())
 
 
+@dataclass(frozen=True)
+class Look:
+    """What a frame's images need besides the pose, fixed for a session.
+
+    radii_mm : (N,) radius at each centreline point; tip, disks : see :class:`Tube`;
+    backgrounds : per camera (H, W) grey levels (polarity "dark"); gains : (F,) flicker.
+    """
+
+    radii_mm: NDArray[np.float64] | float
+    tip: str
+    disks: Disks | None
+    backgrounds: list[NDArray[np.float64]]
+    polarity: str
+    seed: int
+    gains: NDArray[np.float64]
+
+
 def _render_chunk(
-    cameras: list[SynthCamera],
-    centerlines_mm: NDArray[np.float64],
-    radius_mm: float,
-    backgrounds: list[NDArray[np.float64]],
-    polarity: str,
-    seed: int,
-    first_frame: int,
+    cameras: list[SynthCamera], centerlines_mm: NDArray[np.float64], look: Look, first_frame: int
 ) -> NDArray[np.uint8]:
     """Frames ``first_frame ...`` of every camera: (n, C, H, W) uint8."""
     return np.stack(
@@ -143,11 +130,14 @@ def _render_chunk(
                 render_frame(
                     cameras,
                     line,
-                    radius_mm,
-                    backgrounds,
-                    polarity=polarity,
-                    seed=seed,
+                    look.radii_mm,
+                    look.backgrounds,
+                    polarity=look.polarity,
+                    seed=look.seed,
                     frame_index=first_frame + i,
+                    tip=look.tip,
+                    disks=look.disks,
+                    gain=float(look.gains[first_frame + i]),
                 )
             )
             for i, line in enumerate(centerlines_mm)
@@ -155,11 +145,35 @@ def _render_chunk(
     )
 
 
+@dataclass(frozen=True)
+class SceneOptions:
+    """The tube and scene options beyond the named shapes' originals (defaults: as the originals).
+
+    tip : "flat" or "round"; profile : a name from PROFILES or a full RadiusProfile (its
+    radius is replaced by ``radius_mm``); cameras : 3 or 2; size : (width, height) px;
+    distractor : a dark blob in one view's background; flicker : per-frame brightness.
+    """
+
+    tip: str = "flat"
+    profile: str | RadiusProfile = "uniform"
+    cameras: int = 3
+    size: tuple[int, int] = (320, 240)
+    distractor: bool = False
+    flicker: bool = False
+
+
 def _validate(
-    shape: str, frames: int, polarity: str, radius_mm: float, arrangement: str, length_mm: float
+    shape: str,
+    frames: int,
+    polarity: str,
+    radius_mm: float,
+    arrangement: str,
+    length_mm: float,
+    options: SceneOptions,
 ) -> None:
-    if shape not in SHAPES:
-        raise PipelineError(f"unknown synthetic shape {shape!r}; use one of {', '.join(SHAPES)}")
+    if shape not in (*SHAPES, RANDOM_SHAPE):
+        names = ", ".join((*SHAPES, RANDOM_SHAPE))
+        raise PipelineError(f"unknown synthetic shape {shape!r}; use one of {names}")
     if frames < 1:
         raise PipelineError(f"--frames must be at least 1, got {frames}")
     if polarity not in ("dark", "bright"):
@@ -170,6 +184,46 @@ def _validate(
         raise PipelineError(f"unknown arrangement {arrangement!r}; use one of {', '.join(ARRANGEMENTS)}")
     if not 50 <= length_mm <= 250:
         raise PipelineError(f"length_mm must be in [50, 250] mm to fit the workspace, got {length_mm}")
+    if options.tip not in TIPS:
+        raise PipelineError(f"unknown tip {options.tip!r}; use one of {', '.join(TIPS)}")
+    kind = options.profile if isinstance(options.profile, str) else options.profile.kind
+    if kind not in PROFILES:
+        raise PipelineError(f"unknown radius profile {kind!r}; use one of {', '.join(PROFILES)}")
+    if options.cameras not in (2, 3):
+        raise PipelineError(f"a synthetic rig has 2 or 3 cameras, got {options.cameras}")
+    if tuple(options.size) not in IMAGE_SIZES:
+        sizes = ", ".join(f"{w}x{h}" for w, h in IMAGE_SIZES)
+        raise PipelineError(f"image size must be one of {sizes}, got {options.size[0]}x{options.size[1]}")
+
+
+def _profile(options: SceneOptions, radius_mm: float) -> RadiusProfile:
+    if isinstance(options.profile, RadiusProfile):
+        return dataclasses.replace(options.profile, radius_mm=radius_mm)
+    return RadiusProfile(options.profile, radius_mm)
+
+
+def session_centerlines(
+    shape: str, frames: int, *, seed: int, length_mm: float, profile: RadiusProfile, tip: str
+) -> tuple[NDArray[np.float64], float]:
+    """The ground-truth centrelines (F, CENTERLINE_POINTS, 3) mm of a session and the
+    backbone's length (mm): a named shape's (``length_mm`` long), or for RANDOM_SHAPE the
+    random shape drawn from ``seed`` (with its own length)."""
+    if shape != RANDOM_SHAPE:
+        lines = shape_centerlines(
+            shape, frames, base_mm=BASE_MM, length_mm=length_mm, points=CENTERLINE_POINTS
+        )
+        return lines, length_mm
+    drawn = draw_shape(
+        seed,
+        profile=profile,
+        tip=tip,
+        base_mm=BASE_MM,
+        box_lo_mm=WORKSPACE_ORIGIN_MM,
+        box_hi_mm=WORKSPACE_ORIGIN_MM + WORKSPACE_SIZE_MM,
+        points=CENTERLINE_POINTS,
+    )
+    frame_t = np.arange(frames, dtype=np.float64)
+    return shape_at(drawn, frame_t, base_mm=BASE_MM, points=CENTERLINE_POINTS), drawn.length_mm
 
 
 def render_session(
@@ -182,34 +236,39 @@ def render_session(
     radius_mm: float = 6.0,
     arrangement: str = "oblique",
     length_mm: float = 250.0,
+    options: SceneOptions = SceneOptions(),
     progress: bool = True,
     jobs: int = -1,
 ) -> None:
-    """Render a synthetic three-camera session with its ground truth into ``out_dir``.
+    """Render a synthetic session with its ground truth into ``out_dir``.
 
-    Writes calibration.toml, cam0.mp4 .. cam2.mp4 (320x240, 30 fps, mp4v), session.toml,
+    Writes calibration.toml, cam0.mp4 .. (30 fps, mp4v), session.toml,
     background/<cam>.png and ground_truth.npz (see the README). The same arguments
     give byte-identical ground truth and identical frames.
 
     Parameters
     ----------
     out_dir : the session directory to write (created; existing files are replaced).
-    shape : one of pipeline.synth_names.SHAPES.
+    shape : one of pipeline.synth_names.SHAPES, or RANDOM_SHAPE (drawn from ``seed``).
     frames : number of frames (30 fps).
-    seed : background textures and sensor noise.
+    seed : background textures, sensor noise, and for the random shape, the shape.
     polarity : "dark" tube on a light scene, or "bright" (the negative).
-    radius_mm, length_mm : the tube.
+    radius_mm : the tube's nominal radius (at the base); length_mm : the named shapes' length.
     arrangement : camera placement, "oblique" or "ninety" (see pipeline.synth.rig).
+    options : tube end, radius profile, camera count, image size, distractor, flicker.
     progress : show a progress bar.
     jobs : worker processes (-1: one per core).
     """
-    _validate(shape, frames, polarity, radius_mm, arrangement, length_mm)
+    _validate(shape, frames, polarity, radius_mm, arrangement, length_mm, options)
     out_dir = Path(out_dir)
-    cameras = make_rig(arrangement)
-    centerlines = shape_centerlines(
-        shape, frames, base_mm=BASE_MM, length_mm=length_mm, points=CENTERLINE_POINTS
+    cameras = make_rig(arrangement, size=options.size, cameras=options.cameras)
+    profile = _profile(options, radius_mm)
+    centerlines, length = session_centerlines(
+        shape, frames, seed=seed, length_mm=length_mm, profile=profile, tip=options.tip
     )
-    check_poses(centerlines, radius_mm, cameras)
+    radii = radius_along(profile, np.linspace(0.0, length, CENTERLINE_POINTS))
+    disks = disks_of(profile, length)
+    check_poses(centerlines, radii, cameras, tip=options.tip, disks=disks)
 
     try:
         (out_dir / "background").mkdir(parents=True, exist_ok=True)
@@ -228,9 +287,15 @@ def render_session(
     backgrounds = [
         background_texture(cam.width, cam.height, seed=seed, camera_index=i) for i, cam in enumerate(cameras)
     ]
+    blob = None
+    if options.distractor:
+        widest = max(float(radii.max()), 0.0 if disks is None else disks.radius_mm)
+        blob = place_distractor(cameras, centerlines, widest, seed=seed)
+        backgrounds[blob.camera_index] = paint_distractor(backgrounds[blob.camera_index], blob)
     for cam, bg in zip(cameras, backgrounds, strict=True):
         grey = 255.0 - bg if polarity == "bright" else bg
         cv2.imwrite(str(out_dir / "background" / f"{cam.name}.png"), np.rint(grey).astype(np.uint8))
+    gains = flicker_gains(seed, frames) if options.flicker else np.ones(frames)
     write_npz_deterministic(
         out_dir / "ground_truth.npz",
         {
@@ -246,9 +311,21 @@ def render_session(
             "R": np.stack([c.R for c in cameras]),
             "t": np.stack([c.t for c in cameras]),
             "image_size": np.array([cameras[0].width, cameras[0].height]),
+            "tip": np.str_(options.tip),
+            "profile": np.str_(profile.kind),
+            "radius_profile_mm": np.broadcast_to(radii, (frames, CENTERLINE_POINTS)),
+            "length_mm": np.float64(length),
+            "disk_arc_mm": np.zeros(0) if disks is None else disks.arc_mm,
+            "disk_radius_mm": np.float64(0.0 if disks is None else disks.radius_mm),
+            "disk_thickness_mm": np.float64(0.0 if disks is None else disks.thickness_mm),
+            "distractor_camera": np.int64(-1 if blob is None else blob.camera_index),
+            "flicker_gain": gains,
         },
     )
-    _write_videos(out_dir, cameras, centerlines, radius_mm, backgrounds, polarity, seed, progress, jobs)
+    # Named shapes with the original options pass the plain radius, exactly as before.
+    uniform = profile.kind == "uniform"
+    look = Look(radius_mm if uniform else radii, options.tip, disks, backgrounds, polarity, seed, gains)
+    _write_videos(out_dir, cameras, centerlines, look, progress, jobs)
     log.info("wrote synthetic session %s (%s, %d frames)", out_dir, shape, frames)
 
 
@@ -256,10 +333,7 @@ def _write_videos(
     out_dir: Path,
     cameras: list[SynthCamera],
     centerlines: NDArray[np.float64],
-    radius_mm: float,
-    backgrounds: list[NDArray[np.float64]],
-    polarity: str,
-    seed: int,
+    look: Look,
     progress: bool,
     jobs: int,
 ) -> None:
@@ -274,20 +348,16 @@ def _write_videos(
         writers.append(writer)
     n_jobs = 1 if frames < MIN_PARALLEL_FRAMES else jobs
     # Small chunks keep the progress bar lively and the parent's memory low; each
-    # holds ~30 frames x 3 cameras (7 MB).
+    # holds ~30 frames x 3 cameras (7 MB at 320x240).
     chunk = 30 if n_jobs != 1 else frames
     starts = range(0, frames, chunk)
-    tasks = (
-        delayed(_render_chunk)(cameras, centerlines[s : s + chunk], radius_mm, backgrounds, polarity, seed, s)
-        for s in starts
-    )
+    tasks = (delayed(_render_chunk)(cameras, centerlines[s : s + chunk], look, s) for s in starts)
     try:
         with tqdm(total=frames, unit="frame", desc="rendering", disable=not progress) as bar:
             if n_jobs == 1:
                 # One frame at a time, so the bar moves even without workers.
                 results: Any = (
-                    _render_chunk(cameras, centerlines[f : f + 1], radius_mm, backgrounds, polarity, seed, f)
-                    for f in range(frames)
+                    _render_chunk(cameras, centerlines[f : f + 1], look, f) for f in range(frames)
                 )
             else:
                 results = Parallel(n_jobs=n_jobs, return_as="generator")(tasks)

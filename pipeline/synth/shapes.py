@@ -47,7 +47,7 @@ class Segment:
     phi: float = 0.0
 
 
-def _rotation(axis_angle: NDArray[np.float64]) -> NDArray[np.float64]:
+def rotation(axis_angle: NDArray[np.float64]) -> NDArray[np.float64]:
     """Rotation matrices from axis-angle vectors, (..., 3) -> (..., 3, 3) (Rodrigues)."""
     theta = np.linalg.norm(axis_angle, axis=-1)[..., None, None]
     safe = np.where(theta > 0, theta, 1.0)
@@ -74,7 +74,7 @@ def _segment_points(
         [segment.tau, -segment.kappa * math.sin(segment.phi), segment.kappa * math.cos(segment.phi)]
     )
     w = float(np.linalg.norm(omega))
-    frames = _rotation(s_mm[:, None] * omega)
+    frames = rotation(s_mm[:, None] * omega)
     e1 = np.array([1.0, 0.0, 0.0])
     if w < 1e-12:
         return s_mm[:, None] * e1, frames
