@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 
 from pipeline.errors import EvaluationError
 from pipeline.evaluate import (
+    TARGETS,
     EvaluationReport,
     centerline_distances,
     evaluate_centerlines,
@@ -170,7 +171,7 @@ def test_json_is_strict_and_round_trips() -> None:
 def test_format_report_shows_figures_targets_and_failed_frames() -> None:
     text = format_report(small_report())
     assert "centreline mean (mm)" in text and "0.200" in text
-    assert "<= 0.4" in text
+    assert f"<= {TARGETS['mean_mm']}" in text
     assert "failed frames: 3" in text
 
 
@@ -311,7 +312,8 @@ def test_accuracy_table_is_markdown_with_ours_smoothed_and_polyfit() -> None:
     assert len(first) == len(COLUMNS)
     assert first[:4] == ["loop", "oblique", "6", "0.20"]
     assert first[7] == "1/5"  # failed / frames
-    assert first[9] == "0.20" and first[13] == "0.20"  # smoothed and polyfit means
+    assert first[8:10] == ["0 (-)", "-"]  # frames off (flagged), good frames flagged: not known here
+    assert first[11] == "0.20" and first[15] == "0.20"  # smoothed and polyfit means
     second = [cell.strip() for cell in lines[3].strip("|").split("|")]
-    assert second[0] == "ninety-helix-r4 (unseen)" and second[9] == "-" and second[-1] == "-"
+    assert second[0] == "ninety-helix-r4 (unseen)" and second[11] == "-" and second[-1] == "-"
     assert json.loads(results_json(results))[1]["polyfit"] is None
