@@ -121,3 +121,59 @@ def test_a_hull_against_a_wall_other_than_the_bases_is_reported() -> None:
     side_base = np.array([-50.0, 50.0, 60.0])
     assert not quality.reaches_walls(np.array([[-49.0, 50.0, 60.0]]), box, side_base)
     assert quality.reaches_walls(np.array([[0.0, 50.0, 11.0]]), box, side_base)
+
+
+# --- the suspect flag ----------------------------------------------------------------------------
+
+
+def _arc_mm(n: int = 60) -> np.ndarray:
+    """(n, 3) a quarter circle of radius 100 mm rising from the default base, mm."""
+    angle = np.linspace(0.0, np.pi / 2, n)
+    return np.column_stack([128.0 + 100.0 * (1 - np.cos(angle)), np.full(n, 128.0), 100.0 * np.sin(angle)])
+
+
+def test_a_tube_that_matches_its_silhouettes_and_its_track_is_not_suspect() -> None:
+    cams = rig_cameras()
+    axis = _arc_mm()
+    masks = quality.tube_masks(cams, axis, 6.0)
+    iou = quality.reprojection_iou(cams, masks, axis, 6.0)
+    length = float(np.linalg.norm(np.diff(axis, axis=0), axis=1).sum())
+    reason = quality.suspect_reason(
+        cams, masks, axis, 6.0, iou=iou, predicted_mm=axis + 0.5, previous_length_mm=length
+    )
+    assert reason == ""
+
+
+@pytest.mark.parametrize(
+    ("change", "expected"),
+    [
+        ("silhouette", "unexplained"),
+        ("prediction", "from its track's prediction"),
+        ("length", "length changed"),
+        ("crossing", "passes through itself"),
+    ],
+)
+def test_each_sign_of_a_wrong_curve_makes_it_suspect(change: str, expected: str) -> None:
+    cams = rig_cameras()
+    axis = _arc_mm()
+    length = float(np.linalg.norm(np.diff(axis, axis=0), axis=1).sum())
+    masks = quality.tube_masks(cams, axis, 6.0)
+    predicted, previous_length = axis, length
+    if change == "silhouette":  # another part of the tube the curve does not explain
+        masks = [
+            m | o
+            for m, o in zip(
+                masks, quality.tube_masks(cams, axis + np.array([0.0, 60.0, 0.0]), 6.0), strict=True
+            )
+        ]
+    elif change == "prediction":  # 3 radii from where the track said
+        predicted = axis + np.array([0.0, 18.0, 0.0])
+    elif change == "length":  # 10 % longer a frame before
+        previous_length = 1.1 * length
+    else:  # the curve comes back through its own start
+        axis = np.vstack([axis, axis[::-1][1:20] + np.array([0.0, 2.0, 0.0])])
+    iou = quality.reprojection_iou(cams, masks, axis, 6.0)
+    reason = quality.suspect_reason(
+        cams, masks, axis, 6.0, iou=iou, predicted_mm=predicted, previous_length_mm=previous_length
+    )
+    assert expected in reason
