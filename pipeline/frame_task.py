@@ -32,8 +32,9 @@ SILHOUETTE_RGBA = (0, 200, 255, 110)
 
 Mask = NDArray[np.bool_]
 Image = NDArray[np.uint8]
-# (frame index, grey images in camera order, model) -> (result, silhouettes or None)
-FrameFunction = Callable[[int, Sequence[Image], Any], tuple[FrameResult, Sequence[Mask] | None]]
+# (frame index, grey images in camera order, model[, the track's last results]) ->
+# (result, silhouettes or None); the last argument only for a tracked process_range.
+FrameFunction = Callable[..., tuple[FrameResult, Sequence[Mask] | None]]
 
 
 @dataclass(frozen=True, eq=False)
@@ -149,6 +150,7 @@ def process_range(
     *,
     images: bool = True,
     frame_fn: FrameFunction | None = None,
+    tracked: bool | None = None,
 ) -> list[FrameOutput]:
     """Decode frames ``start <= i < stop`` of every video and process them (one task).
 
@@ -156,9 +158,11 @@ def process_range(
     (:mod:`pipeline.tracking`): the task decodes from the start of its first
     frame's track, and restarts the track, from the frames before, at each
     segment it enters, so that every frame's curve is the one any other split
-    of the work would give. A replacement ``frame_fn`` sees each frame alone.
+    of the work would give. A replacement ``frame_fn`` sees each frame alone,
+    unless ``tracked``: it is then called with the track's last results too,
+    as ``frame_fn(index, images, model, previous)``.
     """
-    tracked = frame_fn is None
+    tracked = frame_fn is None if tracked is None else tracked
     compute: Callable[..., tuple[FrameResult, Sequence[Mask] | None]]
     if frame_fn is None:
         from .reconstruct import reconstruct_with_silhouettes as compute

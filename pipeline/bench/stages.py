@@ -80,16 +80,18 @@ def time_stages(session: Session, out_dir: Path, *, frames: int) -> StageRun:
     masks: dict[int, Masks] = {}
 
     def frame_fn(
-        index: int, images: Sequence[NDArray[np.uint8]], m: SessionModel
+        index: int, images: Sequence[NDArray[np.uint8]], m: SessionModel, previous: Sequence[FrameResult]
     ) -> tuple[FrameResult, Masks]:
-        result, sil = reconstruct_with_silhouettes(index, images, m)
+        result, sil = reconstruct_with_silhouettes(index, images, m, previous)
         masks[index] = sil
         return result, sil
 
     timer = StageTimer()
     n = min(frames, session.frame_count)
     names = tuple(c.name for c in session.cameras)
-    outputs = process_range(model, session.video_paths, names, 0, n, images=True, frame_fn=frame_fn)
+    outputs = process_range(
+        model, session.video_paths, names, 0, n, images=True, frame_fn=frame_fn, tracked=True
+    )
 
     out_dir.mkdir(parents=True, exist_ok=True)
     stream = rr.RecordingStream(application_id="pipeline-bench", recording_id=uuid.uuid4())
