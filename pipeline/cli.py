@@ -14,7 +14,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import NoReturn
 
-from .errors import PipelineError
+from .errors import Interrupted, PipelineError
+from .interrupts import signals_interrupt
 
 log = logging.getLogger("pipeline")
 
@@ -256,8 +257,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    # SIGINT, SIGTERM and SIGHUP end the run the same way wherever they land: exit 130, one line.
+    with signals_interrupt():
+        try:
+            return _main(argv)
+        except KeyboardInterrupt as exc:
+            message = str(exc) if isinstance(exc, Interrupted) else "interrupted; nothing written"
+            print(message, file=sys.stderr)
+            return 130
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_with_negative_frames(sys.argv[1:] if argv is None else argv))
     logging.basicConfig(
         level=logging.DEBUG if args.debug else logging.INFO,
         format="%(levelname)s: %(message)s",
@@ -275,9 +287,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
     except Exception as exc:
         # Not the user's mistake: a bug. One line by default, the traceback with --debug.
         if args.debug:
@@ -288,6 +297,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             file=sys.stderr,
         )
         return EXIT_INTERNAL_ERROR
+
+
+def _with_negative_frames(argv: Sequence[str]) -> list[str]:
+    """``--frames -5:10`` as ``--frames=-5:10``: argparse takes a value that starts with "-"
+    for an option and says "expected one argument"; joined, _frame_range names the mistake."""
+    out = list(argv)
+    for i, arg in enumerate(out[:-1]):
+        if arg == "--frames" and out[i + 1].startswith("-"):
+            out[i : i + 2] = [f"--frames={out[i + 1]}"]
+            break
+    return out
 
 
 def _one_line(exc: BaseException) -> str:

@@ -29,7 +29,7 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 
 from pipeline import outputs, runner
 from pipeline.cli import EXIT_FRAMES_FAILED, EXIT_OK, main
-from pipeline.errors import OutputError
+from pipeline.errors import Interrupted, OutputError
 from pipeline.frame_result import FrameResult
 from pipeline.record_mcap import METRICS_TOPIC
 from pipeline.recording import load_recording
@@ -249,15 +249,14 @@ class _Interrupt:
         return straight_rod(index, images, model)
 
 
-def test_interrupted_force_run_leaves_old_outputs(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+def test_interrupted_force_run_leaves_old_outputs(tmp_path: Path) -> None:
     session = build_session(tmp_path / "take", frames=4)
     out = tmp_path / "out"
     _run(session, out, frames=(0, 1))
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    with pytest.raises(KeyboardInterrupt), caplog.at_level(logging.WARNING):
+    with pytest.raises(Interrupted, match=r"interrupted after \d of 4 frames; temporary files removed"):
         _run(session, out, force=True, backend="threading", frame_fn=_Interrupt())
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
-    assert "interrupted after" in caplog.text and "of 4 frames" in caplog.text
 
 
 def test_output_path_under_a_file_is_an_error_before_any_work(tmp_path: Path) -> None:
@@ -296,7 +295,7 @@ def test_disk_full_is_a_clear_error_and_leaves_nothing(
     out = tmp_path / "out"
     with pytest.raises(OutputError, match=r"disk full while writing the recordings; free space"):
         _run(session, out)
-    assert list(out.iterdir()) == []
+    assert not out.exists()  # the run created it, and removes it with the rest
 
 
 def test_disk_full_at_rename_leaves_no_half_output(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -309,7 +308,7 @@ def test_disk_full_at_rename_leaves_no_half_output(tmp_path: Path, monkeypatch: 
     out = tmp_path / "out"
     with pytest.raises(OutputError, match="disk full"):
         _run(session, out)
-    assert list(out.iterdir()) == []
+    assert not out.exists()
 
 
 # --- a recording cut short --------------------------------------------------------------------
@@ -411,7 +410,7 @@ def test_sigterm_stops_the_run_and_keeps_previous_outputs(tmp_path: Path) -> Non
         # Wait until the run is under way (its temporary MCAP exists), then a little more:
         # 60 frames of 0.2 s on 2 workers last 6 s, so the signal lands mid-run.
         for _ in range(1200):
-            if (out / ".take.mcap.partial").exists():
+            if any(p.name.endswith(".partial") for p in out.iterdir()):
                 break
             time.sleep(0.05)
         time.sleep(1.0)
