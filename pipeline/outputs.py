@@ -282,6 +282,11 @@ def output_error(out_dir: Path, exc: OSError) -> OutputError:
     return OutputError(f"{out_dir}: cannot write the recordings ({exc.strerror or exc})")
 
 
+# How long the Rerun writer may take to write out what it still holds at the end of a run:
+# seconds on any disk that takes writes; its flush otherwise waits for good (a full disk).
+FLUSH_TIMEOUT_S = 60.0
+
+
 def _check_rrd_complete(partial: Path, final: Path) -> None:
     """Rerun writes from a background thread and reports a full disk only in its log:
     read the file's footer back before giving it its final name."""
@@ -326,6 +331,7 @@ class Writers:
         self.mcap_path, self.rrd_path = target.mcap_path, target.rrd_path
         self._mcap_file: IO[bytes] | None = None
         self._stream: Any = None
+        self._stalled = False  # the Rerun writer did not finish within its bound
         self.frames: list[int] = []
         self.times_ns: list[int] = []
         self.curves: list[NDArray[np.float64] | None] = []
@@ -414,8 +420,16 @@ class Writers:
         self._mcap_file.flush()
         os.fsync(self._mcap_file.fileno())
         self._mcap_file.close()
-        self.rerun.finish()
-        self._stream.flush()
+        try:
+            self.rerun.finish(flush_timeout_s=FLUSH_TIMEOUT_S)
+        except RuntimeError as exc:
+            if "timed out" not in str(exc):  # Rerun's words for an expired bound
+                raise
+            self._stalled = True
+            raise OutputError(
+                f"{self.rrd_path}: the Rerun recording was not written within {FLUSH_TIMEOUT_S:g} s "
+                "(disk full, or a stalled file system?); free space or choose another --out, and rerun"
+            ) from None
         self._stream.disconnect()
         _check_rrd_complete(self.target.partial(self.rrd_path), self.rrd_path)
         with deferred_signals():  # a signal between the two renames would split the pair
@@ -427,9 +441,16 @@ class Writers:
         with contextlib.suppress(Exception):
             if self._mcap_file is not None:
                 self._mcap_file.close()
-        with contextlib.suppress(Exception):
-            if self._stream is not None:
-                self._stream.disconnect()
+        if self._stalled:
+            # Closing a stream whose writer is stuck waits for it, and so would Rerun's
+            # handler at exit: leave the stream, and the exit, to the operating system.
+            import rerun as rr
+
+            rr.unregister_shutdown()
+        else:
+            with contextlib.suppress(Exception):
+                if self._stream is not None:
+                    self._stream.disconnect()
         for path in (self.mcap_path, self.rrd_path):
             with contextlib.suppress(FileNotFoundError):
                 self.target.partial(path).unlink()

@@ -550,3 +550,23 @@ def test_a_signal_while_loading_ends_the_run_cleanly(tmp_path: Path, sig: signal
     for p in alive:
         p.kill()
     assert not alive
+
+
+def test_a_rerun_writer_that_does_not_finish_is_an_error_not_a_hang(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import rerun as rr
+
+    session = build_session(tmp_path / "take", frames=2)
+    bounds: list[float] = []
+
+    def stuck_flush(self: Any, *, timeout_sec: float = 1e38) -> None:
+        bounds.append(timeout_sec)
+        raise RuntimeError("Flush timed out - not all log messages were sent")  # Rerun's words
+
+    monkeypatch.setattr(rr.RecordingStream, "flush", stuck_flush)
+    out = tmp_path / "out"
+    with pytest.raises(OutputError, match=r"take\.rrd: the Rerun recording was not written within 60 s"):
+        _run(session, out)
+    assert bounds == [outputs.FLUSH_TIMEOUT_S]  # the wait had a bound
+    assert not out.exists()
