@@ -31,7 +31,7 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 
 from pipeline import outputs, runner, workers
 from pipeline.cli import EXIT_FRAMES_FAILED, EXIT_OK, main
-from pipeline.errors import Interrupted, OutputError, SettingsError
+from pipeline.errors import Interrupted, OutputError, RecordingError, SettingsError
 from pipeline.frame_result import FrameResult
 from pipeline.record_mcap import METRICS_TOPIC
 from pipeline.recording import load_recording
@@ -570,3 +570,20 @@ def test_a_rerun_writer_that_does_not_finish_is_an_error_not_a_hang(
         _run(session, out)
     assert bounds == [outputs.FLUSH_TIMEOUT_S]  # the wait had a bound
     assert not out.exists()
+
+
+def test_a_recording_cut_in_its_smoothed_curves_has_none(big_recording: Path, tmp_path: Path) -> None:
+    data = big_recording.read_bytes()
+    by_chunk = _frames_by_chunk(big_recording)
+    cut_path = tmp_path / "cut.mcap"
+    cut_path.write_bytes(data[: by_chunk[-1][0]])  # every frame's chunk, not the footer
+    rec = load_recording(cut_path)
+    assert not rec.complete and len(rec) == 40
+    assert rec.smoothed_centerlines_m is None  # as documented, not a partly NaN array
+
+
+def test_loading_the_rrd_says_to_pass_the_mcap(big_recording: Path) -> None:
+    with pytest.raises(
+        RecordingError, match=r"rec\.rrd: is a Rerun recording .*give load_recording the \.mcap"
+    ):
+        load_recording(big_recording.with_suffix(".rrd"))
