@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -274,6 +275,12 @@ def _main(argv: Sequence[str] | None) -> int:
         level=logging.DEBUG if args.debug else logging.INFO,
         format="%(levelname)s: %(message)s",
     )
+    # Libraries' warnings and Rerun's own log lines (with colour codes even into a file) go
+    # to --debug only: stderr carries the run's own lines.
+    logging.captureWarnings(True)
+    logging.getLogger("py.warnings").setLevel(logging.DEBUG if args.debug else logging.CRITICAL)
+    if not args.debug:
+        os.environ.setdefault("RUST_LOG", "off")
     if args.debug:
         # FFmpeg's own diagnostics (silenced in pipeline.video) help debug a damaged video.
         from .video import show_ffmpeg_messages

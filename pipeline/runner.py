@@ -15,7 +15,9 @@ import contextlib
 import dataclasses
 import logging
 import math
+import os
 import sys
+import textwrap
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -96,7 +98,15 @@ def _backend(backend: str, scheduler: str | None, n_jobs: int, model: Any) -> It
             else:
                 yield n_jobs, model
         return
+    # distributed logs ~45 INFO lines while a cluster starts, in this process and in its
+    # workers (which read the variable): the run's own lines say what matters.
+    quiet = not log.isEnabledFor(logging.DEBUG)
+    if quiet:
+        os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
     from distributed import Client, LocalCluster
+
+    if quiet:
+        logging.getLogger("distributed").setLevel(logging.WARNING)
 
     cluster = None
     if scheduler:
@@ -217,7 +227,7 @@ def _attempts(
                     "a worker failed on frames %d onwards (%s: %s); %s",
                     group[done][0],
                     type(exc).__name__,
-                    str(exc).strip().splitlines()[0][:200] if str(exc).strip() else "",
+                    textwrap.shorten(str(exc).strip().splitlines()[0], 200) if str(exc).strip() else "",
                     "giving up on this range" if attempt == "isolated" else "retrying in a fresh pool",
                 )
                 if attempt == "isolated":

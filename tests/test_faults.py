@@ -424,7 +424,9 @@ def test_a_signal_stops_the_run_and_keeps_previous_outputs(tmp_path: Path, sig: 
     assert proc.returncode == 130, err
     assert {p.name: p.read_bytes() for p in out.iterdir()} == previous
     # One line: what was done, and that nothing is left behind.
-    (line,) = err.strip().splitlines()
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    (line,) = lines
     assert re.fullmatch(
         r"interrupted after \d+ of 60 frames; temporary files removed, existing outputs untouched", line
     )
