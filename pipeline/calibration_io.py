@@ -19,6 +19,7 @@ import tomli_w
 
 from .camera import Camera
 from .errors import CalibrationError
+from .toml_file import load_toml
 
 REQUIRED_KEYS = ("name", "size", "matrix", "distortions", "rotation", "translation")
 
@@ -26,8 +27,7 @@ REQUIRED_KEYS = ("name", "size", "matrix", "distortions", "rotation", "translati
 def read_calibration(path: Path) -> list[Camera]:
     """Read and validate calibration.toml; raise CalibrationError naming file, camera and key."""
     try:
-        with Path(path).open("rb") as f:
-            data = tomllib.load(f)
+        data = load_toml(path)
     except FileNotFoundError:
         raise CalibrationError(
             f"{path}: not found; every session needs a calibration.toml (see README, 'Input')"

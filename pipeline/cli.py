@@ -18,7 +18,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import NoReturn
 
-from .errors import OutputError, PipelineError
+from .errors import Interrupted, OutputError, PipelineError
+from .interrupts import signals_interrupt
 
 log = logging.getLogger("pipeline")
 
@@ -392,14 +393,31 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
+    # SIGINT, SIGTERM and SIGHUP end the run the same way wherever they land: exit 130, one line.
+    with signals_interrupt():
+        try:
+            return _main(argv, prog)
+        except KeyboardInterrupt as exc:
+            message = str(exc) if isinstance(exc, Interrupted) else "interrupted; nothing written"
+            print(message, file=sys.stderr)
+            return 130
+
+
+def _main(argv: Sequence[str] | None, prog: str) -> int:
     parser = build_parser(prog)
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_with_negative_frames(sys.argv[1:] if argv is None else argv))
     if getattr(args, "scheduler", None) and args.backend not in (None, "dask"):
         args.usage_error(f"--scheduler runs on a Dask cluster: drop --backend {args.backend}, or use dask")
     logging.basicConfig(
         level=logging.DEBUG if args.debug else logging.INFO,
         format="%(levelname)s: %(message)s",
     )
+    # Libraries' warnings and Rerun's own log lines (with colour codes even into a file) go
+    # to --debug only: stderr carries the run's own lines.
+    logging.captureWarnings(True)
+    logging.getLogger("py.warnings").setLevel(logging.DEBUG if args.debug else logging.CRITICAL)
+    if not args.debug:
+        os.environ.setdefault("RUST_LOG", "off")
     if args.debug:
         # FFmpeg's own diagnostics (silenced in pipeline.video) help debug a damaged video.
         from .video import show_ffmpeg_messages
@@ -413,9 +431,6 @@ def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
             raise
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
     except Exception as exc:
         # Not the user's mistake: a bug. One line by default, the traceback with --debug.
         if args.debug:
@@ -426,6 +441,17 @@ def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
             file=sys.stderr,
         )
         return EXIT_INTERNAL_ERROR
+
+
+def _with_negative_frames(argv: Sequence[str]) -> list[str]:
+    """``--frames -5:10`` as ``--frames=-5:10``: argparse takes a value that starts with "-"
+    for an option and says "expected one argument"; joined, _frame_range names the mistake."""
+    out = list(argv)
+    for i, arg in enumerate(out[:-1]):
+        if arg == "--frames" and out[i + 1].startswith("-"):
+            out[i : i + 2] = [f"--frames={out[i + 1]}"]
+            break
+    return out
 
 
 def _one_line(exc: BaseException) -> str:

@@ -38,3 +38,7 @@ class EvaluationError(PipelineError):
 
 class RecordingError(PipelineError):
     """A recording (MCAP) cannot be read."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """A run stopped by Ctrl-C or a signal, after cleaning up; the message says what is left."""

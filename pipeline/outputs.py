@@ -1,14 +1,18 @@
 """The outputs of a run: the MCAP and Rerun files under temporary names, and the summary.
 
-Both files are written as ``.<name>.partial`` beside their final names and renamed
-into place (``os.replace``) only when complete, so an interrupted or failed run never
-leaves a truncated file under a final name, and replaces existing outputs only then.
+Both files are written as ``.<name>.<run>.partial`` beside their final names (``<run>``
+unique to the run) and renamed into place (``os.replace``) only when both are
+complete, so an interrupted or failed run never leaves a truncated file under a final
+name, and replaces existing outputs only then. A lock on ``.<session>.lock`` in the
+output folder keeps a second run of the same session out while one writes; the run
+that holds it removes what dead runs left behind.
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import logging
 import os
 import uuid
@@ -23,8 +27,9 @@ from numpy.typing import NDArray
 
 from .errors import OutputError
 from .frame_task import FrameOutput
+from .interrupts import deferred_signals
 from .quality import DOUBTFUL_IOU, is_doubtful, reaches_walls
-from .session import Session
+from .session import Session, check_utf8_path
 from .smoothing import smooth_centerlines
 
 log = logging.getLogger(__name__)
@@ -166,47 +171,169 @@ def _human_size(size: int) -> str:
     return f"{size} B"
 
 
-def _partial(path: Path) -> Path:
-    return path.with_name(f".{path.name}.partial")
-
-
 def _open_partial(path: Path) -> IO[bytes]:
-    """Open the temporary file for ``path``'s content (a seam for tests)."""
-    return _partial(path).open("wb")
+    """Create the temporary file ``path`` (a seam for tests); the name is this run's alone."""
+    return path.open("xb")
 
 
-def prepare_outputs(out_dir: Path, name: str, force: bool) -> tuple[Path, Path]:
-    """Check, before any work, that the outputs can be written; return their final paths."""
+def _display(path: Path) -> str:
+    """``path`` as printable text (bytes that are not UTF-8 shown as U+FFFD)."""
+    return os.fsencode(path).decode("utf-8", "replace")
+
+
+class OutputTarget:
+    """Where one run writes ``<out_dir>/<name>.mcap`` and ``.rrd``: their temporary names,
+    the lock that keeps other runs of the session out, the folders this run created.
+
+    Made by :func:`prepare_outputs`; :meth:`commit` puts the pair in place,
+    :meth:`release` removes the lock (and, after a failure, the folders it created
+    if they are still empty).
+    """
+
+    def __init__(self, out_dir: Path, name: str, created: list[Path]) -> None:
+        self.out_dir, self.name = out_dir, name
+        self.mcap_path, self.rrd_path = out_dir / f"{name}.mcap", out_dir / f"{name}.rrd"
+        self.run = f"{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        self._created = created
+        self._lock_path = out_dir / f".{name}.lock"
+        self._lock_fd: int | None = None
+
+    @property
+    def finals(self) -> tuple[Path, Path]:
+        return self.mcap_path, self.rrd_path
+
+    def partial(self, path: Path) -> Path:
+        """This run's temporary name for the final ``path``."""
+        return path.with_name(f".{path.name}.{self.run}.partial")
+
+    def _backup(self, path: Path) -> Path:
+        return path.with_name(f".{path.name}.{self.run}.old")
+
+    def lock(self) -> None:
+        """Take the session's lock in the folder, or raise OutputError if another run has it."""
+        while True:
+            fd = os.open(self._lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                raise OutputError(
+                    f"another run is writing {self.name} in {_display(self.out_dir)}; wait for it to "
+                    "finish, or give this run another --out"
+                ) from None
+            # The previous holder removes the file as it lets go: a lock on a removed file
+            # is no lock, so check that the file is still the one at the path.
+            try:
+                if os.path.samestat(os.fstat(fd), os.stat(self._lock_path)):
+                    break
+            except FileNotFoundError:
+                pass
+            os.close(fd)
+        self._lock_fd = fd
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self._remove_stale()
+
+    def _remove_stale(self) -> None:
+        """Remove the temporary files of this session's earlier runs: with the lock held,
+        no run is writing them (they died: SIGKILL, power loss)."""
+        prefixes = tuple(f".{p.name}." for p in self.finals)
+        for entry in os.scandir(self.out_dir):
+            if entry.name.startswith(prefixes) and entry.name.endswith((".partial", ".old")):
+                with contextlib.suppress(OSError):
+                    os.unlink(entry.path)
+                    log.debug("removed %s, left by a run that did not finish", entry.path)
+
+    def commit(self) -> None:
+        """Rename both temporary files into place: afterwards the folder holds the new pair,
+        or, if a rename fails, the old pair (or none) as before."""
+        backups: list[tuple[Path, Path]] = []
+        placed: list[Path] = []
+        try:
+            for final in self.finals:
+                if final.exists():
+                    backup = self._backup(final)
+                    try:
+                        os.link(final, backup)  # the old file stays in place meanwhile
+                    except OSError:  # a file system without hard links
+                        os.replace(final, backup)
+                    backups.append((final, backup))
+            for final in self.finals:
+                os.replace(self.partial(final), final)
+                placed.append(final)
+        except BaseException:
+            restored = dict(backups)
+            for final in placed:
+                with contextlib.suppress(OSError):
+                    if final in restored:
+                        os.replace(restored.pop(final), final)
+                    else:
+                        final.unlink()
+            for final, backup in restored.items():  # moved aside but not yet replaced
+                with contextlib.suppress(OSError):
+                    if not final.exists():
+                        os.replace(backup, final)
+            raise
+        finally:
+            for _, backup in backups:
+                with contextlib.suppress(FileNotFoundError):
+                    backup.unlink()
+
+    def release(self, *, failed: bool) -> None:
+        """Let go of the lock; after a failure, remove the folders this run created if empty."""
+        if self._lock_fd is not None:
+            with contextlib.suppress(OSError):
+                self._lock_path.unlink()  # while still held: see lock()
+            os.close(self._lock_fd)
+            self._lock_fd = None
+        if failed:
+            for folder in reversed(self._created):  # deepest first
+                with contextlib.suppress(OSError):
+                    folder.rmdir()
+
+
+def prepare_outputs(out_dir: Path, name: str, force: bool) -> OutputTarget:
+    """Check, before any work, that the outputs can be written, and take the folder's lock
+    for ``name``. Call :meth:`OutputTarget.release` when the run ends."""
+    check_utf8_path(out_dir, "choose an --out path in UTF-8", OutputError)
     for folder in (out_dir, *out_dir.parents):
         if folder.exists() and not folder.is_dir():
             where = "" if folder == out_dir else f" (in {out_dir})"
             raise OutputError(f"{folder}: is a file, not a directory{where}; give --out a directory")
+    created = [f for f in (out_dir, *out_dir.parents) if not f.exists() and not f.is_symlink()][::-1]
+    target = OutputTarget(out_dir, name, created)
     try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(
-            f"{out_dir}: cannot create the output directory ({exc.strerror}); use --out"
-        ) from None
-    if not os.access(out_dir, os.W_OK):
-        raise OutputError(f"{out_dir}: output directory is not writable; use --out to choose another")
-    mcap_path, rrd_path = out_dir / f"{name}.mcap", out_dir / f"{name}.rrd"
-    if not force:
-        for path in (mcap_path, rrd_path):
-            if path.exists():
-                raise OutputError(f"{path}: already exists; use --force to replace it")
-    try:
-        probe = out_dir / f".{name}.{uuid.uuid4().hex}.probe"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as exc:
-        raise OutputError(f"{out_dir}: cannot write in the output directory ({exc.strerror})") from None
-    return mcap_path, rrd_path
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(
+                f"{out_dir}: cannot create the output directory ({exc.strerror}); use --out"
+            ) from None
+        if not os.access(out_dir, os.W_OK):
+            raise OutputError(f"{out_dir}: output directory is not writable; use --out to choose another")
+        try:
+            target.lock()
+        except OSError as exc:
+            raise OutputError(f"{out_dir}: cannot write in the output directory ({exc.strerror})") from None
+        if not force:
+            for path in target.finals:
+                if path.exists():
+                    raise OutputError(f"{path}: already exists; use --force to replace it")
+    except BaseException:
+        target.release(failed=True)
+        raise
+    return target
 
 
 def output_error(out_dir: Path, exc: OSError) -> OutputError:
     if exc.errno == errno.ENOSPC:
         return OutputError(f"{out_dir}: disk full while writing the recordings; free space and rerun")
     return OutputError(f"{out_dir}: cannot write the recordings ({exc.strerror or exc})")
+
+
+# How long the Rerun writer may take to write out what it still holds at the end of a run:
+# seconds on any disk that takes writes; its flush otherwise waits for good (a full disk).
+FLUSH_TIMEOUT_S = 60.0
 
 
 def _check_rrd_complete(partial: Path, final: Path) -> None:
@@ -240,7 +367,7 @@ def _smooth(centerlines_mm: NDArray[np.float64], times_s: NDArray[np.float64]) -
 class Writers:
     """The MCAP and Rerun writers of one run, their temporary files, and the tallies."""
 
-    def __init__(self, session: Session, mcap_path: Path, rrd_path: Path, *, images: bool) -> None:
+    def __init__(self, session: Session, target: OutputTarget, *, images: bool) -> None:
         # Imported here, not with this module: a run's parent opens its writers once
         # the workers have their first frames, so Rerun's import no longer holds them up.
         import rerun as rr
@@ -249,9 +376,11 @@ class Writers:
         from .record_rerun import RerunRecorder, default_blueprint
 
         self.session = session
-        self.mcap_path, self.rrd_path = mcap_path, rrd_path
+        self.target = target
+        self.mcap_path, self.rrd_path = target.mcap_path, target.rrd_path
         self._mcap_file: IO[bytes] | None = None
         self._stream: Any = None
+        self._stalled = False  # the Rerun writer did not finish within its bound
         self.frames: list[int] = []
         self.times_ns: list[int] = []
         self.curves: list[NDArray[np.float64] | None] = []
@@ -261,7 +390,7 @@ class Writers:
         self.suspect: list[tuple[int, str]] = []
         self.at_walls: list[int] = []
         try:
-            self._mcap_file = _open_partial(mcap_path)
+            self._mcap_file = _open_partial(target.partial(self.mcap_path))
             meta = {
                 "session": session.name,
                 "fps": repr(session.fps),
@@ -275,18 +404,26 @@ class Writers:
             # Deterministic files: no wall-clock "log_time" timeline, only frame and time.
             self._stream.set_log_time_enabled(False)
             self._stream.save(
-                _partial(rrd_path), default_blueprint=default_blueprint([c.name for c in session.cameras])
+                target.partial(self.rrd_path),
+                default_blueprint=default_blueprint([c.name for c in session.cameras]),
             )
             self._stream.send_recording_name(session.name)
             self.rerun = RerunRecorder(self._stream, session.cameras, session.settings.workspace)
+        except OSError as exc:
+            self.abort()
+            raise output_error(target.out_dir, exc) from None
         except BaseException:
             self.abort()
             raise
+        self.committed = False
 
     def write(self, out: FrameOutput) -> None:
         result = out.result
         time_ns = self.session.timestamp_ns(result.index)
-        self.mcap.write_frame(result, time_ns, jpegs=out.jpegs)
+        try:
+            self.mcap.write_frame(result, time_ns, jpegs=out.jpegs)
+        except OSError as exc:
+            raise output_error(self.target.out_dir, exc) from None
         self.rerun.write_frame(result, time_ns, jpegs=out.jpegs, silhouettes_png=out.silhouettes_png)
         self.frames.append(result.index)
         self.times_ns.append(time_ns)
@@ -319,6 +456,12 @@ class Writers:
 
     def finish(self) -> None:
         """Smoothing, footers, then the renames that make the outputs appear."""
+        try:
+            self._finish()
+        except OSError as exc:
+            raise output_error(self.target.out_dir, exc) from None
+
+    def _finish(self) -> None:
         wanted = self.frames and self.session.settings.centerline.smooth
         smoothed = self._smoothed() if wanted else None
         if smoothed is not None:
@@ -329,24 +472,40 @@ class Writers:
         self._mcap_file.flush()
         os.fsync(self._mcap_file.fileno())
         self._mcap_file.close()
-        self.rerun.finish()
-        self._stream.flush()
+        try:
+            self.rerun.finish(flush_timeout_s=FLUSH_TIMEOUT_S)
+        except RuntimeError as exc:
+            if "timed out" not in str(exc):  # Rerun's words for an expired bound
+                raise
+            self._stalled = True
+            raise OutputError(
+                f"{self.rrd_path}: the Rerun recording was not written within {FLUSH_TIMEOUT_S:g} s "
+                "(disk full, or a stalled file system?); free space or choose another --out, and rerun"
+            ) from None
         self._stream.disconnect()
-        _check_rrd_complete(_partial(self.rrd_path), self.rrd_path)
-        for path in (self.mcap_path, self.rrd_path):
-            os.replace(_partial(path), path)
+        _check_rrd_complete(self.target.partial(self.rrd_path), self.rrd_path)
+        with deferred_signals():  # a signal between the two renames would split the pair
+            self.target.commit()
+            self.committed = True
 
     def abort(self) -> None:
         """Close everything and remove the temporary files; finished outputs are untouched."""
         with contextlib.suppress(Exception):
             if self._mcap_file is not None:
                 self._mcap_file.close()
-        with contextlib.suppress(Exception):
-            if self._stream is not None:
-                self._stream.disconnect()
+        if self._stalled:
+            # Closing a stream whose writer is stuck waits for it, and so would Rerun's
+            # handler at exit: leave the stream, and the exit, to the operating system.
+            import rerun as rr
+
+            rr.unregister_shutdown()
+        else:
+            with contextlib.suppress(Exception):
+                if self._stream is not None:
+                    self._stream.disconnect()
         for path in (self.mcap_path, self.rrd_path):
             with contextlib.suppress(FileNotFoundError):
-                _partial(path).unlink()
+                self.target.partial(path).unlink()
 
     def summary(self, wall_s: float) -> RunSummary:
         n = len(self.frames)

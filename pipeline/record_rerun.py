@@ -323,8 +323,9 @@ class RerunRecorder:
             )
         self._columns.send(self._rec)
 
-    def finish(self) -> None:
-        """Send the queued rows and the time series as columns, and flush the stream."""
+    def finish(self, *, flush_timeout_s: float = 1e38) -> None:
+        """Send the queued rows and the time series as columns, and flush the stream
+        (RuntimeError if that takes longer than ``flush_timeout_s``)."""
         self._columns.send(self._rec)
         series = self._series
         frames = np.asarray(series.frames, dtype=np.int64)
@@ -342,4 +343,4 @@ class RerunRecorder:
                 ],
                 columns=rr.Scalars.columns(scalars=values[keep]),
             )
-        self._rec.flush()
+        self._rec.flush(timeout_sec=flush_timeout_s)

@@ -169,11 +169,21 @@ _TRUNCATION_ERRORS = (
 )
 
 
+# The first bytes of a Rerun .rrd file ("RRF2"; older versions wrote RRF0, RRF1).
+_RRD_MAGIC = b"RRF"
+
+
 def load_recording(path: Path | str) -> Recording:
     """Read ``path`` (an MCAP written by the pipeline) into a :class:`Recording`."""
     path = Path(path)
     try:
         with path.open("rb") as f:
+            if f.read(len(_RRD_MAGIC)) == _RRD_MAGIC:
+                raise RecordingError(
+                    f"{path}: is a Rerun recording (open it in the Rerun viewer); give load_recording "
+                    "the .mcap written beside it"
+                )
+            f.seek(0)
             return _read(f, path)
     except OSError as exc:
         raise RecordingError(f"{path}: cannot read: {exc.strerror}") from None
@@ -286,6 +296,7 @@ def _assemble(
         centerlines_m=_stack(curves, times, n),
         points_m=[points.get(t, np.zeros((0, 3), np.float32)) for t in times],
         metrics=[metrics[i][1] for i in frames],
-        smoothed_centerlines_m=_stack(smoothed, times, n) if smoothed else None,
+        # Written after the last frame: a file cut short may hold only part of it.
+        smoothed_centerlines_m=_stack(smoothed, times, n) if smoothed and complete else None,
         complete=complete,
     )

@@ -15,23 +15,26 @@ import contextlib
 import dataclasses
 import logging
 import math
-import signal
+import os
 import sys
+import textwrap
 import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
-from .errors import SessionError, SettingsError
+from .errors import Interrupted, SessionError, SettingsError
 from .frame_result import FrameResult
 from .frame_task import FrameFunction, FrameOutput, decode_frames, encode_silhouette, process_range
-from .outputs import RunSummary, Writers, compress_failures, output_error, prepare_outputs
+from .interrupts import signals_interrupt
+from .outputs import OutputTarget, RunSummary, Writers, compress_failures, prepare_outputs
 from .session import Session
 from .tracking import SEGMENT_FRAMES, segment_start
 from .workers import (
+    available_cores,
     effective_jobs,
+    loky_options,
     release_local_workers,
     shared_with_local_workers,
     start_local_workers,
@@ -95,14 +98,23 @@ def _backend(backend: str, scheduler: str | None, n_jobs: int, model: Any) -> It
     import joblib
 
     if backend in ("loky", "threading"):
-        with joblib.parallel_config(backend=backend, n_jobs=n_jobs):
+        options = loky_options() if backend == "loky" else {}
+        with joblib.parallel_config(backend=backend, n_jobs=n_jobs, **options):
             if backend == "loky" and n_jobs > 1:
                 with shared_with_local_workers(model) as shared:
                     yield n_jobs, shared
             else:
                 yield n_jobs, model
         return
+    # distributed logs ~45 INFO lines while a cluster starts, in this process and in its
+    # workers (which read the variable): the run's own lines say what matters.
+    quiet = not log.isEnabledFor(logging.DEBUG)
+    if quiet:
+        os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
     from distributed import Client, LocalCluster
+
+    if quiet:
+        logging.getLogger("distributed").setLevel(logging.WARNING)
 
     cluster = None
     if scheduler:
@@ -125,6 +137,48 @@ def _backend(backend: str, scheduler: str | None, n_jobs: int, model: Any) -> It
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _check_scheduler(address: str, timeout_s: float) -> None:
+    """Ask ``address`` who it is, all within ``timeout_s``, and raise SettingsError unless
+    a scheduler with workers answers. The Client's own timeout covers the connection, not
+    the handshake after it: a server that accepts TCP but is not a scheduler (the
+    dashboard's port, any HTTP server) kept the run waiting for good."""
+    import asyncio
+
+    from distributed.comm import connect
+
+    async def identity() -> Any:
+        comm = await connect(address, timeout=timeout_s)
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    try:
+        reply = asyncio.run(asyncio.wait_for(identity(), timeout_s))
+    except OSError as exc:  # refused, unreachable, timed out (TimeoutError), closed on us
+        why = " ".join(str(exc).split())[:200] or f"no answer within {timeout_s:g} s"
+        raise SettingsError(
+            f"cannot reach the Dask scheduler at {address} ({why}); "
+            "check --scheduler and that the scheduler is running"
+        ) from None
+    except Exception as exc:  # it answered in another protocol
+        raise SettingsError(
+            f"--scheduler {address}: is not a Dask scheduler ({type(exc).__name__}); check the "
+            "address (the scheduler's port, 8786 by default, not the dashboard's)"
+        ) from None
+    if not isinstance(reply, dict) or reply.get("type") != "Scheduler":
+        raise SettingsError(
+            f"--scheduler {address}: is not a Dask scheduler; check the address (the "
+            "scheduler's port, 8786 by default, not the dashboard's)"
+        )
+    if not reply.get("workers"):
+        raise SettingsError(
+            f"--scheduler {address}: the scheduler has no workers; start some "
+            f"(dask worker {address}) and rerun"
+        )
 
 
 def _run_ranges(
@@ -181,7 +235,7 @@ def _attempts(
                     "a worker failed on frames %d onwards (%s: %s); %s",
                     group[done][0],
                     type(exc).__name__,
-                    str(exc).strip().splitlines()[0][:200] if str(exc).strip() else "",
+                    textwrap.shorten(str(exc).strip().splitlines()[0], 200) if str(exc).strip() else "",
                     "giving up on this range" if attempt == "isolated" else "retrying in a fresh pool",
                 )
                 if attempt == "isolated":
@@ -193,24 +247,6 @@ def _attempts(
 
 def _failed_range(span: tuple[int, int], reason: str) -> list[FrameOutput]:
     return [FrameOutput(FrameResult.failed(i, reason), None, None) for i in range(*span)]
-
-
-@contextlib.contextmanager
-def _sigterm_as_interrupt() -> Iterator[None]:
-    """SIGTERM ends the run like Ctrl-C: cleanly, with temporary files removed."""
-
-    def handler(signum: int, frame: FrameType | None) -> None:
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    try:
-        previous = signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread: leave signals alone
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def process_session(
@@ -241,11 +277,11 @@ def process_session(
     images : store the camera images (JPEG) in the recordings.
     force : replace existing outputs (atomically, at the end of the run).
     curve : centreline method, overriding session.toml ("fit" or "polyfit").
-    progress : show a progress bar on stderr, from the start of the run, advancing as each
-        frame is written, with the frame rate and the time left.
+    progress : show a progress bar on stderr.
     frame_fn : replaces the per-frame computation (tests, experiments): called as
         ``frame_fn(index, images, session)`` and returning (FrameResult, silhouettes or
         None); must be picklable (a module-level function or a partial of one).
+
     started_at : the ``time.perf_counter()`` reading the summary's wall time and the progress
         bar's clock count from (the command line passes its process's start); default: now.
 
@@ -253,14 +289,79 @@ def process_session(
     ------
     OutputError : an output exists (without ``force``), the directory is not
         writable, or the disk filled up; temporary files are removed.
-    KeyboardInterrupt : Ctrl-C or SIGTERM, after removing temporary files.
+    Interrupted : Ctrl-C, SIGTERM or SIGHUP, after removing temporary files; its
+        message says what was done.
     """
+    with signals_interrupt():
+        return _process_session(
+            session,
+            out_dir=Path(out_dir),
+            jobs=jobs,
+            backend=backend,
+            scheduler=scheduler,
+            frames=frames,
+            images=images,
+            force=force,
+            curve=curve,
+            progress=progress,
+            frame_fn=frame_fn,
+            started_at=started_at,
+        )
+
+
+def _process_session(
+    session: Session,
+    *,
+    out_dir: Path,
+    jobs: int,
+    backend: str,
+    scheduler: str | None,
+    frames: tuple[int, int | None] | None,
+    images: bool,
+    force: bool,
+    curve: str | None,
+    progress: bool,
+    frame_fn: FrameFunction | None,
+    started_at: float | None,
+) -> RunSummary:
     t0 = time.perf_counter() if started_at is None else started_at
     if backend not in BACKENDS:
         raise SettingsError(f"backend {backend!r} unknown; use one of {', '.join(BACKENDS)}")
-    out_dir = Path(out_dir)
+    if backend == "dask" and scheduler:
+        check_scheduler_address(scheduler)
+        _check_scheduler(scheduler, DASK_CONNECT_TIMEOUT_S)
     start, stop = _frame_span(session, frames)
-    mcap_path, rrd_path = prepare_outputs(out_dir, session.name, force)
+    n_jobs = effective_jobs(jobs)
+    if n_jobs < jobs and not (backend == "dask" and scheduler):
+        log.warning(
+            "--jobs %d is more than the %d cores available; using %d", jobs, available_cores(), n_jobs
+        )
+    target = prepare_outputs(out_dir, session.name, force)
+    failed = True
+    try:
+        summary = _run_with(
+            session, target, t0, start, stop, n_jobs, backend, scheduler, images, curve, progress, frame_fn
+        )
+        failed = False
+    finally:
+        target.release(failed=failed)
+    return summary
+
+
+def _run_with(
+    session: Session,
+    target: OutputTarget,
+    t0: float,
+    start: int,
+    stop: int,
+    n_jobs: int,
+    backend: str,
+    scheduler: str | None,
+    images: bool,
+    curve: str | None,
+    progress: bool,
+    frame_fn: FrameFunction | None,
+) -> RunSummary:
     if curve is not None:
         settings = session.settings
         settings = dataclasses.replace(
@@ -268,60 +369,54 @@ def process_session(
         )
         session = dataclasses.replace(session, settings=settings)
 
-    n_jobs = effective_jobs(jobs)
     from joblib import delayed
 
-    if backend == "loky":
-        # Local workers start now (unless the command line started them already): they
-        # spawn and import the per-frame modules while the parent builds the model.
-        start_local_workers(n_jobs)
-
-    # Shown from here on, while the model is built and the workers start, not only from
-    # the first results.
-    bar = _progress_bar(stop - start, progress, elapsed_s=time.perf_counter() - t0)
-    tip = ""
-    if frame_fn is None:
-        from .model import build_model
-
-        try:
-            model: Any = build_model(session)
-            settings = session.settings
-            if settings.manipulator.tip == "auto" and settings.centerline.method == "fit":
-                from .tip_shape import choose_tip, sample_frames
-
-                choice = choose_tip(model, decode_frames(session.video_paths, sample_frames(start, stop)))
-                model = dataclasses.replace(model, tip=choice.tip)
-                tip = choice.describe()
-        except BaseException:
-            bar.close()  # ended on its own line, before the error's
-            raise
-    else:
-        model = session  # a replacement frame function gets the session as its model
     names = tuple(c.name for c in session.cameras)
     # Absolute paths: Dask workers may run elsewhere (with the session at the same path).
     videos = tuple(p.resolve() for p in session.video_paths)
-
     writer: Writers | None = None
     done = 0
+    tip = ""
+    # Shown from here on, while the workers start and the model is built, not only from
+    # the first results.
+    bar = _progress_bar(stop - start, progress, elapsed_s=time.perf_counter() - t0)
     try:
-        with _sigterm_as_interrupt(), _backend(backend, scheduler, n_jobs, model) as (n_workers, shared):
-
-            def call(span: tuple[int, int]) -> Any:
-                # The model is a positional argument of its own: the local workers map
-                # its arrays, Dask scatters it once (joblib's dask backend scatters
-                # arguments, not closures).
-                return delayed(process_range)(
-                    shared, videos, names, span[0], span[1], images=images, frame_fn=frame_fn
-                )
-
-            ranges = frame_ranges(start, stop, n_workers)
+        with bar:
             if backend == "loky":
-                wait_for_local_workers()
-            results = _run_ranges(ranges, call, n_jobs)
-            # The writers open (importing Rerun, logging the cameras) while the workers
-            # start on the first ranges.
-            writer = Writers(session, mcap_path, rrd_path, images=images)
-            with bar:
+                # Local workers start now (unless the command line started them already): they
+                # spawn and import the per-frame modules while the parent builds the model.
+                start_local_workers(n_jobs)
+            if frame_fn is None:
+                from .model import build_model
+
+                model: Any = build_model(session)
+                settings = session.settings
+                if settings.manipulator.tip == "auto" and settings.centerline.method == "fit":
+                    from .tip_shape import choose_tip, sample_frames
+
+                    sample = decode_frames(session.video_paths, sample_frames(start, stop))
+                    choice = choose_tip(model, sample)
+                    model = dataclasses.replace(model, tip=choice.tip)
+                    tip = choice.describe()
+            else:
+                model = session  # a replacement frame function gets the session as its model
+            with _backend(backend, scheduler, n_jobs, model) as (n_workers, shared):
+
+                def call(span: tuple[int, int]) -> Any:
+                    # The model is a positional argument of its own: the local workers map
+                    # its arrays, Dask scatters it once (joblib's dask backend scatters
+                    # arguments, not closures).
+                    return delayed(process_range)(
+                        shared, videos, names, span[0], span[1], images=images, frame_fn=frame_fn
+                    )
+
+                ranges = frame_ranges(start, stop, n_workers)
+                if backend == "loky":
+                    wait_for_local_workers()
+                results = _run_ranges(ranges, call, n_jobs)
+                # The writers open (importing Rerun, logging the cameras) while the workers
+                # start on the first ranges.
+                writer = Writers(session, target, images=images)
                 for span, outputs in results:
                     if isinstance(outputs, str):  # a range given up: its frames fail
                         outputs = _failed_range(span, outputs)
@@ -329,30 +424,47 @@ def process_session(
                         writer.write(out)
                         done += 1
                         bar.update(1)
+        assert writer is not None
         writer.finish()
-    except KeyboardInterrupt:
-        if writer is not None:
-            writer.abort()
-        log.warning(
-            "interrupted after %d of %d frames; temporary files removed, existing outputs untouched",
-            done,
-            stop - start,
-        )
-        raise
-    except OSError as exc:
-        if writer is not None:
-            writer.abort()
-        raise output_error(out_dir, exc) from None
+    except KeyboardInterrupt as exc:
+        if writer is not None and writer.committed:
+            message = f"interrupted as the run ended; {target.mcap_path} and {target.rrd_path} are complete"
+        else:
+            if writer is not None:
+                writer.abort()
+            message = (
+                f"interrupted after {done} of {stop - start} frames; temporary files removed, "
+                "existing outputs untouched"
+            )
+        raise Interrupted(message) from exc
     except BaseException:
         if writer is not None:
             writer.abort()
         raise
     finally:
-        bar.close()
         if backend == "loky":
             release_local_workers()
     wall = time.perf_counter() - t0
     return dataclasses.replace(writer.summary(wall), tip=tip)
+
+
+# The URL schemes of Dask's transports (distributed.comm); an address without one is tcp.
+_SCHEDULER_SCHEMES = ("tcp", "tls", "ucx", "ws", "wss")
+
+
+def check_scheduler_address(address: str) -> None:
+    """Refuse, before any work, a ``--scheduler`` that cannot be a scheduler's address."""
+    scheme, sep, rest = address.partition("://")
+    if not sep:
+        scheme, rest = "tcp", address
+    host, colon, port = rest.rpartition(":")
+    if scheme in _SCHEDULER_SCHEMES and colon and host and port.isdigit() and 0 < int(port) < 65536:
+        return
+    hint = " (http serves the dashboard, not the scheduler)" if scheme in ("http", "https") else ""
+    raise SettingsError(
+        f"--scheduler {address!r}: not a Dask scheduler address{hint}; give tcp://HOST:PORT "
+        "(the scheduler's port, 8786 by default)"
+    )
 
 
 def _frame_span(session: Session, frames: tuple[int, int | None] | None) -> tuple[int, int]:

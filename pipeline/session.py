@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -19,8 +20,8 @@ from numpy.typing import NDArray
 
 from .calibration_io import read_calibration
 from .camera import Camera
-from .errors import SessionError, VideoError
-from .settings import Settings, load_settings
+from .errors import PipelineError, SessionError, SettingsError, VideoError
+from .settings import LAST_TIMESTAMP, Settings, load_settings
 from .video import VIDEO_EXTENSIONS, VideoInfo, probe_video
 
 log = logging.getLogger(__name__)
@@ -57,12 +58,16 @@ class Session:
 def load_session(directory: Path | str) -> Session:
     """Read and validate ``directory``: calibration.toml, one video per camera, session.toml."""
     directory = Path(directory)
+    _check_not_dangling(directory)
+    check_utf8_path(directory, "rename the folder (or move the session) to a UTF-8 path")
     if directory.is_file():
         raise SessionError(f"{directory}: is a file; give the session directory that holds it")
     if not directory.is_dir():
         raise SessionError(f"{directory}: no such session directory")
     if not any(directory.iterdir()):
         raise SessionError(f"{directory}: the session directory is empty")
+    for name in ("session.toml", "calibration.toml"):
+        _check_not_dangling(directory / name)
     settings = load_settings(directory / "session.toml")
     cameras = read_calibration(directory / "calibration.toml")
     videos = _find_videos(directory, [c.name for c in cameras])
@@ -91,6 +96,7 @@ def load_session(directory: Path | str) -> Session:
                 f"background/{missing[0]}.png (missing for camera {missing[0]!r})"
             )
     _check_workspace_visible(cameras, settings)
+    _check_last_timestamp(directory, settings, fps, min(counts))
     return Session(
         directory=directory,
         name=directory.resolve().name,
@@ -107,6 +113,8 @@ def load_session(directory: Path | str) -> Session:
 def _find_videos(directory: Path, names: list[str]) -> dict[str, Path]:
     found: dict[str, Path] = {}
     for path in sorted(directory.iterdir()):
+        if path.suffix.lower() in VIDEO_EXTENSIONS:
+            _check_not_dangling(path)
         if not path.is_file() or path.suffix.lower() not in VIDEO_EXTENSIONS:
             continue
         if path.stem not in names:
@@ -141,17 +149,75 @@ def _common_fps(infos: list[VideoInfo]) -> float:
 
 def _background(directory: Path, cam: Camera) -> NDArray[np.uint8] | None:
     path = directory / "background" / f"{cam.name}.png"
+    _check_not_dangling(path)
     if not path.exists():
         return None
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        raise SessionError(f"{path}: cannot be read as an image")
+    image = _read_grey_8bit(path)
     if (image.shape[1], image.shape[0]) != cam.size_px:
         raise SessionError(
             f"{path}: is {image.shape[1]}x{image.shape[0]} but camera {cam.name!r} is "
             f"{cam.size_px[0]}x{cam.size_px[1]}"
         )
     return np.ascontiguousarray(image, dtype=np.uint8)
+
+
+def _read_grey_8bit(path: Path) -> NDArray[np.uint8]:
+    """The image at ``path`` as (H, W) uint8 grey levels, the videos' depth.
+
+    OpenCV's grey read scales a 16-bit PNG down by 256, so a 16-bit file holding 8-bit
+    values (as some tools save them) read as black, and every pixel became silhouette.
+    A 16-bit image is taken as 8-bit values when none exceeds 255, and scaled from the
+    full 16-bit range otherwise.
+    """
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise SessionError(f"{path}: cannot be read as an image; save it as an 8-bit greyscale PNG")
+    if raw.dtype == np.uint8:
+        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)  # OpenCV's own grey conversion, as before
+        return np.asarray(image, dtype=np.uint8)
+    if raw.dtype != np.uint16:
+        raise SessionError(
+            f"{path}: holds {raw.dtype} pixels, not 8- or 16-bit grey levels; save it as an 8-bit "
+            "greyscale PNG"
+        )
+    if raw.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if raw.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        raw = cv2.cvtColor(raw, code)
+    if int(raw.max()) <= 255:
+        return raw.astype(np.uint8)
+    return np.round(raw / 257.0).astype(np.uint8)  # 65535 -> 255
+
+
+def _check_not_dangling(path: Path) -> None:
+    """A symbolic link to nothing is named as such, not taken for a missing file."""
+    if path.is_symlink() and not path.exists():
+        raise SessionError(
+            f"{path}: is a symbolic link to {os.readlink(path)}, which does not exist; "
+            "fix the link or copy the file in"
+        )
+
+
+def check_utf8_path(path: Path, what_to_do: str, error: type[PipelineError] = SessionError) -> None:
+    """Refuse a path (given or absolute) holding bytes that are not UTF-8: OpenCV, PyAV and
+    Rerun take paths as UTF-8 text (OpenCV crashed on other bytes), and the summary prints them."""
+    for form in (path, path.absolute()):
+        try:
+            str(form).encode("utf-8")
+        except UnicodeEncodeError:
+            shown = os.fsencode(path).decode("utf-8", "replace")
+            raise error(f"{shown}: the path holds bytes that are not UTF-8 text; {what_to_do}") from None
+
+
+def _check_last_timestamp(directory: Path, settings: Settings, fps: float, frames: int) -> None:
+    """The last frame's time must fit a ns timestamp too, not only start_time."""
+    start = settings.session.start_time
+    end = start + timedelta(seconds=(frames - 1) / fps)
+    if end > LAST_TIMESTAMP:
+        raise SettingsError(
+            f"{directory / 'session.toml'}: [session] start_time {start.isoformat()} puts the last "
+            f"frame at {end.isoformat()}, past 2262-04-11, the last time a nanosecond timestamp "
+            "holds; give an earlier start_time"
+        )
 
 
 def _check_workspace_visible(cameras: list[Camera], settings: Settings) -> None:

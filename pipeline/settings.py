@@ -10,11 +10,12 @@ from __future__ import annotations
 import math
 import tomllib
 from dataclasses import dataclass, field, fields
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
 from .errors import SettingsError
+from .toml_file import load_toml
 
 SILHOUETTE_METHODS = ("threshold", "otsu", "background")
 POLARITIES = ("dark", "bright")
@@ -23,6 +24,16 @@ TIP_SHAPES = ("flat", "round", "auto")
 
 # A grid is refused when its per-session tables would not fit comfortably in memory.
 MAX_GRID_BYTES = 8 * 1024**3
+# Tube radii a real rig can have. Below 0.1 mm is metres typed for millimetres (every
+# frame then failed in OpenCV or asked for terabytes); above 100 mm no camera of the rig
+# sees a whole tube.
+RADIUS_RANGE_MM = (0.1, 100.0)
+# Grey levels (or differences) that split an 8-bit image: 0 and 255 keep no pixel or
+# every pixel, and a silhouette of the whole image made the outputs hundreds of MB.
+THRESHOLD_RANGE = (1, 254)
+# Frame times are ns since the Unix epoch in an int64 (MCAP log_time, Rerun's timeline).
+EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
+LAST_TIMESTAMP = EPOCH + timedelta(microseconds=(2**63 - 1) // 1000)
 
 
 @dataclass(frozen=True)
@@ -106,8 +117,7 @@ def load_settings(path: Path | None) -> Settings:
     if path is None or not path.exists():
         return Settings()
     try:
-        with path.open("rb") as f:
-            data = tomllib.load(f)
+        data = load_toml(path)
     except tomllib.TOMLDecodeError as exc:
         raise SettingsError(f"{path}: TOML syntax error: {exc}") from None
     except UnicodeDecodeError:
@@ -246,16 +256,29 @@ def _validate(s: Settings, source: str) -> None:
         raise SettingsError(
             f"{source}: [silhouette] polarity {sil.polarity!r} unknown; use one of {POLARITIES}"
         )
-    if not 0 <= sil.threshold <= 255:
-        raise SettingsError(f"{source}: [silhouette] threshold must be in 0-255, got {_short(sil.threshold)}")
+    lo, hi = THRESHOLD_RANGE
+    if not lo <= sil.threshold <= hi:
+        raise SettingsError(
+            f"{source}: [silhouette] threshold must be in {lo}-{hi} (0 and 255 keep no pixel or "
+            f"all of them), got {_short(sil.threshold)}"
+        )
     if sil.min_area_px < 0:
         raise SettingsError(f"{source}: [silhouette] min_area_px must be >= 0")
     r = s.manipulator.radius_mm
-    if r is not None and r <= 0:
-        raise SettingsError(f"{source}: [manipulator] radius_mm must be > 0, got {r}")
+    lo_mm, hi_mm = RADIUS_RANGE_MM
+    if r is not None and not lo_mm <= r <= hi_mm:
+        raise SettingsError(
+            f"{source}: [manipulator] radius_mm must be in {lo_mm:g}-{hi_mm:g} (millimetres), got {r:g}"
+        )
     if s.manipulator.tip not in TIP_SHAPES:
         raise SettingsError(
             f"{source}: [manipulator] tip {s.manipulator.tip!r} unknown; use one of {TIP_SHAPES}"
+        )
+    start = s.session.start_time
+    if not EPOCH <= start <= LAST_TIMESTAMP:
+        raise SettingsError(
+            f"{source}: [session] start_time {start.isoformat()} is outside 1970-01-01..2262-04-11, "
+            "the range of a timestamp in nanoseconds since 1970; give a date in that range"
         )
     _check_base_in_workspace(s, source)
     if s.centerline.method not in CURVE_METHODS:

@@ -17,10 +17,15 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
+import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
+
+from .errors import SettingsError
 
 T = TypeVar("T")
 
@@ -35,10 +40,49 @@ _warm_up: Iterator[None] | None = None
 _warm_up_workers = 0
 
 
+# How often a worker checks that the run's process is still there.
+_PARENT_CHECK_S = 1.0
+# The shared model's folder: its name holds the run's process id, so that a later run
+# can tell the folder of a run that was killed (SIGKILL) from one in use.
+_MODEL_PREFIX = "pipeline-model-"
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity, which containers and taskset narrow)."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
 def effective_jobs(jobs: int) -> int:
-    """Number of workers for ``jobs`` as joblib counts them: -1 = one per core, -2 = all but one, ..."""
-    cpus = os.cpu_count() or 1
-    return max(1, cpus + 1 + jobs) if jobs < 0 else max(1, jobs)
+    """Number of workers for ``jobs`` as joblib counts them (-1 = one per core, -2 = all but
+    one, ...), at most one per core: more only cost memory (each holds its own imports and
+    buffers), and ``--jobs 1000`` started hundreds of processes before any check."""
+    cpus = available_cores()
+    return max(1, cpus + 1 + jobs) if jobs < 0 else max(1, min(jobs, cpus))
+
+
+def _exit_with_parent(parent_pid: int) -> None:
+    """Loky worker initializer: exit when the run's process is gone.
+
+    A run killed outright (SIGKILL, an out-of-memory kill of the parent) cannot stop its
+    workers, and loky's own idle timeout does not fire while a worker waits on a queue
+    its siblings still hold open: they ran on for hours, ~150 MB each.
+    """
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(_PARENT_CHECK_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="pipeline-parent-watch", daemon=True).start()
+
+
+def loky_options() -> dict[str, Any]:
+    """joblib's loky backend options for every pool of a run (the same ones, so that a
+    run reuses the workers started ahead)."""
+    return {"initializer": _exit_with_parent, "initargs": (os.getpid(),)}
 
 
 def _import_frame_modules() -> None:
@@ -54,11 +98,12 @@ def start_local_workers(n_workers: int) -> None:
     global _warm_up, _warm_up_workers
     if n_workers < 2 or (_warm_up is not None and _warm_up_workers == n_workers):
         return
-    from joblib import Parallel, delayed
+    from joblib import Parallel, delayed, parallel_config
 
-    parallel = Parallel(n_jobs=n_workers, backend="loky", return_as="generator_unordered")
-    # Held until wait_for_local_workers: a generator dropped unfinished aborts its pool.
-    _warm_up = iter(parallel(delayed(_import_frame_modules)() for _ in range(n_workers)))
+    with parallel_config(backend="loky", **loky_options()):
+        parallel = Parallel(n_jobs=n_workers, return_as="generator_unordered")
+        # Held until wait_for_local_workers: a generator dropped unfinished aborts its pool.
+        _warm_up = iter(parallel(delayed(_import_frame_modules)() for _ in range(n_workers)))
     _warm_up_workers = n_workers
 
 
@@ -110,16 +155,44 @@ def shared_with_local_workers(obj: T) -> Iterator[T]:
     """
     import joblib
 
-    with tempfile.TemporaryDirectory(prefix="pipeline-model-", dir=_shared_folder()) as tmp:
+    folder = _shared_folder()
+    _remove_dead_runs_models(folder)
+    with tempfile.TemporaryDirectory(prefix=f"{_MODEL_PREFIX}{os.getpid()}-", dir=folder) as tmp:
         path = Path(tmp) / "model.joblib"
         joblib.dump(obj, path)
         yield joblib.load(path, mmap_mode="r")
 
 
+def _remove_dead_runs_models(folder: str | None) -> None:
+    """Remove the shared models of runs that were killed before they could (SIGKILL)."""
+    base = Path(folder or tempfile.gettempdir())
+    with contextlib.suppress(OSError):
+        for entry in base.iterdir():
+            pid = entry.name[len(_MODEL_PREFIX) :].partition("-")[0]
+            if entry.name.startswith(_MODEL_PREFIX) and pid.isdigit() and not _alive(int(pid)):
+                shutil.rmtree(entry, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
 def _shared_folder() -> str | None:
     """The folder for the shared model (None: the system's temporary folder)."""
     if "JOBLIB_TEMP_FOLDER" in os.environ:
-        return os.environ["JOBLIB_TEMP_FOLDER"]
+        folder = os.environ["JOBLIB_TEMP_FOLDER"]
+        if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
+            raise SettingsError(
+                f"JOBLIB_TEMP_FOLDER={folder}: is not a writable folder; create it, or unset the "
+                "variable to use the system's temporary folder"
+            )
+        return folder
     try:
         stats = os.statvfs(_SHARED_MEMORY_DIR)
     except (OSError, AttributeError):  # no such folder, or not a POSIX system

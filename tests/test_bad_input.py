@@ -5,7 +5,9 @@ Each test copies one small valid session and breaks exactly one thing in it.
 
 from __future__ import annotations
 
+import os
 import shutil
+import socket
 import subprocess
 import sys
 import tomllib
@@ -13,6 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 import tomli_w
@@ -20,6 +23,7 @@ from conftest import build_session, rig_cameras, rod_image, write_video
 
 from pipeline.cli import EXIT_BAD_INPUT, main
 from pipeline.errors import PipelineError
+from pipeline.session import load_session
 
 
 @pytest.fixture(scope="module")
@@ -287,4 +291,133 @@ def test_subprocess_bad_input_is_one_line_without_traceback(session: Path) -> No
     # Only our line: native OpenCV/FFmpeg warnings would bury it.
     assert proc.stderr.strip().splitlines() == [proc.stderr.strip()], proc.stderr
     assert proc.stderr.startswith("error: ") and "cam1.mp4" in proc.stderr
+    assert not out.exists()
+
+
+# --- settings a real rig cannot have ----------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("toml", "needles"),
+    [
+        ("[manipulator]\nradius_mm = 0.005\n", ("radius_mm", "0.1-100 (millimetres)", "got 0.005")),
+        ("[silhouette]\nthreshold = 255\n", ("threshold", "1-254", "got 255")),
+        ("[session]\nstart_time = 1969-07-20T20:17:00Z\n", ("start_time", "1969-07-20", "1970-01-01..2262")),
+        ("[session]\nstart_time = 2300-01-01T00:00:00Z\n", ("start_time", "2300-01-01", "1970-01-01..2262")),
+        # start_time itself fits, the last of the session's 3 frames (66 ms later) does not.
+        (
+            "[session]\nstart_time = 2262-04-11T23:47:16.8Z\n",
+            ("start_time", "last frame", "earlier start_time"),
+        ),
+    ],
+    ids=["radius-in-metres", "threshold-255", "start-1969", "start-2300", "last-frame-past-2262"],
+)
+def test_setting_out_of_a_real_rigs_range(
+    session: Path, capsys: pytest.CaptureFixture[str], toml: str, needles: tuple[str, ...]
+) -> None:
+    (session / "session.toml").write_text(toml)
+    assert_rejected(session, capsys, "session.toml", *needles)
+
+
+@pytest.mark.parametrize("name", ["session.toml", "calibration.toml"])
+def test_a_utf8_byte_order_mark_is_accepted(session: Path, name: str) -> None:
+    (session / "session.toml").write_text("[workspace]\nvoxel_mm = 4.0\n")
+    path = session / name
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())  # as Notepad saves UTF-8
+    loaded = load_session(session)
+    assert loaded.settings.workspace.voxel_mm == 4.0 and len(loaded.cameras) == 3
+
+
+# --- paths ----------------------------------------------------------------------------
+
+
+def test_a_dangling_symlink_video_is_named_as_such(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (session / "cam2.avi").unlink()
+    (session / "cam2.avi").symlink_to(session.parent / "moved" / "cam2.avi")
+    assert_rejected(session, capsys, "cam2.avi", "symbolic link to", "moved/cam2.avi", "does not exist")
+
+
+def test_a_dangling_symlink_session_is_named_as_such(
+    session: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    link = session.parent / "link"
+    link.symlink_to(session.parent / "unmounted")
+    assert_rejected(link, capsys, "link", "symbolic link to", "unmounted", "does not exist")
+
+
+NOT_UTF8 = os.fsdecode(b"caf\xe9")  # Latin-1 bytes, as an old archive leaves them
+
+
+def test_a_session_path_that_is_not_utf8_is_refused(
+    session: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    odd = session.rename(session.parent / NOT_UTF8)
+    line = assert_rejected(odd, capsys, "caf\ufffd", "not UTF-8", "rename the folder")
+    assert "\udce9" not in line
+
+
+def test_an_out_path_that_is_not_utf8_is_refused(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = session.parent / NOT_UTF8
+    assert main(_process(session, out)) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "--out path in UTF-8" in err and len(err.splitlines()) == 1
+    assert not out.exists()
+
+
+# --- background images ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("scale", [1, 257], ids=["8-bit-values", "full-16-bit-range"])
+def test_a_16_bit_background_is_read_at_the_videos_depth(session: Path, scale: int) -> None:
+    (session / "background").mkdir()
+    grey = np.full((240, 320), 150, np.uint8)
+    grey[100:140, 150:170] = 40
+    for cam in ("cam0", "cam1", "cam2"):
+        cv2.imwrite(str(session / "background" / f"{cam}.png"), grey)
+    cv2.imwrite(str(session / "background" / "cam1.png"), grey.astype(np.uint16) * scale)
+    backgrounds = load_session(session).backgrounds
+    for background in backgrounds:
+        assert background is not None and background.dtype == np.uint8
+        np.testing.assert_array_equal(background, grey)  # not black
+
+
+# --- the command line --------------------------------------------------------------------
+
+
+def test_negative_frames_say_what_is_wrong(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = session.parent / "out"
+    with pytest.raises(SystemExit) as exited:  # argparse's own exit, with our one line
+        main([*_process(session, out), "--frames", "-5:10"])
+    assert exited.value.code == EXIT_BAD_INPUT
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert "--frames" in line and "0 <= START < STOP" in line and "'-5:10'" in line
+
+
+@pytest.mark.parametrize("address", ["notaurl", "http://localhost:8787", "tcp://host:port"])
+def test_a_malformed_scheduler_address(
+    session: Path, capsys: pytest.CaptureFixture[str], address: str
+) -> None:
+    out = session.parent / "out"
+    assert main([*_process(session, out), "--backend", "dask", "--scheduler", address]) == EXIT_BAD_INPUT
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("error: --scheduler ") and "not a Dask scheduler address" in line
+    assert "tcp://HOST:PORT" in line
+    assert not out.exists()
+
+
+def test_a_server_that_is_not_a_scheduler_is_an_error_not_a_hang(
+    session: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pipeline import runner
+
+    monkeypatch.setattr(runner, "DASK_CONNECT_TIMEOUT_S", 1)
+    # Accepts TCP connections and never says a word, as a stalled or foreign server does.
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        address = f"tcp://127.0.0.1:{server.getsockname()[1]}"
+        out = session.parent / "out"
+        assert main([*_process(session, out), "--backend", "dask", "--scheduler", address]) == EXIT_BAD_INPUT
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert f"cannot reach the Dask scheduler at {address} (no answer within 1 s)" in line
     assert not out.exists()

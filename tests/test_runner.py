@@ -14,6 +14,7 @@ import io
 import itertools
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -290,7 +291,9 @@ def test_outputs_exist_only_under_temporary_names_until_the_run_ends(
     runner.process_session(
         load_session(short_session), out_dir=tmp_path, backend="threading", progress=False, frame_fn=watch
     )
-    assert watch.seen and all(names == [".short.mcap.partial", ".short.rrd.partial"] for names in watch.seen)
+    # The run's lock and its two temporary files, named for this run alone.
+    pattern = r"\.short\.lock \.short\.mcap\.\d+-[0-9a-f]{8}\.partial \.short\.rrd\.\d+-[0-9a-f]{8}\.partial"
+    assert watch.seen and all(re.fullmatch(pattern, " ".join(names)) for names in watch.seen)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["short.mcap", "short.rrd"]
 
 

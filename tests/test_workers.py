@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
+import subprocess
+import sys
 import tempfile
 import warnings
 from collections.abc import Iterator
@@ -12,10 +15,11 @@ from pathlib import Path
 import numpy as np
 import psutil
 import pytest
-from joblib import Parallel, delayed
+from joblib import Parallel, delayed, parallel_config
 
 from pipeline import workers
 from pipeline.cli import EXIT_BAD_INPUT, main
+from pipeline.errors import SettingsError
 
 
 def _loky_workers() -> list[psutil.Process]:
@@ -35,8 +39,13 @@ def _no_workers_left() -> Iterator[None]:
     workers.release_local_workers()
 
 
-@pytest.mark.parametrize(("jobs", "expected"), [(1, 1), (3, 3), (0, 1), (-1, os.cpu_count() or 1)])
-def test_effective_jobs_counts_like_joblib(jobs: int, expected: int) -> None:
+@pytest.mark.parametrize(
+    ("jobs", "expected"), [(1, 1), (3, 3), (0, 1), (-1, 4), (-2, 3), (-9, 1), (5, 4), (1000, 4)]
+)
+def test_effective_jobs_counts_like_joblib_up_to_the_cores(
+    monkeypatch: pytest.MonkeyPatch, jobs: int, expected: int
+) -> None:
+    monkeypatch.setattr(workers, "available_cores", lambda: 4)
     assert workers.effective_jobs(jobs) == expected
 
 
@@ -45,7 +54,9 @@ def test_the_run_reuses_the_workers_started_ahead() -> None:
     workers.wait_for_local_workers()
     started = {p.pid for p in _loky_workers()}
     assert len(started) == 2
-    pids = Parallel(n_jobs=2, backend="loky")(delayed(os.getpid)() for _ in range(8))
+    # The run's pools use the same loky options, which is what lets them reuse the workers.
+    with parallel_config(backend="loky", **workers.loky_options()):
+        pids = Parallel(n_jobs=2)(delayed(os.getpid)() for _ in range(8))
     assert set(pids) <= started
 
 
@@ -103,3 +114,58 @@ def test_the_shared_model_goes_where_joblib_would_put_its_own(
     with workers.shared_with_local_workers(model) as shared:
         folder = Path(_backing_file(shared["voxels"]) or "").parent.parent
         assert folder == Path(tempfile.gettempdir())
+
+
+def test_a_missing_joblib_temp_folder_is_named(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("JOBLIB_TEMP_FOLDER", str(tmp_path / "gone"))
+    with pytest.raises(
+        SettingsError, match=r"JOBLIB_TEMP_FOLDER=.*gone: is not a writable folder; create it"
+    ):
+        with workers.shared_with_local_workers({"a": np.zeros(3)}):
+            pass
+
+
+def test_the_shared_model_of_a_killed_run_is_removed_by_the_next(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("JOBLIB_TEMP_FOLDER", str(tmp_path))
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    )
+    stale = tmp_path / f"pipeline-model-{int(dead.stdout)}-abc"  # that process has exited
+    live = tmp_path / f"pipeline-model-{os.getpid()}-abc"  # this one has not
+    for folder in (stale, live):
+        folder.mkdir()
+        (folder / "model.joblib").write_bytes(b"x" * 100)
+    with workers.shared_with_local_workers({"a": np.zeros(3)}):
+        assert not stale.exists() and live.exists()
+
+
+# A parent killed outright (SIGKILL, the OOM killer) while its workers are busy: each is
+# in a task that would run for ten minutes.
+_KILLED_PARENT = """
+import os, signal, time
+import psutil
+from joblib import Parallel, delayed, parallel_config
+from pipeline import workers
+with parallel_config(backend="loky", **workers.loky_options()):
+    tasks = Parallel(n_jobs=2, return_as="generator_unordered")(delayed(time.sleep)(600) for _ in range(2))
+    time.sleep(3)  # both workers started and asleep in their task
+    print(" ".join(str(p.pid) for p in psutil.Process().children() if "resource_tracker" not in
+          " ".join(p.cmdline())), flush=True)
+    os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+@pytest.mark.slow
+def test_workers_exit_when_their_parent_is_killed() -> None:
+    proc = subprocess.run([sys.executable, "-c", _KILLED_PARENT], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    pids = [int(pid) for pid in proc.stdout.split()]
+    assert len(pids) == 2
+    orphans = [psutil.Process(pid) for pid in pids if psutil.pid_exists(pid)]
+    # Generous: they notice within about a second; this only guards against them staying.
+    _, alive = psutil.wait_procs(orphans, timeout=30)
+    for p in alive:
+        p.kill()
+    assert not alive

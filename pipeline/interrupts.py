@@ -1,0 +1,81 @@
+"""One signal policy: SIGINT, SIGTERM and SIGHUP end a run as Ctrl-C does.
+
+While :func:`signals_interrupt` is active (the command line holds it from the first
+line of ``main`` to the last), each of the three raises KeyboardInterrupt in the main
+thread, so that every ``finally`` on the way out runs: temporary files and the shared
+model removed, workers stopped, one line and exit status 130. A signal that arrives
+while the outputs are being renamed into place (:func:`deferred_signals`) is held until
+the renames are done, so that the pair is never split; further signals once the run is
+ending are ignored, so that the clean-up it started completes (each step of it is
+bounded in time).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+from collections.abc import Iterator
+from types import FrameType
+
+INTERRUPT_SIGNALS: tuple[signal.Signals, ...] = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
+)
+
+_installed = False  # signals_interrupt is active
+_interrupted = False  # a signal has been turned into KeyboardInterrupt already
+_deferring = 0  # depth of deferred_signals blocks
+_pending: int | None = None  # a signal received while deferring
+
+
+def _interrupt(signum: int) -> None:
+    global _interrupted
+    _interrupted = True
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+def _handler(signum: int, frame: FrameType | None) -> None:
+    global _pending
+    if _deferring:
+        _pending = _pending or signum
+    elif not _interrupted:
+        _interrupt(signum)
+
+
+@contextlib.contextmanager
+def signals_interrupt() -> Iterator[None]:
+    """SIGINT, SIGTERM and SIGHUP raise KeyboardInterrupt inside the block (main thread only).
+
+    A signal the process was started with ignored (``nohup``, a background job's SIGINT)
+    stays ignored: the user asked for that. Nested blocks share the outermost one's policy.
+    """
+    global _installed, _interrupted, _pending
+    if _installed or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {}
+    for sig in INTERRUPT_SIGNALS:
+        if signal.getsignal(sig) is not signal.SIG_IGN:
+            previous[sig] = signal.signal(sig, _handler)
+    _installed, _interrupted, _pending = True, False, None
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        _installed = False
+
+
+@contextlib.contextmanager
+def deferred_signals() -> Iterator[None]:
+    """Hold the signals of :func:`signals_interrupt` until the block is done, then raise."""
+    global _deferring, _pending
+    _deferring += 1
+    try:
+        yield
+    finally:
+        _deferring -= 1
+        if not _deferring and _pending is not None:
+            signum, _pending = _pending, None
+            if not _interrupted:
+                _interrupt(signum)
