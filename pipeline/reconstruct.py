@@ -13,9 +13,11 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .camera import project_in_views
 from .centerline import fit_centerline, radius_from_silhouettes, smooth_curve
 from .frame_result import FrameResult
 from .hull import carve, voxel_centers_mm
@@ -137,11 +139,43 @@ def reconstruct_from_silhouettes(
             points_mm=points,
             timings_s=timings,
         )
+    # The fit and the quality figures see only what the hull supports (see hull_supported).
+    masks = hull_supported(masks, points, model)
     try:
         return _curve_and_quality(index, images, masks, points, model, timings, previous)
     except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
         # Numerical trouble with this frame's data is a failed frame, not a crash.
         return FrameResult.failed(index, f"centreline fit failed: {exc}", points_mm=points, timings_s=timings)
+
+
+def hull_supported(
+    masks: Sequence[NDArray[np.bool_]], points_mm: NDArray[np.floating], model: SessionModel
+) -> list[NDArray[np.bool_]]:
+    """Per camera, the (H, W) silhouette without the blobs no other view confirms.
+
+    A dark object in one view's background is silhouette there but carves no
+    voxel: the other views do not see it where it would have to be. The
+    tube's own silhouette is one blob (or a few, where it leaves the image)
+    that the occupied voxels ``points_mm`` ((P, 3), mm) project into; the
+    blobs none of them projects into are dropped. Whole blobs are kept, not
+    only the pixels near a voxel: a tube thinner than the voxels (a tapered
+    tip) carves few of them, but its silhouette is joined to the rest.
+    """
+    pts = np.asarray(points_mm, dtype=np.float64)
+    out = []
+    for mask, px in zip(masks, project_in_views(model.cameras, pts), strict=True):
+        count, labels = cv2.connectedComponents(mask.view(np.uint8), connectivity=8)
+        if count <= 2:  # background and one blob: nothing to drop
+            out.append(mask)
+            continue
+        h, w = mask.shape
+        ij = np.round(px[np.isfinite(px).all(axis=1)]).astype(np.int64)
+        ij = ij[(ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)]
+        hit = np.zeros(count, dtype=bool)
+        hit[labels[ij[:, 1], ij[:, 0]]] = True
+        hit[0] = False  # the background
+        out.append(hit[labels])
+    return out
 
 
 def _curve_and_quality(

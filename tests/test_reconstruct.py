@@ -17,6 +17,7 @@ from pipeline.reconstruct import (
     SessionModel,
     build_model,
     frame_silhouettes,
+    hull_supported,
     reconstruct_frame,
     reconstruct_from_silhouettes,
 )
@@ -145,3 +146,32 @@ def test_a_session_directory_round_trip(tmp_path: Path, make_session: Callable[.
     assert all(im is not None for im in decoded)
     masks = frame_silhouettes([im for im in decoded if im is not None], model)
     assert all(m.dtype == bool and m.any() for m in masks)
+
+
+def test_a_blob_no_other_view_confirms_is_not_the_tube(model: SessionModel, tube: tuple) -> None:
+    import cv2
+
+    from pipeline.hull import carve, voxel_centers_mm
+
+    _, images = tube
+    masks = frame_silhouettes(images, model)
+    points = voxel_centers_mm(model.settings.workspace, carve(model.grid, masks))
+    # A dark object in camera 0's corner, apart from the tube; and a thin spur joined
+    # to the tube's silhouette that no voxel projects into (a tip thinner than a voxel).
+    seen = masks[0].copy()
+    cv2.circle(seen.view(np.uint8), (12, 12), 8, 1, -1)
+    ys, xs = np.nonzero(masks[0])
+    spur = (int(xs[np.argmax(ys)]), int(ys.max()))
+    cv2.line(seen.view(np.uint8), spur, (spur[0], min(spur[1] + 6, seen.shape[0] - 1)), 1, 1)
+    kept = hull_supported([seen, *masks[1:]], points, model)
+    assert not kept[0][:21, :21].any()  # the object is dropped
+    assert (kept[0] == (seen & ~_disc(seen.shape, (12, 12), 8))).all()  # everything else kept
+    assert all((k == m).all() for k, m in zip(kept[1:], masks[1:], strict=True))
+
+
+def _disc(shape: tuple[int, ...], centre: tuple[int, int], radius: int) -> np.ndarray:
+    import cv2
+
+    canvas = np.zeros(shape, np.uint8)
+    cv2.circle(canvas, centre, radius, 1, -1)
+    return canvas.view(bool)
