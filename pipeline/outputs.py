@@ -275,7 +275,10 @@ class Writers:
             # Deterministic files: no wall-clock "log_time" timeline, only frame and time.
             self._stream.set_log_time_enabled(False)
             self._stream.save(
-                _partial(rrd_path), default_blueprint=default_blueprint([c.name for c in session.cameras])
+                _partial(rrd_path),
+                default_blueprint=default_blueprint(
+                    session.cameras, session.settings.workspace, fps=session.fps
+                ),
             )
             self._stream.send_recording_name(session.name)
             self.rerun = RerunRecorder(self._stream, session.cameras, session.settings.workspace)
