@@ -38,9 +38,9 @@ from .camera import Camera
 from .frame_result import FrameResult
 from .settings import Workspace
 
-_CENTERLINE_RGB = (255, 140, 0)
-_SMOOTHED_RGB = (40, 170, 255)
-_TIP_RGB = (255, 40, 40)
+CENTERLINE_RGB = (255, 140, 0)
+SMOOTHED_RGB = (40, 170, 255)
+TIP_RGB = (255, 40, 40)
 # The hull is context, not the result: thin points, so the curves show between them.
 # (Rerun draws a translucent point darker but still hides what is behind it.)
 _HULL_RGB = (150, 150, 150)
@@ -50,7 +50,7 @@ _HULL_RADIUS_FRACTION = 0.2  # of a voxel edge
 # its centre's depth), so the smoothed curve is drawn as its samples: spheres, whose
 # near halves stand out of the per-frame line as a dotted core, and apart from it
 # where the two differ.
-_CENTERLINE_RADIUS_PT = 3.0
+_CENTERLINE_RADIUS_PT = 3.5
 _SMOOTHED_RADIUS_PT = 1.8
 _TIP_RADIUS_PT = 5.0
 _IMAGE_PLANE_MM = 60.0  # how far from its centre a camera's frustum is drawn
@@ -96,7 +96,7 @@ CENTERLINE_PATH = "world/centerline"
 SMOOTHED_PATH = "world/centerline_smoothed"
 TIP_PATH = "world/tip"
 # The 3-D views' titles are their legends.
-LEGEND_3D = "3-D: orange per frame, blue dots smoothed, red tip"
+LEGEND_3D = "3-D: orange per frame, blue smoothed (dots), red tip"
 LEGEND_3D_HULL = "+ hull (grey)"
 
 
@@ -384,20 +384,18 @@ class RerunRecorder:
         rec.log(
             CENTERLINE_PATH,
             rr.LineStrips3D.from_fields(
-                radii=rr.Radius.ui_points(_CENTERLINE_RADIUS_PT), colors=[_CENTERLINE_RGB]
+                radii=rr.Radius.ui_points(_CENTERLINE_RADIUS_PT), colors=[CENTERLINE_RGB]
             ),
             static=True,
         )
         rec.log(
             SMOOTHED_PATH,
-            rr.LineStrips3D.from_fields(
-                radii=rr.Radius.ui_points(_SMOOTHED_RADIUS_PT), colors=[_SMOOTHED_RGB]
-            ),
+            rr.Points3D.from_fields(radii=rr.Radius.ui_points(_SMOOTHED_RADIUS_PT), colors=[SMOOTHED_RGB]),
             static=True,
         )
         rec.log(
             TIP_PATH,
-            rr.Points3D.from_fields(radii=rr.Radius.ui_points(_TIP_RADIUS_PT), colors=[_TIP_RGB]),
+            rr.Points3D.from_fields(radii=rr.Radius.ui_points(_TIP_RADIUS_PT), colors=[TIP_RGB]),
             static=True,
         )
         names = [cam.name for cam in self._cameras]
@@ -417,7 +415,7 @@ class RerunRecorder:
             )
             rec.log(
                 f"{base}/centerline",
-                rr.LineStrips2D.from_fields(radii=1.0, colors=[_CENTERLINE_RGB], draw_order=2.0),
+                rr.LineStrips2D.from_fields(radii=1.0, colors=[CENTERLINE_RGB], draw_order=2.0),
                 static=True,
             )
 
