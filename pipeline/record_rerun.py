@@ -199,8 +199,8 @@ def default_blueprint(
     """The 3-D world beside the camera views, the plots below; the ``frame`` timeline.
 
     The 3-D view opens framed on the workspace and all cameras, with the hull hidden
-    (its eye in the blueprint panel shows it); the tab "3-D + hull" shows it faint.
-    ``fps`` : the videos' rate, at which the ``frame`` timeline plays.
+    (its eye in the blueprint panel shows it); the tab beside it shows the same view
+    with the hull. ``fps`` : the videos' rate, at which the ``frame`` timeline plays.
     """
     names = [c.name for c in cameras]
     eye, target = framing_eye(cameras, workspace)
@@ -345,6 +345,7 @@ class RerunRecorder:
         ws = self._workspace
         rec.log(
             "world/workspace",
+            # No label: Rerun puts it at the box's centre, on top of the curve.
             rr.Boxes3D(mins=[ws.origin_mm], sizes=[ws.size_mm], colors=[(120, 120, 120)]),
             static=True,
         )
