@@ -405,7 +405,9 @@ class Writers:
             self._stream.set_log_time_enabled(False)
             self._stream.save(
                 target.partial(self.rrd_path),
-                default_blueprint=default_blueprint([c.name for c in session.cameras]),
+                default_blueprint=default_blueprint(
+                    session.cameras, session.settings.workspace, fps=session.fps
+                ),
             )
             self._stream.send_recording_name(session.name)
             self.rerun = RerunRecorder(self._stream, session.cameras, session.settings.workspace)

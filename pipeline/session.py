@@ -7,6 +7,7 @@ file or camera.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -21,13 +22,16 @@ from numpy.typing import NDArray
 from .calibration_io import read_calibration
 from .camera import Camera
 from .errors import PipelineError, SessionError, SettingsError, VideoError
-from .settings import LAST_TIMESTAMP, Settings, load_settings
+from .settings import LAST_TIMESTAMP, SessionInfo, Settings, load_settings
 from .video import VIDEO_EXTENSIONS, VideoInfo, probe_video
 
 log = logging.getLogger(__name__)
 
 FPS_TOLERANCE = 1e-3
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
+# SessionInfo's default, this very object, stands for "session.toml gives no start_time":
+# one given as 1970-01-01 is a different object and is kept.
+_NO_START_TIME = SessionInfo().start_time
 
 
 @dataclass(frozen=True, eq=False)
@@ -80,6 +84,7 @@ def load_session(directory: Path | str) -> Session:
                 "use the calibration of this rig and resolution"
             )
     fps = _common_fps(infos)
+    settings = _with_start_time(settings, infos)
     counts = tuple(i.frame_count for i in infos)
     if len(set(counts)) > 1:
         log.warning(
@@ -108,6 +113,19 @@ def load_session(directory: Path | str) -> Session:
         frame_count=min(counts),
         frame_counts=counts,
     )
+
+
+def _with_start_time(settings: Settings, infos: list[VideoInfo]) -> Settings:
+    """``settings`` whose start_time is session.toml's, else the earliest creation time
+    the videos carry (the first camera to start recording), else the Unix epoch."""
+    if settings.session.start_time is not _NO_START_TIME:
+        return settings
+    stamps = [i.creation_time for i in infos if i.creation_time is not None]
+    if not stamps:
+        return settings
+    start = min(stamps)
+    log.debug("session start %s: the videos' creation time", start.isoformat())
+    return dataclasses.replace(settings, session=dataclasses.replace(settings.session, start_time=start))
 
 
 def _find_videos(directory: Path, names: list[str]) -> dict[str, Path]:

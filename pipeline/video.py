@@ -15,6 +15,7 @@ import math
 import os
 from collections.abc import Iterator
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from fractions import Fraction
 from pathlib import Path
 
@@ -70,11 +71,15 @@ def show_ffmpeg_messages() -> None:
 
 @dataclass(frozen=True)
 class VideoInfo:
+    """``creation_time``: when the container says the recording was made (timezone-aware),
+    or None where it does not say."""
+
     path: Path
     width: int
     height: int
     fps: float
     frame_count: int
+    creation_time: datetime | None = None
 
 
 def probe_video(path: Path) -> VideoInfo:
@@ -98,7 +103,36 @@ def probe_video(path: Path) -> VideoInfo:
     finally:
         cap.release()
     count = _counted_frames(path) or count
-    return VideoInfo(path=Path(path), width=width, height=height, fps=fps, frame_count=max(count, 1))
+    return VideoInfo(
+        path=Path(path),
+        width=width,
+        height=height,
+        fps=fps,
+        frame_count=max(count, 1),
+        creation_time=creation_time(path),
+    )
+
+
+def creation_time(path: Path) -> datetime | None:
+    """The container's ``creation_time`` (MP4/MOV, Matroska; the container's own, else its
+    first video stream's), timezone-aware (UTC where it names no zone); None where the file
+    has none, or one that is not an ISO 8601 date-time."""
+    try:
+        with av.open(str(path)) as container:
+            streams = container.streams.video
+            text = container.metadata.get("creation_time") or (
+                streams[0].metadata.get("creation_time") if streams else None
+            )
+    except (av.error.FFmpegError, OSError):
+        return None
+    if not text:
+        return None
+    try:
+        stamp = datetime.fromisoformat(text)
+    except ValueError:
+        log.debug("%s: creation_time %r is not ISO 8601; ignored", path, text)
+        return None
+    return stamp if stamp.tzinfo else stamp.replace(tzinfo=UTC)
 
 
 def _counted_frames(path: Path) -> int | None:

@@ -11,6 +11,7 @@ from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import Any
 
+import av
 import cv2
 import numpy as np
 import pytest
@@ -135,3 +136,17 @@ def assert_meets_calibration_targets(
         assert abs(cam.matrix[1, 1] / true.matrix[1, 1] - 1) <= 0.005, cam.name
         assert np.linalg.norm(cam.center_mm - true.center_mm) <= 2.0, cam.name
         assert rotation_angle_deg(cam.camera_from_world, true.camera_from_world) <= 0.2, cam.name
+
+
+def remux_with_creation_time(source: Path, target: Path, when: str | None) -> Path:
+    """``source``'s video packets remuxed into ``target`` (container from its suffix),
+    with the container metadata creation_time ``when`` (none if None)."""
+    with av.open(str(source)) as src, av.open(str(target), "w") as out:
+        if when is not None:
+            out.metadata["creation_time"] = when
+        stream = out.add_stream_from_template(src.streams.video[0])
+        for packet in src.demux(src.streams.video[0]):
+            if packet.dts is not None:  # the demuxer's empty flush packet
+                packet.stream = stream
+                out.mux(packet)
+    return target

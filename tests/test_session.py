@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import logging
 import shutil
+from datetime import UTC, datetime
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-from conftest import build_session
+from conftest import build_session, remux_with_creation_time
 
 from pipeline.errors import SessionError
 from pipeline.session import load_session
@@ -44,6 +45,46 @@ def test_timestamps_follow_start_time_and_fps(tmp_path: Path) -> None:
     assert s.timestamp_ns(0) == start_ns
     assert s.timestamp_ns(1) == start_ns + 40_000_000  # 1/25 s
     assert s.timestamp_ns(250) == start_ns + 10 * 10**9
+
+
+def _stamped_session(directory: Path, settings: dict[str, object] | None = None) -> Path:
+    """A session whose MP4s were created at 12:00:05, 12:00:03 (the earliest) and 12:00:04."""
+    session = build_session(directory, frames=2, fps=25.0, ext=".mp4", settings=settings)
+    for name, second in (("cam0", 5), ("cam1", 3), ("cam2", 4)):
+        path = session / f"{name}.mp4"
+        when = f"2024-05-01T12:00:0{second}Z"
+        remux_with_creation_time(path, path.with_suffix(".part.mp4"), when).replace(path)
+    return session
+
+
+def test_session_time_is_the_videos_creation_time(tmp_path: Path) -> None:
+    s = load_session(_stamped_session(tmp_path / "s"))
+    start_ns = int(datetime(2024, 5, 1, 12, 0, 3, tzinfo=UTC).timestamp()) * 10**9
+    assert s.settings.session.start_time == datetime(2024, 5, 1, 12, 0, 3, tzinfo=UTC)
+    assert s.timestamp_ns(0) == start_ns  # the first camera to start
+    assert s.timestamp_ns(25) == start_ns + 10**9
+
+
+@pytest.mark.parametrize(
+    ("start_time", "expected"),
+    [
+        ("2023-02-03T04:05:06Z", datetime(2023, 2, 3, 4, 5, 6, tzinfo=UTC)),
+        # Given explicitly, even the default's value is kept over the videos'.
+        ("1970-01-01T00:00:00Z", datetime(1970, 1, 1, tzinfo=UTC)),
+    ],
+)
+def test_start_time_in_session_toml_overrides_the_creation_time(
+    tmp_path: Path, start_time: str, expected: datetime
+) -> None:
+    session = _stamped_session(tmp_path / "s", settings={"session": {"start_time": start_time}})
+    s = load_session(session)
+    assert s.settings.session.start_time == expected
+    assert s.timestamp_ns(0) == round(expected.timestamp()) * 10**9
+
+
+def test_without_creation_time_or_start_time_the_epoch(session: Path) -> None:
+    s = load_session(session)  # OpenCV's AVIs carry no creation time
+    assert s.timestamp_ns(0) == 0
 
 
 def test_mp4_and_avi_mixed(session: Path) -> None:

@@ -12,13 +12,14 @@ import logging
 import os
 import subprocess
 import sys
+from datetime import UTC, datetime
 from pathlib import Path
 
 import av
 import cv2
 import numpy as np
 import pytest
-from conftest import write_video
+from conftest import remux_with_creation_time, write_video
 from numpy.typing import NDArray
 
 from pipeline import video
@@ -271,3 +272,37 @@ def test_a_matroska_stream_that_starts_late_counts_its_own_frames(tmp_path: Path
     assert video.probe_video(path).frame_count == N_FRAMES
     frames = [image for _, image in read_frames(path, 0, N_FRAMES)]
     assert len(frames) == N_FRAMES and all(image is not None for image in frames)
+
+
+@pytest.mark.parametrize(
+    ("suffix", "when", "expected"),
+    [
+        # MP4 keeps whole seconds; Matroska keeps microseconds.
+        (".mp4", "2024-05-01T12:34:56.000000Z", datetime(2024, 5, 1, 12, 34, 56, tzinfo=UTC)),
+        (".mkv", "2024-05-01T12:34:56.250000Z", datetime(2024, 5, 1, 12, 34, 56, 250000, tzinfo=UTC)),
+        (".mkv", "2024-05-01T14:34:56+02:00", datetime(2024, 5, 1, 12, 34, 56, tzinfo=UTC)),
+    ],
+)
+def test_creation_time_is_read_from_the_container(
+    tmp_path: Path, suffix: str, when: str, expected: datetime
+) -> None:
+    plain = write_video(tmp_path / "plain.mp4", _moving_texture(5))
+    stamped = remux_with_creation_time(plain, tmp_path / f"stamped{suffix}", when)
+    got = video.probe_video(stamped).creation_time
+    assert got == expected and got is not None and got.tzinfo is not None
+
+
+def test_a_video_without_creation_time_has_none(tmp_path: Path) -> None:
+    plain = write_video(tmp_path / "plain.mp4", _moving_texture(5))  # OpenCV writes none
+    assert video.probe_video(plain).creation_time is None
+    unstamped = remux_with_creation_time(plain, tmp_path / "copy.mkv", None)
+    assert video.probe_video(unstamped).creation_time is None
+
+
+def test_a_creation_time_that_is_no_date_is_ignored(tmp_path: Path) -> None:
+    plain = write_video(tmp_path / "plain.mp4", _moving_texture(5))
+    # NUT keeps the text as it is given (MP4 and Matroska drop what they cannot parse).
+    odd = remux_with_creation_time(plain, tmp_path / "odd.nut", "last tuesday")
+    with av.open(str(odd)) as container:
+        assert container.metadata["creation_time"] == "last tuesday"
+    assert video.creation_time(odd) is None
