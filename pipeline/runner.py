@@ -26,7 +26,7 @@ from typing import Any
 
 from .errors import Interrupted, SessionError, SettingsError
 from .frame_result import FrameResult
-from .frame_task import FrameFunction, FrameOutput, decode_frames, encode_silhouette, process_range
+from .frame_task import FrameFunction, FrameOutput, encode_silhouette, process_range
 from .interrupts import signals_interrupt
 from .outputs import OutputTarget, RunSummary, Writers, compress_failures, prepare_outputs
 from .session import Session
@@ -388,16 +388,11 @@ def _run_with(
                 start_local_workers(n_jobs)
             if frame_fn is None:
                 from .model import build_model
+                from .tip_shape import with_session_tip
 
-                model: Any = build_model(session)
-                settings = session.settings
-                if settings.manipulator.tip == "auto" and settings.centerline.method == "fit":
-                    from .tip_shape import choose_tip, sample_frames
-
-                    sample = decode_frames(session.video_paths, sample_frames(start, stop))
-                    choice = choose_tip(model, sample)
-                    model = dataclasses.replace(model, tip=choice.tip)
-                    tip = choice.describe()
+                model: Any
+                model, choice = with_session_tip(build_model(session), session.video_paths, start, stop)
+                tip = choice.describe() if choice is not None else ""
             else:
                 model = session  # a replacement frame function gets the session as its model
             with _backend(backend, scheduler, n_jobs, model) as (n_workers, shared):

@@ -11,12 +11,15 @@ the end whose tubes match the grey levels better, summed over the frames
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from .frame_task import decode_frames
 from .model import SessionModel
 from .reconstruct import frame_contrasts, reconstruct_with_silhouettes
 from .tube_tip import bend_tip_to_pixels, coverage_mismatch, pixel_coverages
@@ -97,3 +100,16 @@ def choose_tip(model: SessionModel, frames: Sequence[tuple[int, Sequence[NDArray
         used += 1
     tip = "round" if used and round_ < flat else "flat"
     return TipChoice(tip, used, flat, round_)
+
+
+def with_session_tip(
+    model: SessionModel, video_paths: Sequence[Path], start: int, stop: int
+) -> tuple[SessionModel, TipChoice | None]:
+    """``model`` with its tube end settled: the settings' "flat" or "round" as they are;
+    for "auto", the end :func:`choose_tip` finds on frames spread over ``[start, stop)``
+    of the videos (and that choice, for the summary)."""
+    settings = model.settings
+    if settings.manipulator.tip != "auto" or settings.centerline.method != "fit":
+        return model, None
+    choice = choose_tip(model, decode_frames(video_paths, sample_frames(start, stop)))
+    return dataclasses.replace(model, tip=choice.tip), choice
