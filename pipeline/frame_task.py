@@ -151,6 +151,7 @@ def process_range(
     images: bool = True,
     frame_fn: FrameFunction | None = None,
     tracked: bool | None = None,
+    tally: str | None = None,
 ) -> list[FrameOutput]:
     """Decode frames ``start <= i < stop`` of every video and process them (one task).
 
@@ -160,7 +161,8 @@ def process_range(
     segment it enters, so that every frame's curve is the one any other split
     of the work would give. A replacement ``frame_fn`` sees each frame alone,
     unless ``tracked``: it is then called with the track's last results too,
-    as ``frame_fn(index, images, model, previous)``.
+    as ``frame_fn(index, images, model, previous)``. ``tally``: a file that gets a
+    byte appended for each frame done (the parent's progress bar reads its size).
     """
     tracked = frame_fn is None if tracked is None else tracked
     compute: Callable[..., tuple[FrameResult, Sequence[Mask] | None]]
@@ -190,6 +192,7 @@ def process_range(
 
     outputs = []
     frames = zip(*readers, strict=True)
+    counter = open(tally, "ab", buffering=0) if tally else None  # closed in the finally below
     try:
         while True:
             t0 = time.perf_counter()
@@ -213,7 +216,11 @@ def process_range(
             recent.append((index, images_))
             if index >= start:
                 outputs.append(_output(result, masks, images_, images, decode_s))
+                if counter is not None:
+                    counter.write(b".")
     finally:
+        if counter is not None:
+            counter.close()
         for reader in readers:
             close = getattr(reader, "close", None)  # release the decoders now, not at GC
             if close is not None:

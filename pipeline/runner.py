@@ -17,6 +17,7 @@ import logging
 import math
 import os
 import sys
+import tempfile
 import textwrap
 import threading
 import time
@@ -377,9 +378,12 @@ def _run_with(
     writer: Writers | None = None
     done = 0
     tip = ""
+    # Local workers tell the bar of each frame as they finish it (a range's results
+    # come back whole): one byte each, appended to a file of this run's.
+    tally = _new_tally() if progress and backend != "dask" else None
     # Shown from here on, while the workers start and the model is built, not only from
     # the first results.
-    bar = _progress_bar(stop - start, progress, elapsed_s=time.perf_counter() - t0)
+    bar = _progress_bar(stop - start, progress, elapsed_s=time.perf_counter() - t0, tally=tally)
     try:
         with bar:
             if backend == "loky":
@@ -402,7 +406,14 @@ def _run_with(
                     # its arrays, Dask scatters it once (joblib's dask backend scatters
                     # arguments, not closures).
                     return delayed(process_range)(
-                        shared, videos, names, span[0], span[1], images=images, frame_fn=frame_fn
+                        shared,
+                        videos,
+                        names,
+                        span[0],
+                        span[1],
+                        images=images,
+                        frame_fn=frame_fn,
+                        tally=None if tally is None else str(tally),
                     )
 
                 ranges = frame_ranges(start, stop, n_workers)
@@ -418,7 +429,7 @@ def _run_with(
                     for out in outputs:
                         writer.write(out)
                         done += 1
-                        bar.update(1)
+                        _advance(bar, done)
         assert writer is not None
         writer.finish()
     except KeyboardInterrupt as exc:
@@ -439,6 +450,8 @@ def _run_with(
     finally:
         if backend == "loky":
             release_local_workers()
+        if tally is not None:
+            tally.unlink(missing_ok=True)
     wall = time.perf_counter() - t0
     return dataclasses.replace(writer.summary(wall), tip=tip)
 
@@ -476,9 +489,11 @@ def _frame_span(session: Session, frames: tuple[int, int | None] | None) -> tupl
     return start, stop
 
 
-def _progress_bar(total: int, enabled: bool, *, elapsed_s: float = 0.0) -> Any:
+def _progress_bar(total: int, enabled: bool, *, elapsed_s: float = 0.0, tally: Path | None = None) -> Any:
     """A tqdm bar of ``total`` frames on stderr (frames/s and time left), its clock started
-    ``elapsed_s`` ago, redrawn every PROGRESS_REDRAW_S until it is closed."""
+    ``elapsed_s`` ago, redrawn every PROGRESS_REDRAW_S until it is closed; moved on by
+    the bytes the workers append to ``tally`` (one per frame done) as well as by the
+    frames written."""
     from tqdm import tqdm
 
     bar = tqdm(
@@ -489,13 +504,29 @@ def _progress_bar(total: int, enabled: bool, *, elapsed_s: float = 0.0) -> Any:
         bar.refresh()
         # Frames arrive a range at a time: without redraws the clock would stand still
         # while the workers start and reconstruct their first ranges.
-        threading.Thread(target=_redraw, args=(bar,), daemon=True, name="progress-redraw").start()
+        threading.Thread(target=_redraw, args=(bar, tally), daemon=True, name="progress-redraw").start()
     return bar
 
 
-def _redraw(bar: Any) -> None:
+def _new_tally() -> Path:
+    handle, name = tempfile.mkstemp(prefix="pipeline-progress-")
+    os.close(handle)
+    return Path(name)
+
+
+def _advance(bar: Any, done: int) -> None:
+    """Move ``bar`` on to ``done`` frames (never back: the workers' tally may be ahead)."""
+    with bar.get_lock():
+        if done > bar.n and not bar.disable:
+            bar.update(min(done, bar.total) - bar.n)
+
+
+def _redraw(bar: Any, tally: Path | None) -> None:
     while True:
         time.sleep(PROGRESS_REDRAW_S)
+        if tally is not None:
+            with contextlib.suppress(OSError):
+                _advance(bar, tally.stat().st_size)
         with bar.get_lock():  # the lock close() takes to draw the last line: no redraw after it
             if bar.disable:  # closed
                 return

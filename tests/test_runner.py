@@ -209,9 +209,14 @@ class _RecordedBar:
 
     def __init__(self, events: list[Any], total: int, elapsed_s: float) -> None:
         self.events = events
+        self.n, self.total, self.disable = 0, total, False
         events.append(("created", total, elapsed_s))
 
+    def get_lock(self) -> contextlib.AbstractContextManager[None]:
+        return contextlib.nullcontext()
+
     def update(self, n: int) -> None:
+        self.n += n
         self.events.append(("update", n))
 
     def close(self) -> None:
@@ -236,7 +241,9 @@ def test_the_progress_bar_starts_with_the_run_and_advances_frame_by_frame(
 ) -> None:
     events: list[Any] = []
     monkeypatch.setattr(
-        runner, "_progress_bar", lambda total, enabled, *, elapsed_s: _RecordedBar(events, total, elapsed_s)
+        runner,
+        "_progress_bar",
+        lambda total, enabled, *, elapsed_s, tally: _RecordedBar(events, total, elapsed_s),
     )
     started_at = time.perf_counter() - 100.0  # as if the process had started 100 s ago
     summary = runner.process_session(

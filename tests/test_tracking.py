@@ -77,6 +77,10 @@ def test_a_frames_curve_does_not_depend_on_how_the_run_splits_the_frames(session
         np.testing.assert_array_equal(whole[i], split[i])
     for i in late:
         np.testing.assert_array_equal(whole[i], late[i])
+    # The progress tally gets a byte per frame of the range, none for its warm-up.
+    tally = session_dir.parent / "tally"
+    process_range(model, session.video_paths, names, SEGMENT_FRAMES + 5, n, images=False, tally=str(tally))
+    assert tally.stat().st_size == n - (SEGMENT_FRAMES + 5)
     # Most frames are fitted from their track, not from the hull.
     tracked = [o.result.tracked for o in process_range(model, session.video_paths, names, 0, n, images=False)]
     assert sum(tracked) >= n - 2 * (WARMUP_FRAMES + 1)
