@@ -17,7 +17,7 @@ import pytest
 from conftest import build_session, rig_cameras
 
 from pipeline.bench.chart import plot_report
-from pipeline.bench.e2e import median_run, voxel_session
+from pipeline.bench.e2e import ensure_session, median_run, voxel_session
 from pipeline.bench.per_shape import BenchShape, measure_shape, shape_run
 from pipeline.bench.report import (
     RECONSTRUCT,
@@ -40,6 +40,7 @@ from pipeline.bench.stages import (
     upsample_masks,
 )
 from pipeline.bench.timing import StageStats, StageTimer
+from pipeline.errors import PipelineError
 from pipeline.hull import carve
 from pipeline.session import load_session
 
@@ -197,6 +198,39 @@ def test_median_run_keeps_every_wall_time_and_the_largest_peak() -> None:
     assert median.peak_rss_mb == 900.0
     with pytest.raises(ValueError, match="at least one run"):
         median_run([])
+
+
+def test_ensure_session_renders_beside_and_renames_into_place(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    commands: list[list[str]] = []
+
+    def fake_synth(cmd: list[str], check: bool) -> None:
+        # `pipeline synth` writes calibration.toml first, so a stopped render looks
+        # finished; here it completes.
+        commands.append(cmd)
+        out = Path(cmd[cmd.index("synth") + 1])
+        out.mkdir()
+        (out / "calibration.toml").write_text("# calibration\n")
+
+    monkeypatch.setattr("pipeline.bench.e2e.subprocess.run", fake_synth)
+    (tmp_path / "bench-loop.partial").mkdir()  # left by a stopped render
+    (tmp_path / "bench-loop.partial" / "cam0.mp4").write_bytes(b"half")
+    session = ensure_session(tmp_path / "bench-loop", frames=900, synth_args=("--shape", "loop"))
+    assert session == tmp_path / "bench-loop"
+    assert (session / "calibration.toml").exists() and not (session / "cam0.mp4").exists()
+    assert not (tmp_path / "bench-loop.partial").exists()
+    (cmd,) = commands
+    assert cmd[-5:] == [str(tmp_path / "bench-loop.partial"), "--frames", "900", "--shape", "loop"]
+    ensure_session(session, frames=900, synth_args=("--shape", "loop"))
+    assert len(commands) == 1  # reused, not rendered again
+
+
+def test_ensure_session_will_not_render_over_a_folder_that_is_not_a_session(tmp_path: Path) -> None:
+    (tmp_path / "notes.txt").write_text("mine\n")
+    with pytest.raises(PipelineError, match=r"not a session \(no calibration.toml\) and not empty"):
+        ensure_session(tmp_path, frames=900)
+    assert (tmp_path / "notes.txt").exists()
 
 
 def test_voxel_session_links_the_inputs_and_overrides_voxel_mm(tmp_path: Path) -> None:

@@ -21,6 +21,7 @@ from pathlib import Path
 import psutil
 import tomli_w
 
+from ..errors import PipelineError
 from ..video import read_frames
 from .report import EndToEndRun
 
@@ -37,20 +38,25 @@ def ensure_session(directory: Path, *, frames: int, synth_args: Sequence[str] = 
 
     ``synth_args`` are ``pipeline synth`` options (none: the demo, bend_rotate). An
     existing session is reused as it is: delete the directory to render it again.
+    The session is rendered beside ``directory`` and renamed into place when
+    complete: the renderer writes calibration.toml first and the videos last, so a
+    render stopped half way must not leave a directory that looks finished.
     """
-    if not (directory / "calibration.toml").exists():
-        log.info("rendering a %d-frame session into %s %s", frames, directory, " ".join(synth_args))
-        cmd = [
-            sys.executable,
-            "-m",
-            "pipeline",
-            "synth",
-            str(directory),
-            "--frames",
-            str(frames),
-            *synth_args,
-        ]
-        subprocess.run(cmd, check=True)
+    if (directory / "calibration.toml").exists():
+        return directory
+    if directory.exists() and any(directory.iterdir()):
+        raise PipelineError(
+            f"{directory}: not a session (no calibration.toml) and not empty; "
+            "delete it or name another directory to render the session into"
+        )
+    partial = directory.with_name(directory.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    log.info("rendering a %d-frame session into %s %s", frames, directory, " ".join(synth_args))
+    cmd = [sys.executable, "-m", "pipeline", "synth", str(partial), "--frames", str(frames), *synth_args]
+    subprocess.run(cmd, check=True)
+    if directory.exists():
+        directory.rmdir()  # empty, checked above
+    partial.rename(directory)
     return directory
 
 

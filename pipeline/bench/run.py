@@ -25,6 +25,7 @@ import argparse
 import logging
 import os
 import platform
+import sys
 import tempfile
 import time
 from collections.abc import Sequence
@@ -33,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import PipelineError
 from ..session import load_session
 from .chart import plot_report
 from .e2e import decode_floor, ensure_session, median_run, run_process, voxel_session
@@ -220,13 +222,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
-    start = time.perf_counter()
+def _run(args: argparse.Namespace) -> BenchReport:
+    """run_bench with the command line's options (--quick: the smoke run's sizes)."""
     shapes = () if args.no_shapes else SHAPES
     if args.quick:
-        report = run_bench(
+        return run_bench(
             args.demo,
             frames=min(args.frames, 120),
             stage_frames=60,
@@ -238,14 +238,24 @@ def main(argv: Sequence[str] | None = None) -> int:
             shape_stage_frames=60,
             shape_repeats=args.shape_repeats,
         )
-    else:
-        report = run_bench(
-            args.demo,
-            frames=args.frames,
-            original_frames=args.original_frames or 10,
-            shapes=shapes,
-            shape_repeats=args.shape_repeats,
-        )
+    return run_bench(
+        args.demo,
+        frames=args.frames,
+        original_frames=args.original_frames or 10,
+        shapes=shapes,
+        shape_repeats=args.shape_repeats,
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
+    start = time.perf_counter()
+    try:
+        report = _run(args)
+    except PipelineError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     args.out.mkdir(parents=True, exist_ok=True)
     write_json(report, args.out / "bench.json")
     plot_report(report, args.out / "bench.png")
