@@ -299,7 +299,7 @@ def test_time_stages_sums_silhouettes_to_quality_per_frame(rod_run: StageRun) ->
 def test_shape_run_summarises_a_stage_run(rod_run: StageRun, rod_dir: Path) -> None:
     shape = BenchShape("rod", "rod", ("--shape", "straight"))
     row = shape_run(shape, rod_dir, end_to_end=None, decode_floor_s=0.5, decode_frames=4, stages=rod_run)
-    assert row.description == "pipeline synth rod --shape straight"
+    assert row.description == f"pipeline synth {rod_dir} --shape straight"
     assert row.reconstruct == rod_run.timer.stats()[RECONSTRUCT]
     assert row.statuses == {"ok": 3, "empty": 1, "failed": 0}
     # Frame 0 starts the track from the hull; later ok frames follow it or start again.

@@ -41,9 +41,9 @@ class BenchShape:
     directory: str
     synth_args: tuple[str, ...] = ()
 
-    @property
-    def description(self) -> str:
-        return " ".join(("pipeline synth", self.directory, *self.synth_args))
+    def describe(self, session_dir: Path) -> str:
+        """The command that renders it into ``session_dir`` (900 frames, as the bench does)."""
+        return " ".join(("pipeline synth", str(session_dir), *self.synth_args))
 
 
 DEMO_SHAPE = BenchShape("bend_rotate (demo)", "demo")
@@ -76,7 +76,7 @@ def shape_run(
     return ShapeRun(
         name=shape.name,
         session=str(session_dir),
-        description=shape.description,
+        description=shape.describe(session_dir),
         end_to_end=end_to_end,
         decode_floor_s=decode_floor_s,
         decode_frames=decode_frames,

@@ -384,7 +384,7 @@ def _shape_rows(report: BenchReport) -> list[str]:
     rows.append(
         f"Targets: end to end / decode only <= {SHAPE_DECODE_RATIO_LIMIT:g}x at {TARGET_FRAMES} frames; "
         f"p99 silhouettes to quality <= {RECONSTRUCT_P99_LIMIT_MS:g} ms, timed in one process with "
-        "OpenCV on one thread (CPU: the thread's CPU time, which a loaded machine does not inflate)."
+        "OpenCV on one thread (CPU: the thread's CPU time, without the time other processes held the core)."
     )
     rows += [f"- {shape.name}: {shape.description}" for shape in report.shapes]
     return rows

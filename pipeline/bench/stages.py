@@ -94,8 +94,8 @@ def time_stages(session: Session, out_dir: Path, *, frames: int) -> StageRun:
 
     Issue 14's per-frame figure is recorded twice per frame: RECONSTRUCT, the wall
     time of silhouettes + carving + centreline + quality, and RECONSTRUCT_CPU, the
-    thread CPU time of the same call, which other processes on a loaded machine do
-    not inflate. OpenCV is held to one thread meanwhile, since the target is for one
+    thread CPU time of the same call, which leaves out the time other processes on a
+    loaded machine hold the core. OpenCV is held to one thread meanwhile, since the target is for one
     core and the thread CPU time would miss work done on OpenCV's other threads.
     The tracked runner recomputes the last frames of a segment to start the next
     one's track; those warm-up fits are not samples (they produce no output).
