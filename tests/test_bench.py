@@ -31,6 +31,7 @@ from pipeline.bench.report import (
     targets,
     write_json,
 )
+from pipeline.bench.run import build_parser
 from pipeline.bench.stages import (
     StageRun,
     compare_methods,
@@ -349,3 +350,10 @@ def test_a_short_run_does_not_claim_the_900_frame_targets() -> None:
     report.end_to_end = [EndToEndRun("2 mm, 2 workers", 2, 2.0, 120, 3.0, 0, 600.0)]
     verdicts = {t.name: t.verdict for t in targets(report)}
     assert verdicts["end to end 900 frames, 2 workers"] == "not measured"
+
+
+def test_the_command_line_takes_the_per_shape_options() -> None:
+    args = build_parser().parse_args(["--no-shapes", "--shape-repeats", "3"])
+    assert args.no_shapes and args.shape_repeats == 3
+    defaults = build_parser().parse_args([])
+    assert not defaults.no_shapes and defaults.shape_repeats == 1

@@ -115,7 +115,7 @@ class ShapeRun:
     ----------
     name : e.g. "loop".
     session : its session directory.
-    description : how it was rendered, e.g. "pipeline synth --shape loop".
+    description : how it was rendered, e.g. "pipeline synth recordings/bench-loop --shape loop".
     end_to_end : the median ``process`` run with 2 workers (every run's wall time in
         its ``walls_s``), or None when it was not run.
     decode_floor_s : seconds to only decode ``decode_frames`` frames of each of its videos.
@@ -145,7 +145,7 @@ class ShapeRun:
 
 @dataclass(frozen=True)
 class Target:
-    """One target of issue 8; ``passed`` is None when it was not measured in this run."""
+    """One target of issue 8 or 14; ``passed`` is None when it was not measured in this run."""
 
     name: str
     measured: float
