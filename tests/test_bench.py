@@ -17,16 +17,21 @@ import pytest
 from conftest import build_session, rig_cameras
 
 from pipeline.bench.chart import plot_report
-from pipeline.bench.e2e import voxel_session
+from pipeline.bench.e2e import ensure_session, median_run, voxel_session
+from pipeline.bench.per_shape import BenchShape, measure_shape, shape_run
 from pipeline.bench.report import (
+    RECONSTRUCT,
+    RECONSTRUCT_CPU,
     BenchReport,
     EndToEndRun,
     ScalingRow,
+    ShapeRun,
     format_table,
     speedup_2_over_1,
     targets,
     write_json,
 )
+from pipeline.bench.run import build_parser
 from pipeline.bench.stages import (
     StageRun,
     compare_methods,
@@ -36,6 +41,7 @@ from pipeline.bench.stages import (
     upsample_masks,
 )
 from pipeline.bench.timing import StageStats, StageTimer
+from pipeline.errors import PipelineError
 from pipeline.hull import carve
 from pipeline.session import load_session
 
@@ -44,8 +50,9 @@ def test_stage_stats_are_median_and_95th_percentile_in_ms() -> None:
     stats = StageStats.from_seconds([i / 1000 for i in range(1, 101)])  # 1..100 ms
     assert stats.count == 100
     assert stats.median_ms == pytest.approx(50.5)
-    # numpy's linear interpolation: 1 + 0.95 * 99 = 95.05 ms
+    # numpy's linear interpolation: 1 + 0.95 * 99 = 95.05 ms, 1 + 0.99 * 99 = 99.01 ms
     assert stats.p95_ms == pytest.approx(95.05)
+    assert stats.p99_ms == pytest.approx(99.01)
     assert math.isnan(StageStats.from_seconds([]).median_ms)
 
 
@@ -123,6 +130,110 @@ def test_table_json_and_chart_show_the_fake_measurement(tmp_path: Path) -> None:
     assert (tmp_path / "bench.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def _shape(name: str, *, frames: int, wall_s: float, p99_ms: float) -> ShapeRun:
+    run = EndToEndRun(f"{name}, 2 workers", 2, 2.0, frames, wall_s, 0, 800.0, walls_s=(wall_s,))
+    return ShapeRun(
+        name=name,
+        session=f"recordings/bench-{name}",
+        description=f"pipeline synth bench-{name} --shape {name}",
+        end_to_end=run,
+        decode_floor_s=2.0,
+        decode_frames=frames,
+        reconstruct=StageStats(12.0, 20.0, 300, p99_ms),
+        reconstruct_cpu=StageStats(11.0, 18.0, 300, p99_ms - 2.0),
+        statuses={"ok": 300, "empty": 0, "failed": 0},
+        initialised_frames=4,
+    )
+
+
+def test_shape_targets_against_issue_14() -> None:
+    report = _fake_report()
+    report.shapes = [
+        _shape("loop", frames=900, wall_s=50.0, p99_ms=40.0),  # 25x, 40 ms
+        _shape("helix", frames=900, wall_s=30.0, p99_ms=25.0),  # 15x, 25 ms
+        _shape("quick", frames=120, wall_s=3.0, p99_ms=25.0),  # 1.5x, but not 900 frames
+    ]
+    verdicts = {t.name: t.verdict for t in targets(report)}
+    assert verdicts["end to end / decode only, loop (900 frames, 2 workers)"] == "MISS"  # 25 > 20
+    assert verdicts["p99 silhouettes to quality, loop (300 frames, 1 core)"] == "MISS"  # 40 > 33 ms
+    assert verdicts["end to end / decode only, helix (900 frames, 2 workers)"] == "PASS"  # 15 <= 20
+    assert verdicts["p99 silhouettes to quality, helix (300 frames, 1 core)"] == "PASS"  # 25 <= 33 ms
+    # A short run spreads the start-up over fewer frames: its ratio says nothing of the target.
+    assert verdicts["end to end / decode only, quick (900 frames, 2 workers)"] == "not measured"
+    assert report.shapes[0].decode_ratio == pytest.approx(25.0)
+
+
+def test_shape_rows_in_the_table_and_json(tmp_path: Path) -> None:
+    report = _fake_report()
+    report.shapes = [_shape("loop", frames=900, wall_s=50.0, p99_ms=40.0)]
+    table = format_table(report)
+    # frames, wall, runs, decode only, ratio, frames timed (from the hull), median, p95, p99, p99 CPU
+    assert "| loop | 900 | 50.00 | 50.00 | 2.00 | 25.0 | 300 (4) | 12.00 | 20.00 | 40.00 | 38.00 |" in table
+    assert "- loop: pipeline synth bench-loop --shape loop" in table
+    assert "| p99 silhouettes to quality, loop (300 frames, 1 core) | 40.00 ms | <= 33 ms | MISS |" in table
+
+    write_json(report, tmp_path / "bench.json")
+    data = json.loads((tmp_path / "bench.json").read_text())
+    (row,) = data["shapes"]
+    assert row["decode_ratio"] == pytest.approx(25.0)
+    assert row["reconstruct"]["p99_ms"] == pytest.approx(40.0)
+    assert row["reconstruct_cpu"]["p99_ms"] == pytest.approx(38.0)
+    assert row["end_to_end"]["walls_s"] == [50.0]
+    assert data["ratios"]["end_to_end_over_decode_by_shape"] == {"loop": pytest.approx(25.0)}
+    verdicts = {t["name"]: t["verdict"] for t in data["targets"]}
+    assert verdicts["end to end / decode only, loop (900 frames, 2 workers)"] == "MISS"
+
+
+def test_a_report_without_shapes_has_no_shape_table() -> None:
+    assert "shape (issue 14)" not in format_table(_fake_report())
+
+
+def test_median_run_keeps_every_wall_time_and_the_largest_peak() -> None:
+    runs = [
+        EndToEndRun("a", 2, 2.0, 900, wall, 0, peak)
+        for wall, peak in ((9.0, 500.0), (7.0, 900.0), (8.0, 600.0))
+    ]
+    median = median_run(runs)
+    assert median.wall_s == 8.0
+    assert median.walls_s == (9.0, 7.0, 8.0)  # in the order run
+    assert median.peak_rss_mb == 900.0
+    with pytest.raises(ValueError, match="at least one run"):
+        median_run([])
+
+
+def test_ensure_session_renders_beside_and_renames_into_place(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    commands: list[list[str]] = []
+
+    def fake_synth(cmd: list[str], check: bool) -> None:
+        # `pipeline synth` writes calibration.toml first, so a stopped render looks
+        # finished; here it completes.
+        commands.append(cmd)
+        out = Path(cmd[cmd.index("synth") + 1])
+        out.mkdir()
+        (out / "calibration.toml").write_text("# calibration\n")
+
+    monkeypatch.setattr("pipeline.bench.e2e.subprocess.run", fake_synth)
+    (tmp_path / "bench-loop.partial").mkdir()  # left by a stopped render
+    (tmp_path / "bench-loop.partial" / "cam0.mp4").write_bytes(b"half")
+    session = ensure_session(tmp_path / "bench-loop", frames=900, synth_args=("--shape", "loop"))
+    assert session == tmp_path / "bench-loop"
+    assert (session / "calibration.toml").exists() and not (session / "cam0.mp4").exists()
+    assert not (tmp_path / "bench-loop.partial").exists()
+    (cmd,) = commands
+    assert cmd[-5:] == [str(tmp_path / "bench-loop.partial"), "--frames", "900", "--shape", "loop"]
+    ensure_session(session, frames=900, synth_args=("--shape", "loop"))
+    assert len(commands) == 1  # reused, not rendered again
+
+
+def test_ensure_session_will_not_render_over_a_folder_that_is_not_a_session(tmp_path: Path) -> None:
+    (tmp_path / "notes.txt").write_text("mine\n")
+    with pytest.raises(PipelineError, match=r"not a session \(no calibration.toml\) and not empty"):
+        ensure_session(tmp_path, frames=900)
+    assert (tmp_path / "notes.txt").exists()
+
+
 def test_voxel_session_links_the_inputs_and_overrides_voxel_mm(tmp_path: Path) -> None:
     source = tmp_path / "demo"
     source.mkdir()
@@ -151,15 +262,19 @@ def test_scaled_camera_maps_pixels_as_nearest_upsampling_does() -> None:
 
 
 @pytest.fixture(scope="module")
-def rod_run(tmp_path_factory: pytest.TempPathFactory) -> StageRun:
+def rod_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     # 8 mm voxels (32^3): brute force and the original method take milliseconds, not seconds.
-    directory = build_session(
+    return build_session(
         tmp_path_factory.mktemp("bench") / "rod",
         frames=4,
         empty_frames={3},
         settings={"workspace": {"voxel_mm": 8.0}},
     )
-    return time_stages(load_session(directory), directory.parent / "out", frames=4)
+
+
+@pytest.fixture(scope="module")
+def rod_run(rod_dir: Path) -> StageRun:
+    return time_stages(load_session(rod_dir), rod_dir.parent / "out", frames=4)
 
 
 def test_time_stages_times_every_stage_of_every_frame(rod_run: StageRun) -> None:
@@ -169,6 +284,54 @@ def test_time_stages_times_every_stage_of_every_frame(rod_run: StageRun) -> None
     assert stats["carving"].count == 3  # an empty view ends the frame before carving
     assert sorted(rod_run.masks) == [0, 1, 2, 3]
     assert rod_run.results[3].status == "empty"  # the rod is out of view in frame 3
+
+
+def test_time_stages_sums_silhouettes_to_quality_per_frame(rod_run: StageRun) -> None:
+    stats = rod_run.timer.stats()
+    # Every frame, the empty one too: its silhouettes were made and looked at.
+    assert stats[RECONSTRUCT].count == stats[RECONSTRUCT_CPU].count == 4
+    keys = ("silhouette", "carve", "centerline", "quality")
+    expected = [sum(rod_run.results[i].timings_s.get(k, 0.0) for k in keys) for i in range(4)]
+    assert rod_run.timer.samples_s[RECONSTRUCT] == expected
+    assert all(s >= 0.0 for s in rod_run.timer.samples_s[RECONSTRUCT_CPU])
+    assert rod_run.status_counts() == {"ok": 3, "empty": 1, "failed": 0}
+
+
+def test_shape_run_summarises_a_stage_run(rod_run: StageRun, rod_dir: Path) -> None:
+    shape = BenchShape("rod", "rod", ("--shape", "straight"))
+    row = shape_run(shape, rod_dir, end_to_end=None, decode_floor_s=0.5, decode_frames=4, stages=rod_run)
+    assert row.description == f"pipeline synth {rod_dir} --shape straight"
+    assert row.reconstruct == rod_run.timer.stats()[RECONSTRUCT]
+    assert row.statuses == {"ok": 3, "empty": 1, "failed": 0}
+    # Frame 0 starts the track from the hull; later ok frames follow it or start again.
+    assert 1 <= row.initialised_frames <= 3
+    assert math.isnan(row.decode_ratio)  # no end-to-end run
+
+
+def test_measure_shape_reuses_the_session_and_runs_process_with_2_workers(
+    rod_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # `process` in a subprocess costs seconds of imports: a stand-in records the calls.
+    calls: list[dict[str, object]] = []
+
+    def fake_run_process(session_dir: Path, out_dir: Path, **kwargs: object) -> EndToEndRun:
+        calls.append({"session_dir": session_dir, **kwargs})
+        wall_s = (3.0, 1.0, 2.0)[len(calls) - 1]
+        return EndToEndRun(str(kwargs["label"]), 2, 8.0, 4, wall_s, 0, 100.0)
+
+    monkeypatch.setattr("pipeline.bench.per_shape.run_process", fake_run_process)
+    # The session exists, so nothing is rendered (its synth arguments would fail if run).
+    shape = BenchShape("rod", rod_dir.name, ("--no-such-option",))
+    row = measure_shape(
+        shape, rod_dir.parent, tmp_path, frames=10, session_frames=4, stage_frames=4, repeats=3
+    )
+    assert [c["jobs"] for c in calls] == [2, 2, 2]
+    assert {c["session_dir"] for c in calls} == {rod_dir}
+    assert {c["frames"] for c in calls} == {4}  # no more than the session has
+    assert row.end_to_end is not None and row.end_to_end.walls_s == (3.0, 1.0, 2.0)
+    assert row.end_to_end.wall_s == 2.0  # the median run
+    assert row.decode_frames == 4 and math.isfinite(row.decode_floor_s)
+    assert row.reconstruct.count == 4
 
 
 def test_lookup_gather_and_brute_force_agree_with_carve(rod_run: StageRun) -> None:
@@ -187,3 +350,10 @@ def test_a_short_run_does_not_claim_the_900_frame_targets() -> None:
     report.end_to_end = [EndToEndRun("2 mm, 2 workers", 2, 2.0, 120, 3.0, 0, 600.0)]
     verdicts = {t.name: t.verdict for t in targets(report)}
     assert verdicts["end to end 900 frames, 2 workers"] == "not measured"
+
+
+def test_the_command_line_takes_the_per_shape_options() -> None:
+    args = build_parser().parse_args(["--no-shapes", "--shape-repeats", "3"])
+    assert args.no_shapes and args.shape_repeats == 3
+    defaults = build_parser().parse_args([])
+    assert not defaults.no_shapes and defaults.shape_repeats == 1

@@ -1,4 +1,4 @@
-"""End-to-end timings for ``make bench``: the demo session, ``process`` subprocesses, decode floor.
+"""End-to-end timings for ``make bench``: the sessions, ``process`` subprocesses, decode floor.
 
 Each end-to-end run is the real command line in a fresh Python process, timed
 from process start to exit (outputs closed and renamed into place), so it
@@ -14,11 +14,14 @@ import subprocess
 import sys
 import time
 import tomllib
+from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import psutil
 import tomli_w
 
+from ..errors import PipelineError
 from ..video import read_frames
 from .report import EndToEndRun
 
@@ -30,12 +33,30 @@ log = logging.getLogger(__name__)
 RSS_SAMPLE_S = 0.05
 
 
-def ensure_demo(directory: Path, *, frames: int) -> Path:
-    """Render the demo session into ``directory`` unless its calibration.toml exists."""
-    if not (directory / "calibration.toml").exists():
-        log.info("rendering the %d-frame demo session into %s", frames, directory)
-        cmd = [sys.executable, "-m", "pipeline", "synth", str(directory), "--frames", str(frames)]
-        subprocess.run(cmd, check=True)
+def ensure_session(directory: Path, *, frames: int, synth_args: Sequence[str] = ()) -> Path:
+    """Render a session into ``directory`` unless its calibration.toml exists.
+
+    ``synth_args`` are ``pipeline synth`` options (none: the demo, bend_rotate). An
+    existing session is reused as it is: delete the directory to render it again.
+    The session is rendered beside ``directory`` and renamed into place when
+    complete: the renderer writes calibration.toml first and the videos last, so a
+    render stopped half way must not leave a directory that looks finished.
+    """
+    if (directory / "calibration.toml").exists():
+        return directory
+    if directory.exists() and any(directory.iterdir()):
+        raise PipelineError(
+            f"{directory}: not a session (no calibration.toml) and not empty; "
+            "delete it or name another directory to render the session into"
+        )
+    partial = directory.with_name(directory.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    log.info("rendering a %d-frame session into %s %s", frames, directory, " ".join(synth_args))
+    cmd = [sys.executable, "-m", "pipeline", "synth", str(partial), "--frames", str(frames), *synth_args]
+    subprocess.run(cmd, check=True)
+    if directory.exists():
+        directory.rmdir()  # empty, checked above
+    partial.rename(directory)
     return directory
 
 
@@ -120,13 +141,31 @@ def run_process(
     )
 
 
-def decode_floor(video_paths: tuple[Path, ...] | list[Path], *, frames: int) -> float:
-    """Seconds to only decode ``frames`` frames of every video, one after another in this process."""
-    start = time.perf_counter()
-    for path in video_paths:
-        for _ in read_frames(path, 0, frames):
-            pass
-    return time.perf_counter() - start
+def median_run(runs: Sequence[EndToEndRun]) -> EndToEndRun:
+    """The median of repeated runs of one configuration, by wall time, with every run's
+    wall time in the order run and the largest peak memory of them all."""
+    if not runs:
+        raise ValueError("median_run needs at least one run")
+    median = sorted(runs, key=lambda r: r.wall_s)[len(runs) // 2]
+    peak = max(r.peak_rss_mb for r in runs)
+    return replace(median, peak_rss_mb=peak, walls_s=tuple(r.wall_s for r in runs))
+
+
+def decode_floor(video_paths: Sequence[Path], *, frames: int, repeats: int = 1) -> float:
+    """Seconds to only decode ``frames`` frames of every video, one after another in this process.
+
+    The median of ``repeats`` passes: a pass takes a few tenths of a second, so one
+    scheduler stall on a loaded machine would move it, and every ratio to it, by a
+    large fraction.
+    """
+    passes = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for path in video_paths:
+            for _ in read_frames(path, 0, frames):
+                pass
+        passes.append(time.perf_counter() - start)
+    return sorted(passes)[len(passes) // 2]
 
 
 def voxel_session(source: Path, target: Path, *, voxel_mm: float) -> Path:

@@ -9,7 +9,10 @@ session, then measures on this machine:
 - the original's sphere-fit/polyfit centreline against ours;
 - carving set-up and per-frame cost at 1 mm voxels and 640x480 masks;
 - ``python -m pipeline process`` end to end (subprocess, start to files closed) with
-  1 and 2 workers, and at 1 mm; decode-only as the floor; peak memory of each run.
+  1 and 2 workers, and at 1 mm; decode-only as the floor; peak memory of each run;
+- per shape (issue 14: the demo, a loop, a random shape with a round end, each rendered
+  once beside the demo and reused): ``process`` with 2 workers over its decode floor,
+  and the 99th percentile of the per-frame silhouettes-to-quality time on one core.
 
 It writes recordings/bench.json and recordings/bench.png and prints a Markdown
 table with PASS/MISS per target. Misses never fail the command: speed is reported,
@@ -22,18 +25,20 @@ import argparse
 import logging
 import os
 import platform
+import sys
 import tempfile
 import time
 from collections.abc import Sequence
-from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 
+from ..errors import PipelineError
 from ..session import load_session
 from .chart import plot_report
-from .e2e import decode_floor, ensure_demo, run_process, voxel_session
+from .e2e import decode_floor, ensure_session, median_run, run_process, voxel_session
+from .per_shape import DEMO_SHAPE, FLOOR_REPEATS, SHAPES, BenchShape, measure_shapes, shape_run
 from .report import STAGE_ORDER, BenchReport, EndToEndRun, format_table, write_json
 from .timing import StageStats
 
@@ -75,6 +80,9 @@ def run_bench(
     scaling_frames: int = 20,
     fine_end_to_end: bool = True,
     repeats: int = 5,
+    shapes: Sequence[BenchShape] = SHAPES,
+    shape_stage_frames: int = 300,
+    shape_repeats: int = 1,
     work_dir: Path | None = None,
 ) -> BenchReport:
     """Measure everything ``make bench`` reports on the session in ``demo_dir``.
@@ -89,6 +97,10 @@ def run_bench(
     fine_end_to_end : also time ``process`` end to end at 1 mm voxels.
     repeats : runs of each end-to-end configuration; the median is reported (the
         peak memory is the largest of them).
+    shapes : sessions beyond the demo for issue 14's per-shape rows, rendered (once)
+        beside ``demo_dir``; the demo's row reuses the demo's own measurements.
+    shape_stage_frames : frames of each further shape timed one by one.
+    shape_repeats : end-to-end runs of each further shape (a 900-frame loop takes minutes).
     work_dir : scratch directory for outputs (a temporary one by default).
     """
     from .stages import carving_scaling, compare_methods, time_stages
@@ -101,14 +113,14 @@ def run_bench(
         "python": platform.python_version(),
         "load_before": _load(),
     }
-    ensure_demo(demo_dir, frames=DEMO_FRAMES)
+    ensure_session(demo_dir, frames=DEMO_FRAMES)
     session = load_session(demo_dir)
     n = min(frames, session.frame_count)
     report.meta.update(session=str(demo_dir), frames=n, fps=session.fps)
     with tempfile.TemporaryDirectory(prefix="pipeline-bench-", dir=work_dir) as tmp_name:
         tmp = Path(tmp_name)
         log.info("decoding %d frames of %d videos (the floor)", n, len(session.video_paths))
-        report.decode_floor_s = decode_floor(session.video_paths, frames=n)
+        report.decode_floor_s = decode_floor(session.video_paths, frames=n, repeats=FLOOR_REPEATS)
         report.decode_frames = n
 
         voxel = f"{session.settings.workspace.voxel_mm:g} mm"
@@ -125,18 +137,33 @@ def run_bench(
                 done.append(
                     run_process(directory, tmp / "out", jobs=jobs, frames=n, voxel_mm=voxel_mm, label=label)
                 )
-        for done in runs:
-            median = sorted(done, key=lambda r: r.wall_s)[len(done) // 2]
-            peak = max(r.peak_rss_mb for r in done)
-            report.end_to_end.append(replace(median, peak_rss_mb=peak, walls_s=tuple(r.wall_s for r in done)))
+        report.end_to_end = [median_run(done) for done in runs]
 
         log.info("timing the per-frame stages on %d frames", min(stage_frames, n))
         stages = time_stages(session, tmp / "stages", frames=min(stage_frames, n))
+        report.shapes = [
+            shape_run(
+                DEMO_SHAPE,
+                demo_dir,
+                end_to_end=report.run(jobs=2, voxel_mm=2.0),
+                decode_floor_s=report.decode_floor_s,
+                decode_frames=n,
+                stages=stages,
+            )
+        ]
+        report.shapes += measure_shapes(
+            shapes,
+            demo_dir.parent,
+            tmp / "shapes",
+            frames=n,
+            session_frames=DEMO_FRAMES,
+            stage_frames=shape_stage_frames,
+            repeats=shape_repeats,
+        )
     stats = stages.timer.stats()
     order = [s for s in STAGE_ORDER if s in stats] + [s for s in stats if s not in STAGE_ORDER]
     report.stages = {name: stats[name] for name in order}
-    statuses = [r.status for r in stages.results.values()]
-    report.meta["stage_frames"] = {k: statuses.count(k) for k in ("ok", "empty", "failed")}
+    report.meta["stage_frames"] = stages.status_counts()
     report.one_off_s = {"build_grid at 128^3": stages.setup_s, "close the recordings": stages.close_s}
 
     # Frames with something in every view: the others carve nothing and time nothing.
@@ -169,8 +196,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--frames", type=int, default=DEMO_FRAMES, help="frames processed end to end")
     parser.add_argument(
-        "--quick", action="store_true", help="smoke run: 120 frames, 3 original frames, no 1 mm end to end"
+        "--quick",
+        action="store_true",
+        help="smoke run: 120 frames, 3 original frames, no 1 mm end to end, 60 frames timed per shape",
     )
+    parser.add_argument(
+        "--shape-repeats",
+        type=int,
+        default=1,
+        help="end-to-end runs of each shape beyond the demo, the median reported (default 1)",
+    )
+    parser.add_argument("--no-shapes", action="store_true", help="only the demo's row of the per-shape table")
     parser.add_argument(
         "--original-frames",
         type=int,
@@ -186,12 +222,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
-    start = time.perf_counter()
+def _run(args: argparse.Namespace) -> BenchReport:
+    """run_bench with the command line's options (--quick: the smoke run's sizes)."""
+    shapes = () if args.no_shapes else SHAPES
     if args.quick:
-        report = run_bench(
+        return run_bench(
             args.demo,
             frames=min(args.frames, 120),
             stage_frames=60,
@@ -199,9 +234,28 @@ def main(argv: Sequence[str] | None = None) -> int:
             scaling_frames=5,
             fine_end_to_end=False,
             repeats=1,
+            shapes=shapes,
+            shape_stage_frames=60,
+            shape_repeats=args.shape_repeats,
         )
-    else:
-        report = run_bench(args.demo, frames=args.frames, original_frames=args.original_frames or 10)
+    return run_bench(
+        args.demo,
+        frames=args.frames,
+        original_frames=args.original_frames or 10,
+        shapes=shapes,
+        shape_repeats=args.shape_repeats,
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
+    start = time.perf_counter()
+    try:
+        report = _run(args)
+    except PipelineError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     args.out.mkdir(parents=True, exist_ok=True)
     write_json(report, args.out / "bench.json")
     plot_report(report, args.out / "bench.png")
