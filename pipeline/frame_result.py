@@ -30,6 +30,8 @@ class FrameResult:
     curvature_per_mm : (N,) float64 curvature (1/mm), or None.
     length_mm : curve length, NaN when there is no curve.
     radius_mm : tube radius estimated from the silhouettes, NaN when unknown.
+    radii_mm : (N,) float64 the radius at each centreline point (a tapered or stepped
+        tube), mm, or None.
     fit_residual_mm : RMS residual of the curve fit, NaN when unknown.
     iou : per-camera IoU of the re-projected tube with the silhouette (camera order).
     tracked : the curve was fitted from the previous frames' (:mod:`pipeline.tracking`),
@@ -48,6 +50,7 @@ class FrameResult:
     curvature_per_mm: NDArray[np.float64] | None = None
     length_mm: float = float("nan")
     radius_mm: float = float("nan")
+    radii_mm: NDArray[np.float64] | None = None
     fit_residual_mm: float = float("nan")
     iou: tuple[float, ...] = ()
     tracked: bool = False

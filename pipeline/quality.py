@@ -73,7 +73,7 @@ def reaches_walls(points_mm: NDArray[np.floating], workspace: Workspace, base_mm
 
 
 def tube_mask(
-    camera: Camera, centerline_mm: FloatArray, radius_mm: float, *, supersample: int = 1
+    camera: Camera, centerline_mm: FloatArray, radius_mm: float | FloatArray, *, supersample: int = 1
 ) -> NDArray[np.bool_]:
     """(H, W) bool: the tube of ``radius_mm`` around ``centerline_mm`` seen by ``camera``.
 
@@ -87,52 +87,57 @@ def tube_mask(
     ----------
     camera : the camera.
     centerline_mm : (N, 3) float64 axis, world frame, mm.
-    radius_mm : tube radius, mm.
+    radius_mm : tube radius, mm: one for all, or (N,) at each axis point (a tapered tube).
     supersample : drawing resolution factor.
     """
-    dense = _disc_centres(centerline_mm, radius_mm)
-    return _draw_tube(camera, dense, camera.project(dense), radius_mm, supersample=supersample)
+    dense, radii = _disc_centres(centerline_mm, radius_mm)
+    return _draw_tube(camera, dense, camera.project(dense), radii, supersample=supersample)
 
 
 def tube_masks(
-    cameras: Sequence[Camera], centerline_mm: FloatArray, radius_mm: float
+    cameras: Sequence[Camera], centerline_mm: FloatArray, radius_mm: float | FloatArray
 ) -> list[NDArray[np.bool_]]:
     """:func:`tube_mask` in each camera (the same masks): the discs' centres found
     once and projected in all views at once."""
-    dense = _disc_centres(centerline_mm, radius_mm)
+    dense, radii = _disc_centres(centerline_mm, radius_mm)
     return [
-        _draw_tube(cam, dense, px, radius_mm, supersample=1)
+        _draw_tube(cam, dense, px, radii, supersample=1)
         for cam, px in zip(cameras, project_in_views(cameras, dense), strict=True)
     ]
 
 
-def _disc_centres(centerline_mm: FloatArray, radius_mm: float) -> FloatArray:
-    """(n, 3) the axis resampled every ~r/2 (mm, world frame): the drawn discs' centres."""
+def _disc_centres(centerline_mm: FloatArray, radius_mm: float | FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The drawn discs: (n, 3) centres, the axis resampled every ~r/2 (mm, world frame;
+    r the least radius), and (n,) their radii (mm) from ``radius_mm`` (a float, or (N,)
+    along the axis)."""
     pts = np.asarray(centerline_mm, dtype=np.float64)
+    along = np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), (len(pts),))
     if len(pts) <= 1:
-        return pts
+        return pts, np.array(along)
     seg = vector_norms(pts[1:] - pts[:-1])
-    n = max(2, math.ceil(float(seg.sum()) / (_DISC_SPACING * radius_mm)) + 1)
+    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    n = max(2, math.ceil(float(seg.sum()) / (_DISC_SPACING * float(along.min()))) + 1)
     # The same arc length resample_polyline would compute (the segments' cumulative sum).
-    return resample_polyline(pts, n, arclength_mm=np.concatenate([[0.0], np.cumsum(seg)]))
+    dense = resample_polyline(pts, n, arclength_mm=arc)
+    return dense, np.interp(np.linspace(0.0, arc[-1], n), arc, along)
 
 
 def _draw_tube(
-    camera: Camera, dense: FloatArray, px: FloatArray, radius_mm: float, *, supersample: int
+    camera: Camera, dense: FloatArray, px: FloatArray, radii_mm: FloatArray, *, supersample: int
 ) -> NDArray[np.bool_]:
-    """:func:`tube_mask` from the discs' centres (n, 3) and their pixels (n, 2)."""
+    """:func:`tube_mask` from the discs' centres (n, 3), their pixels (n, 2) and radii (n,) mm."""
     w, h = camera.size_px
     canvas = np.zeros((h * supersample, w * supersample), np.uint8)
     depth = camera.to_camera(dense)[:, 2]
     focal = camera.focal_px
-    ok = np.isfinite(px).all(axis=1) & (depth > radius_mm)
+    ok = np.isfinite(px).all(axis=1) & (depth > radii_mm)
     scale = supersample * (1 << _SHIFT)
     # Pixel centres sit at integer coordinates; at s-times resolution pixel (u, v)'s
     # centre is at s*u + (s-1)/2.
     centres = np.round((px[ok] + (supersample - 1) / (2 * supersample)) * scale).astype(np.int64)
     # cv2 fills a disc of radius R out to about R + 0.5 canvas pixels (measured:
     # 35 px for R = 3 against pi R^2 = 28): draw half a canvas pixel smaller.
-    radii = np.round((focal * radius_mm / depth[ok] * supersample - 0.5) * (1 << _SHIFT)).astype(np.int64)
+    radii = np.round((focal * radii_mm[ok] / depth[ok] * supersample - 0.5) * (1 << _SHIFT)).astype(np.int64)
     # Drawn in 1 at full resolution, so that the canvas is the mask (no threshold
     # pass over the image); in 255 when it is averaged down.
     colour = 255 if supersample > 1 else 1
@@ -155,15 +160,19 @@ def reprojection_iou(
     cameras: Sequence[Camera],
     masks: Sequence[NDArray[np.bool_]],
     centerline_mm: FloatArray,
-    radius_mm: float,
+    radius_mm: float | FloatArray,
 ) -> tuple[float, ...]:
-    """Per-camera IoU of the reconstructed tube, re-projected, with each silhouette."""
+    """Per-camera IoU of the reconstructed tube, re-projected, with each silhouette
+    (``radius_mm``: one, or (N,) along the axis)."""
     tubes = tube_masks(cameras, centerline_mm, radius_mm)
     return tuple(silhouette_iou(tube, mask) for tube, mask in zip(tubes, masks, strict=True))
 
 
 def misfit_fractions(
-    cameras: Sequence[Camera], masks: Sequence[NDArray[np.bool_]], centerline_mm: FloatArray, radius_mm: float
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    centerline_mm: FloatArray,
+    radius_mm: float | FloatArray,
 ) -> tuple[float, ...]:
     """Gross disagreement of the re-projected tube with each (H, W) silhouette.
 
@@ -178,12 +187,18 @@ def misfit_fractions(
     """
     pts = np.asarray(centerline_mm, dtype=np.float64)
     tubes = tube_masks(cameras, pts, radius_mm)
+    along = np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), (len(pts),))
+    ends = (float(along[0]), float(along[-1]))
     views = zip(cameras, masks, tubes, strict=True)
-    return tuple(_misfit(cam, mask, pts, tube, radius_mm) for cam, mask, tube in views)
+    return tuple(_misfit(cam, mask, pts, tube, ends) for cam, mask, tube in views)
 
 
 def _misfit(
-    camera: Camera, mask: NDArray[np.bool_], pts: FloatArray, tube: NDArray[np.bool_], radius_mm: float
+    camera: Camera,
+    mask: NDArray[np.bool_],
+    pts: FloatArray,
+    tube: NDArray[np.bool_],
+    end_radii_mm: tuple[float, float],
 ) -> float:
     """:func:`misfit_fractions` in one camera, given its drawn tube (H, W) and the axis (N, 3) mm."""
     area = np.count_nonzero(mask)
@@ -196,9 +211,9 @@ def _misfit(
     px = camera.project(pts[[0, -1]])
     depth = camera.to_camera(pts[[0, -1]])[:, 2]
     focal = camera.focal_px
-    for (x, y), z in zip(px.tolist(), depth.tolist(), strict=True):
-        if math.isfinite(x) and math.isfinite(y) and z > radius_mm and abs(x) < 1e5 and abs(y) < 1e5:
-            radius_px = focal * radius_mm / z + 1.5  # the disc, its outline and a pixel of rounding
+    for (x, y), z, r in zip(px.tolist(), depth.tolist(), end_radii_mm, strict=True):
+        if math.isfinite(x) and math.isfinite(y) and z > r and abs(x) < 1e5 and abs(y) < 1e5:
+            radius_px = focal * r / z + 1.5  # the disc, its outline and a pixel of rounding
             cv2.circle(ends, (round(x * 16), round(y * 16)), round(radius_px * 16), 1, -1, cv2.LINE_8, 4)
     stray &= ends == 0
     return (np.count_nonzero(missed) + np.count_nonzero(stray)) / area
@@ -208,7 +223,7 @@ def suspect_reason(
     cameras: Sequence[Camera],
     masks: Sequence[NDArray[np.bool_]],
     centerline_mm: FloatArray,
-    radius_mm: float,
+    radius_mm: float | FloatArray,
     *,
     iou: Sequence[float],
     predicted_mm: FloatArray | None = None,
@@ -220,7 +235,8 @@ def suspect_reason(
     silhouette unexplained (``SUSPECT_MISFIT``); it passes through itself; it
     lies far from what the track predicted (``predicted_mm``, (M, 3) mm, None
     where the frame was not tracked); or its length jumped since the frame
-    before (``previous_length_mm``). The reasons found are joined by "; ".
+    before (``previous_length_mm``). ``radius_mm``: one, or (N,) along the
+    curve. The reasons found are joined by "; ".
     """
     names = [cam.name for cam in cameras]
     reasons = []
@@ -232,11 +248,12 @@ def suspect_reason(
     if misfit[worst] > SUSPECT_MISFIT:
         share = 100 * misfit[worst]
         reasons.append(f"camera {names[worst]} sees {share:.0f} % of its silhouette unexplained")
-    if self_intersects(centerline_mm, radius_mm, closest_radii=SUSPECT_CLOSEST_RADII):
+    radius = float(np.median(radius_mm))  # the tube's, for the distances below
+    if self_intersects(centerline_mm, radius, closest_radii=SUSPECT_CLOSEST_RADII):
         reasons.append("the tube passes through itself")
     if predicted_mm is not None:
         gap = axis_gap_mm(centerline_mm, predicted_mm)
-        if gap > SUSPECT_JUMP_RADII * radius_mm:
+        if gap > SUSPECT_JUMP_RADII * radius:
             reasons.append(f"{gap:.1f} mm from its track's prediction")
     length = float(polyline_arclength(centerline_mm)[-1])
     if abs(length - previous_length_mm) > SUSPECT_LENGTH_CHANGE * previous_length_mm:

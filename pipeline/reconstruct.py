@@ -26,7 +26,7 @@ from .model import build_model as build_model  # re-exported: build the model, t
 from .ordering import infer_base
 from .quality import misfit_fractions, reprojection_iou, suspect_reason
 from .silhouette import extract_silhouette
-from .tracking import TrackedFit, predict_axis, track_tube
+from .tracking import TrackedFit, drawn_radius, predict_axis, resampled_along, track_tube
 from .tube_fit import foreground_contrast
 
 # Fewer occupied voxels than this cannot hold a tube: the frame is "failed"
@@ -203,6 +203,7 @@ def _curve_and_quality(
     n_points = settings.centerline.points
     predicted: NDArray[np.float64] | None = None
     tracked = False
+    radii: NDArray[np.float64] | None = None
     if settings.centerline.method == "polyfit":
         curve = smooth_curve(_polyfit()(pts, base if known else None, n_points=n_points), n_points=n_points)
         radius, residual = radius_guess, float("nan")
@@ -210,12 +211,23 @@ def _curve_and_quality(
         contrasts = frame_contrasts(images, model)
         predicted = predict_axis(previous)
 
-        def track(start_mm: NDArray[np.float64], radius_mm: float) -> TrackedFit:
+        def track(
+            start_mm: NDArray[np.float64], radius_mm: float, radii_mm: NDArray[np.float64] | None
+        ) -> TrackedFit:
             return track_tube(
-                start_mm, cameras, masks, contrasts, radius_mm=radius_mm, base_known=known, cap=model.tip
+                start_mm,
+                cameras,
+                masks,
+                contrasts,
+                radius_mm=radius_mm,
+                base_known=known,
+                cap=model.tip,
+                radii_mm=radii_mm,
             )
 
-        held = track(predicted, previous[-1].radius_mm) if predicted is not None else None
+        held = None
+        if predicted is not None:
+            held = track(predicted, previous[-1].radius_mm, previous[-1].radii_mm)
         if held is not None and held.fit is not None and not held.lost:
             fit, tracked = held.fit, True
         else:
@@ -235,27 +247,30 @@ def _curve_and_quality(
                 n_points=n_points,
                 cap=model.tip,
             )
-            options = [track(init.points_mm, init.radius_mm)]
+            options = [track(init.points_mm, init.radius_mm, init.radii_mm)]
             if held is not None:
                 options.append(held)
             if np.isfinite(init.radius_mm) and init.radius_mm > 0:
-                misfit = max(misfit_fractions(cameras, masks, init.points_mm, init.radius_mm))
+                misfit = max(misfit_fractions(cameras, masks, init.points_mm, drawn_radius(init)))
                 options.append(TrackedFit(init, misfit, ""))
             best = min(options, key=lambda o: o.misfit)
             fit = best.fit if best.fit is not None else init
         curve = smooth_curve(fit.points_mm, n_points=n_points)
         radius, residual = fit.radius_mm, fit.residual_mm
+        # The fit's samples and the curve's are both uniform in arc length, end to end.
+        radii = resampled_along(fit.radii_mm, n_points)
     timings["centerline"] = time.perf_counter() - start
     start = time.perf_counter()
     if not np.all(np.isfinite(curve.points_mm)):
         raise ValueError("the curve has non-finite points")
     draw_radius = radius if np.isfinite(radius) else radius_guess
-    iou = reprojection_iou(cameras, masks, curve.points_mm, draw_radius)
+    drawn = radii if radii is not None and np.isfinite(radii).all() else draw_radius
+    iou = reprojection_iou(cameras, masks, curve.points_mm, drawn)
     reason = suspect_reason(
         cameras,
         masks,
         curve.points_mm,
-        draw_radius,
+        drawn,
         iou=iou,
         # A prediction from a suspect frame says nothing of this one's.
         predicted_mm=predicted if previous and not previous[-1].suspect else None,
@@ -271,6 +286,7 @@ def _curve_and_quality(
         curvature_per_mm=curve.curvature_per_mm,
         length_mm=curve.length_mm,
         radius_mm=float(radius),
+        radii_mm=radii,
         fit_residual_mm=float(residual),
         iou=iou,
         tracked=tracked,

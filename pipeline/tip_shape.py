@@ -77,7 +77,8 @@ def choose_tip(model: SessionModel, frames: Sequence[tuple[int, Sequence[NDArray
             continue
         contrasts = frame_contrasts(images, model)
         coverages = pixel_coverages(contrasts, masks)
-        radius = result.radius_mm
+        # The end's own radius: a tapered or stepped tube is thinner there.
+        radius = float(result.radii_mm[-1]) if result.radii_mm is not None else result.radius_mm
         bent = [
             bend_tip_to_pixels(
                 result.centerline_mm,

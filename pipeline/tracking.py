@@ -123,6 +123,7 @@ def track_tube(
     radius_mm: float,
     base_known: bool,
     cap: str = "flat",
+    radii_mm: FloatArray | None = None,
 ) -> TrackedFit:
     """The tube fitted from its prediction (N, 3) mm, and whether the track holds.
 
@@ -133,17 +134,19 @@ def track_tube(
     The track is lost (the caller initialises again from the hull) where the
     fit leaves part of a silhouette unexplained, passes through itself, or
     jumped from the prediction (``LOST_*``). ``cap``: the tube's end, "flat"
-    or "round".
+    or "round"; ``radii_mm``: (N,) the radius at each point of the prediction, mm
+    (default ``radius_mm`` everywhere).
     """
     if not (np.isfinite(radius_mm) and radius_mm > 0):
         return TrackedFit(None, np.inf, "no radius to track")
 
-    def rounds(start_mm: FloatArray, radius: float) -> TubeFit:
+    def rounds(start_mm: FloatArray, radius: float, radii: FloatArray | None) -> TubeFit:
         return fit_tube(
             start_mm,
             cameras,
             contrasts,
             radius_mm=radius,
+            radii_mm=radii,
             base_fixed=base_known,
             masks=masks,
             iterations=TRACK_ROUNDS,
@@ -152,13 +155,13 @@ def track_tube(
             crowd_margin_px=TRACK_CROWD_MARGIN_PX,
         )
 
-    fit = rounds(predicted_mm, radius_mm)
+    fit = rounds(predicted_mm, radius_mm, radii_mm)
     if (
         np.isfinite(fit.radius_mm)
         and axis_gap_mm(fit.points_mm, predicted_mm) > TRACK_SETTLED_RADII * radius_mm
     ):
         # A prediction this far off (fast motion) has not settled in a few rounds.
-        fit = rounds(fit.points_mm, fit.radius_mm)
+        fit = rounds(fit.points_mm, fit.radius_mm, fit.radii_mm)
     radius = fit.radius_mm
     if not (np.isfinite(radius) and radius > 0) or len(fit.points_mm) < 3:
         return TrackedFit(None, np.inf, "the fit read no tube")
@@ -168,13 +171,14 @@ def track_tube(
             cameras,
             masks,
             contrasts,
-            radius,
+            fit.end_radius_mm,
             rejects=lambda axis: self_intersects(axis, radius),
             steps_mm=TRACK_BEND_STEPS_MM,
             cap=cap,
         )
-        fit = replace(fit, points_mm=bent)
-    misfit = max(misfit_fractions(cameras, masks, fit.points_mm, radius))
+        # The radii follow the bent tip by sample fraction.
+        fit = replace(fit, points_mm=bent, radii_mm=resampled_along(fit.radii_mm, len(bent)))
+    misfit = max(misfit_fractions(cameras, masks, fit.points_mm, drawn_radius(fit)))
     lost = ""
     if misfit > LOST_MISFIT:
         lost = "leaves part of a silhouette unexplained"
@@ -183,3 +187,17 @@ def track_tube(
     elif axis_gap_mm(fit.points_mm, predicted_mm) > LOST_JUMP_RADII * radius:
         lost = "jumped from its prediction"
     return TrackedFit(fit, misfit, lost)
+
+
+def resampled_along(values: FloatArray | None, n: int) -> FloatArray | None:
+    """(n,) ``values`` (M,) resampled uniformly by sample fraction; None stays None."""
+    if values is None:
+        return None
+    return np.interp(np.linspace(0.0, 1.0, n), np.linspace(0.0, 1.0, len(values)), values)
+
+
+def drawn_radius(fit: TubeFit) -> float | FloatArray:
+    """The radius to draw ``fit``'s tube with: (K,) along it where known, else the one radius."""
+    if fit.radii_mm is not None and len(fit.radii_mm) == len(fit.points_mm):
+        return fit.radii_mm
+    return fit.radius_mm

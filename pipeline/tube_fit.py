@@ -26,7 +26,7 @@ uneven, and overshoots its end. The fit corrects all three from the grey images
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import cv2
@@ -74,6 +74,11 @@ _BODY_CROWD_MARGIN_PX = 4.0
 _CROWD_MARGIN_PX = 2.0
 # A reading wider than this factor times the expected width (+1 px) is contaminated.
 _WIDTH_TOLERANCE = 1.3
+# The radius along the tube is the median over a sample's readings and those of
+# this many samples either side (4 mm apart): spacer disks (2 mm thick, a few
+# per 20 mm) and stray readings stay a minority of the window even where it is
+# cut short at the tube's ends; a step or taper is followed within ~16 mm.
+_PROFILE_HALF_SPAN = 4
 
 
 @dataclass(frozen=True, eq=False)
@@ -87,12 +92,20 @@ class TubeFit:
     residual_mm : RMS distance (mm) between the observed silhouette edges and the
         fitted tube's edges, over all clean readings; NaN if none.
     readings : number of clean (sample, camera) readings used.
+    radii_mm : (K,) float64 the radius along the tube at each sample (the silhouette's
+        half-widths near it, see :func:`_radius_profile`), or None without readings.
     """
 
     points_mm: FloatArray
     radius_mm: float
     residual_mm: float
     readings: int
+    radii_mm: FloatArray | None = None
+
+    @property
+    def end_radius_mm(self) -> float:
+        """The radius at the tip (the tube may taper), mm."""
+        return float(self.radii_mm[-1]) if self.radii_mm is not None else self.radius_mm
 
 
 def foreground_contrast(
@@ -125,6 +138,7 @@ def fit_tube(
     robust: bool = True,
     seek_radii: float = _FIRST_CORE,
     crowd_margin_px: float = _CROWD_MARGIN_PX,
+    radii_mm: FloatArray | None = None,
 ) -> TubeFit:
     """Move ``curve_mm`` so that the tube around it projects onto every silhouette.
 
@@ -153,6 +167,9 @@ def fit_tube(
         tracked prediction.
     crowd_margin_px : a reading is dropped where another part's projected tube
         comes within this many pixels of the sample's (see :func:`_crowded`).
+    radii_mm : (M,) first guess of the radius at each sample of ``curve_mm``, mm
+        (a tapered or stepped tube); default ``radius_mm`` everywhere. Re-estimated
+        as the fit goes, and returned as ``TubeFit.radii_mm``.
 
     Returns
     -------
@@ -160,8 +177,18 @@ def fit_tube(
     """
     pts = np.asarray(curve_mm, dtype=np.float64)
     radius = float(radius_mm)
+    # The radius along the tube, as (arc length, radius) samples; resampled with the curve.
+    along = polyline_arclength(pts)
+    if radii_mm is None:
+        radii = np.full(len(pts), radius)
+    else:
+        # Given along the curve by sample (a bent tip may have added or dropped samples).
+        given = np.asarray(radii_mm, dtype=np.float64)
+        radii = np.interp(np.linspace(0.0, 1.0, len(pts)), np.linspace(0.0, 1.0, len(given)), given)
     for i in range(iterations):
         pts = _resampled(pts, spacing_mm)
+        arc = polyline_arclength(pts)
+        local = np.interp(arc, along, radii)
         # The first round looks for the tube's peak within 1.6 radii of the
         # rough curve (the march may be a few mm off in crowded hull), later
         # rounds within 0.6 (the curve is on the tube by then).
@@ -169,20 +196,24 @@ def fit_tube(
             pts,
             cameras,
             contrasts,
-            radius,
+            local,
             spacing_mm,
             core=seek_radii if i == 0 else _CORE,
             crowd_margin_px=crowd_margin_px,
         )
         if obs.readings >= 6:
             radius = obs.radius_mm
+            local = obs.radii_mm
             pts = pts + _step(pts, obs, base_fixed=base_fixed, smoothness=smoothness, robust=robust)
-        pts = refit_tip(pts, cameras, contrasts, radius, cap=cap, masks=masks, max_length_mm=max_length_mm)
+        along, radii = polyline_arclength(pts), local
+        pts = refit_tip(
+            pts, cameras, contrasts, float(local[-1]), cap=cap, masks=masks, max_length_mm=max_length_mm
+        )
     pts = _resampled(pts, spacing_mm)
-    obs = _read_sides(pts, cameras, contrasts, radius, spacing_mm)
+    obs = _read_sides(pts, cameras, contrasts, np.interp(polyline_arclength(pts), along, radii), spacing_mm)
     if obs.readings == 0:
         return TubeFit(pts, float("nan"), float("nan"), 0)
-    return TubeFit(pts, obs.radius_mm, obs.residual_mm(), obs.readings)
+    return TubeFit(pts, obs.radius_mm, obs.residual_mm(), obs.readings, obs.radii_mm)
 
 
 def refit_body(
@@ -329,8 +360,9 @@ class _Sides:
 
     ``left``/``right`` are the silhouette's edges along the image normal (negative
     and positive side), converted to mm at the sample; ``use`` (K, C, 2) says which
-    edges are trusted; ``apparent`` (1, C) is each view's own reading of the
-    half-width, which a single trusted edge is moved in by. ``rows`` (K, C, 3)
+    edges are trusted; ``apparent`` (K, C) is each view's own reading of the
+    half-width at each sample, which a single trusted edge is moved in by;
+    ``radii_mm`` (K,) the radius along the tube (:func:`_radius_profile`). ``rows`` (K, C, 3)
     maps a 3-D motion of the sample (mm) to the motion of its projection along
     the normal (mm).
     """
@@ -341,6 +373,7 @@ class _Sides:
     use: NDArray[np.bool_]
     radius_mm: float
     apparent: FloatArray
+    radii_mm: FloatArray
 
     @property
     def readings(self) -> int:
@@ -362,7 +395,10 @@ class _Sides:
     def residual_mm(self) -> float:
         """RMS distance of the trusted edges from the tube's edges at +-radius, mm."""
         gaps = np.concatenate(
-            [(self.left + self.radius_mm)[self.use[..., 0]], (self.right - self.radius_mm)[self.use[..., 1]]]
+            [
+                (self.left + self.radii_mm[:, None])[self.use[..., 0]],
+                (self.right - self.radii_mm[:, None])[self.use[..., 1]],
+            ]
         )
         return float(np.sqrt(np.mean(gaps**2))) if gaps.size else float("nan")
 
@@ -388,7 +424,7 @@ def _camera_edges(
     tangents: FloatArray,
     cameras: Sequence[Camera],
     contrasts: Sequence[NDArray[np.float32]],
-    radius_mm: float,
+    radius_mm: float | FloatArray,
     *,
     core: float = 0.6,
 ) -> _CameraEdges:
@@ -431,23 +467,27 @@ def _read_sides(
     pts: FloatArray,
     cameras: Sequence[Camera],
     contrasts: Sequence[NDArray[np.float32]],
-    radius_mm: float,
+    radius_mm: float | FloatArray,
     spacing_mm: float,
     *,
     core: float = 0.6,
     crowd_margin_px: float = _CROWD_MARGIN_PX,
 ) -> _Sides:
+    """Side readings at the K samples ``pts`` (mm) where the tube's radius is
+    ``radius_mm`` (one for all, or (K,) along the tube)."""
     c = len(cameras)
     tangents = _tangents(pts)
     arc = polyline_arclength(pts)
+    expected = np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), arc.shape)
     # Samples within a radius of either end see the cap, not the sides: no radius
     # from them; and no reading at all in the tip zone, whose tangent (so its
     # profile's direction) is the least certain: see refit_tip.
-    interior = (arc > radius_mm) & (arc < arc[-1] - radius_mm)
-    sides_seen = arc < arc[-1] - tip_zone(radius_mm)
-    e = _camera_edges(pts, tangents, cameras, contrasts, radius_mm, core=core)
+    interior = (arc > expected) & (arc < arc[-1] - expected)
+    sides_seen = arc < arc[-1] - tip_zone(float(expected[-1]))
+    e = _camera_edges(pts, tangents, cameras, contrasts, expected, core=core)
     ok = e.ok & sides_seen  # (C, K)
-    crowd = _crowded(e.px, e.t_hat, e.r_px, arc, 2.5 * radius_mm + spacing_mm, margin_px=crowd_margin_px)
+    apart_mm = 2.5 * float(expected.max()) + spacing_mm
+    crowd = _crowded(e.px, e.t_hat, e.r_px, arc, apart_mm, margin_px=crowd_margin_px)
     # A trusted edge is uncrowded on its side and within the limit of the axis
     # (the axis being where the other edge says, if that one is further out).
     use_lo = ok & ~crowd[..., 0] & (-e.lo < e.limit + np.maximum(0.0, e.hi))
@@ -462,17 +502,55 @@ def _read_sides(
     rows, left, right = e.rows.transpose(1, 0, 2), e.lo.T, e.hi.T
     both = use[..., 0] & use[..., 1] & interior[:, None]
     half = 0.5 * (right - left)[both]
-    radius = median_1d(half) if half.size >= 3 else radius_mm
+    radius = median_1d(half) if half.size >= 3 else float(np.median(expected))
+    # The radius along the tube from every two-edge reading no other part crowds,
+    # whatever its width: the width tests above judge widths by the radius
+    # expected, so they would keep a tapered or stepped tube's thinner part from
+    # ever being read.
+    uncrowded = (ok & ~crowd[..., 0] & ~crowd[..., 1]).T & interior[:, None]
+    radii = _radius_profile(arc, 0.5 * (right - left), uncrowded, expected)
     # One edge places the axis a half-width in from it: the half-width as this
     # view reads it (its blur and grey levels bias both edges alike, by up to
     # half a pixel, which the mid-point of two edges cancels and one edge does
-    # not), where it has enough two-edge readings to say.
-    apparent = np.full(c, radius)
+    # not), where it has enough two-edge readings to say; along the tube, in
+    # proportion to the radius there.
+    ratio = np.ones(c)
     for j in range(c):
         own = 0.5 * (right[:, j] - left[:, j])[both[:, j]]
-        if own.size >= _OWN_WIDTH_READINGS:
-            apparent[j] = median_1d(own)
-    return _Sides(rows, left, right, use, radius, apparent[None, :])
+        if own.size >= _OWN_WIDTH_READINGS and radius > 0:
+            ratio[j] = median_1d(own) / radius
+    return _Sides(rows, left, right, use, radius, radii[:, None] * ratio[None, :], radii)
+
+
+def _radius_profile(
+    arc_mm: FloatArray, half_mm: FloatArray, both: NDArray[np.bool_], expected_mm: FloatArray
+) -> FloatArray:
+    """(K,) the tube's radius along it (mm), from the half-widths ``half_mm`` (K, C) of
+    the two-edge readings ``both`` (K, C) at arc lengths ``arc_mm`` (K,).
+
+    Per sample, the views' median; then the median over each sample and its
+    neighbours within ``_PROFILE_HALF_SPAN`` samples (a disk or a stray reading is
+    one sample, a taper or a step many); samples without readings take the
+    profile interpolated along the arc, ``expected_mm`` where there is none.
+    """
+    k = len(arc_mm)
+    per_sample = np.full(k, np.nan)
+    for i in np.flatnonzero(both.any(axis=1)):
+        per_sample[i] = median_1d(half_mm[i][both[i]])
+    seen = np.flatnonzero(np.isfinite(per_sample))
+    if len(seen) < 3:
+        return np.array(expected_mm, dtype=np.float64)
+    smoothed = np.array(
+        [
+            median_1d(
+                per_sample[max(0, i - _PROFILE_HALF_SPAN) : i + _PROFILE_HALF_SPAN + 1][
+                    np.isfinite(per_sample[max(0, i - _PROFILE_HALF_SPAN) : i + _PROFILE_HALF_SPAN + 1])
+                ]
+            )
+            for i in seen
+        ]
+    )
+    return np.interp(arc_mm, arc_mm[seen], smoothed)
 
 
 def centre_across(
@@ -590,7 +668,7 @@ def _consistent(obs: _Sides, step: FloatArray) -> _Sides:
     if not bad.any():
         return obs
     use = obs.use & ~bad[..., None]
-    return _Sides(obs.rows, obs.left, obs.right, use, obs.radius_mm, obs.apparent)
+    return replace(obs, use=use)
 
 
 @lru_cache(maxsize=256)

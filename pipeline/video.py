@@ -53,9 +53,18 @@ def _pyav_log_level(setting: str) -> int | None:
     return level if level >= 0 else None
 
 
+def _set_pyav_level(setting: str) -> None:
+    """PyAV's and FFmpeg's own levels from an OPENCV_FFMPEG_LOGLEVEL value. Quiet means
+    both: with PyAV's logging off, FFmpeg prints to the terminal at its own level
+    (swscale's "deprecated pixel format used" on MJPEG frames, among others)."""
+    level = _pyav_log_level(setting)
+    av.logging.set_level(level)
+    av.logging.set_libav_level(level if level is not None else -8)  # AV_LOG_QUIET
+
+
 # PyAV is quiet unless told otherwise; the same variable makes it pass FFmpeg's lines
 # to the "libav" loggers. Read at import, so it holds in worker processes too.
-av.logging.set_level(_pyav_log_level(os.environ["OPENCV_FFMPEG_LOGLEVEL"]))
+_set_pyav_level(os.environ["OPENCV_FFMPEG_LOGLEVEL"])
 
 
 def show_ffmpeg_messages() -> None:
@@ -66,7 +75,7 @@ def show_ffmpeg_messages() -> None:
     """
     if _USER_FFMPEG_LEVEL is None:
         os.environ["OPENCV_FFMPEG_LOGLEVEL"] = "24"  # AV_LOG_WARNING
-    av.logging.set_level(_pyav_log_level(os.environ["OPENCV_FFMPEG_LOGLEVEL"]))
+    _set_pyav_level(os.environ["OPENCV_FFMPEG_LOGLEVEL"])
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,8 @@ def _sides_along_x(k: int, offset: FloatArray) -> tuple[FloatArray, _Sides]:
         offset + RADIUS,
         np.ones((k, 2, 2), dtype=bool),
         RADIUS,
-        np.full((1, 2), RADIUS),
+        np.full((k, 2), RADIUS),
+        np.full(k, RADIUS),
     )
     return pts, sides
 
@@ -132,3 +133,23 @@ def test_consistent_drops_the_reading_the_solution_disagrees_with() -> None:
     # Without the outlier, sample 10 sits where its neighbours and the noise say.
     assert abs(again[10, 1]) < 0.3 < abs(step[10, 1])
     assert _consistent(kept, again) is kept
+
+
+def test_the_radius_profile_follows_a_step_and_ignores_disks() -> None:
+    from pipeline.tube_fit import _radius_profile
+
+    k = 50
+    arc = np.arange(k) * 4.0
+    # Two views; the tube steps from 6 to 4 mm half way; every fifth sample reads a
+    # spacer disk (9 mm) in both views; the last samples have no reading (the tip zone).
+    truth = np.where(arc < 100.0, 6.0, 4.0)
+    half = np.repeat(truth[:, None], 2, axis=1)
+    half[::5] = 9.0
+    both = np.ones((k, 2), dtype=bool)
+    both[-3:] = False
+    radii = _radius_profile(arc, half, both, np.full(k, 6.0))
+    far_from_step = np.abs(arc - 100.0) > 20.0
+    np.testing.assert_allclose(radii[far_from_step], truth[far_from_step])
+    assert radii[-1] == 4.0  # the tip takes the thin end's radius
+    # Without readings, the expected radius stands.
+    np.testing.assert_array_equal(_radius_profile(arc, half, np.zeros((k, 2), bool), np.full(k, 6.0)), 6.0)
