@@ -7,7 +7,8 @@ optionally session.toml; tests then break one thing at a time.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Collection, Sequence
+import os
+from collections.abc import Callable, Collection, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -108,6 +109,22 @@ def build_session(
     if settings is not None:
         (directory / "session.toml").write_text(tomli_w.dumps(settings))
     return directory
+
+
+@pytest.fixture(autouse=True)
+def _quiet_ffmpeg_after_each_test() -> Iterator[None]:
+    """A test that runs the CLI with --debug lets FFmpeg's messages through, in this
+    process and in every process it starts later (OPENCV_FFMPEG_LOGLEVEL, PyAV's
+    levels): put them back, so that later tests' runs keep the quiet of a real one."""
+    import pipeline.video as video
+
+    before = os.environ.get("OPENCV_FFMPEG_LOGLEVEL")
+    yield
+    if before is None:
+        os.environ.pop("OPENCV_FFMPEG_LOGLEVEL", None)
+    else:
+        os.environ["OPENCV_FFMPEG_LOGLEVEL"] = before
+    video._set_pyav_level(os.environ.get("OPENCV_FFMPEG_LOGLEVEL", "-8"))
 
 
 @pytest.fixture(scope="session")
