@@ -185,12 +185,24 @@ def misfit_fractions(
     the same at any resolution: a fit that follows the tube leaves ~0-2 %, one
     that misses a part of the tube or strays off it, several %.
     """
+    return tube_figures(cameras, masks, centerline_mm, radius_mm)[1]
+
+
+def tube_figures(
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    centerline_mm: FloatArray,
+    radius_mm: float | FloatArray,
+) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """Per camera, :func:`reprojection_iou` and :func:`misfit_fractions` of one tube,
+    drawn once."""
     pts = np.asarray(centerline_mm, dtype=np.float64)
     tubes = tube_masks(cameras, pts, radius_mm)
     along = np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), (len(pts),))
     ends = (float(along[0]), float(along[-1]))
-    views = zip(cameras, masks, tubes, strict=True)
-    return tuple(_misfit(cam, mask, pts, tube, ends) for cam, mask, tube in views)
+    views = list(zip(cameras, masks, tubes, strict=True))
+    iou = tuple(silhouette_iou(tube, mask) for _, mask, tube in views)
+    return iou, tuple(_misfit(cam, mask, pts, tube, ends) for cam, mask, tube in views)
 
 
 def _misfit(
@@ -226,13 +238,15 @@ def suspect_reason(
     radius_mm: float | FloatArray,
     *,
     iou: Sequence[float],
+    misfit: Sequence[float],
     predicted_mm: FloatArray | None = None,
     previous_length_mm: float = math.nan,
 ) -> str:
     """Why a frame's curve (N, 3) mm may be wrong, without ground truth; "" if nothing says so.
 
-    The tube re-projects poorly (:func:`is_doubtful`) or leaves part of a
-    silhouette unexplained (``SUSPECT_MISFIT``); it passes through itself; it
+    The tube re-projects poorly (``iou``, :func:`is_doubtful`) or leaves part of a
+    silhouette unexplained (``misfit``, ``SUSPECT_MISFIT``; both per camera, from
+    :func:`tube_figures`); it passes through itself; it
     lies far from what the track predicted (``predicted_mm``, (M, 3) mm, None
     where the frame was not tracked); or its length jumped since the frame
     before (``previous_length_mm``). ``radius_mm``: one, or (N,) along the
@@ -243,7 +257,6 @@ def suspect_reason(
     if is_doubtful(iou):
         worst = int(np.argmin(iou))
         reasons.append(f"camera {names[worst]} re-projects poorly (IoU {iou[worst]:.2f})")
-    misfit = misfit_fractions(cameras, masks, centerline_mm, radius_mm)
     worst = int(np.argmax(misfit))
     if misfit[worst] > SUSPECT_MISFIT:
         share = 100 * misfit[worst]

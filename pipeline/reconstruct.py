@@ -24,7 +24,7 @@ from .hull import carve, voxel_centers_mm
 from .model import SessionModel
 from .model import build_model as build_model  # re-exported: build the model, then reconstruct frames
 from .ordering import infer_base
-from .quality import misfit_fractions, reprojection_iou, suspect_reason
+from .quality import misfit_fractions, suspect_reason, tube_figures
 from .silhouette import extract_silhouette
 from .tracking import TrackedFit, drawn_radius, predict_axis, resampled_along, track_tube
 from .tube_fit import foreground_contrast
@@ -265,13 +265,14 @@ def _curve_and_quality(
         raise ValueError("the curve has non-finite points")
     draw_radius = radius if np.isfinite(radius) else radius_guess
     drawn = radii if radii is not None and np.isfinite(radii).all() else draw_radius
-    iou = reprojection_iou(cameras, masks, curve.points_mm, drawn)
+    iou, misfits = tube_figures(cameras, masks, curve.points_mm, drawn)
     reason = suspect_reason(
         cameras,
         masks,
         curve.points_mm,
         drawn,
         iou=iou,
+        misfit=misfits,
         # A prediction from a suspect frame says nothing of this one's.
         predicted_mm=predicted if previous and not previous[-1].suspect else None,
         previous_length_mm=previous[-1].length_mm if previous else float("nan"),

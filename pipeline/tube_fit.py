@@ -528,28 +528,21 @@ def _radius_profile(
     """(K,) the tube's radius along it (mm), from the half-widths ``half_mm`` (K, C) of
     the two-edge readings ``both`` (K, C) at arc lengths ``arc_mm`` (K,).
 
-    Per sample, the views' median; then the median over each sample and its
-    neighbours within ``_PROFILE_HALF_SPAN`` samples (a disk or a stray reading is
+    The median of the readings of each sample and its neighbours within
+    ``_PROFILE_HALF_SPAN`` samples, in every view (a disk or a stray reading is
     one sample, a taper or a step many); samples without readings take the
     profile interpolated along the arc, ``expected_mm`` where there is none.
     """
-    k = len(arc_mm)
-    per_sample = np.full(k, np.nan)
-    for i in np.flatnonzero(both.any(axis=1)):
-        per_sample[i] = median_1d(half_mm[i][both[i]])
-    seen = np.flatnonzero(np.isfinite(per_sample))
+    readings = np.where(both, half_mm, np.nan)
+    seen = np.flatnonzero(both.any(axis=1))
     if len(seen) < 3:
         return np.array(expected_mm, dtype=np.float64)
-    smoothed = np.array(
-        [
-            median_1d(
-                per_sample[max(0, i - _PROFILE_HALF_SPAN) : i + _PROFILE_HALF_SPAN + 1][
-                    np.isfinite(per_sample[max(0, i - _PROFILE_HALF_SPAN) : i + _PROFILE_HALF_SPAN + 1])
-                ]
-            )
-            for i in seen
-        ]
-    )
+    # NaN-padded windows of the per-view readings: the median of a window is that of
+    # all its samples' views (a sample read in more views weighs more).
+    span = 2 * _PROFILE_HALF_SPAN + 1
+    padded = np.pad(readings, ((_PROFILE_HALF_SPAN, _PROFILE_HALF_SPAN), (0, 0)), constant_values=np.nan)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, span, axis=0)  # (K, C, span)
+    smoothed = np.nanmedian(windows[seen].reshape(len(seen), -1), axis=1)
     return np.interp(arc_mm, arc_mm[seen], smoothed)
 
 

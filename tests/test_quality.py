@@ -136,10 +136,10 @@ def test_a_tube_that_matches_its_silhouettes_and_its_track_is_not_suspect() -> N
     cams = rig_cameras()
     axis = _arc_mm()
     masks = quality.tube_masks(cams, axis, 6.0)
-    iou = quality.reprojection_iou(cams, masks, axis, 6.0)
+    iou, misfit = quality.tube_figures(cams, masks, axis, 6.0)
     length = float(np.linalg.norm(np.diff(axis, axis=0), axis=1).sum())
     reason = quality.suspect_reason(
-        cams, masks, axis, 6.0, iou=iou, predicted_mm=axis + 0.5, previous_length_mm=length
+        cams, masks, axis, 6.0, iou=iou, misfit=misfit, predicted_mm=axis + 0.5, previous_length_mm=length
     )
     assert reason == ""
 
@@ -172,8 +172,15 @@ def test_each_sign_of_a_wrong_curve_makes_it_suspect(change: str, expected: str)
         previous_length = 1.1 * length
     else:  # the curve comes back through its own start
         axis = np.vstack([axis, axis[::-1][1:20] + np.array([0.0, 2.0, 0.0])])
-    iou = quality.reprojection_iou(cams, masks, axis, 6.0)
+    iou, misfit = quality.tube_figures(cams, masks, axis, 6.0)
     reason = quality.suspect_reason(
-        cams, masks, axis, 6.0, iou=iou, predicted_mm=predicted, previous_length_mm=previous_length
+        cams,
+        masks,
+        axis,
+        6.0,
+        iou=iou,
+        misfit=misfit,
+        predicted_mm=predicted,
+        previous_length_mm=previous_length,
     )
     assert expected in reason
