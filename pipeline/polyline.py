@@ -80,3 +80,9 @@ def axis_gap_mm(a_mm: FloatArray, b_mm: FloatArray, n_points: int = 64) -> float
         cut_polyline(b_mm, length), n_points
     )
     return float(np.max(np.linalg.norm(gap, axis=1)))
+
+
+def by_fraction(values: FloatArray, n: int) -> FloatArray:
+    """(n,) ``values`` (M,), given at M samples spread evenly along a curve, at n such samples
+    (linear interpolation by the fraction of the way along)."""
+    return np.interp(np.linspace(0.0, 1.0, n), np.linspace(0.0, 1.0, len(values)), values)

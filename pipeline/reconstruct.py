@@ -24,9 +24,10 @@ from .hull import carve, voxel_centers_mm
 from .model import SessionModel
 from .model import build_model as build_model  # re-exported: build the model, then reconstruct frames
 from .ordering import infer_base
+from .polyline import by_fraction
 from .quality import misfit_fractions, suspect_reason, tube_figures
 from .silhouette import extract_silhouette
-from .tracking import TrackedFit, drawn_radius, predict_axis, resampled_along, track_tube
+from .tracking import TrackedFit, drawn_radius, predict_axis, track_tube
 from .tube_fit import foreground_contrast
 
 # Fewer occupied voxels than this cannot hold a tube: the frame is "failed"
@@ -258,7 +259,7 @@ def _curve_and_quality(
         curve = smooth_curve(fit.points_mm, n_points=n_points)
         radius, residual = fit.radius_mm, fit.residual_mm
         # The fit's samples and the curve's are both uniform in arc length, end to end.
-        radii = resampled_along(fit.radii_mm, n_points)
+        radii = None if fit.radii_mm is None else by_fraction(fit.radii_mm, n_points)
     timings["centerline"] = time.perf_counter() - start
     start = time.perf_counter()
     if not np.all(np.isfinite(curve.points_mm)):

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from .camera import Camera
 from .frame_result import FrameResult
-from .polyline import axis_gap_mm, self_intersects
+from .polyline import axis_gap_mm, by_fraction, self_intersects
 from .quality import misfit_fractions
 from .tube_fit import TubeFit, fit_tube
 from .tube_tip import bend_tip_to_pixels, tip_meets_tube
@@ -177,7 +177,11 @@ def track_tube(
             cap=cap,
         )
         # The radii follow the bent tip by sample fraction.
-        fit = replace(fit, points_mm=bent, radii_mm=resampled_along(fit.radii_mm, len(bent)))
+        fit = replace(
+            fit,
+            points_mm=bent,
+            radii_mm=None if fit.radii_mm is None else by_fraction(fit.radii_mm, len(bent)),
+        )
     misfit = max(misfit_fractions(cameras, masks, fit.points_mm, drawn_radius(fit)))
     lost = ""
     if misfit > LOST_MISFIT:
@@ -187,13 +191,6 @@ def track_tube(
     elif axis_gap_mm(fit.points_mm, predicted_mm) > LOST_JUMP_RADII * radius:
         lost = "jumped from its prediction"
     return TrackedFit(fit, misfit, lost)
-
-
-def resampled_along(values: FloatArray | None, n: int) -> FloatArray | None:
-    """(n,) ``values`` (M,) resampled uniformly by sample fraction; None stays None."""
-    if values is None:
-        return None
-    return np.interp(np.linspace(0.0, 1.0, n), np.linspace(0.0, 1.0, len(values)), values)
 
 
 def drawn_radius(fit: TubeFit) -> float | FloatArray:

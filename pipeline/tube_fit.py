@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from scipy.linalg import solveh_banded
 
 from .camera import Camera, project_in_views
-from .polyline import polyline_arclength, resample_polyline, vector_norms
+from .polyline import by_fraction, polyline_arclength, resample_polyline, vector_norms
 from .profiles import median_1d, project_with_jacobians, sample_lines_in, side_edges
 from .tube_tip import MIN_SIN_VIEW, refit_tip, tip_zone
 
@@ -183,8 +183,7 @@ def fit_tube(
         radii = np.full(len(pts), radius)
     else:
         # Given along the curve by sample (a bent tip may have added or dropped samples).
-        given = np.asarray(radii_mm, dtype=np.float64)
-        radii = np.interp(np.linspace(0.0, 1.0, len(pts)), np.linspace(0.0, 1.0, len(given)), given)
+        radii = by_fraction(np.asarray(radii_mm, dtype=np.float64), len(pts))
     for i in range(iterations):
         pts = _resampled(pts, spacing_mm)
         arc = polyline_arclength(pts)

@@ -33,3 +33,10 @@ def test_resample_with_given_arclength_is_the_same() -> None:
     # Uniform in chord length: the samples' arc length is a linspace (to rounding).
     s = polyline_arclength(resample_polyline(pts, 40))
     assert s[-1] <= polyline_arclength(pts)[-1] + 1e-9  # chords of a polyline never exceed it
+
+
+def test_values_by_fraction_keep_their_ends_and_interpolate_between() -> None:
+    from pipeline.polyline import by_fraction
+
+    values = np.array([6.0, 6.0, 4.0])  # at 0, 1/2 and 1 of the way along
+    np.testing.assert_allclose(by_fraction(values, 5), [6.0, 6.0, 6.0, 5.0, 4.0])
