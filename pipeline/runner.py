@@ -18,7 +18,6 @@ import math
 import os
 import sys
 import tempfile
-import textwrap
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -34,6 +33,7 @@ from .session import Session
 from .tracking import SEGMENT_FRAMES, segment_start
 from .workers import (
     available_cores,
+    describe_pool_failure,
     effective_jobs,
     loky_options,
     release_local_workers,
@@ -233,10 +233,9 @@ def _attempts(
                 first, last = group[done][0], group[done][1] - 1
                 reason = f"worker died on frames {first}-{last}, also when retried ({type(exc).__name__})"
                 log.warning(
-                    "a worker failed on frames %d onwards (%s: %s); %s",
+                    "a worker failed on frames %d onwards (%s); %s",
                     group[done][0],
-                    type(exc).__name__,
-                    textwrap.shorten(str(exc).strip().splitlines()[0], 200) if str(exc).strip() else "",
+                    describe_pool_failure(exc),
                     "giving up on this range" if attempt == "isolated" else "retrying in a fresh pool",
                 )
                 if attempt == "isolated":

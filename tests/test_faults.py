@@ -7,6 +7,7 @@ fault handling and not the reconstruction.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import os
@@ -368,6 +369,14 @@ def test_recording_cut_short_is_read_to_its_last_complete_chunk(big_recording: P
 
 # --- SIGTERM to the command line --------------------------------------------------------------
 
+
+def _hook_path(hook: Path) -> str:
+    """PYTHONPATH for a run with ``hook``/sitecustomize.py: the hook, then this source tree,
+    which sitecustomize imports from before ``-m`` puts the current folder on the path (an
+    installed pipeline elsewhere, such as another work tree's, would be tested instead)."""
+    return os.pathsep.join([str(hook), str(Path(__file__).resolve().parents[1])])
+
+
 # Installed as sitecustomize in every Python process of the run (the CLI and its loky workers):
 # the CLI's process_session gets a slow stand-in frame function, so that a short session lasts
 # long enough to be stopped mid-run.
@@ -404,7 +413,7 @@ def test_a_signal_stops_the_run_and_keeps_previous_outputs(tmp_path: Path, sig: 
     hook = tmp_path / "hook"
     hook.mkdir()
     (hook / "sitecustomize.py").write_text(_SLOW_RUN_HOOK)
-    env = {**os.environ, "PYTHONPATH": str(hook), "FAULTS_FRAME_S": "0.2"}
+    env = {**os.environ, "PYTHONPATH": _hook_path(hook), "FAULTS_FRAME_S": "0.2"}
     command = [sys.executable, "-m", "pipeline", "process", str(session), "--out", str(out)]
     proc = subprocess.Popen(
         [*command, "--jobs", "2", "--no-images", "--force"], stderr=subprocess.PIPE, text=True, env=env
@@ -532,7 +541,7 @@ def test_a_signal_while_loading_ends_the_run_cleanly(tmp_path: Path, sig: signal
     hook.mkdir()
     (hook / "sitecustomize.py").write_text(_SLOW_LOAD_HOOK)
     mark = tmp_path / "loading"
-    env = {**os.environ, "PYTHONPATH": str(hook), "FAULTS_LOADING_MARK": str(mark)}
+    env = {**os.environ, "PYTHONPATH": _hook_path(hook), "FAULTS_LOADING_MARK": str(mark)}
     command = [sys.executable, "-m", "pipeline", "process", str(session), "--out", str(out), "--jobs", "2"]
     proc = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, env=env)
     try:
@@ -589,3 +598,125 @@ def test_loading_the_rrd_says_to_pass_the_mcap(big_recording: Path) -> None:
         RecordingError, match=r"rec\.rrd: is a Rerun recording .*give load_recording the \.mcap"
     ):
         load_recording(big_recording.with_suffix(".rrd"))
+
+
+# --- a worker killed while handing back its results ---------------------------------------
+
+# As _SLOW_RUN_HOOK: the CLI's runs get a frame function whose worker, on frame 5, sends half
+# of its range's results and dies (the OOM killer at the wrong moment: a message cut short in
+# the pipe, which loky's manager thread then waits on for good). The first time only, unless
+# FAULTS_HANDBACK_ALWAYS is set; the watch's bound is FAULTS_HANDBACK_S.
+_DIES_HANDING_BACK_HOOK = """
+import os, struct, time
+
+def dies_handing_back(index, images, model):
+    from multiprocessing import connection
+    from pipeline.frame_result import FrameResult
+
+    mark = os.environ["FAULTS_HANDBACK_MARK"]
+    if index == 5 and (os.environ.get("FAULTS_HANDBACK_ALWAYS") or not os.path.exists(mark)):
+        def half(self, buf):
+            data = bytes(buf)
+            self._send(struct.pack("!i", len(data)) + data[: len(data) // 2])
+            open(mark, "w").close()
+            os._exit(9)
+
+        connection.Connection._send_bytes = half
+    time.sleep(float(os.environ.get("FAULTS_FRAME_S", "0")))
+    return FrameResult(index=index, status="empty", reason="stand-in"), None
+
+if os.environ.get("FAULTS_HANDBACK_S"):
+    import pipeline.runner as runner
+    import pipeline.workers as workers
+
+    workers.HANDBACK_TIMEOUT_S = float(os.environ["FAULTS_HANDBACK_S"])
+    _process_session = runner.process_session
+
+    def process_session(session, **options):
+        return _process_session(session, **options, frame_fn=dies_handing_back)
+
+    runner.process_session = process_session
+"""
+
+
+def _start_dying_run(tmp_path: Path, frames: int, **env: str) -> tuple[subprocess.Popen[str], Path, Path]:
+    """The CLI on a session of ``frames`` with _DIES_HANDING_BACK_HOOK; (process, out, mark)."""
+    session = build_session(tmp_path / "take", frames=frames)
+    hook = tmp_path / "hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(_DIES_HANDING_BACK_HOOK)
+    out, mark = tmp_path / "out", tmp_path / "died"
+    variables = {"PYTHONPATH": _hook_path(hook), "FAULTS_HANDBACK_S": "2", "FAULTS_HANDBACK_MARK": str(mark)}
+    command = [sys.executable, "-m", "pipeline", "process", str(session), "--out", str(out), "--no-images"]
+    proc = subprocess.Popen(
+        [*command, "--jobs", "2"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, **variables, **env},
+    )
+    return proc, out, mark
+
+
+def _assert_no_process_left(pid: int, children: list[psutil.Process]) -> None:
+    # Generous: the workers are killed as the run ends; this only guards against them staying.
+    _, alive = psutil.wait_procs(children, timeout=30)
+    for p in alive:
+        p.kill()
+    assert not alive, [p.cmdline() for p in alive]
+    assert not [p for p in Path("/dev/shm").glob(f"pipeline-model-{pid}-*")]
+
+
+@pytest.mark.slow
+def test_a_worker_killed_while_handing_back_its_results_is_retried_not_waited_for(tmp_path: Path) -> None:
+    frames = 2 * runner.MIN_RANGE_FRAMES
+    proc, out, mark = _start_dying_run(tmp_path, frames)
+    children: list[psutil.Process] = []
+    try:
+        while proc.poll() is None and not mark.exists():
+            with contextlib.suppress(psutil.Error):
+                children = psutil.Process(proc.pid).children(recursive=True)
+            time.sleep(0.05)
+        # Without a bound the run would wait here for good; 2 s and a fresh pool are enough.
+        summary, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert mark.exists(), "the worker should have died handing back its results"
+    assert proc.returncode == 1, err  # every frame is "empty" (the stand-in), none failed
+    assert re.search(
+        r"a worker failed on frames 0 onwards \(a worker died while handing back its results\); "
+        r"retrying in a fresh pool",
+        err,
+    ), err
+    assert f"{frames} processed, 0 ok, {frames} empty, 0 failed" in summary  # the range retried whole
+    assert load_recording(out / "take.mcap").complete and len(load_recording(out / "take.mcap")) == frames
+    _assert_no_process_left(proc.pid, children)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=lambda s: s.name)
+def test_a_signal_while_the_pool_waits_on_a_dead_worker_ends_the_run(
+    tmp_path: Path, sig: signal.Signals
+) -> None:
+    # The watch's bound is long (60 s): the signal, not the watch, has to end the wait.
+    proc, out, mark = _start_dying_run(
+        tmp_path, 60, FAULTS_HANDBACK_S="60", FAULTS_HANDBACK_ALWAYS="1", FAULTS_FRAME_S="0.1"
+    )
+    children: list[psutil.Process] = []
+    try:
+        while proc.poll() is None and not mark.exists():
+            with contextlib.suppress(psutil.Error):
+                children = psutil.Process(proc.pid).children(recursive=True)
+            time.sleep(0.05)
+        time.sleep(1.0)  # the pool is stuck now
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    (line,) = err.strip().splitlines()
+    assert re.fullmatch(
+        r"interrupted after \d+ of 60 frames; temporary files removed, existing outputs untouched", line
+    )
+    assert not out.exists()
+    _assert_no_process_left(proc.pid, children)
