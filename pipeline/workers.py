@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from .errors import SettingsError
+from .interrupts import signals_blocked_in_children
 
 T = TypeVar("T")
 
@@ -124,7 +125,7 @@ def start_local_workers(n_workers: int) -> None:
     _start_watch()
     from joblib import Parallel, delayed, parallel_config
 
-    with parallel_config(backend="loky", **loky_options()):
+    with parallel_config(backend="loky", **loky_options()), signals_blocked_in_children():
         parallel = Parallel(n_jobs=n_workers, return_as="generator_unordered")
         # Held until wait_for_local_workers: a generator dropped unfinished aborts its pool.
         _warm_up = iter(parallel(delayed(_import_frame_modules)() for _ in range(n_workers)))

@@ -381,7 +381,7 @@ def _hook_path(hook: Path) -> str:
 # the CLI's process_session gets a slow stand-in frame function, so that a short session lasts
 # long enough to be stopped mid-run.
 _SLOW_RUN_HOOK = """
-import os, time
+import os, sys, time
 
 def slow_frame(index, images, model):
     from pipeline.frame_result import FrameResult
@@ -389,7 +389,9 @@ def slow_frame(index, images, model):
     time.sleep(float(os.environ["FAULTS_FRAME_S"]))
     return FrameResult(index=index, status="empty", reason="slow stand-in"), None
 
-if os.environ.get("FAULTS_FRAME_S"):
+# In the command line's process only: workers that imported the pipeline as they start would
+# lengthen the moment when a signal finds them starting.
+if os.environ.get("FAULTS_FRAME_S") and sys.orig_argv[1:3] == ["-m", "pipeline"]:
     import pipeline.runner as runner
 
     _process_session = runner.process_session
@@ -439,6 +441,75 @@ def test_a_signal_stops_the_run_and_keeps_previous_outputs(tmp_path: Path, sig: 
     assert re.fullmatch(
         r"interrupted after \d+ of 60 frames; temporary files removed, existing outputs untouched", line
     )
+
+
+def _start_slow_run(tmp_path: Path, backend: str, frame_s: float) -> tuple[subprocess.Popen[str], Path]:
+    """The CLI in a group of its own on 60 frames of ``frame_s`` each (_SLOW_RUN_HOOK), two
+    workers of ``backend``; returns once the run is under way (its temporary MCAP exists)."""
+    session = build_session(tmp_path / "take", frames=60)
+    out = tmp_path / "out"
+    hook = tmp_path / "hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(_SLOW_RUN_HOOK)
+    env = {**os.environ, "PYTHONPATH": _hook_path(hook), "FAULTS_FRAME_S": str(frame_s)}
+    command = [sys.executable, "-m", "pipeline", "process", str(session), "--out", str(out), "--no-images"]
+    proc = _popen_in_a_group([*command, "--jobs", "2", "--backend", backend], env)
+    for _ in range(1200):
+        if proc.poll() is not None or (out.exists() and any(p.suffix == ".partial" for p in out.iterdir())):
+            break
+        time.sleep(0.05)
+    time.sleep(1.0)  # the workers are in their first ranges
+    return proc, out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["loky", "dask"])
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGHUP], ids=lambda s: s.name)
+def test_a_terminals_signal_to_every_process_ends_the_run_in_one_line(
+    tmp_path: Path, backend: str, sig: signal.Signals
+) -> None:
+    proc, out = _start_slow_run(tmp_path, backend, 0.5)
+    try:
+        children = psutil.Process(proc.pid).children(recursive=True)
+        _signal(proc, sig, "group")  # Ctrl-C, or the terminal closed: the workers get it too
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    # Not the workers' tracebacks, the resource tracker's KeyErrors nor distributed's logs.
+    (line,) = err.strip().splitlines()
+    assert re.fullmatch(
+        r"interrupted after \d+ of 60 frames; temporary files removed, existing outputs untouched", line
+    )
+    assert not out.exists()
+    _assert_no_process_left(proc.pid, children)
+
+
+@pytest.mark.slow
+def test_dask_workers_exit_when_the_run_is_killed(tmp_path: Path) -> None:
+    proc, _ = _start_slow_run(tmp_path, "dask", 30.0)  # each worker in a frame for 30 s
+    try:
+        children = psutil.Process(proc.pid).children(recursive=True)
+        assert len([p for p in children if "spawn_main" in " ".join(p.cmdline())]) == 2, children
+        proc.kill()  # SIGKILL, as the OOM killer ends a run: no clean-up of its own
+        proc.wait(timeout=60)
+    finally:
+        proc.kill()
+    _assert_no_process_left(proc.pid, children)
+
+
+@pytest.mark.slow
+def test_dask_run_keeps_stderr_to_the_projects_own_lines(tmp_path: Path) -> None:
+    session = build_session(tmp_path / "take", frames=6, settings=COARSE)
+    command = [sys.executable, "-m", "pipeline", "process", str(session), "--out", str(tmp_path / "out")]
+    done = subprocess.run(
+        [*command, "--backend", "dask", "--jobs", "2"], capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == EXIT_OK, done.stderr
+    # No INFO lines from distributed as the cluster starts and stops, no warnings: a run
+    # where every frame is ok has nothing to say on stderr.
+    assert done.stderr == ""
+    assert "6 processed, 6 ok" in done.stdout
 
 
 # --- two runs, dead runs, the pair of outputs ------------------------------------------------
@@ -519,9 +590,9 @@ def test_jobs_beyond_the_cores_are_capped_with_a_note(
 # As _SLOW_RUN_HOOK, for the moment the session is loaded: the CLI's load_session marks that it
 # has begun and then takes a minute.
 _SLOW_LOAD_HOOK = """
-import os, time
+import os, sys, time
 
-if os.environ.get("FAULTS_LOADING_MARK"):
+if os.environ.get("FAULTS_LOADING_MARK") and sys.orig_argv[1:3] == ["-m", "pipeline"]:
     import pipeline.session
 
     def load_session(directory):
@@ -532,9 +603,42 @@ if os.environ.get("FAULTS_LOADING_MARK"):
 """
 
 
+def _popen_in_a_group(command: list[str], env: dict[str, str]) -> subprocess.Popen[str]:
+    """Start ``command`` as a terminal starts a job: a process group of its own (which
+    :func:`_signal` can signal whole, as Ctrl-C does), SIGINT not ignored."""
+    return subprocess.Popen(
+        command,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+
+
+def _signal(proc: subprocess.Popen[str], sig: signal.Signals, to: str) -> None:
+    """``sig`` to the process alone (``kill PID``), or to its whole group (a terminal's Ctrl-C
+    or hang-up, which reach the workers too)."""
+    if to == "group":
+        os.killpg(proc.pid, sig)
+    else:
+        proc.send_signal(sig)
+
+
+# A signal to the run's process alone, or to its process group as a terminal sends it.
+_SIGNALS_AND_TARGETS = [
+    (signal.SIGINT, "process"),
+    (signal.SIGTERM, "process"),
+    (signal.SIGHUP, "process"),
+    (signal.SIGINT, "group"),
+    (signal.SIGHUP, "group"),
+]
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=lambda s: s.name)
-def test_a_signal_while_loading_ends_the_run_cleanly(tmp_path: Path, sig: signal.Signals) -> None:
+@pytest.mark.parametrize(("sig", "to"), _SIGNALS_AND_TARGETS, ids=lambda v: getattr(v, "name", v))
+def test_a_signal_while_loading_ends_the_run_cleanly(tmp_path: Path, sig: signal.Signals, to: str) -> None:
     session = build_session(tmp_path / "take", frames=2)
     out = tmp_path / "new" / "out"
     hook = tmp_path / "hook"
@@ -543,14 +647,15 @@ def test_a_signal_while_loading_ends_the_run_cleanly(tmp_path: Path, sig: signal
     mark = tmp_path / "loading"
     env = {**os.environ, "PYTHONPATH": _hook_path(hook), "FAULTS_LOADING_MARK": str(mark)}
     command = [sys.executable, "-m", "pipeline", "process", str(session), "--out", str(out), "--jobs", "2"]
-    proc = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, env=env)
+    proc = _popen_in_a_group(command, env)
     try:
         for _ in range(1200):
             if mark.exists() or proc.poll() is not None:
                 break
             time.sleep(0.05)
-        children = psutil.Process(proc.pid).children(recursive=True)  # the workers started ahead
-        proc.send_signal(sig)
+        # The workers started ahead, still starting: a terminal's signal finds them importing.
+        children = psutil.Process(proc.pid).children(recursive=True)
+        _signal(proc, sig, to)
         _, err = proc.communicate(timeout=60)
     finally:
         proc.kill()
@@ -607,7 +712,7 @@ def test_loading_the_rrd_says_to_pass_the_mcap(big_recording: Path) -> None:
 # the pipe, which loky's manager thread then waits on for good). The first time only, unless
 # FAULTS_HANDBACK_ALWAYS is set; the watch's bound is FAULTS_HANDBACK_S.
 _DIES_HANDING_BACK_HOOK = """
-import os, struct, time
+import os, struct, sys, time
 
 def dies_handing_back(index, images, model):
     from multiprocessing import connection
@@ -625,7 +730,7 @@ def dies_handing_back(index, images, model):
     time.sleep(float(os.environ.get("FAULTS_FRAME_S", "0")))
     return FrameResult(index=index, status="empty", reason="stand-in"), None
 
-if os.environ.get("FAULTS_HANDBACK_S"):
+if os.environ.get("FAULTS_HANDBACK_S") and sys.orig_argv[1:3] == ["-m", "pipeline"]:
     import pipeline.runner as runner
     import pipeline.workers as workers
 
