@@ -564,6 +564,65 @@ def test_a_failed_second_rename_puts_the_old_pair_back(
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
+# A run (of StraightRod, in one process) killed outright between its two renames: the new
+# .mcap is in place, the .rrd is still under its temporary name.
+_KILLED_BETWEEN_RENAMES = """
+import os, signal, sys
+from pathlib import Path
+
+sys.path.insert(0, "tests")
+from pipeline import runner
+from pipeline.session import load_session
+from test_faults import straight_rod
+
+real_replace = os.replace
+
+def replace(src, dst):
+    if Path(dst).name == "take.rrd" and str(src).endswith(".partial"):
+        os.kill(os.getpid(), signal.SIGKILL)
+    real_replace(src, dst)
+
+os.replace = replace
+runner.process_session(
+    load_session(Path(sys.argv[1])), out_dir=Path(sys.argv[2]), jobs=1, images=False,
+    progress=False, frame_fn=straight_rod, force=True,
+)
+"""
+
+
+def test_a_pair_split_by_a_kill_between_the_renames_is_told_and_put_together(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    session = build_session(tmp_path / "take", frames=3)
+    out = tmp_path / "out"
+    _run(session, out, frames=(0, 1))  # the old pair: one frame
+    old_rrd = (out / "take.rrd").read_bytes()
+    killed = subprocess.run(
+        [sys.executable, "-c", _KILLED_BETWEEN_RENAMES, str(session), str(out)],
+        cwd=Path(__file__).resolve().parents[1],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert killed.returncode == -signal.SIGKILL, killed.stderr
+    assert (out / "take.rrd").read_bytes() == old_rrd  # split: the old .rrd ...
+    (partial,) = out.glob(".take.rrd.*.partial")  # ... the new one beside it, complete
+    new_rrd = partial.read_bytes()
+    with caplog.at_level(logging.WARNING):
+        assert len(load_recording(out / "take.mcap")) == 3  # ... and the new .mcap
+    assert "take.mcap: the run that wrote it was killed while putting its outputs in place" in caplog.text
+    assert "take.rrd may be an earlier run's" in caplog.text
+    caplog.clear()
+    # The next run of the session there puts the rest in place first (and then, without
+    # --force, refuses to replace the pair).
+    with caplog.at_level(logging.WARNING), pytest.raises(OutputError, match="already exists"):
+        _run(session, out)
+    assert "the run that wrote them was killed while putting them in place; put in place now" in caplog.text
+    assert (out / "take.rrd").read_bytes() == new_rrd
+    assert len(load_recording(out / "take.mcap")) == 3
+    assert _leftovers(out) == []
+
+
 def test_a_run_that_fails_removes_the_output_folder_it_created(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
