@@ -344,7 +344,9 @@ def _frames_by_chunk(path: Path) -> list[tuple[int, int]]:
     ]
 
 
-def test_recording_cut_short_is_read_to_its_last_complete_chunk(big_recording: Path, tmp_path: Path) -> None:
+def test_recording_cut_short_is_read_to_its_last_complete_chunk(
+    big_recording: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     full = load_recording(big_recording)
     assert full.complete and len(full) == 40
     by_chunk = _frames_by_chunk(big_recording)
@@ -358,9 +360,17 @@ def test_recording_cut_short_is_read_to_its_last_complete_chunk(big_recording: P
     for cut in cuts:
         cut_path.write_bytes(data[:cut])
         expected = sum(n for end, n in by_chunk if end <= cut)
-        rec = load_recording(cut_path)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            rec = load_recording(cut_path)
         assert not rec.complete
         assert len(rec) == expected, f"cut at {cut}"
+        # The warning names the last frame read (frame indices count from 0 here), or none.
+        if expected:
+            assert f"truncated or damaged after frame {expected - 1}; read what precedes it" in caplog.text
+        else:
+            assert "truncated or damaged before its first frame" in caplog.text
+        assert f"no footer (the run did not finish); {expected} frames read" in caplog.text
         np.testing.assert_array_equal(rec.frame_indices, full.frame_indices[:expected])
         np.testing.assert_array_equal(rec.centerlines_m, full.centerlines_m[:expected])
         for got, want in zip(rec.points_m, full.points_m, strict=False):
