@@ -15,9 +15,10 @@ import errno
 import fcntl
 import logging
 import os
+import threading
 import uuid
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -376,6 +377,44 @@ def output_error(out_dir: Path, exc: OSError) -> OutputError:
 # How long the Rerun writer may take to write out what it still holds at the end of a run:
 # seconds on any disk that takes writes; its flush otherwise waits for good (a full disk).
 FLUSH_TIMEOUT_S = 60.0
+# How long opening or closing the Rerun file may take (milliseconds on a disk that takes
+# writes): on a full disk Rerun's writer is stuck, and both wait for it with no bound of
+# their own and deaf to Ctrl-C, even when the run ends for another reason (the MCAP met
+# the full disk first).
+RERUN_WAIT_S = 10.0
+
+
+# Rerun streams whose writer is stuck, kept from being dropped until the process exits.
+_STUCK_STREAMS: list[Any] = []
+
+
+def _within(seconds: float, call: Callable[[], object]) -> bool:
+    """Run ``call`` in a daemon thread: True once it has returned (re-raising here what it
+    raised), False if it has not within ``seconds``; it is then left to the exit."""
+    done = threading.Event()
+    raised: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            call()
+        except BaseException as exc:
+            raised.append(exc)
+        finally:
+            done.set()
+
+    threading.Thread(target=run, name="rerun-wait", daemon=True).start()
+    if not done.wait(seconds):
+        return False
+    if raised:
+        raise raised[0]
+    return True
+
+
+def _stalled_error(path: Path, what: str) -> OutputError:
+    return OutputError(
+        f"{path}: the Rerun recording was not {what} within {RERUN_WAIT_S:g} s (disk full, or a "
+        "stalled file system?); free space or choose another --out, and rerun"
+    )
 
 
 def _check_rrd_complete(partial: Path, final: Path) -> None:
@@ -390,10 +429,14 @@ def _check_rrd_complete(partial: Path, final: Path) -> None:
         try:
             RrdReader(partial).store()
         except (RuntimeError, ValueError, OSError) as exc:
-            raise OutputError(
-                f"{final}: the Rerun recording could not be written completely (disk full?); "
-                f"free space and rerun ({' '.join(str(exc).split())[:200]})"
-            ) from None
+            raise _incomplete_rrd_error(final, exc) from None
+
+
+def _incomplete_rrd_error(final: Path, exc: Exception) -> OutputError:
+    return OutputError(
+        f"{final}: the Rerun recording could not be written completely (disk full?); "
+        f"free space and rerun ({' '.join(str(exc).split())[:200]})"
+    )
 
 
 def _smooth(centerlines_mm: NDArray[np.float64], times_s: NDArray[np.float64]) -> NDArray[np.float64] | None:
@@ -445,12 +488,11 @@ class Writers:
             self._stream = rr.RecordingStream(application_id="pipeline", recording_id=uuid.uuid4())
             # Deterministic files: no wall-clock "log_time" timeline, only frame and time.
             self._stream.set_log_time_enabled(False)
-            self._stream.save(
-                target.partial(self.rrd_path),
-                default_blueprint=default_blueprint(
-                    session.cameras, session.settings.workspace, fps=session.fps
-                ),
-            )
+            blueprint = default_blueprint(session.cameras, session.settings.workspace, fps=session.fps)
+            partial_rrd = target.partial(self.rrd_path)
+            if not _within(RERUN_WAIT_S, lambda: self._stream.save(partial_rrd, default_blueprint=blueprint)):
+                self._stalled = True
+                raise _stalled_error(self.rrd_path, "started")
             self._stream.send_recording_name(session.name)
             self.rerun = RerunRecorder(self._stream, session.cameras, session.settings.workspace)
         except OSError as exc:
@@ -520,13 +562,17 @@ class Writers:
             self.rerun.finish(flush_timeout_s=FLUSH_TIMEOUT_S)
         except RuntimeError as exc:
             if "timed out" not in str(exc):  # Rerun's words for an expired bound
-                raise
+                # Its file writer stopped ("File-writer thread shut down prematurely"):
+                # the disk filled up under it.
+                raise _incomplete_rrd_error(self.rrd_path, exc) from None
             self._stalled = True
             raise OutputError(
                 f"{self.rrd_path}: the Rerun recording was not written within {FLUSH_TIMEOUT_S:g} s "
                 "(disk full, or a stalled file system?); free space or choose another --out, and rerun"
             ) from None
-        self._stream.disconnect()
+        if not _within(RERUN_WAIT_S, self._stream.disconnect):
+            self._stalled = True
+            raise _stalled_error(self.rrd_path, "closed")
         _check_rrd_complete(self.target.partial(self.rrd_path), self.rrd_path)
         with deferred_signals():  # a signal between the two renames would split the pair
             self.target.commit()
@@ -537,16 +583,19 @@ class Writers:
         with contextlib.suppress(Exception):
             if self._mcap_file is not None:
                 self._mcap_file.close()
+        # A stream whose writer is stuck (a full disk) would hold up the exit too, in Rerun's
+        # handler at exit: leave it to the operating system.
+        if self._stream is not None and not self._stalled:
+            try:
+                self._stalled = not _within(RERUN_WAIT_S, self._stream.disconnect)
+            except Exception as exc:
+                log.debug("closing the Rerun stream failed: %s", exc)
         if self._stalled:
-            # Closing a stream whose writer is stuck waits for it, and so would Rerun's
-            # handler at exit: leave the stream, and the exit, to the operating system.
             import rerun as rr
 
             rr.unregister_shutdown()
-        else:
-            with contextlib.suppress(Exception):
-                if self._stream is not None:
-                    self._stream.disconnect()
+            # Dropping the stream waits for its writer too (RecordingStream.__del__): keep it.
+            _STUCK_STREAMS.append(self._stream)
         for path in (self.mcap_path, self.rrd_path):
             with contextlib.suppress(FileNotFoundError):
                 self.target.partial(path).unlink()

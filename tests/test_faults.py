@@ -15,6 +15,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -754,6 +755,71 @@ def test_a_rerun_writer_that_does_not_finish_is_an_error_not_a_hang(
     with pytest.raises(OutputError, match=r"take\.rrd: the Rerun recording was not written within 60 s"):
         _run(session, out)
     assert bounds == [outputs.FLUSH_TIMEOUT_S]  # the wait had a bound
+    assert not out.exists()
+
+
+def test_a_rerun_writer_that_stops_on_a_full_disk_is_named_as_such(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import rerun as rr
+
+    session = build_session(tmp_path / "take", frames=2)
+
+    def stopped_flush(self: Any, *, timeout_sec: float = 1e38) -> None:
+        raise RuntimeError("File-writer thread shut down prematurely")  # Rerun's words (was exit 3)
+
+    monkeypatch.setattr(rr.RecordingStream, "flush", stopped_flush)
+    out = tmp_path / "out"
+    with pytest.raises(OutputError, match=r"take\.rrd: the Rerun recording could not be written completely"):
+        _run(session, out)
+    assert not out.exists()
+
+
+def test_a_rerun_writer_stuck_on_a_full_disk_does_not_hold_up_another_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import rerun as rr
+
+    session = build_session(tmp_path / "take", frames=6)
+    # The MCAP meets the full disk first; Rerun's writer is stuck on it, and closing its
+    # stream waits for the writer (for good, on a real full disk: the run hung, deaf to Ctrl-C).
+    real_open = outputs._open_partial
+    monkeypatch.setattr(outputs, "_open_partial", lambda path: _FullDisk(real_open(path), 2000))
+    stuck = threading.Event()
+    monkeypatch.setattr(rr.RecordingStream, "disconnect", lambda self: stuck.wait(60))
+    left_to_exit: list[bool] = []
+    monkeypatch.setattr(rr, "unregister_shutdown", lambda: left_to_exit.append(True))
+    monkeypatch.setattr(outputs, "RERUN_WAIT_S", 0.5)
+    out = tmp_path / "out"
+    try:
+        with pytest.raises(OutputError, match=r"disk full while writing the recordings; free space"):
+            _run(session, out)
+    finally:
+        stuck.set()
+    assert left_to_exit == [True]  # nor does Rerun's own handler hold up the exit
+    assert not out.exists()
+
+
+def test_a_rerun_file_that_cannot_be_started_is_an_error_not_a_hang(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import rerun as rr
+
+    session = build_session(tmp_path / "take", frames=2)
+    stuck = threading.Event()
+    # On a full disk, Rerun's save() (which writes the layout first) waited for good.
+    monkeypatch.setattr(rr.RecordingStream, "save", lambda self, path, **options: stuck.wait(60))
+    left_to_exit: list[bool] = []
+    monkeypatch.setattr(rr, "unregister_shutdown", lambda: left_to_exit.append(True))
+    monkeypatch.setattr(outputs, "RERUN_WAIT_S", 0.5)
+    out = tmp_path / "out"
+    expected = r"take\.rrd: the Rerun recording was not started within 0\.5 s \(disk full"
+    try:
+        with pytest.raises(OutputError, match=expected):
+            _run(session, out)
+    finally:
+        stuck.set()
+    assert left_to_exit == [True]
     assert not out.exists()
 
 
