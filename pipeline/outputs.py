@@ -558,13 +558,19 @@ class Writers:
         self._mcap_file.flush()
         os.fsync(self._mcap_file.fileno())
         self._mcap_file.close()
-        try:
+        # In a thread of its own, so that Ctrl-C is heard meanwhile (Rerun's flush is not).
+        def flush() -> None:
             self.rerun.finish(flush_timeout_s=FLUSH_TIMEOUT_S)
+
+        try:
+            flushed = _within(FLUSH_TIMEOUT_S + RERUN_WAIT_S, flush)
         except RuntimeError as exc:
             if "timed out" not in str(exc):  # Rerun's words for an expired bound
                 # Its file writer stopped ("File-writer thread shut down prematurely"):
                 # the disk filled up under it.
                 raise _incomplete_rrd_error(self.rrd_path, exc) from None
+            flushed = False
+        if not flushed:
             self._stalled = True
             raise OutputError(
                 f"{self.rrd_path}: the Rerun recording was not written within {FLUSH_TIMEOUT_S:g} s "
