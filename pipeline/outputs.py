@@ -558,6 +558,7 @@ class Writers:
         self._mcap_file.flush()
         os.fsync(self._mcap_file.fileno())
         self._mcap_file.close()
+
         # In a thread of its own, so that Ctrl-C is heard meanwhile (Rerun's flush is not).
         def flush() -> None:
             self.rerun.finish(flush_timeout_s=FLUSH_TIMEOUT_S)
