@@ -123,6 +123,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         size=(width, height),
         distractor=args.distractor,
         flicker=args.flicker,
+        calib_error_deg=args.calib_error,
     )
     render_session(
         args.out_dir,
@@ -315,6 +316,14 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     )
     p.add_argument("--distractor", action="store_true", help="a dark object in one camera's background")
     p.add_argument("--flicker", action="store_true", help="scene brightness varying frame to frame (4 %%)")
+    p.add_argument(
+        "--calib-error",
+        type=float,
+        default=0.0,
+        metavar="DEG",
+        help="write a calibration.toml off by this much (each camera turned DEG degrees, moved "
+        "6.7*DEG mm, focal 2*DEG %%, principal point 6.7*DEG px); the videos use the true cameras",
+    )
     p.add_argument("--frames", type=int, default=900, help="number of frames at 30 fps (default 900)")
     p.add_argument(
         "--seed", type=int, default=0, help="random seed (noise, textures; the shape for --shape random)"

@@ -48,6 +48,8 @@ class RunSummary:
     frames_suspect : (frame index, reason) of "ok" frames whose curve may be wrong
         (``FrameResult.suspect_reason``), in order.
     tip : the tube end the fit assumed, and how it was chosen ("" when not told).
+    cameras : the cameras reconstructed with, given or refined, and why ("" when not told).
+    camera_warnings : a line per camera that seems to have moved since its calibration.
     exit_code : 0 when every frame is ok or empty, 1 when some failed or none holds a tube.
     """
 
@@ -61,6 +63,8 @@ class RunSummary:
     frames_at_walls: list[int] = field(default_factory=list)
     frames_suspect: list[tuple[int, str]] = field(default_factory=list)
     tip: str = ""
+    cameras: str = ""
+    camera_warnings: list[str] = field(default_factory=list)
 
     @property
     def frames_total(self) -> int:
@@ -80,6 +84,8 @@ class RunSummary:
         ]
         if self.tip:
             out.append(f"  tube end: {self.tip}")
+        if self.cameras:
+            out.append(f"  cameras: {self.cameras}")
         out += self.problem_lines()
         out.append(f"time: {self.wall_s:.1f} s wall, {self.fps:.1f} frames/s")
         out += [f"wrote {path} ({_human_size(size)})" for path, size in self.outputs]
@@ -89,6 +95,7 @@ class RunSummary:
         """The summary's failure and warning lines: failed frames, suspect frames, doubtful
         frames, frames at the walls, no tube found."""
         out = [f"  failed {span}: {reason}" for span, reason in compress_failures(self.frames_failed)]
+        out += [f"  {line}" for line in self.camera_warnings]
         if self.frames_suspect:
             first, why = self.frames_suspect[0]
             frames = [i for i, _ in self.frames_suspect]
@@ -133,6 +140,7 @@ class RunSummary:
             "doubtful": list(self.frames_doubtful),
             "at_walls": list(self.frames_at_walls),
             "tip": self.tip,
+            "cameras": self.cameras,
             "problems": [line.strip() for line in self.problem_lines()],
             "wall_s": self.wall_s,
             "fps": self.fps,
@@ -367,7 +375,9 @@ def _smooth(centerlines_mm: NDArray[np.float64], times_s: NDArray[np.float64]) -
 class Writers:
     """The MCAP and Rerun writers of one run, their temporary files, and the tallies."""
 
-    def __init__(self, session: Session, target: OutputTarget, *, images: bool) -> None:
+    def __init__(
+        self, session: Session, target: OutputTarget, *, images: bool, cameras_used: str = ""
+    ) -> None:
         # Imported here, not with this module: a run's parent opens its writers once
         # the workers have their first frames, so Rerun's import no longer holds them up.
         import rerun as rr
@@ -399,6 +409,8 @@ class Writers:
                 "centerline_method": session.settings.centerline.method,
                 "start_time": session.settings.session.start_time.isoformat(),
             }
+            if cameras_used:
+                meta["cameras_used"] = cameras_used
             self.mcap = McapRecorder(self._mcap_file, session.cameras, images=images, metadata=meta)
             self._stream = rr.RecordingStream(application_id="pipeline", recording_id=uuid.uuid4())
             # Deterministic files: no wall-clock "log_time" timeline, only frame and time.

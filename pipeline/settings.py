@@ -89,6 +89,13 @@ class CenterlineSettings:
 
 
 @dataclass(frozen=True)
+class CalibrationSettings:
+    # Cameras refined from the session's silhouettes (pipeline.refine_cameras): "auto"
+    # refines when the views disagree with the given cameras by more than their noise.
+    refine: str | bool = "auto"
+
+
+@dataclass(frozen=True)
 class SessionInfo:
     # Frame i is at start_time + i / fps; the Unix epoch when session.toml does not say.
     start_time: datetime = datetime(1970, 1, 1, tzinfo=UTC)
@@ -100,6 +107,7 @@ class Settings:
     silhouette: SilhouetteSettings = field(default_factory=SilhouetteSettings)
     manipulator: ManipulatorSettings = field(default_factory=ManipulatorSettings)
     centerline: CenterlineSettings = field(default_factory=CenterlineSettings)
+    calibration: CalibrationSettings = field(default_factory=CalibrationSettings)
     session: SessionInfo = field(default_factory=SessionInfo)
 
 
@@ -108,6 +116,7 @@ _SECTIONS: dict[str, type] = {
     "silhouette": SilhouetteSettings,
     "manipulator": ManipulatorSettings,
     "centerline": CenterlineSettings,
+    "calibration": CalibrationSettings,
     "session": SessionInfo,
 }
 
@@ -186,6 +195,10 @@ def _convert(source: str, section: str, key: str, value: Any) -> Any:
     if key in ("threshold", "min_area_px", "points"):
         if isinstance(value, bool) or not isinstance(value, int):
             raise SettingsError(f"{source}: {name} must be an integer, got {_short(value)}")
+        return value
+    if key == "refine":
+        if not (isinstance(value, bool) or value == "auto"):
+            raise SettingsError(f'{source}: {name} must be "auto", true or false, got {_short(value)}')
         return value
     if key == "smooth":
         if not isinstance(value, bool):
