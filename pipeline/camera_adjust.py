@@ -128,7 +128,8 @@ class Adjustment:
 
     cameras : the adjusted cameras, in the given order.
     params : (C, 9) each camera's change from the given one (see the module).
-    tubes : the frames' tubes as adjusted with them.
+    tubes : the frames' tubes as adjusted with them (in the adjusted rig's world frame,
+        before :func:`in_given_frame` holds it to the given one's).
     before_px, after_px : RMS distance (px) between where the silhouettes put the
         tubes' axes and where the tubes fitted to them project, with the given and
         with the adjusted cameras: the views' (in)consistency.
@@ -143,20 +144,29 @@ class Adjustment:
     readings: int
 
 
-@dataclass
+@dataclass(frozen=True, eq=False)
 class _FrameSystem:
-    """One frame's part of the normal equations, with its tube eliminated."""
+    """One frame's part of the normal equations, its tube eliminated (a Schur complement).
 
-    solved: FloatArray  # (3K, 1 + P): A^-1 [g, B]
-    residual_px: FloatArray  # the readings' distances across the tube after the tube-only solve
+    solved : (3K, 1 + P) the tube's block solved against [its right-hand side, its
+        coupling to the P = 9 C camera parameters]; schur : (P, P) and rhs : (P,) the
+        frame's contribution to the cameras' reduced system; residual_px : the readings'
+        distances across the tube after a tube-only solve; obs : the readings used.
+    """
+
+    solved: FloatArray
+    schur: FloatArray
+    rhs: FloatArray
+    residual_px: FloatArray
     obs: SideReadings
 
+    def tube_step(self, camera_step: FloatArray) -> FloatArray:
+        """(K, 3) the tube's correction (mm) given the cameras' (P,)."""
+        return (self.solved[:, 0] - self.solved[:, 1:] @ camera_step).reshape(-1, 3)
 
-def _frame_system(
-    tube: Tube, cameras: Sequence[Camera], base_fixed: bool, weight: float
-) -> tuple[_FrameSystem, FloatArray, FloatArray] | None:
-    """The frame's Schur complement (P, P) and right-hand side (P,) contributions, P = 9 C,
-    and its eliminated system; None without enough readings. ``weight`` scales the data."""
+
+def _frame_system(tube: Tube, cameras: Sequence[Camera], base_fixed: bool) -> _FrameSystem | None:
+    """The frame's part of the normal equations; None without enough readings."""
     obs = read_sides(
         tube.points_mm, cameras, tube.contrasts, tube.radii_mm, SPACING_MM, crowd_margin_px=_CROWD_MARGIN_PX
     )
@@ -175,13 +185,12 @@ def _frame_system(
         tube_only = solveh_banded(band, g).reshape(k, 3)
     centre, w = obs.centres()
     scale = 1.0 / np.maximum(np.linalg.norm(across, axis=-1), 1e-12)  # px per mm across
-    used = w > 0
-    residual_px = ((centre - np.einsum("kci,ki->kc", obs.rows, tube_only)) * scale)[used]
+    residual_px = ((centre - np.einsum("kci,ki->kc", obs.rows, tube_only)) * scale)[w > 0]
     jac = np.stack([parameter_jacobian(cam, tube.points_mm) for cam in cameras])  # (C, K, 2, 9)
     d: FloatArray = np.einsum("kci,ckij->kcj", across, jac)  # (K, C, 9): mm across per parameter
     coupling = np.einsum("kc,kci,kcj->kicj", w, obs.rows, d).reshape(3 * k, c * N_PARAMS)
     if base_fixed:
-        coupling[:3] = 0.0
+        coupling[:3] = 0.0  # the base sample is held
     solved = solveh_banded(band, np.column_stack([g, coupling]))
     cameras_block = np.zeros((c, N_PARAMS, c, N_PARAMS))
     for j in range(c):
@@ -189,7 +198,7 @@ def _frame_system(
     h = np.einsum("kc,kcj,kc->cj", w, d, centre).ravel()
     schur = cameras_block.reshape(c * N_PARAMS, -1) - coupling.T @ solved[:, 1:]
     rhs = h - coupling.T @ solved[:, 0]
-    return _FrameSystem(solved, residual_px, obs), weight * schur, weight * rhs
+    return _FrameSystem(solved, schur, rhs, residual_px, obs)
 
 
 def adjust_cameras(
@@ -213,33 +222,28 @@ def adjust_cameras(
     readings = 0
     for round_ in range(rounds + 1):
         current = [moved_camera(cam, p) for cam, p in zip(cameras, params, strict=True)]
-        systems = [_frame_system(t, current, base_fixed, 1.0) for t in tubes]
-        residuals = np.concatenate([s[0].residual_px for s in systems if s is not None] or [np.zeros(0)])
+        systems = [_frame_system(t, current, base_fixed) for t in tubes]
+        found = [s for s in systems if s is not None]
+        residuals = np.concatenate([s.residual_px for s in found] or [np.zeros(0)])
         rms = float(np.sqrt(np.mean(residuals**2))) if residuals.size else float("nan")
         if round_ == 0:
             before = rms
         after = rms
-        readings = int(sum(s[0].obs.readings for s in systems if s is not None))
+        readings = sum(s.obs.readings for s in found)
         if round_ == rounds or not readings:
             break
-        schur = np.diag(prior * _READING_SIGMA_MM**2)
-        rhs = -prior * _READING_SIGMA_MM**2 * params.ravel()
-        for s in systems:
-            if s is not None:
-                schur += s[1]
-                rhs += s[2]
-        step = np.linalg.solve(schur, rhs)
+        schur = np.diag(prior * _READING_SIGMA_MM**2) + sum(s.schur for s in found)
+        rhs = -prior * _READING_SIGMA_MM**2 * params.ravel() + sum(s.rhs for s in found)
+        step = np.asarray(np.linalg.solve(schur, rhs), dtype=np.float64)
         params = params + step.reshape(c, N_PARAMS)
         for i, s in enumerate(systems):
-            if s is None:
-                continue
-            tube = tubes[i]
-            move = (s[0].solved[:, 0] - s[0].solved[:, 1:] @ step).reshape(-1, 3)
-            tubes[i] = replace(tube, points_mm=tube.points_mm + move, radii_mm=s[0].obs.radii_mm)
+            if s is not None:
+                moved = tubes[i].points_mm + s.tube_step(step)
+                tubes[i] = replace(tubes[i], points_mm=moved, radii_mm=s.obs.radii_mm)
     adjusted = [moved_camera(cam, p) for cam, p in zip(cameras, params, strict=True)]
     points = np.concatenate([t.points_mm for t in tubes])
-    anchored = tuple(in_given_frame(adjusted, cameras, points, base_mm))
-    return Adjustment(anchored, params, tuple(tubes), before, after, readings)
+    anchored = in_given_frame(adjusted, cameras, points)
+    return Adjustment(tuple(anchored), params, tuple(tubes), before, after, readings)
 
 
 def similar_camera(camera: Camera, rotation: FloatArray, scale: float, shift_mm: FloatArray) -> Camera:
@@ -254,33 +258,29 @@ def similar_camera(camera: Camera, rotation: FloatArray, scale: float, shift_mm:
 
 
 def in_given_frame(
-    adjusted: Sequence[Camera],
-    given: Sequence[Camera],
-    points_mm: FloatArray,
-    base_mm: FloatArray | None = None,
+    adjusted: Sequence[Camera], given: Sequence[Camera], points_mm: FloatArray
 ) -> list[Camera]:
     """The ``adjusted`` cameras moved, as a rig, by the similarity (rotation, scale and
     shift of the world) that best maps their images of ``points_mm`` (N, 3) onto the
-    ``given`` cameras' images; with ``base_mm`` (3,), a similarity that keeps that point.
+    ``given`` cameras' images.
 
     The silhouettes cannot tell a rig from the same rig turned, moved or scaled with
-    the tubes it sees: that is for the mount (the tubes' base is where the user says)
-    and the calibration to say. Held this way, the adjusted rig keeps the given one's
-    world frame.
+    the tubes it sees: that is for the calibration to say. Held this way, the adjusted
+    rig keeps the given one's world frame. (Holding the mount point instead, the base
+    of every tube, measured worse: the tubes bend near the base to meet it.)
     """
     target = np.concatenate([cam.project(points_mm).ravel() for cam in given])
-    fixed = points_mm.mean(axis=0) if base_mm is None else np.asarray(base_mm, dtype=np.float64)
+    centre = points_mm.mean(axis=0)
 
     def rig_through(q: FloatArray) -> list[Camera]:
-        # X -> s R (X - fixed) + fixed + shift: about the fixed point.
+        # X -> s R (X - centre) + centre + shift: about the points' centre.
         rotation = np.asarray(cv2.Rodrigues(q[:3])[0], dtype=np.float64)
         scale = float(np.exp(q[3]))
-        shift = fixed - scale * rotation @ fixed + (q[4:7] if base_mm is None else 0.0)
+        shift = centre - scale * rotation @ centre + q[4:7]
         return [similar_camera(cam, rotation, scale, shift) for cam in adjusted]
 
     def residual(q: FloatArray) -> FloatArray:
         return np.concatenate([cam.project(points_mm).ravel() for cam in rig_through(q)]) - target
 
-    n = 7 if base_mm is None else 4
-    solution = least_squares(residual, np.zeros(n), x_scale=np.array([1e-3] * 4 + [0.1] * 3)[:n])
+    solution = least_squares(residual, np.zeros(7), x_scale=np.array([1e-3] * 4 + [0.1] * 3))
     return rig_through(solution.x)

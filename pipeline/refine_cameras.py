@@ -11,6 +11,8 @@ exact calibration is kept as it is.
 
 from __future__ import annotations
 
+import dataclasses
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -73,6 +75,7 @@ class Refinement:
     before_px, after_px : the silhouettes' inconsistency (RMS, px) with the given cameras
         and with the adjusted ones (:class:`pipeline.camera_adjust.Adjustment`).
     changes : each camera's correction.
+    seconds : the refinement's wall time, the frames' first reconstruction included.
     """
 
     applied: bool
@@ -81,12 +84,13 @@ class Refinement:
     after_px: float
     changes: tuple[CameraChange, ...]
     reason: str = ""
+    seconds: float = float("nan")
 
     def describe(self) -> str:
         """One line for the summary."""
         figures = (
             f"silhouettes {self.before_px:.3f} px apart with the given cameras, "
-            f"{self.after_px:.3f} px refined, on {self.frames} frames"
+            f"{self.after_px:.3f} px refined, on {self.frames} frames in {self.seconds:.1f} s"
         )
         if not self.applied:
             return f"given ({self.reason}; {figures})"
@@ -168,10 +172,12 @@ def refined_cameras(
     mode = model.settings.calibration.refine
     if mode is False or model.settings.centerline.method != "fit":
         return model.cameras, None
+    started = time.perf_counter()
     tubes = sample_tubes(model, decode_frames(video_paths, sample_frames(start, stop, SAMPLE_FRAMES)))
     if len(tubes) < 3:
         return model.cameras, None
-    return refine(model, tubes, mode)
+    cameras, report = refine(model, tubes, mode)
+    return cameras, dataclasses.replace(report, seconds=time.perf_counter() - started)
 
 
 def write_refined_calibration(
