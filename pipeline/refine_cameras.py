@@ -29,6 +29,7 @@ from .frame_task import decode_frames
 from .model import SessionModel
 from .reconstruct import frame_contrasts, reconstruct_with_silhouettes
 from .tip_shape import sample_frames
+from .toml_file import load_toml
 
 FloatArray = NDArray[np.float64]
 
@@ -88,6 +89,8 @@ class Refinement:
 
     def describe(self) -> str:
         """One line for the summary."""
+        if not self.frames:
+            return f"given ({self.reason})"
         figures = (
             f"silhouettes {self.before_px:.3f} px apart with the given cameras, "
             f"{self.after_px:.3f} px refined, on {self.frames} frames in {self.seconds:.1f} s"
@@ -172,6 +175,11 @@ def refined_cameras(
     mode = model.settings.calibration.refine
     if mode is False or model.settings.centerline.method != "fit":
         return model.cameras, None
+    if len(model.cameras) < 3:
+        # Each sample of a tube's sides is read once per view, across it: two views give
+        # exactly the two numbers that place it, and nothing is left to tell the cameras by.
+        reason = "two views of a tube's sides say nothing about the cameras; refining needs three or more"
+        return model.cameras, Refinement(False, 0, float("nan"), float("nan"), (), reason)
     started = time.perf_counter()
     tubes = sample_tubes(model, decode_frames(video_paths, sample_frames(start, stop, SAMPLE_FRAMES)))
     if len(tubes) < 3:
@@ -180,13 +188,26 @@ def refined_cameras(
     return cameras, dataclasses.replace(report, seconds=time.perf_counter() - started)
 
 
+_SOURCE = "pipeline process: refined from the session's silhouettes"
+
+
+def remove_refined_calibration(path: Path) -> None:
+    """Remove ``path`` if it is a refined calibration an earlier run wrote (its metadata
+    says so); any other file is left alone."""
+    try:
+        if load_toml(path).get("metadata", {}).get("source") == _SOURCE:
+            path.unlink()
+    except (OSError, ValueError, AttributeError):
+        pass
+
+
 def write_refined_calibration(
     path: Path, partial: Path, cameras: Sequence[Camera], refinement: Refinement
 ) -> tuple[Path, int]:
     """Write the refined ``cameras`` to ``path`` (through the temporary ``partial``, renamed
     into place), with the refinement in its metadata; (path, bytes written)."""
     metadata = {
-        "source": "pipeline process: refined from the session's silhouettes",
+        "source": _SOURCE,
         "silhouettes_apart_px": {"given": refinement.before_px, "refined": refinement.after_px},
         "frames": refinement.frames,
     }

@@ -444,11 +444,16 @@ def _run_with(
                         _advance(bar, done)
         assert writer is not None
         writer.finish()
-        if refinement is not None and refinement.applied:
-            from .refine_cameras import write_refined_calibration
+        if frame_fn is None:
+            from .refine_cameras import remove_refined_calibration, write_refined_calibration
 
             path = target.out_dir / f"{target.name}.calibration.toml"
-            written.append(write_refined_calibration(path, target.partial(path), session.cameras, refinement))
+            if refinement is not None and refinement.applied:
+                written.append(
+                    write_refined_calibration(path, target.partial(path), session.cameras, refinement)
+                )
+            else:
+                remove_refined_calibration(path)  # an earlier run's: not these outputs' cameras
     except KeyboardInterrupt as exc:
         if writer is not None and writer.committed:
             message = f"interrupted as the run ended; {target.mcap_path} and {target.rrd_path} are complete"

@@ -163,3 +163,23 @@ def test_process_writes_the_refined_calibration_beside_the_outputs(
     assert any(
         not np.allclose(r.translation_mm, g.translation_mm) for r, g in zip(refined, given, strict=True)
     )
+
+
+def test_two_cameras_are_kept_and_the_summary_says_why(tmp_path: Path) -> None:
+    from pipeline.refine_cameras import refined_cameras
+
+    render_session(
+        tmp_path / "two",
+        shape="random",
+        frames=4,
+        seed=5,
+        options=SceneOptions(cameras=2, calib_error_deg=0.15),
+        progress=False,
+        jobs=1,
+    )
+    session = load_session(tmp_path / "two")
+    model = build_model(session)
+    cameras, report = refined_cameras(model, session.video_paths, 0, 4)
+    assert cameras is model.cameras
+    assert report is not None and not report.applied
+    assert "three or more" in report.describe()
