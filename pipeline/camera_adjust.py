@@ -17,10 +17,12 @@ none along it, the base held at the mount). The normal equations are solved
 with the tubes eliminated frame by frame (a Schur complement: each frame's
 block is banded), so the cost is linear in the number of frames.
 
-What the silhouettes cannot tell (turning, moving or scaling the whole rig with
-the tubes about the base) is held by a prior: each camera stays as close to the
-given one as the data allow, with the spread :data:`PRIOR_SIGMA`. The world
-frame stays the user's.
+Where the silhouettes say little (a camera orbiting the workspace, its focal
+length against its distance), a prior keeps each camera near the given one
+(:data:`PRIOR_SIGMA`). What they cannot tell at all (the whole rig turned, moved
+or scaled with the tubes it sees) is then set by the given rig: the adjusted one
+is moved, as a whole, to where its images of the tubes best match the given
+cameras' (:func:`in_given_frame`). The world frame stays the user's.
 """
 
 from __future__ import annotations
@@ -41,7 +43,6 @@ from .tube_fit import SideReadings, consistent_readings, normal_equations, read_
 FloatArray = NDArray[np.float64]
 
 N_PARAMS = 9
-PARAM_NAMES = ("turn x", "turn y", "turn z", "shift x", "shift y", "shift z", "focal", "cx", "cy")
 # The prior's spread of each parameter: how far a calibrated camera may be from
 # its calibration before the silhouettes alone decide (0.3 deg, 3 mm, 1 %, 3 px).
 PRIOR_SIGMA = np.array([np.deg2rad(0.3)] * 3 + [3.0] * 3 + [0.01] + [3.0] * 2)
