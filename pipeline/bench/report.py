@@ -391,7 +391,7 @@ def _shape_rows(report: BenchReport) -> list[str]:
 
 
 def format_table(report: BenchReport) -> str:
-    """The whole report as Markdown tables (the README quotes this)."""
+    """The whole report as Markdown tables (docs/speed.md quotes this)."""
     meta = report.meta
     head = (
         f"Benchmark: {meta.get('session', '?')}, {meta.get('frames', '?')} frames, "

@@ -250,7 +250,7 @@ def render_session(
     """Render a synthetic session with its ground truth into ``out_dir``.
 
     Writes calibration.toml, cam0.mp4 .. (30 fps, mp4v), session.toml,
-    background/<cam>.png and ground_truth.npz (see the README). The same arguments
+    background/<cam>.png and ground_truth.npz (see docs/input.md). The same arguments
     give byte-identical ground truth and identical frames.
 
     Parameters
