@@ -417,9 +417,13 @@ def _main(argv: Sequence[str] | None, prog: str) -> int:
     args = parser.parse_args(_with_negative_frames(sys.argv[1:] if argv is None else argv))
     if getattr(args, "scheduler", None) and args.backend not in (None, "dask"):
         args.usage_error(f"--scheduler runs on a Dask cluster: drop --backend {args.backend}, or use dask")
+    handler = logging.StreamHandler()
+    if not args.debug:
+        handler.addFilter(_own_records)
     logging.basicConfig(
         level=logging.DEBUG if args.debug else logging.INFO,
         format="%(levelname)s: %(message)s",
+        handlers=[handler],
     )
     # Libraries' warnings and Rerun's own log lines (with colour codes even into a file) go
     # to --debug only: stderr carries the run's own lines.
@@ -427,6 +431,7 @@ def _main(argv: Sequence[str] | None, prog: str) -> int:
     logging.getLogger("py.warnings").setLevel(logging.DEBUG if args.debug else logging.CRITICAL)
     if not args.debug:
         os.environ.setdefault("RUST_LOG", "off")
+        _quiet_resource_trackers()
     if args.debug:
         # FFmpeg's own diagnostics (silenced in pipeline.video) help debug a damaged video.
         from .video import show_ffmpeg_messages
@@ -450,6 +455,26 @@ def _main(argv: Sequence[str] | None, prog: str) -> int:
             file=sys.stderr,
         )
         return EXIT_INTERNAL_ERROR
+
+
+# The resource trackers (processes that remove the workers' semaphores and folders if the
+# run cannot) warn on their own stderr, the run's, when they remove something at the end:
+# an interrupted run leaves that to them.
+_TRACKER_WARNINGS = "ignore:resource_tracker:UserWarning"
+
+
+def _quiet_resource_trackers() -> None:
+    """Keep the resource trackers' warnings off stderr: they read PYTHONWARNINGS as they
+    start, with the run's first workers."""
+    rules = os.environ.get("PYTHONWARNINGS", "")
+    if _TRACKER_WARNINGS not in rules.split(","):
+        os.environ["PYTHONWARNINGS"] = ",".join(r for r in (rules, _TRACKER_WARNINGS) if r)
+
+
+def _own_records(record: logging.LogRecord) -> bool:
+    """Whether a log record is the project's own: without --debug, libraries' records
+    (distributed's, asyncio's as a cluster stops, ...) stay off stderr."""
+    return record.name == "pipeline" or record.name.startswith("pipeline.")
 
 
 def _with_negative_frames(argv: Sequence[str]) -> list[str]:

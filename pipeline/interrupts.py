@@ -79,3 +79,39 @@ def deferred_signals() -> Iterator[None]:
             signum, _pending = _pending, None
             if not _interrupted:
                 _interrupt(signum)
+
+
+# The signals a terminal sends its whole foreground group (Ctrl-C, a hang-up) that the run's
+# worker processes leave to the run: SIGTERM, which loky and distributed stop workers with,
+# is not among them.
+_LEFT_TO_THE_RUN = {getattr(signal, name) for name in ("SIGINT", "SIGHUP") if hasattr(signal, name)}
+
+
+@contextlib.contextmanager
+def signals_blocked_in_children() -> Iterator[None]:
+    """Block SIGINT and SIGHUP in this thread inside the block, so that the processes and
+    threads it starts (workers, the resource trackers) begin with them blocked, and keep
+    them so.
+
+    A terminal signals every process of its foreground group: on Ctrl-C, workers printed
+    tracebacks ("Fatal Python error: init_import_site" from an interpreter still starting,
+    KeyboardInterrupt from a Dask worker), and a hang-up killed the resource tracker, whose
+    successor printed a KeyError per file it was asked to forget; while the run stops its
+    workers anyway. The run's own process handles the signal: one that arrives meanwhile is
+    taken by another of its threads, or waits for the block's end; it is not lost. Main
+    thread only (a no-op elsewhere, and where the system has no signal masks).
+    """
+    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    from multiprocessing import resource_tracker
+
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, _LEFT_TO_THE_RUN)
+    try:
+        # Started now if not yet (the first worker would start it): its start unblocks
+        # SIGINT in the calling thread (Python 3.11's ensure_running), so block again.
+        resource_tracker.ensure_running()
+        signal.pthread_sigmask(signal.SIG_BLOCK, _LEFT_TO_THE_RUN)
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)

@@ -25,6 +25,7 @@ from typing import IO, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .commit_marker import killed_commits, marker_path, marker_run
 from .errors import OutputError
 from .frame_task import FrameOutput
 from .interrupts import deferred_signals
@@ -240,7 +241,27 @@ class OutputTarget:
         self._lock_fd = fd
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
+        self._finish_killed_commits()
         self._remove_stale()
+
+    def _finish_killed_commits(self) -> None:
+        """Put in place the rest of a pair whose run was killed between its renames (SIGKILL,
+        power loss), as that run would have: its temporary files are complete by then, so
+        the folder holds its new pair, not a new .mcap beside an old .rrd."""
+        for marker in killed_commits(self.out_dir, self.name):
+            run = marker_run(marker, self.name)
+            for final in self.finals:
+                partial = final.with_name(f".{final.name}.{run}.partial")
+                if partial.exists():
+                    os.replace(partial, final)
+            _sync_folder(self.out_dir)
+            marker.unlink()
+            log.warning(
+                "%s, %s: the run that wrote them was killed while putting them in place; "
+                "put in place now, both are that run's",
+                _display(self.mcap_path),
+                self.rrd_path.name,
+            )
 
     def _remove_stale(self) -> None:
         """Remove the temporary files of this session's earlier runs: with the lock held,
@@ -254,9 +275,14 @@ class OutputTarget:
 
     def commit(self) -> None:
         """Rename both temporary files into place: afterwards the folder holds the new pair,
-        or, if a rename fails, the old pair (or none) as before."""
+        or, if a rename fails, the old pair (or none) as before.
+
+        A marker file names the run while it renames, so that if it is killed between the
+        two renames, the next run of the session in the folder puts the rest in place
+        (:meth:`lock`), and :func:`pipeline.recording.load_recording` warns meanwhile."""
         backups: list[tuple[Path, Path]] = []
         placed: list[Path] = []
+        marker = marker_path(self.out_dir, self.name, self.run)
         try:
             for final in self.finals:
                 if final.exists():
@@ -266,10 +292,16 @@ class OutputTarget:
                     except OSError:  # a file system without hard links
                         os.replace(final, backup)
                     backups.append((final, backup))
+            marker.touch(exist_ok=False)
+            _sync_folder(self.out_dir)  # on disk before any rename
             for final in self.finals:
                 os.replace(self.partial(final), final)
                 placed.append(final)
+            _sync_folder(self.out_dir)
+            marker.unlink()
         except BaseException:
+            with contextlib.suppress(OSError):
+                marker.unlink()  # the old pair goes back: nothing for a later run to finish
             restored = dict(backups)
             for final in placed:
                 with contextlib.suppress(OSError):
@@ -298,6 +330,16 @@ class OutputTarget:
             for folder in reversed(self._created):  # deepest first
                 with contextlib.suppress(OSError):
                     folder.rmdir()
+
+
+def _sync_folder(folder: Path) -> None:
+    """Write ``folder``'s entries (created, renamed files) to disk, where the system can."""
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
 def prepare_outputs(out_dir: Path, name: str, force: bool) -> OutputTarget:

@@ -34,6 +34,7 @@ from mcap.well_known import MessageEncoding
 from mcap_protobuf.decoder import DecoderFactory
 from numpy.typing import NDArray
 
+from .commit_marker import killed_commits
 from .errors import RecordingError
 from .record_mcap import (
     CENTERLINE_TOPIC,
@@ -179,6 +180,15 @@ _RRD_MAGIC = b"RRF"
 def load_recording(path: Path | str) -> Recording:
     """Read ``path`` (an MCAP written by the pipeline) into a :class:`Recording`."""
     path = Path(path)
+    if killed_commits(path.parent, path.stem):
+        log.warning(
+            "%s: the run that wrote it was killed while putting its outputs in place: %s may be "
+            "an earlier run's; the next 'pipeline process' of %s into %s puts the pair together",
+            path,
+            path.with_suffix(".rrd").name,
+            path.stem,
+            path.parent,
+        )
     try:
         with path.open("rb") as f:
             if f.read(len(_RRD_MAGIC)) == _RRD_MAGIC:

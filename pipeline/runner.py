@@ -18,7 +18,6 @@ import math
 import os
 import sys
 import tempfile
-import textwrap
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -28,12 +27,13 @@ from typing import Any
 from .errors import Interrupted, SessionError, SettingsError
 from .frame_result import FrameResult
 from .frame_task import FrameFunction, FrameOutput, encode_silhouette, process_range
-from .interrupts import signals_interrupt
+from .interrupts import deferred_signals, signals_blocked_in_children, signals_interrupt
 from .outputs import OutputTarget, RunSummary, Writers, compress_failures, prepare_outputs
 from .session import Session
 from .tracking import SEGMENT_FRAMES, segment_start
 from .workers import (
     available_cores,
+    describe_pool_failure,
     effective_jobs,
     loky_options,
     release_local_workers,
@@ -107,15 +107,19 @@ def _backend(backend: str, scheduler: str | None, n_jobs: int, model: Any) -> It
             else:
                 yield n_jobs, model
         return
-    # distributed logs ~45 INFO lines while a cluster starts, in this process and in its
-    # workers (which read the variable): the run's own lines say what matters.
+    # distributed logs ~45 INFO lines while a cluster starts, and warnings as an interrupted
+    # one stops (cancelled tasks, workers killed), in this process and in its workers
+    # (which read the variable): the run's own lines say what matters.
     quiet = not log.isEnabledFor(logging.DEBUG)
     if quiet:
-        os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+        os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "critical")
     from distributed import Client, LocalCluster
 
     if quiet:
-        logging.getLogger("distributed").setLevel(logging.WARNING)
+        # Dask's logging config gives these their own handlers (tornado's: a client's
+        # callback that finds its connections closed as an interrupted run stops).
+        for name in ("distributed", "tornado", "tornado.application"):
+            logging.getLogger(name).setLevel(logging.CRITICAL)
 
     cluster = None
     if scheduler:
@@ -127,17 +131,30 @@ def _backend(backend: str, scheduler: str | None, n_jobs: int, model: Any) -> It
                 "check --scheduler and that the scheduler is running"
             ) from None
     else:
-        cluster = LocalCluster(n_workers=n_jobs, threads_per_worker=1, processes=True)
-        client = Client(cluster)
+        # A cluster interrupted while it starts cannot be closed (distributed's own exit
+        # handler then fails on it with a traceback): a signal waits the seconds it takes.
+        with deferred_signals(), signals_blocked_in_children():
+            cluster = LocalCluster(n_workers=n_jobs, threads_per_worker=1, processes=True)
+            client = Client(cluster)
     try:
         # The model is scattered to the workers once, not shipped with every range.
         with joblib.parallel_config(backend="dask", client=client, scatter=[model]):
             workers = len(client.scheduler_info().get("workers", {}))
             yield max(1, workers), model
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        _close_dask(client, cluster)
+
+
+def _close_dask(client: Any, cluster: Any) -> None:
+    """Close the run's client, and its local cluster if it started one (whose workers are
+    killed if they do not stop within seconds), without letting a failure to close hide
+    how the run ended."""
+    for closing in (client, cluster):
+        if closing is not None:
+            try:
+                closing.close()
+            except Exception as exc:
+                log.debug("closing %s failed: %s", type(closing).__name__, exc)
 
 
 def _check_scheduler(address: str, timeout_s: float) -> None:
@@ -201,7 +218,8 @@ def _run_ranges(
     from joblib import Parallel
 
     def dispatch(group: list[tuple[int, int]]) -> Iterator[list[FrameOutput]]:
-        return iter(Parallel(n_jobs=n_jobs, return_as="generator")(call(r) for r in group))
+        with signals_blocked_in_children():  # a fresh pool starts its workers here
+            return iter(Parallel(n_jobs=n_jobs, return_as="generator")(call(r) for r in group))
 
     try:
         started = dispatch(ranges) if ranges else None
@@ -233,10 +251,9 @@ def _attempts(
                 first, last = group[done][0], group[done][1] - 1
                 reason = f"worker died on frames {first}-{last}, also when retried ({type(exc).__name__})"
                 log.warning(
-                    "a worker failed on frames %d onwards (%s: %s); %s",
+                    "a worker failed on frames %d onwards (%s); %s",
                     group[done][0],
-                    type(exc).__name__,
-                    textwrap.shorten(str(exc).strip().splitlines()[0], 200) if str(exc).strip() else "",
+                    describe_pool_failure(exc),
                     "giving up on this range" if attempt == "isolated" else "retrying in a fresh pool",
                 )
                 if attempt == "isolated":

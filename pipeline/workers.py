@@ -16,18 +16,25 @@ executor is one per process anyway.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import shutil
+import signal
 import tempfile
+import textwrap
 import threading
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
 from .errors import SettingsError
+from .interrupts import signals_blocked_in_children
 
 T = TypeVar("T")
+
+log = logging.getLogger(__name__)
 
 # Where the shared model's file goes, as joblib would put its own copy: in memory when
 # the machine has a shared-memory folder with room to spare (containers often mount a
@@ -45,6 +52,23 @@ _PARENT_CHECK_S = 1.0
 # The shared model's folder: its name holds the run's process id, so that a later run
 # can tell the folder of a run that was killed (SIGKILL) from one in use.
 _MODEL_PREFIX = "pipeline-model-"
+
+
+# How long a dead worker may go unnoticed by its pool before the run steps in. loky notices a
+# death within milliseconds, except that of a worker killed while handing back its results
+# (the OOM killer at the wrong moment): its pool then waits for good on the rest of the
+# message. Seconds are plenty for the first; the second costs this long.
+HANDBACK_TIMEOUT_S = 10.0
+# The same for a pool being shut down (an interrupt, the end of a run), whose workers are
+# killed and gone in milliseconds: an interrupt should not wait long.
+_SHUTDOWN_GRACE_S = 2.0
+# How often the watch looks at the pool.
+_WATCH_S = 0.25
+
+# The watch over the local pool (started with the workers, stopped with them).
+_watch_stop: threading.Event | None = None
+# Set when the watch has ended a stuck pool, until describe_pool_failure has said so.
+_ended_stuck_pool = False
 
 
 def available_cores() -> int:
@@ -98,9 +122,10 @@ def start_local_workers(n_workers: int) -> None:
     global _warm_up, _warm_up_workers
     if n_workers < 2 or (_warm_up is not None and _warm_up_workers == n_workers):
         return
+    _start_watch()
     from joblib import Parallel, delayed, parallel_config
 
-    with parallel_config(backend="loky", **loky_options()):
+    with parallel_config(backend="loky", **loky_options()), signals_blocked_in_children():
         parallel = Parallel(n_jobs=n_workers, return_as="generator_unordered")
         # Held until wait_for_local_workers: a generator dropped unfinished aborts its pool.
         _warm_up = iter(parallel(delayed(_import_frame_modules)() for _ in range(n_workers)))
@@ -137,9 +162,127 @@ def release_local_workers() -> None:
     from joblib.externals.loky import reusable_executor
 
     executor = getattr(reusable_executor, "_executor", None)  # loky keeps one per process
+    pool = _current_pool()  # taken first: the shutdown drops the executor's references
     if executor is not None:
         with contextlib.suppress(Exception):
-            executor.shutdown(wait=True, kill_workers=True)
+            executor.shutdown(wait=False, kill_workers=True)
+    if pool is not None:
+        # loky's own shutdown(wait=True) waits for good on a pool stuck on a dead
+        # worker's results: wait a bounded time, then end the pool as the watch does.
+        pool.manager.join(_SHUTDOWN_GRACE_S)
+        if pool.manager.is_alive():
+            _end_stuck_pool(pool)
+            pool.manager.join(_SHUTDOWN_GRACE_S)
+    _stop_watch()
+
+
+@dataclass(frozen=True)
+class _Pool:
+    """What the watch needs of loky's executor: its manager thread (which collects the
+    results), its worker processes, and this process's end of the results' pipe."""
+
+    manager: threading.Thread
+    processes: list[Any]
+    result_writer: Any
+    shutting_down: bool
+
+
+def _current_pool() -> _Pool | None:
+    """The local pool of this process, if one is running (loky's private attributes)."""
+    from joblib.externals.loky import reusable_executor
+
+    executor = getattr(reusable_executor, "_executor", None)
+    manager = getattr(executor, "_executor_manager_thread", None)
+    results = getattr(executor, "_result_queue", None)
+    processes = getattr(executor, "_processes", None)
+    if manager is None or results is None or processes is None:
+        return None
+    try:
+        shutting_down = bool(executor._flags.shutdown)  # type: ignore[union-attr]
+        return _Pool(manager, list(processes.values()), results._writer, shutting_down)
+    except (AttributeError, RuntimeError):  # changed under us: look again at the next tick
+        return None
+
+
+def _has_exited(process: Any) -> bool:
+    """Whether a worker process has ended, read from its sentinel: unlike ``exitcode``,
+    this does not reap it (loky's manager thread does that, and would wait on a reaped one)."""
+    from multiprocessing.connection import wait
+
+    try:
+        return bool(wait([process.sentinel], timeout=0))
+    except (OSError, ValueError, AttributeError):  # closed: loky has let it go already
+        return False
+
+
+def _end_stuck_pool(pool: _Pool) -> None:
+    """End a pool whose manager thread waits for the rest of a result that a dead worker
+    was handing back (a message cut short in the results' pipe, which the other workers
+    and this process still hold open): kill the workers, then close this process's end,
+    so that the manager reads the end of the pipe, marks the pool broken and fails its
+    tasks (BrokenProcessPool) as it does for any dead worker."""
+    global _ended_stuck_pool
+    _ended_stuck_pool = True
+    from multiprocessing.connection import wait
+
+    for process in pool.processes:
+        if not _has_exited(process):  # the dead are not reaped yet: their ids are still theirs
+            with contextlib.suppress(OSError):
+                os.kill(process.pid, signal.SIGKILL)  # loky's processes have no kill()
+    deadline = time.monotonic() + _SHUTDOWN_GRACE_S
+    for process in pool.processes:
+        with contextlib.suppress(Exception):
+            wait([process.sentinel], timeout=max(0.0, deadline - time.monotonic()))
+    with contextlib.suppress(OSError):
+        pool.result_writer.close()
+
+
+def _watch(stop: threading.Event) -> None:
+    """Until ``stop`` is set: end the local pool if one of its workers has been dead for
+    HANDBACK_TIMEOUT_S (_SHUTDOWN_GRACE_S once the pool is being shut down) while the pool
+    still runs (see :func:`_end_stuck_pool`). A pool that notices a death itself, or
+    kills its workers, takes them out of its list at once."""
+    stuck: tuple[threading.Thread, float] | None = None  # (the pool's manager, since when)
+    while not stop.wait(_WATCH_S):
+        pool = _current_pool()
+        if pool is None or not pool.manager.is_alive() or not any(map(_has_exited, pool.processes)):
+            stuck = None
+            continue
+        if stuck is None or stuck[0] is not pool.manager:
+            stuck = (pool.manager, time.monotonic())
+        bound = _SHUTDOWN_GRACE_S if pool.shutting_down else HANDBACK_TIMEOUT_S
+        if time.monotonic() - stuck[1] > bound:
+            log.debug("a worker died handing back its results; ending its pool")
+            _end_stuck_pool(pool)
+            stuck = None
+
+
+def _start_watch() -> None:
+    global _watch_stop, _ended_stuck_pool
+    if _watch_stop is None:
+        _ended_stuck_pool = False
+        _watch_stop = threading.Event()
+        threading.Thread(target=_watch, args=(_watch_stop,), daemon=True, name="pipeline-pool-watch").start()
+
+
+def _stop_watch() -> None:
+    global _watch_stop
+    if _watch_stop is not None:
+        _watch_stop.set()
+        _watch_stop = None
+
+
+def describe_pool_failure(exc: BaseException) -> str:
+    """What broke a pool, for a warning line: the exception's name and first line, or,
+    when the watch ended a stuck pool, that a worker died handing back its results
+    (loky's own words for that, "A result has failed to un-serialize", mislead)."""
+    global _ended_stuck_pool
+    if _ended_stuck_pool:
+        _ended_stuck_pool = False
+        return "a worker died while handing back its results"
+    text = str(exc).strip()
+    first = textwrap.shorten(text.splitlines()[0], 200) if text else ""  # whole words
+    return f"{type(exc).__name__}: {first}" if first else type(exc).__name__
 
 
 @contextlib.contextmanager

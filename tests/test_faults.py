@@ -7,6 +7,7 @@ fault handling and not the reconstruction.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import os
@@ -343,7 +344,9 @@ def _frames_by_chunk(path: Path) -> list[tuple[int, int]]:
     ]
 
 
-def test_recording_cut_short_is_read_to_its_last_complete_chunk(big_recording: Path, tmp_path: Path) -> None:
+def test_recording_cut_short_is_read_to_its_last_complete_chunk(
+    big_recording: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     full = load_recording(big_recording)
     assert full.complete and len(full) == 40
     by_chunk = _frames_by_chunk(big_recording)
@@ -357,9 +360,17 @@ def test_recording_cut_short_is_read_to_its_last_complete_chunk(big_recording: P
     for cut in cuts:
         cut_path.write_bytes(data[:cut])
         expected = sum(n for end, n in by_chunk if end <= cut)
-        rec = load_recording(cut_path)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            rec = load_recording(cut_path)
         assert not rec.complete
         assert len(rec) == expected, f"cut at {cut}"
+        # The warning names the last frame read (frame indices count from 0 here), or none.
+        if expected:
+            assert f"truncated or damaged after frame {expected - 1}; read what precedes it" in caplog.text
+        else:
+            assert "truncated or damaged before its first frame" in caplog.text
+        assert f"no footer (the run did not finish); {expected} frames read" in caplog.text
         np.testing.assert_array_equal(rec.frame_indices, full.frame_indices[:expected])
         np.testing.assert_array_equal(rec.centerlines_m, full.centerlines_m[:expected])
         for got, want in zip(rec.points_m, full.points_m, strict=False):
@@ -368,11 +379,19 @@ def test_recording_cut_short_is_read_to_its_last_complete_chunk(big_recording: P
 
 # --- SIGTERM to the command line --------------------------------------------------------------
 
+
+def _hook_path(hook: Path) -> str:
+    """PYTHONPATH for a run with ``hook``/sitecustomize.py: the hook, then this source tree,
+    which sitecustomize imports from before ``-m`` puts the current folder on the path (an
+    installed pipeline elsewhere, such as another work tree's, would be tested instead)."""
+    return os.pathsep.join([str(hook), str(Path(__file__).resolve().parents[1])])
+
+
 # Installed as sitecustomize in every Python process of the run (the CLI and its loky workers):
 # the CLI's process_session gets a slow stand-in frame function, so that a short session lasts
 # long enough to be stopped mid-run.
 _SLOW_RUN_HOOK = """
-import os, time
+import os, sys, time
 
 def slow_frame(index, images, model):
     from pipeline.frame_result import FrameResult
@@ -380,7 +399,9 @@ def slow_frame(index, images, model):
     time.sleep(float(os.environ["FAULTS_FRAME_S"]))
     return FrameResult(index=index, status="empty", reason="slow stand-in"), None
 
-if os.environ.get("FAULTS_FRAME_S"):
+# In the command line's process only: workers that imported the pipeline as they start would
+# lengthen the moment when a signal finds them starting.
+if os.environ.get("FAULTS_FRAME_S") and sys.orig_argv[1:3] == ["-m", "pipeline"]:
     import pipeline.runner as runner
 
     _process_session = runner.process_session
@@ -404,7 +425,7 @@ def test_a_signal_stops_the_run_and_keeps_previous_outputs(tmp_path: Path, sig: 
     hook = tmp_path / "hook"
     hook.mkdir()
     (hook / "sitecustomize.py").write_text(_SLOW_RUN_HOOK)
-    env = {**os.environ, "PYTHONPATH": str(hook), "FAULTS_FRAME_S": "0.2"}
+    env = {**os.environ, "PYTHONPATH": _hook_path(hook), "FAULTS_FRAME_S": "0.2"}
     command = [sys.executable, "-m", "pipeline", "process", str(session), "--out", str(out)]
     proc = subprocess.Popen(
         [*command, "--jobs", "2", "--no-images", "--force"], stderr=subprocess.PIPE, text=True, env=env
@@ -430,6 +451,75 @@ def test_a_signal_stops_the_run_and_keeps_previous_outputs(tmp_path: Path, sig: 
     assert re.fullmatch(
         r"interrupted after \d+ of 60 frames; temporary files removed, existing outputs untouched", line
     )
+
+
+def _start_slow_run(tmp_path: Path, backend: str, frame_s: float) -> tuple[subprocess.Popen[str], Path]:
+    """The CLI in a group of its own on 60 frames of ``frame_s`` each (_SLOW_RUN_HOOK), two
+    workers of ``backend``; returns once the run is under way (its temporary MCAP exists)."""
+    session = build_session(tmp_path / "take", frames=60)
+    out = tmp_path / "out"
+    hook = tmp_path / "hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(_SLOW_RUN_HOOK)
+    env = {**os.environ, "PYTHONPATH": _hook_path(hook), "FAULTS_FRAME_S": str(frame_s)}
+    command = [sys.executable, "-m", "pipeline", "process", str(session), "--out", str(out), "--no-images"]
+    proc = _popen_in_a_group([*command, "--jobs", "2", "--backend", backend], env)
+    for _ in range(1200):
+        if proc.poll() is not None or (out.exists() and any(p.suffix == ".partial" for p in out.iterdir())):
+            break
+        time.sleep(0.05)
+    time.sleep(1.0)  # the workers are in their first ranges
+    return proc, out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["loky", "dask"])
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGHUP], ids=lambda s: s.name)
+def test_a_terminals_signal_to_every_process_ends_the_run_in_one_line(
+    tmp_path: Path, backend: str, sig: signal.Signals
+) -> None:
+    proc, out = _start_slow_run(tmp_path, backend, 0.5)
+    try:
+        children = psutil.Process(proc.pid).children(recursive=True)
+        _signal(proc, sig, "group")  # Ctrl-C, or the terminal closed: the workers get it too
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    # Not the workers' tracebacks, the resource tracker's KeyErrors nor distributed's logs.
+    (line,) = err.strip().splitlines()
+    assert re.fullmatch(
+        r"interrupted after \d+ of 60 frames; temporary files removed, existing outputs untouched", line
+    )
+    assert not out.exists()
+    _assert_no_process_left(proc.pid, children)
+
+
+@pytest.mark.slow
+def test_dask_workers_exit_when_the_run_is_killed(tmp_path: Path) -> None:
+    proc, _ = _start_slow_run(tmp_path, "dask", 30.0)  # each worker in a frame for 30 s
+    try:
+        children = psutil.Process(proc.pid).children(recursive=True)
+        assert len([p for p in children if "spawn_main" in " ".join(p.cmdline())]) == 2, children
+        proc.kill()  # SIGKILL, as the OOM killer ends a run: no clean-up of its own
+        proc.wait(timeout=60)
+    finally:
+        proc.kill()
+    _assert_no_process_left(proc.pid, children)
+
+
+@pytest.mark.slow
+def test_dask_run_keeps_stderr_to_the_projects_own_lines(tmp_path: Path) -> None:
+    session = build_session(tmp_path / "take", frames=6, settings=COARSE)
+    command = [sys.executable, "-m", "pipeline", "process", str(session), "--out", str(tmp_path / "out")]
+    done = subprocess.run(
+        [*command, "--backend", "dask", "--jobs", "2"], capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == EXIT_OK, done.stderr
+    # No INFO lines from distributed as the cluster starts and stops, no warnings: a run
+    # where every frame is ok has nothing to say on stderr.
+    assert done.stderr == ""
+    assert "6 processed, 6 ok" in done.stdout
 
 
 # --- two runs, dead runs, the pair of outputs ------------------------------------------------
@@ -484,6 +574,65 @@ def test_a_failed_second_rename_puts_the_old_pair_back(
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
+# A run (of StraightRod, in one process) killed outright between its two renames: the new
+# .mcap is in place, the .rrd is still under its temporary name.
+_KILLED_BETWEEN_RENAMES = """
+import os, signal, sys
+from pathlib import Path
+
+sys.path.insert(0, "tests")
+from pipeline import runner
+from pipeline.session import load_session
+from test_faults import straight_rod
+
+real_replace = os.replace
+
+def replace(src, dst):
+    if Path(dst).name == "take.rrd" and str(src).endswith(".partial"):
+        os.kill(os.getpid(), signal.SIGKILL)
+    real_replace(src, dst)
+
+os.replace = replace
+runner.process_session(
+    load_session(Path(sys.argv[1])), out_dir=Path(sys.argv[2]), jobs=1, images=False,
+    progress=False, frame_fn=straight_rod, force=True,
+)
+"""
+
+
+def test_a_pair_split_by_a_kill_between_the_renames_is_told_and_put_together(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    session = build_session(tmp_path / "take", frames=3)
+    out = tmp_path / "out"
+    _run(session, out, frames=(0, 1))  # the old pair: one frame
+    old_rrd = (out / "take.rrd").read_bytes()
+    killed = subprocess.run(
+        [sys.executable, "-c", _KILLED_BETWEEN_RENAMES, str(session), str(out)],
+        cwd=Path(__file__).resolve().parents[1],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert killed.returncode == -signal.SIGKILL, killed.stderr
+    assert (out / "take.rrd").read_bytes() == old_rrd  # split: the old .rrd ...
+    (partial,) = out.glob(".take.rrd.*.partial")  # ... the new one beside it, complete
+    new_rrd = partial.read_bytes()
+    with caplog.at_level(logging.WARNING):
+        assert len(load_recording(out / "take.mcap")) == 3  # ... and the new .mcap
+    assert "take.mcap: the run that wrote it was killed while putting its outputs in place" in caplog.text
+    assert "take.rrd may be an earlier run's" in caplog.text
+    caplog.clear()
+    # The next run of the session there puts the rest in place first (and then, without
+    # --force, refuses to replace the pair).
+    with caplog.at_level(logging.WARNING), pytest.raises(OutputError, match="already exists"):
+        _run(session, out)
+    assert "the run that wrote them was killed while putting them in place; put in place now" in caplog.text
+    assert (out / "take.rrd").read_bytes() == new_rrd
+    assert len(load_recording(out / "take.mcap")) == 3
+    assert _leftovers(out) == []
+
+
 def test_a_run_that_fails_removes_the_output_folder_it_created(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -510,9 +659,9 @@ def test_jobs_beyond_the_cores_are_capped_with_a_note(
 # As _SLOW_RUN_HOOK, for the moment the session is loaded: the CLI's load_session marks that it
 # has begun and then takes a minute.
 _SLOW_LOAD_HOOK = """
-import os, time
+import os, sys, time
 
-if os.environ.get("FAULTS_LOADING_MARK"):
+if os.environ.get("FAULTS_LOADING_MARK") and sys.orig_argv[1:3] == ["-m", "pipeline"]:
     import pipeline.session
 
     def load_session(directory):
@@ -523,25 +672,59 @@ if os.environ.get("FAULTS_LOADING_MARK"):
 """
 
 
+def _popen_in_a_group(command: list[str], env: dict[str, str]) -> subprocess.Popen[str]:
+    """Start ``command`` as a terminal starts a job: a process group of its own (which
+    :func:`_signal` can signal whole, as Ctrl-C does), SIGINT not ignored."""
+    return subprocess.Popen(
+        command,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+
+
+def _signal(proc: subprocess.Popen[str], sig: signal.Signals, to: str) -> None:
+    """``sig`` to the process alone (``kill PID``), or to its whole group (a terminal's Ctrl-C
+    or hang-up, which reach the workers too)."""
+    if to == "group":
+        os.killpg(proc.pid, sig)
+    else:
+        proc.send_signal(sig)
+
+
+# A signal to the run's process alone, or to its process group as a terminal sends it.
+_SIGNALS_AND_TARGETS = [
+    (signal.SIGINT, "process"),
+    (signal.SIGTERM, "process"),
+    (signal.SIGHUP, "process"),
+    (signal.SIGINT, "group"),
+    (signal.SIGHUP, "group"),
+]
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=lambda s: s.name)
-def test_a_signal_while_loading_ends_the_run_cleanly(tmp_path: Path, sig: signal.Signals) -> None:
+@pytest.mark.parametrize(("sig", "to"), _SIGNALS_AND_TARGETS, ids=lambda v: getattr(v, "name", v))
+def test_a_signal_while_loading_ends_the_run_cleanly(tmp_path: Path, sig: signal.Signals, to: str) -> None:
     session = build_session(tmp_path / "take", frames=2)
     out = tmp_path / "new" / "out"
     hook = tmp_path / "hook"
     hook.mkdir()
     (hook / "sitecustomize.py").write_text(_SLOW_LOAD_HOOK)
     mark = tmp_path / "loading"
-    env = {**os.environ, "PYTHONPATH": str(hook), "FAULTS_LOADING_MARK": str(mark)}
+    env = {**os.environ, "PYTHONPATH": _hook_path(hook), "FAULTS_LOADING_MARK": str(mark)}
     command = [sys.executable, "-m", "pipeline", "process", str(session), "--out", str(out), "--jobs", "2"]
-    proc = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, env=env)
+    proc = _popen_in_a_group(command, env)
     try:
         for _ in range(1200):
             if mark.exists() or proc.poll() is not None:
                 break
             time.sleep(0.05)
-        children = psutil.Process(proc.pid).children(recursive=True)  # the workers started ahead
-        proc.send_signal(sig)
+        # The workers started ahead, still starting: a terminal's signal finds them importing.
+        children = psutil.Process(proc.pid).children(recursive=True)
+        _signal(proc, sig, to)
         _, err = proc.communicate(timeout=60)
     finally:
         proc.kill()
@@ -589,3 +772,125 @@ def test_loading_the_rrd_says_to_pass_the_mcap(big_recording: Path) -> None:
         RecordingError, match=r"rec\.rrd: is a Rerun recording .*give load_recording the \.mcap"
     ):
         load_recording(big_recording.with_suffix(".rrd"))
+
+
+# --- a worker killed while handing back its results ---------------------------------------
+
+# As _SLOW_RUN_HOOK: the CLI's runs get a frame function whose worker, on frame 5, sends half
+# of its range's results and dies (the OOM killer at the wrong moment: a message cut short in
+# the pipe, which loky's manager thread then waits on for good). The first time only, unless
+# FAULTS_HANDBACK_ALWAYS is set; the watch's bound is FAULTS_HANDBACK_S.
+_DIES_HANDING_BACK_HOOK = """
+import os, struct, sys, time
+
+def dies_handing_back(index, images, model):
+    from multiprocessing import connection
+    from pipeline.frame_result import FrameResult
+
+    mark = os.environ["FAULTS_HANDBACK_MARK"]
+    if index == 5 and (os.environ.get("FAULTS_HANDBACK_ALWAYS") or not os.path.exists(mark)):
+        def half(self, buf):
+            data = bytes(buf)
+            self._send(struct.pack("!i", len(data)) + data[: len(data) // 2])
+            open(mark, "w").close()
+            os._exit(9)
+
+        connection.Connection._send_bytes = half
+    time.sleep(float(os.environ.get("FAULTS_FRAME_S", "0")))
+    return FrameResult(index=index, status="empty", reason="stand-in"), None
+
+if os.environ.get("FAULTS_HANDBACK_S") and sys.orig_argv[1:3] == ["-m", "pipeline"]:
+    import pipeline.runner as runner
+    import pipeline.workers as workers
+
+    workers.HANDBACK_TIMEOUT_S = float(os.environ["FAULTS_HANDBACK_S"])
+    _process_session = runner.process_session
+
+    def process_session(session, **options):
+        return _process_session(session, **options, frame_fn=dies_handing_back)
+
+    runner.process_session = process_session
+"""
+
+
+def _start_dying_run(tmp_path: Path, frames: int, **env: str) -> tuple[subprocess.Popen[str], Path, Path]:
+    """The CLI on a session of ``frames`` with _DIES_HANDING_BACK_HOOK; (process, out, mark)."""
+    session = build_session(tmp_path / "take", frames=frames)
+    hook = tmp_path / "hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(_DIES_HANDING_BACK_HOOK)
+    out, mark = tmp_path / "out", tmp_path / "died"
+    variables = {"PYTHONPATH": _hook_path(hook), "FAULTS_HANDBACK_S": "2", "FAULTS_HANDBACK_MARK": str(mark)}
+    command = [sys.executable, "-m", "pipeline", "process", str(session), "--out", str(out), "--no-images"]
+    proc = subprocess.Popen(
+        [*command, "--jobs", "2"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, **variables, **env},
+    )
+    return proc, out, mark
+
+
+def _assert_no_process_left(pid: int, children: list[psutil.Process]) -> None:
+    # Generous: the workers are killed as the run ends; this only guards against them staying.
+    _, alive = psutil.wait_procs(children, timeout=30)
+    for p in alive:
+        p.kill()
+    assert not alive, [p.cmdline() for p in alive]
+    assert not [p for p in Path("/dev/shm").glob(f"pipeline-model-{pid}-*")]
+
+
+@pytest.mark.slow
+def test_a_worker_killed_while_handing_back_its_results_is_retried_not_waited_for(tmp_path: Path) -> None:
+    frames = 2 * runner.MIN_RANGE_FRAMES
+    proc, out, mark = _start_dying_run(tmp_path, frames)
+    children: list[psutil.Process] = []
+    try:
+        while proc.poll() is None and not mark.exists():
+            with contextlib.suppress(psutil.Error):
+                children = psutil.Process(proc.pid).children(recursive=True)
+            time.sleep(0.05)
+        # Without a bound the run would wait here for good; 2 s and a fresh pool are enough.
+        summary, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert mark.exists(), "the worker should have died handing back its results"
+    assert proc.returncode == 1, err  # every frame is "empty" (the stand-in), none failed
+    assert re.search(
+        r"a worker failed on frames 0 onwards \(a worker died while handing back its results\); "
+        r"retrying in a fresh pool",
+        err,
+    ), err
+    assert f"{frames} processed, 0 ok, {frames} empty, 0 failed" in summary  # the range retried whole
+    assert load_recording(out / "take.mcap").complete and len(load_recording(out / "take.mcap")) == frames
+    _assert_no_process_left(proc.pid, children)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=lambda s: s.name)
+def test_a_signal_while_the_pool_waits_on_a_dead_worker_ends_the_run(
+    tmp_path: Path, sig: signal.Signals
+) -> None:
+    # The watch's bound is long (60 s): the signal, not the watch, has to end the wait.
+    proc, out, mark = _start_dying_run(
+        tmp_path, 60, FAULTS_HANDBACK_S="60", FAULTS_HANDBACK_ALWAYS="1", FAULTS_FRAME_S="0.1"
+    )
+    children: list[psutil.Process] = []
+    try:
+        while proc.poll() is None and not mark.exists():
+            with contextlib.suppress(psutil.Error):
+                children = psutil.Process(proc.pid).children(recursive=True)
+            time.sleep(0.05)
+        time.sleep(1.0)  # the pool is stuck now
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    (line,) = err.strip().splitlines()
+    assert re.fullmatch(
+        r"interrupted after \d+ of 60 frames; temporary files removed, existing outputs untouched", line
+    )
+    assert not out.exists()
+    _assert_no_process_left(proc.pid, children)
