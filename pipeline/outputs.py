@@ -20,7 +20,7 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,6 +31,9 @@ from .interrupts import deferred_signals
 from .quality import DOUBTFUL_IOU, is_doubtful, reaches_walls
 from .session import Session, check_utf8_path
 from .smoothing import smooth_centerlines
+
+if TYPE_CHECKING:  # the recorders are imported when a run opens its writers
+    from .record_mcap import MessageMirror
 
 log = logging.getLogger(__name__)
 
@@ -365,9 +368,23 @@ def _smooth(centerlines_mm: NDArray[np.float64], times_s: NDArray[np.float64]) -
 
 
 class Writers:
-    """The MCAP and Rerun writers of one run, their temporary files, and the tallies."""
+    """The MCAP and Rerun writers of one run, their temporary files, and the tallies.
 
-    def __init__(self, session: Session, target: OutputTarget, *, images: bool) -> None:
+    A live run passes ``viewer_url`` (the Rerun stream also goes to that viewer's gRPC
+    address, frame by frame: ``live``) and ``mirror`` (every MCAP message is also handed
+    to it: the Foxglove server).
+    """
+
+    def __init__(
+        self,
+        session: Session,
+        target: OutputTarget,
+        *,
+        images: bool,
+        live: bool = False,
+        viewer_url: str | None = None,
+        mirror: MessageMirror | None = None,
+    ) -> None:
         # Imported here, not with this module: a run's parent opens its writers once
         # the workers have their first frames, so Rerun's import no longer holds them up.
         import rerun as rr
@@ -399,18 +416,22 @@ class Writers:
                 "centerline_method": session.settings.centerline.method,
                 "start_time": session.settings.session.start_time.isoformat(),
             }
-            self.mcap = McapRecorder(self._mcap_file, session.cameras, images=images, metadata=meta)
+            self.mcap = McapRecorder(
+                self._mcap_file, session.cameras, images=images, metadata=meta, mirror=mirror
+            )
             self._stream = rr.RecordingStream(application_id="pipeline", recording_id=uuid.uuid4())
             # Deterministic files: no wall-clock "log_time" timeline, only frame and time.
             self._stream.set_log_time_enabled(False)
-            self._stream.save(
-                target.partial(self.rrd_path),
-                default_blueprint=default_blueprint(
-                    session.cameras, session.settings.workspace, fps=session.fps
-                ),
-            )
+            blueprint = default_blueprint(session.cameras, session.settings.workspace, fps=session.fps)
+            rrd_partial = target.partial(self.rrd_path)
+            if viewer_url is None:
+                self._stream.save(rrd_partial, default_blueprint=blueprint)
+            else:
+                self._stream.set_sinks(
+                    rr.GrpcSink(viewer_url), rr.FileSink(rrd_partial), default_blueprint=blueprint
+                )
             self._stream.send_recording_name(session.name)
-            self.rerun = RerunRecorder(self._stream, session.cameras, session.settings.workspace)
+            self.rerun = RerunRecorder(self._stream, session.cameras, session.settings.workspace, live=live)
         except OSError as exc:
             self.abort()
             raise output_error(target.out_dir, exc) from None
@@ -419,11 +440,16 @@ class Writers:
             raise
         self.committed = False
 
-    def write(self, out: FrameOutput) -> None:
+    def write(
+        self, out: FrameOutput, *, time_ns: int | None = None, extra_metrics: dict[str, float] | None = None
+    ) -> None:
+        """One frame, at ``time_ns`` (ns since the Unix epoch; default: the session's time of
+        its index); ``extra_metrics``: figures its metrics gain (a live run's latency)."""
         result = out.result
-        time_ns = self.session.timestamp_ns(result.index)
+        if time_ns is None:
+            time_ns = self.session.timestamp_ns(result.index)
         try:
-            self.mcap.write_frame(result, time_ns, jpegs=out.jpegs)
+            self.mcap.write_frame(result, time_ns, jpegs=out.jpegs, extra_metrics=extra_metrics)
         except OSError as exc:
             raise output_error(self.target.out_dir, exc) from None
         self.rerun.write_frame(result, time_ns, jpegs=out.jpegs, silhouettes_png=out.silhouettes_png)
