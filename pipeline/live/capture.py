@@ -30,6 +30,9 @@ log = logging.getLogger(__name__)
 STALL_S = 2.0
 # Opening a source may take this long (a stream's first packets, a device's start).
 OPEN_TIMEOUT_S = 5.0
+# FFmpeg options for a network stream: probe as little as will find the stream, and
+# pass packets on as they come.
+LOW_DELAY_OPTIONS = {"fflags": "nobuffer", "probesize": "32768", "analyzeduration": "0"}
 # A camera that is down is tried again this often.
 RETRY_S = 1.0
 
@@ -140,6 +143,10 @@ class CameraReader:
         options = {}
         if self.source.format == V4L2_FORMAT:
             options["video_size"] = f"{self.size_px[0]}x{self.size_px[1]}"
+        elif not self.source.is_replay:
+            # A stream's frames are stamped as they arrive: FFmpeg's probing would hold the
+            # first ones back and hand them over at once, stamped alike.
+            options.update(LOW_DELAY_OPTIONS)
         timeout = None if self.source.is_replay else (OPEN_TIMEOUT_S, self._stall_s)
         return av.open(self.source.url, format=self.source.format, options=options, timeout=timeout)
 
@@ -152,6 +159,9 @@ class CameraReader:
                 self.rate_fps = float(rate)
             greyer = Greyer()
             for k, frame in enumerate(container.decode(stream)):
+                # Stamped before anything else is done with it: the grey conversion waits for
+                # the interpreter's lock, for longer when the run is busy.
+                arrived_ns = time.monotonic_ns()
                 if self._stop.is_set():
                     return
                 if (frame.width, frame.height) != self.size_px:
@@ -160,12 +170,11 @@ class CameraReader:
                         f"calibration.toml gives {self.size_px[0]}x{self.size_px[1]}; set the camera "
                         "to the calibrated resolution, or use this resolution's calibration"
                     )
-                image = greyer(frame)
-                self._hand_over(k, image)
+                self._hand_over(k, arrived_ns, greyer(frame))
         finally:
             container.close()
 
-    def _hand_over(self, k: int, image: NDArray[np.uint8]) -> None:
+    def _hand_over(self, k: int, arrived_ns: int, image: NDArray[np.uint8]) -> None:
         if self.source.replay_fps is not None:
             # A replayed frame arrives when a camera would have delivered it: frame k of
             # every camera at the same moment from the common start.
@@ -174,8 +183,6 @@ class CameraReader:
             if wait_s > 0 and self._stop.wait(wait_s):
                 return
             arrived_ns = due_ns
-        else:
-            arrived_ns = time.monotonic_ns()
         if self._down:
             self._down = False
             log.warning("%s: frames again", self.source.describe())

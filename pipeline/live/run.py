@@ -209,6 +209,12 @@ def _run(
         ]
         for reader in readers:
             reader.start()
+        log.info(
+            "capturing %s; Ctrl-C (or SIGTERM) stops and writes %s and %s",
+            ", ".join(s.describe() for s in sources),
+            target.mcap_path,
+            target.rrd_path,
+        )
         latencies, stopped_by = _loop(readers, queue, writer, model, names, images, duration_s)
         with deferred_signals():  # from here a signal waits for the recordings to be complete
             _stop_readers(stop, readers)
