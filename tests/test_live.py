@@ -7,6 +7,9 @@ test starts, and are stopped by a signal; each checks the recordings it leaves.
 
 from __future__ import annotations
 
+import base64
+import io
+import json
 import os
 import signal
 import socket
@@ -369,3 +372,140 @@ def test_a_signal_stops_the_run_with_complete_recordings(
     # In order, each once (frame-sets dropped while the first frames initialise leave gaps).
     assert (np.diff(rec.frame_indices) > 0).all() and rec.frame_indices[-1] < FRAMES
     _verify_rrd(out / "take.rrd")
+
+
+# --- the Foxglove server -----------------------------------------------------------------------
+
+
+class _WebSocket:
+    """The least of a WebSocket client (RFC 6455) to read what a Foxglove server sends."""
+
+    def __init__(self, port: int, protocol: str) -> None:
+        self._sock = socket.create_connection(("127.0.0.1", port), timeout=5)
+        key = base64.b64encode(os.urandom(16)).decode()
+        self._sock.sendall(
+            f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+            f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
+            f"Sec-WebSocket-Protocol: {protocol}\r\n\r\n".encode()
+        )
+        self._buf = b""
+        while b"\r\n\r\n" not in self._buf:
+            self._buf += self._sock.recv(4096)
+        head, self._buf = self._buf.split(b"\r\n\r\n", 1)
+        assert head.startswith(b"HTTP/1.1 101"), head
+
+    def _need(self, n: int) -> None:
+        while len(self._buf) < n:
+            self._buf += self._sock.recv(65536)
+
+    def receive(self) -> tuple[int, bytes]:
+        """(opcode, payload) of the next frame: 1 text, 2 binary."""
+        self._need(2)
+        opcode, size, at = self._buf[0] & 0x0F, self._buf[1] & 0x7F, 2
+        if size >= 126:
+            width = 2 if size == 126 else 8
+            self._need(2 + width)
+            size, at = int.from_bytes(self._buf[2 : 2 + width], "big"), 2 + width
+        self._need(at + size)
+        payload, self._buf = self._buf[at : at + size], self._buf[at + size :]
+        return opcode, payload
+
+    def send_text(self, text: str) -> None:
+        data, mask = text.encode(), os.urandom(4)
+        assert len(data) < 126
+        masked = bytes(b ^ mask[i % 4] for i, b in enumerate(data))
+        self._sock.sendall(bytes([0x81, 0x80 | len(data)]) + mask + masked)
+
+    def close(self) -> None:
+        self._sock.close()
+
+
+def test_the_foxglove_server_publishes_the_mcaps_topics_and_its_statics_to_late_subscribers() -> None:
+    from conftest import rig_cameras
+    from mcap.reader import make_reader
+
+    from pipeline.frame_result import FrameResult
+    from pipeline.live.stream import FoxgloveServer
+    from pipeline.record_mcap import McapRecorder
+
+    server = FoxgloveServer("127.0.0.1", 0, name="test")
+    try:
+        sink = io.BytesIO()
+        recorder = McapRecorder(sink, rig_cameras(), mirror=server)
+        curve_mm = np.column_stack([np.full(5, 100.0), np.linspace(0.0, 40.0, 5), np.linspace(10.0, 50.0, 5)])
+        result = FrameResult(index=0, status="ok", centerline_mm=curve_mm, length_mm=40.0, radius_mm=6.0)
+        recorder.write_frame(result, 1_700_000_000_000_000_000, jpegs=[b"\xff\xd8jpeg"] * 3)
+        recorder.finish()
+        mcap_topics = {
+            channel.topic
+            for channel in make_reader(io.BytesIO(sink.getvalue())).get_summary().channels.values()
+        }
+
+        client = _WebSocket(int(server.address.rsplit(":", 1)[1]), "foxglove.sdk.v1")
+        advertised: dict[str, int] = {}
+        while set(advertised) != mcap_topics:
+            opcode, payload = client.receive()
+            message = json.loads(payload) if opcode == 1 else {}
+            if message.get("op") == "advertise":
+                advertised |= {c["topic"]: c["id"] for c in message["channels"]}
+        assert set(advertised) == mcap_topics
+        # /tf was written once, before this client came: subscribing sends it again.
+        client.send_text(
+            json.dumps({"op": "subscribe", "subscriptions": [{"id": 7, "channelId": advertised["/tf"]}]})
+        )
+        opcode, payload = client.receive()
+        while opcode != 2:
+            opcode, payload = client.receive()
+        assert payload[0] == 1 and int.from_bytes(payload[1:5], "little") == 7  # message data, subscription 7
+        client.close()
+    finally:
+        server.stop()
+
+
+# --- the command line --------------------------------------------------------------------------
+
+
+def test_live_without_sources_is_one_line_and_exit_2(
+    session: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from pipeline.cli import main
+
+    rig = _rig(tmp_path / "rig", session, None)
+    assert main(["live", str(rig), "--out", str(tmp_path / "out"), "--viewer", "none"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and len(err.splitlines()) == 1 and "no [live] table" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_live_to_a_viewer_nobody_runs_is_refused_before_the_run(
+    session: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from pipeline.cli import main
+
+    port = _free_port()  # nothing listens there
+    code = main(
+        ["live", "--replay", str(session), "--out", str(tmp_path / "out"), "--viewer", "connect", str(port)]
+    )
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert f"--viewer connect rerun+http://127.0.0.1:{port}/proxy: no Rerun viewer answers there" in err
+    assert len(err.splitlines()) == 1 and not (tmp_path / "out").exists()
+
+
+def test_a_camera_that_does_not_answer_is_reported_and_the_run_still_stops_cleanly(
+    session: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    ports = [_free_port() for _ in range(3)]  # nothing listens: each connection is refused
+    rig_dir = _rig(
+        tmp_path / "rig", session, {f"cam{k}": f"tcp://127.0.0.1:{p}" for k, p in enumerate(ports)}
+    )
+    rig, sources = open_rig(rig_dir, None)
+    with caplog.at_level("WARNING", logger="pipeline.live.capture"):
+        summary = run_live(rig, sources, out_dir=tmp_path / "out", duration_s=2.0)
+    # Every camera is refused, reported once and retried each second; no frame, exit 1.
+    assert summary.stopped_by == "duration" and summary.run.frames_total == 0 and summary.exit_code == 1
+    for k in range(3):
+        assert any(f"camera 'cam{k}' (tcp://127.0.0.1:{ports[k]})" in r.message for r in caplog.records)
+        assert len(summary.outages[f"cam{k}"]) == 1  # the same outage, reported once
+    live = pipeline.load_recording(tmp_path / "out" / "rig.mcap")
+    assert live.complete and len(live) == 0
