@@ -95,17 +95,22 @@ class LiveSummary:
         return out[:at] + extra + out[at:]
 
     def to_dict(self) -> dict[str, Any]:
+        """:meth:`RunSummary.to_dict` with the live figures under "live" (null where unknown)."""
         return self.run.to_dict() | {
             "problems": [line.strip() for line in self.problem_lines()],
             "live": {
                 "stopped_by": self.stopped_by,
-                "latency_ms": {"p50": self.latency_ms(50), "p99": self.latency_ms(99)},
+                "latency_ms": {"p50": _finite(self.latency_ms(50)), "p99": _finite(self.latency_ms(99))},
                 "frames_dropped": self.dropped,
                 "frames_unmatched": dict(self.unmatched),
-                "camera_fps": dict(self.camera_fps),
+                "camera_fps": {name: _finite(fps) for name, fps in self.camera_fps.items()},
                 "outages": {name: list(whys) for name, whys in self.outages.items()},
             },
         }
+
+
+def _finite(value: float) -> float | None:
+    return value if np.isfinite(value) else None  # JSON has no NaN
 
 
 def run_live(
