@@ -198,12 +198,15 @@ def _run(
             log.info("Foxglove: %s (in Foxglove: Open connection, Foxglove WebSocket)", server.address)
         writer = Writers(rig, target, images=images, live=True, viewer_url=viewer_url, mirror=server)
         queue = DroppingQueue(queue_sets)
-        rate = next((s.replay_fps for s in sources if s.replay_fps), rig.fps)
-        matcher = FrameMatcher(len(sources), half_period_ns(rate))
+        matcher = FrameMatcher(len(sources), half_period_ns(rig.fps))
         lock = threading.Lock()
 
         def deliver(frame: CapturedFrame) -> None:
             with lock:
+                # Half a period of the slowest camera, from the rates the streams declare
+                # once open (a replay's: its videos'); the rig's nominal rate until then.
+                rates = [r.rate_fps for r in readers if r.rate_fps]
+                matcher.tolerance_ns = half_period_ns(min(rates) if rates else rig.fps)
                 for frame_set in matcher.add(frame):
                     queue.put(frame_set)
 

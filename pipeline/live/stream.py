@@ -115,6 +115,9 @@ class FoxgloveServer:
     def __init__(self, host: str, port: int, *, name: str) -> None:
         import foxglove
 
+        if not log.isEnabledFor(logging.DEBUG):
+            # The server's own start and stop lines: the run says where it serves.
+            logging.getLogger("foxglove").setLevel(logging.WARNING)
         self._foxglove = foxglove
         server = self
 
