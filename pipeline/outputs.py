@@ -337,6 +337,8 @@ def output_error(out_dir: Path, exc: OSError) -> OutputError:
 # How long the Rerun writer may take to write out what it still holds at the end of a run:
 # seconds on any disk that takes writes; its flush otherwise waits for good (a full disk).
 FLUSH_TIMEOUT_S = 60.0
+# ... and what a live run's viewer may take to receive its last frames.
+VIEWER_FLUSH_S = 5.0
 
 
 def _check_rrd_complete(partial: Path, final: Path) -> None:
@@ -370,9 +372,9 @@ def _smooth(centerlines_mm: NDArray[np.float64], times_s: NDArray[np.float64]) -
 class Writers:
     """The MCAP and Rerun writers of one run, their temporary files, and the tallies.
 
-    A live run passes ``viewer_url`` (the Rerun stream also goes to that viewer's gRPC
-    address, frame by frame: ``live``) and ``mirror`` (every MCAP message is also handed
-    to it: the Foxglove server).
+    A live run passes ``viewer_url`` (the frames are also logged, as they come, to a Rerun
+    viewer at that gRPC address) and ``mirror`` (every MCAP message is also handed to it:
+    the Foxglove server).
     """
 
     def __init__(
@@ -381,7 +383,6 @@ class Writers:
         target: OutputTarget,
         *,
         images: bool,
-        live: bool = False,
         viewer_url: str | None = None,
         mirror: MessageMirror | None = None,
     ) -> None:
@@ -397,6 +398,8 @@ class Writers:
         self.mcap_path, self.rrd_path = target.mcap_path, target.rrd_path
         self._mcap_file: IO[bytes] | None = None
         self._stream: Any = None
+        self._viewer_stream: Any = None
+        self.viewer: RerunRecorder | None = None
         self._stalled = False  # the Rerun writer did not finish within its bound
         self.frames: list[int] = []
         self.times_ns: list[int] = []
@@ -419,19 +422,26 @@ class Writers:
             self.mcap = McapRecorder(
                 self._mcap_file, session.cameras, images=images, metadata=meta, mirror=mirror
             )
-            self._stream = rr.RecordingStream(application_id="pipeline", recording_id=uuid.uuid4())
+            recording_id = uuid.uuid4()
+            self._stream = rr.RecordingStream(application_id="pipeline", recording_id=recording_id)
             # Deterministic files: no wall-clock "log_time" timeline, only frame and time.
             self._stream.set_log_time_enabled(False)
             blueprint = default_blueprint(session.cameras, session.settings.workspace, fps=session.fps)
-            rrd_partial = target.partial(self.rrd_path)
-            if viewer_url is None:
-                self._stream.save(rrd_partial, default_blueprint=blueprint)
-            else:
-                self._stream.set_sinks(
-                    rr.GrpcSink(viewer_url), rr.FileSink(rrd_partial), default_blueprint=blueprint
-                )
+            self._stream.save(target.partial(self.rrd_path), default_blueprint=blueprint)
             self._stream.send_recording_name(session.name)
-            self.rerun = RerunRecorder(self._stream, session.cameras, session.settings.workspace, live=live)
+            if viewer_url is not None:
+                # A stream of its own, the same recording to the viewer: the viewer gets each
+                # frame within LIVE_SEND_S, the file its frames a hundred at a time as from
+                # process (the footer of an .rrd indexes every chunk: sent ten times a second,
+                # its index alone grew by 15 MiB a minute).
+                self._viewer_stream = rr.RecordingStream(application_id="pipeline", recording_id=recording_id)
+                self._viewer_stream.set_log_time_enabled(False)
+                self._viewer_stream.set_sinks(rr.GrpcSink(viewer_url), default_blueprint=blueprint)
+                self._viewer_stream.send_recording_name(session.name)
+                self.viewer = RerunRecorder(
+                    self._viewer_stream, session.cameras, session.settings.workspace, live=True
+                )
+            self.rerun = RerunRecorder(self._stream, session.cameras, session.settings.workspace)
         except OSError as exc:
             self.abort()
             raise output_error(target.out_dir, exc) from None
@@ -453,6 +463,8 @@ class Writers:
         except OSError as exc:
             raise output_error(self.target.out_dir, exc) from None
         self.rerun.write_frame(result, time_ns, jpegs=out.jpegs, silhouettes_png=out.silhouettes_png)
+        if self.viewer is not None:
+            self.viewer.write_frame(result, time_ns, jpegs=out.jpegs, silhouettes_png=out.silhouettes_png)
         self.frames.append(result.index)
         self.times_ns.append(time_ns)
         self.curves.append(result.centerline_mm if result.status == "ok" else None)
@@ -495,6 +507,8 @@ class Writers:
         if smoothed is not None:
             self.mcap.write_smoothed(smoothed, self.times_ns)
             self.rerun.write_smoothed(smoothed, self.frames, self.times_ns)
+            if self.viewer is not None:
+                self.viewer.write_smoothed(smoothed, self.frames, self.times_ns)
         self.mcap.finish()
         assert self._mcap_file is not None
         self._mcap_file.flush()
@@ -511,10 +525,25 @@ class Writers:
                 "(disk full, or a stalled file system?); free space or choose another --out, and rerun"
             ) from None
         self._stream.disconnect()
+        self._close_viewer()
         _check_rrd_complete(self.target.partial(self.rrd_path), self.rrd_path)
         with deferred_signals():  # a signal between the two renames would split the pair
             self.target.commit()
             self.committed = True
+
+    def _close_viewer(self) -> None:
+        """Send the viewer what it has not got yet, within VIEWER_FLUSH_S: a viewer that went
+        away costs the run its view, never its files."""
+        if self.viewer is None:
+            return
+        try:
+            self.viewer.finish(flush_timeout_s=VIEWER_FLUSH_S)
+        except RuntimeError as exc:
+            log.warning(
+                "the Rerun viewer did not take the last frames (%s)", " ".join(str(exc).split())[:160]
+            )
+        self._viewer_stream.disconnect()
+        self.viewer = None
 
     def abort(self) -> None:
         """Close everything and remove the temporary files; finished outputs are untouched."""
@@ -531,6 +560,9 @@ class Writers:
             with contextlib.suppress(Exception):
                 if self._stream is not None:
                     self._stream.disconnect()
+            with contextlib.suppress(Exception):
+                if self._viewer_stream is not None:
+                    self._viewer_stream.disconnect()
         for path in (self.mcap_path, self.rrd_path):
             with contextlib.suppress(FileNotFoundError):
                 self.target.partial(path).unlink()
