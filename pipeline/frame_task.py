@@ -132,12 +132,15 @@ def frame_output(
     masks: Sequence[Mask] | None,
     images: Sequence[Image | None],
     encode_images: bool,
-    decode_s: float,
+    decode_s: float | None,
 ) -> FrameOutput:
+    """The frame's output, its media compressed; ``decode_s`` None: decoded elsewhere (live
+    cameras, in their reader threads), so not timed here."""
     t0 = time.perf_counter()
     jpegs = tuple(_encode_jpeg(im) for im in images) if encode_images else None
     pngs = None if masks is None else tuple(encode_silhouette(m) for m in masks)
-    timings = {"decode": decode_s, **result.timings_s, "encode": time.perf_counter() - t0}
+    decoded = {} if decode_s is None else {"decode": decode_s}
+    timings = {**decoded, **result.timings_s, "encode": time.perf_counter() - t0}
     return FrameOutput(dataclasses.replace(result, timings_s=timings), jpegs, pngs)
 
 
@@ -166,7 +169,7 @@ class Tracker:
 
         result, masks = one_frame(index, list(images), self._model, self._names, fit, self._problems)
         self._track = [*self._track[-1:], result]
-        return frame_output(result, masks, list(images), self._images, 0.0)
+        return frame_output(result, masks, list(images), self._images, None)
 
 
 def process_range(

@@ -152,6 +152,20 @@ def test_viewer_and_foxglove_addresses() -> None:
         parse_host_port("rig:port")
 
 
+def test_spawn_falls_back_to_no_viewer_where_no_window_can_open(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    from pipeline.live import stream
+
+    monkeypatch.setattr(stream.sys, "platform", "linux")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert stream.viewer_from_choice([]) is None and stream.viewer_from_choice(["none"]) is None
+    assert "no display to open a Rerun viewer on" in caplog.text
+    with pytest.raises(SettingsError, match="expected spawn, none, or connect ADDRESS"):
+        stream.viewer_from_choice(["connect"])
+
+
 # --- whole runs --------------------------------------------------------------------------------
 
 

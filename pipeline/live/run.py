@@ -164,6 +164,12 @@ def _model(rig: Session, sources: Sequence[Source]) -> Any:
     from ..tip_shape import with_session_tip
 
     model = build_model(rig)
+    if rig.settings.manipulator.tip == "auto" and not all(s.is_replay for s in sources):
+        log.warning(
+            '[manipulator] tip = "auto" is chosen from a session\'s frames; a live rig assumes a '
+            'flat end: set tip = "flat" or "round" in %s',
+            rig.directory / "session.toml",
+        )
     if sources and all(s.is_replay for s in sources):
         from ..video import probe_video
 
