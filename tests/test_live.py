@@ -15,6 +15,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -233,6 +234,8 @@ def _free_port(kind: int = socket.SOCK_STREAM) -> int:
 
 
 @pytest.mark.slow
+# The server saves what it receives as it comes, without the footer a finished file has.
+@pytest.mark.filterwarnings("ignore:RRD file has no footer")
 def test_a_rerun_grpc_server_receives_the_stream(session: Path, tmp_path: Path) -> None:
     from rerun.chunk import RrdReader
 
@@ -272,15 +275,13 @@ def _wait_for_port(port: int) -> None:
     raise AssertionError(f"nothing listens on {port}")
 
 
-# Streams each video given as MPEG-TS to udp://127.0.0.1:<port>, all at 30 fps, over and
-# over, until killed: a process of its own, as cameras are, so that the run's threads do not
-# hold up its sending.
 _UDP_SENDER = """
 import sys, time
 from fractions import Fraction
 import av
 
-pairs = [arg.split("=") for arg in sys.argv[1:]]
+start = float(sys.argv[1])  # wall-clock time of frame 0: senders started apart stay in step
+pairs = [arg.split("=") for arg in sys.argv[2:]]
 outputs, encoded = [], []
 for video, port in pairs:
     container = av.open(f"udp://127.0.0.1:{port}?pkt_size=1316", mode="w", format="mpegts")
@@ -297,9 +298,10 @@ for video, port in pairs:
     packets += [(bytes(p), p.is_keyframe) for p in stream.encode(None)]
     outputs.append((container, stream))
     encoded.append(packets)
-start = time.monotonic()
-k = 0
+k = max(0, int((time.time() - start) * 30) + 1)
+k += (-k) % 5  # from a keyframe
 while True:
+    time.sleep(max(0.0, start + k / 30 - time.time()))
     for packets, (container, stream) in zip(encoded, outputs):
         data, key = packets[k % len(packets)]
         packet = av.Packet(data)
@@ -309,13 +311,20 @@ while True:
         packet.is_keyframe = key
         container.mux(packet)
     k += 1
-    time.sleep(max(0.0, start + k / 30 - time.monotonic()))
 """
 
 
-def udp_sender(videos: list[Path], ports: list[int]) -> subprocess.Popen[bytes]:
+def udp_sender(
+    videos: list[Path], ports: list[int], *, start: float | None = None
+) -> subprocess.Popen[bytes]:
+    """Stream ``videos`` to the ``ports`` as MPEG-TS over UDP at 30 fps, over and over, until
+    killed: a process of its own, as cameras are, so that the run does not hold it up.
+    ``start``: the wall-clock time of frame 0 (default now)."""
     pairs = [f"{video}={port}" for video, port in zip(videos, ports, strict=True)]
-    return subprocess.Popen([sys.executable, "-c", _UDP_SENDER, *pairs], stderr=subprocess.DEVNULL)
+    when = time.time() if start is None else start
+    return subprocess.Popen(
+        [sys.executable, "-c", _UDP_SENDER, repr(when), *pairs], stderr=subprocess.DEVNULL
+    )
 
 
 @pytest.fixture
@@ -525,3 +534,46 @@ def test_a_camera_that_does_not_answer_is_reported_and_the_run_still_stops_clean
         assert len(summary.outages[f"cam{k}"]) == 1  # the same outage, reported once
     live = pipeline.load_recording(tmp_path / "out" / "rig.mcap")
     assert live.complete and len(live) == 0
+
+
+@pytest.mark.slow
+def test_a_camera_that_stalls_is_reported_and_picked_up_again_while_the_others_go_on(
+    session: Path, udp_rig: tuple[Path, list[int]], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    rig_dir, ports = udp_rig
+    rig, sources = open_rig(rig_dir, None)
+    videos = [session / f"cam{k}.mp4" for k in range(3)]
+    start = time.time()
+    # One sender per camera, all on one clock; cam2's stops 1 s after the run starts capturing
+    # and starts again 2 s later.
+    senders = [udp_sender([videos[k]], [ports[k]], start=start) for k in range(3)]
+    stalled: list[float] = []  # when cam2 stopped and started again, wall clock
+
+    def stall_cam2() -> None:
+        while not any("capturing" in r.getMessage() for r in caplog.records):
+            time.sleep(0.05)
+        time.sleep(1.0)
+        senders[2].kill()
+        stalled.append(time.time())
+        time.sleep(2.0)
+        senders[2] = udp_sender([videos[2]], [ports[2]], start=start)
+        stalled.append(time.time())
+
+    stall = threading.Thread(target=stall_cam2, daemon=True)
+    try:
+        with caplog.at_level("INFO"):
+            stall.start()
+            summary = run_live(rig, sources, out_dir=tmp_path / "out", duration_s=6.0)
+    finally:
+        stall.join(30)
+        for sender in senders:
+            sender.kill()
+            sender.wait()
+    assert len(summary.outages["cam2"]) == 1 and not summary.outages["cam0"] and not summary.outages["cam1"]
+    assert any("camera 'cam2'" in r.message and "retrying" in r.message for r in caplog.records)
+    assert any("camera 'cam2'" in r.message and "frames again" in r.message for r in caplog.records)
+    # Frames before the stall and after it, none while cam2 was away.
+    times_s = pipeline.load_recording(tmp_path / "out" / "rig.mcap").timestamps_ns * 1e-9
+    stopped, restarted = stalled
+    assert (times_s < stopped).any() and (times_s > restarted).any()
+    assert not ((times_s > stopped + 0.1) & (times_s < restarted)).any()
