@@ -213,7 +213,7 @@ def test_a_replay_records_what_process_records(
     # A queue long enough that no frame-set is dropped however loaded the machine is.
     summary = run_live(rig, sources, out_dir=tmp_path, queue_sets=FRAMES)
     assert isinstance(summary, LiveSummary)
-    assert summary.stopped_by == "end of replay" and summary.dropped == 0
+    assert summary.stopped_by == "the end of the replay" and summary.dropped == 0
     assert summary.run.frames_ok == FRAMES and summary.exit_code == 0
     assert len(summary.latencies_ms) == FRAMES and (summary.latencies_ms > 0).all()
     live = pipeline.load_recording(tmp_path / "take.mcap")
@@ -347,7 +347,7 @@ def test_cameras_streaming_over_udp_are_reconstructed(
     finally:
         sender.kill()
         sender.wait()
-    assert summary.stopped_by == "duration"
+    assert summary.stopped_by == "--duration"
     live = pipeline.load_recording(tmp_path / "out" / "rig.mcap")
     ok = live.statuses == "ok"
     # A few frames at least, however loaded the machine (a frame from the hull, as after
@@ -390,7 +390,7 @@ def test_a_signal_stops_the_run_with_complete_recordings(
     finally:
         proc.kill()
     assert proc.returncode == 0, stderr
-    assert "live: stopped by interrupted" in stdout
+    assert "live: stopped by a signal;" in stdout
     assert sorted(p.name for p in out.iterdir()) == ["take.mcap", "take.rrd"]
     rec = pipeline.load_recording(out / "take.mcap")
     assert rec.complete and 0 < len(rec) < FRAMES
@@ -528,7 +528,7 @@ def test_a_camera_that_does_not_answer_is_reported_and_the_run_still_stops_clean
     with caplog.at_level("WARNING", logger="pipeline.live.capture"):
         summary = run_live(rig, sources, out_dir=tmp_path / "out", duration_s=2.0)
     # Every camera is refused, reported once and retried each second; no frame, exit 1.
-    assert summary.stopped_by == "duration" and summary.run.frames_total == 0 and summary.exit_code == 1
+    assert summary.stopped_by == "--duration" and summary.run.frames_total == 0 and summary.exit_code == 1
     for k in range(3):
         assert any(f"camera 'cam{k}' (tcp://127.0.0.1:{ports[k]})" in r.message for r in caplog.records)
         assert len(summary.outages[f"cam{k}"]) == 1  # the same outage, reported once
@@ -577,3 +577,32 @@ def test_a_camera_that_stalls_is_reported_and_picked_up_again_while_the_others_g
     stopped, restarted = stalled
     assert (times_s < stopped).any() and (times_s > restarted).any()
     assert not ((times_s > stopped + 0.1) & (times_s < restarted)).any()
+
+
+def test_the_summary_gives_latency_drops_rates_and_outages() -> None:
+    from pipeline.outputs import RunSummary
+
+    run = RunSummary(frames_ok=4, frames_empty=0, frames_failed=[], wall_s=2.0, fps=2.0)
+    summary = LiveSummary(
+        run=run,
+        latencies_ms=np.array([10.0, 20.0, 30.0, 40.0, 50.0]),
+        dropped=3,
+        unmatched={"cam0": 1, "cam1": 0},
+        camera_fps={"cam0": 30.0, "cam1": float("nan")},
+        outages={"cam0": [], "cam1": ["Connection refused"]},
+        stopped_by="a signal",
+    )
+    lines = summary.lines()
+    assert lines[0] == "frames: 4 processed, 4 ok, 0 empty, 0 failed"
+    # numpy's linear interpolation: p50 of 10..50 is 30, p99 is 10 + 0.99 * 40 = 49.6.
+    live = "live: stopped by a signal; latency p50 30.0 ms, p99 49.6 ms; 3 frame-sets dropped"
+    assert f"{live}, 1 frames unmatched" in lines
+    assert "  cameras (frames/s): cam0 30.0, cam1 nan" in lines
+    outage = "  camera cam1: stopped 1 time(s), picked up again (first: Connection refused)"
+    assert outage in summary.problem_lines() and lines.index(outage) < lines.index(
+        "time: 2.0 s wall, 2.0 frames/s"
+    )
+    data = json.loads(json.dumps(summary.to_dict(), allow_nan=False))  # no NaN in the JSON
+    assert data["live"]["latency_ms"] == {"p50": 30.0, "p99": pytest.approx(49.6)}
+    assert data["live"]["camera_fps"] == {"cam0": 30.0, "cam1": None}
+    assert data["live"]["frames_dropped"] == 3 and data["exit_code"] == 0

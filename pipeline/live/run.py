@@ -50,7 +50,8 @@ class LiveSummary:
     unmatched : per camera, frames that no frame of every other camera matched.
     camera_fps : per camera, frames per second delivered.
     outages : per camera, why it stopped each time it did (retried).
-    stopped_by : "interrupted", "duration", "end of replay" or "the cameras stopped".
+    stopped_by : "a signal" (Ctrl-C, SIGTERM, SIGHUP), "--duration", "the end of the replay"
+        or "the cameras ending".
     """
 
     run: RunSummary
@@ -68,12 +69,16 @@ class LiveSummary:
     def latency_ms(self, percentile: float) -> float:
         return float(np.percentile(self.latencies_ms, percentile)) if len(self.latencies_ms) else float("nan")
 
+    def outage_lines(self) -> list[str]:
+        return [
+            f"  camera {name}: stopped {len(whys)} time(s), picked up again (first: {whys[0]})"
+            for name, whys in self.outages.items()
+            if whys
+        ]
+
     def problem_lines(self) -> list[str]:
-        out = self.run.problem_lines()
-        for name, whys in self.outages.items():
-            if whys:
-                out.append(f"  camera {name}: stopped {len(whys)} time(s), retried (first: {whys[0]})")
-        return out
+        """The run's failure and warning lines, then the cameras that stopped."""
+        return self.run.problem_lines() + self.outage_lines()
 
     def live_lines(self) -> list[str]:
         rates = ", ".join(f"{name} {fps:.1f}" for name, fps in self.camera_fps.items())
@@ -86,13 +91,11 @@ class LiveSummary:
         ]
 
     def lines(self) -> list[str]:
+        """The run's summary with the cameras that stopped and the live lines before its time
+        and files."""
         lines = self.run.lines()
-        problems = set(self.run.problem_lines())
-        # The live lines after the counts and problems, before the time and the files.
         at = next((i for i, line in enumerate(lines) if line.startswith("time:")), len(lines))
-        out = lines[:at] + self.live_lines() + lines[at:]
-        extra = [line for line in self.problem_lines() if line not in problems]
-        return out[:at] + extra + out[at:]
+        return lines[:at] + self.outage_lines() + self.live_lines() + lines[at:]
 
     def to_dict(self) -> dict[str, Any]:
         """:meth:`RunSummary.to_dict` with the live figures under "live" (null where unknown)."""
@@ -270,7 +273,7 @@ def _loop(
     try:
         while True:
             if deadline is not None and time.monotonic() >= deadline:
-                return latencies, "duration"
+                return latencies, "--duration"
             frame_set = queue.get(POLL_S)
             if frame_set is None:
                 for reader in readers:
@@ -278,7 +281,7 @@ def _loop(
                         raise SessionError(reader.fault)
                 if all(r.finished.is_set() for r in readers) and not len(queue):
                     replay = all(r.source.is_replay for r in readers)
-                    return latencies, "end of replay" if replay else "the cameras stopped"
+                    return latencies, "the end of the replay" if replay else "the cameras ending"
                 continue
             # A signal waits for the frame to be written whole: the recordings stay consistent.
             with deferred_signals():
@@ -291,7 +294,7 @@ def _loop(
                 )
                 latencies.append(latency_ms)
     except KeyboardInterrupt:
-        return latencies, "interrupted"
+        return latencies, "a signal"
 
 
 def _stop_readers(stop: threading.Event, readers: Sequence[CameraReader]) -> None:
