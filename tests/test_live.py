@@ -606,3 +606,56 @@ def test_the_summary_gives_latency_drops_rates_and_outages() -> None:
     assert data["live"]["latency_ms"] == {"p50": 30.0, "p99": pytest.approx(49.6)}
     assert data["live"]["camera_fps"] == {"cam0": 30.0, "cam1": None}
     assert data["live"]["frames_dropped"] == 3 and data["exit_code"] == 0
+
+
+def test_a_camera_whose_frames_do_not_fit_its_calibration_stops_the_run_named(session: Path) -> None:
+    from pipeline.live.capture import CameraReader
+
+    delivered: list[CapturedFrame] = []
+    source = Source("cam1", str(session / "cam1.mp4"), replay_fps=30.0)
+    reader = CameraReader(
+        1, source, (640, 480), delivered.append, threading.Event(), start_ns=time.monotonic_ns()
+    )
+    reader.start()
+    assert reader.finished.wait(10)
+    assert reader.fault is not None and delivered == []
+    assert reader.fault.startswith(f"camera 'cam1' ({session / 'cam1.mp4'}): frames are 320x240 but")
+    assert "calibration.toml gives 640x480" in reader.fault
+
+
+def _rig_at_640x480(directory: Path, session: Path, live: dict[str, str | int] | None) -> Path:
+    rig_dir = _rig(directory, session, live)
+    calibration = rig_dir / "calibration.toml"
+    text = calibration.read_text()
+    assert "320,\n    240," in text
+    calibration.write_text(text.replace("320,\n    240,", "640,\n    480,"))
+    return rig_dir
+
+
+def test_a_replay_at_another_resolution_than_the_rig_is_refused(session: Path, tmp_path: Path) -> None:
+    from pipeline.errors import SessionError
+
+    rig_dir = _rig_at_640x480(tmp_path / "rig", session, None)
+    with pytest.raises(
+        SessionError, match=r"cam0.mp4: frames are 320x240 but the rig's calibration.toml gives"
+    ):
+        open_rig(rig_dir, session)
+
+
+@pytest.mark.slow
+def test_a_run_stopped_by_a_camera_of_the_wrong_size_leaves_nothing_behind(
+    session: Path, tmp_path: Path
+) -> None:
+    from pipeline.errors import SessionError
+
+    ports = [_free_port(socket.SOCK_DGRAM) for _ in range(3)]
+    live = {f"cam{k}": f"udp://127.0.0.1:{port}" for k, port in enumerate(ports)}
+    rig, sources = open_rig(_rig_at_640x480(tmp_path / "rig", session, live), None)
+    sender = udp_sender([session / f"cam{k}.mp4" for k in range(3)], ports)  # 320x240
+    try:
+        with pytest.raises(SessionError, match=r"camera 'cam\d' \(udp://.*\): frames are 320x240 but"):
+            run_live(rig, sources, out_dir=tmp_path / "out")
+    finally:
+        sender.kill()
+        sender.wait()
+    assert not (tmp_path / "out").exists()

@@ -75,15 +75,23 @@ def rig_sources(rig: Session) -> list[Source]:
 def replay_sources(rig: Session, replay: Session) -> list[Source]:
     """The replayed session's videos as the rig's cameras' sources, played at its rate.
 
-    The session must hold a video for every camera of the rig (matched by name).
+    The session must hold a video for every camera of the rig (matched by name), of the
+    size the rig's calibration gives it.
     """
     videos: dict[str, Path] = {c.name: p for c, p in zip(replay.cameras, replay.video_paths, strict=True)}
+    sizes = {c.name: c.size_px for c in replay.cameras}  # its videos', checked when it was loaded
     sources = []
     for cam in rig.cameras:
         if cam.name not in videos:
             raise SessionError(
                 f"{replay.directory}: --replay has no video for camera {cam.name!r} of the rig "
                 f"(it has: {', '.join(videos)}); replay a session of this rig"
+            )
+        if sizes[cam.name] != cam.size_px:
+            (w, h), (rw, rh) = sizes[cam.name], cam.size_px
+            raise SessionError(
+                f"{videos[cam.name]}: frames are {w}x{h} but the rig's calibration.toml gives camera "
+                f"{cam.name!r} {rw}x{rh}; replay a session filmed at the rig's resolution"
             )
         sources.append(Source(cam.name, str(videos[cam.name]), replay_fps=replay.fps))
     return sources
