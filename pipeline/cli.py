@@ -110,6 +110,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
         _check_json_path(Path(args.json))
     if args.duration is not None and not args.duration > 0:
         args.usage_error(f"--duration must be > 0 seconds, got {args.duration:g}")
+    _rig_dir_after_viewer(args)
     replay = None if args.replay is None else Path(args.replay) if args.replay else args.rig_dir
     if args.rig_dir is None and replay is None:
         args.usage_error("give RIG_DIR, or --replay SESSION_DIR")
@@ -137,6 +138,15 @@ def _cmd_live(args: argparse.Namespace) -> int:
         except OSError as exc:
             raise OutputError(f"{args.json}: cannot write the JSON summary ({exc.strerror or exc})") from None
     return summary.exit_code
+
+
+def _rig_dir_after_viewer(args: argparse.Namespace) -> None:
+    """``--viewer connect 9876 rig/`` (or ``--viewer none rig/``): argparse gives the rig
+    directory to --viewer, whose words are ``spawn``, ``none`` or ``connect ADDRESS``."""
+    words = args.viewer or []
+    take = 2 if words[:1] == ["connect"] else 1
+    if len(words) == take + 1 and args.rig_dir is None:
+        args.rig_dir, args.viewer = Path(words[-1]), words[:take]
 
 
 def _check_json_path(path: Path) -> None:
@@ -342,7 +352,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     p.add_argument(
         "--viewer",
         nargs="+",
-        metavar="spawn|none|connect ADDRESS",
+        metavar="MODE",
         help="Rerun viewer: spawn one (default, where a window can open), none, or connect to a "
         "running one's gRPC address (PORT, HOST:PORT or rerun+http://HOST:PORT/proxy)",
     )

@@ -496,7 +496,8 @@ def test_live_without_sources_is_one_line_and_exit_2(
     from pipeline.cli import main
 
     rig = _rig(tmp_path / "rig", session, None)
-    assert main(["live", str(rig), "--out", str(tmp_path / "out"), "--viewer", "none"]) == 2
+    # RIG_DIR after --viewer's words is the rig, not a third word of --viewer.
+    assert main(["live", "--out", str(tmp_path / "out"), "--viewer", "none", str(rig)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and len(err.splitlines()) == 1 and "no [live] table" in err
     assert not (tmp_path / "out").exists()
