@@ -233,9 +233,14 @@ def _run(
             target.rrd_path,
         )
         latencies, stopped_by = _loop(readers, queue, writer, model, names, images, duration_s)
-        with deferred_signals():  # from here a signal waits for the recordings to be complete
-            _stop_readers(stop, readers)
-            writer.finish()
+        try:
+            with deferred_signals():  # from here a signal waits for the recordings to be complete
+                _stop_readers(stop, readers)
+                writer.finish()
+        except KeyboardInterrupt:
+            if not writer.committed:
+                raise
+            # A signal while finishing: the run was ending anyway, and its recordings are complete.
     except BaseException:
         _stop_readers(stop, readers)
         if writer is not None and not writer.committed:
