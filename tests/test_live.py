@@ -106,6 +106,8 @@ def test_the_queue_drops_its_oldest_set_when_full_and_counts_it() -> None:
 def test_sources_devices_indices_and_urls() -> None:
     assert parse_source("cam0", "0") == Source("cam0", "/dev/video0", V4L2_FORMAT)
     assert parse_source("cam1", "/dev/video3") == Source("cam1", "/dev/video3", V4L2_FORMAT)
+    by_id = "/dev/v4l/by-id/usb-rig-cam1-video-index0"
+    assert parse_source("cam1", by_id) == Source("cam1", by_id, V4L2_FORMAT)
     assert parse_source("cam2", "udp://127.0.0.1:5002") == Source("cam2", "udp://127.0.0.1:5002")
 
 

@@ -43,10 +43,11 @@ class Source:
 
 def parse_source(camera: str, text: str) -> Source:
     """``[live]``'s value for ``camera`` -> its Source: a device index (``0`` -> ``/dev/video0``)
-    or a ``/dev/video*`` path opened as V4L2, anything else as FFmpeg reads it."""
+    or a ``/dev/video*`` or ``/dev/v4l/...`` path opened as V4L2, anything else as FFmpeg
+    reads it."""
     if text.isdigit():
         return Source(camera, f"/dev/video{int(text)}", V4L2_FORMAT)
-    if text.startswith("/dev/video"):
+    if text.startswith(("/dev/video", "/dev/v4l/")):  # by number, or by id or path (udev's links)
         return Source(camera, text, V4L2_FORMAT)
     return Source(camera, text)
 
