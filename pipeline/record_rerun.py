@@ -93,8 +93,8 @@ def rerun_intrinsics(camera: Camera) -> NDArray[np.float64]:
     return k
 
 
-# A live run sends what it has this often: a viewer's frame rate (about 30 a second
-# would cost the run more than reconstructing: a send per entity, ~25 entities).
+# A live viewer's stream sends what it has this often: ten updates a second. A send is a
+# call per entity (~25); made for every frame, they cost the run more than its drawing is worth.
 LIVE_SEND_S = 0.1
 
 HULL_PATH = "world/hull"
