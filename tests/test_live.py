@@ -25,6 +25,7 @@ import pytest
 import tomli_w
 
 import pipeline
+from pipeline.bench.live import mean_gap_mm
 from pipeline.errors import SettingsError
 from pipeline.live.handoff import DroppingQueue
 from pipeline.live.run import LiveSummary, run_live
@@ -198,14 +199,6 @@ def _verify_rrd(path: Path) -> None:
     assert verify.returncode == 0, verify.stderr
 
 
-def _mean_gap_mm(live: pipeline.recording.Recording, processed: pipeline.recording.Recording) -> float:
-    """Mean distance between the two recordings' centrelines on the frames both hold, mm."""
-    common = np.intersect1d(live.frame_indices, processed.frame_indices)
-    a = live.centerlines_m[np.searchsorted(live.frame_indices, common)]
-    b = processed.centerlines_m[np.searchsorted(processed.frame_indices, common)]
-    return float(np.linalg.norm(a - b, axis=-1).mean()) * 1000.0
-
-
 @pytest.mark.slow
 def test_a_replay_records_what_process_records(
     session: Path, processed: pipeline.recording.Recording, tmp_path: Path
@@ -223,7 +216,7 @@ def test_a_replay_records_what_process_records(
     assert all(m["latency_ms"] > 0 for m in live.metrics)
     # The same core on the same frames: the issue's bar is 0.05 mm mean; within one
     # tracking segment (20 frames) the two runs fit the same frames from the same track.
-    assert _mean_gap_mm(live, processed) < 0.05
+    assert mean_gap_mm(live, processed) < 0.05
     assert live.smoothed_centerlines_m is not None
     _verify_rrd(tmp_path / "take.rrd")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["take.mcap", "take.rrd"]

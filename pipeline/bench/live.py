@@ -19,17 +19,16 @@ from pathlib import Path
 import numpy as np
 import psutil
 
-from ..recording import load_recording
+from ..recording import Recording, load_recording
 from .e2e import RSS_SAMPLE_S
 from .report import LiveRun
 
 log = logging.getLogger(__name__)
 
 
-def mean_gap_mm(live_mcap: Path, process_mcap: Path) -> float:
+def mean_gap_mm(live: Recording, offline: Recording) -> float:
     """Mean distance between two recordings' centrelines on the frames both hold (ok in
     both), mm; NaN when they share none."""
-    live, offline = load_recording(live_mcap), load_recording(process_mcap)
     common = np.intersect1d(live.frame_indices, offline.frame_indices)
     a = live.centerlines_m[np.searchsorted(live.frame_indices, common)]
     b = offline.centerlines_m[np.searchsorted(offline.frame_indices, common)]
@@ -93,11 +92,9 @@ def run_live(
     live = summary["live"]
     written = int(summary["frames"]["processed"])
     mcap = out_dir / f"{session_dir.resolve().name}.mcap"
-    gap = (
-        mean_gap_mm(mcap, process_mcap)
-        if process_mcap is not None and process_mcap.exists()
-        else float("nan")
-    )
+    gap = float("nan")
+    if process_mcap is not None and process_mcap.exists():
+        gap = mean_gap_mm(load_recording(mcap), load_recording(process_mcap))
     return LiveRun(
         label=label,
         frame_sets=written + int(live["frames_dropped"]),
