@@ -544,15 +544,15 @@ def test_a_camera_that_stalls_is_reported_and_picked_up_again_while_the_others_g
     rig, sources = open_rig(rig_dir, None)
     videos = [session / f"cam{k}.mp4" for k in range(3)]
     start = time.time()
-    # One sender per camera, all on one clock; cam2's stops 1 s after the run starts capturing
-    # and starts again 2 s later.
+    # One sender per camera, all on one clock; cam2's stops 2 s after the run starts capturing
+    # and starts again 2 s later (margins for a loaded machine, where opening and decoding lag).
     senders = [udp_sender([videos[k]], [ports[k]], start=start) for k in range(3)]
     stalled: list[float] = []  # when cam2 stopped and started again, wall clock
 
     def stall_cam2() -> None:
         while not any("capturing" in r.getMessage() for r in caplog.records):
             time.sleep(0.05)
-        time.sleep(1.0)
+        time.sleep(2.0)
         senders[2].kill()
         stalled.append(time.time())
         time.sleep(2.0)
@@ -563,7 +563,7 @@ def test_a_camera_that_stalls_is_reported_and_picked_up_again_while_the_others_g
     try:
         with caplog.at_level("INFO"):
             stall.start()
-            summary = run_live(rig, sources, out_dir=tmp_path / "out", duration_s=6.0)
+            summary = run_live(rig, sources, out_dir=tmp_path / "out", duration_s=8.0)
     finally:
         stall.join(30)
         for sender in senders:
@@ -576,7 +576,8 @@ def test_a_camera_that_stalls_is_reported_and_picked_up_again_while_the_others_g
     times_s = pipeline.load_recording(tmp_path / "out" / "rig.mcap").timestamps_ns * 1e-9
     stopped, restarted = stalled
     assert (times_s < stopped).any() and (times_s > restarted).any()
-    assert not ((times_s > stopped + 0.1) & (times_s < restarted)).any()
+    # (a frame in flight at the kill may be decoded, and stamped, a little later)
+    assert not ((times_s > stopped + 0.5) & (times_s < restarted)).any()
 
 
 def test_the_summary_gives_latency_drops_rates_and_outages() -> None:
