@@ -37,10 +37,11 @@ def mean_gap_mm(live: Recording, offline: Recording) -> float:
     return float(gaps.mean()) if len(gaps) else float("nan")
 
 
-def _rss_at(samples: list[tuple[float, int]], fraction: float) -> int:
-    """The RSS sampled nearest ``fraction`` of the run's duration."""
+def _low_rss(samples: list[tuple[float, int]], start: float, stop: float) -> int:
+    """The lowest RSS sampled between ``start`` and ``stop`` (fractions of the run's
+    duration): what the run holds, without the frames its writers batch up meanwhile."""
     end = samples[-1][0]
-    return min(samples, key=lambda s: abs(s[0] - fraction * end))[1]
+    return min((rss for t, rss in samples if start * end <= t <= stop * end), default=samples[-1][1])
 
 
 def run_live(
@@ -106,7 +107,11 @@ def run_live(
         camera_fps=tuple(_number(v) for v in live["camera_fps"].values()),
         wall_s=wall,
         peak_rss_mb=max((rss for _, rss in samples), default=0) / 1024**2,
-        rss_growth_mb=(_rss_at(samples, 0.9) - _rss_at(samples, 0.4)) / 1024**2 if samples else float("nan"),
+        rss_growth_mb=(
+            (_low_rss(samples, 0.75, 0.95) - _low_rss(samples, 0.25, 0.45)) / 1024**2
+            if samples
+            else float("nan")
+        ),
         gap_to_process_mm=gap,
         exit_code=int(popen.returncode),
     )

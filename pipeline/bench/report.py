@@ -162,7 +162,8 @@ class LiveRun:
     camera_fps : per camera, frames per second delivered.
     wall_s : the subprocess's wall time, seconds.
     peak_rss_mb : its peak RSS, MiB.
-    rss_growth_mb : its RSS at 90 % of the run less its RSS at 40 %, MiB (flat memory: ~0).
+    rss_growth_mb : its lowest RSS over 75-95 % of the run less its lowest over 25-45 %, MiB
+        (flat memory: ~0; the lows leave out the frames the Rerun writer batches up).
     gap_to_process_mm : mean distance of its centrelines to ``process``'s on the frames
         both hold, mm (NaN: no ``process`` recording to compare with).
     exit_code : its exit status.

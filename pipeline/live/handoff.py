@@ -12,9 +12,11 @@ from collections import deque
 
 from .sync import FrameSet
 
-# Frame-sets that may wait: 100 ms at 30 fps, enough to ride out a frame that
-# initialises its track from the hull, short enough to keep the latency low.
-QUEUE_SETS = 3
+# Frame-sets that may wait: 67 ms at 30 fps, enough to ride out a slow frame (one that
+# starts its track from the hull). Replaying the demo on a loaded machine, 2 dropped as
+# few sets as 3 (60 and 64-86 in 20 s) at two thirds of the latency (p50 69 ms, not 114);
+# 1 halved the latency again but dropped 99-151.
+QUEUE_SETS = 2
 
 
 class DroppingQueue:
