@@ -338,7 +338,7 @@ def output_error(out_dir: Path, exc: OSError) -> OutputError:
 # seconds on any disk that takes writes; its flush otherwise waits for good (a full disk).
 FLUSH_TIMEOUT_S = 60.0
 # ... and what a live run's viewer may take to receive its last frames.
-VIEWER_FLUSH_S = 5.0
+VIEWER_FLUSH_S = 2.0
 
 
 def _check_rrd_complete(partial: Path, final: Path) -> None:
