@@ -102,6 +102,21 @@ class SessionInfo:
 
 
 @dataclass(frozen=True)
+class LiveSettings:
+    """``[live]``: camera name -> its source for ``pipeline live``, in the table's order.
+
+    A source is a V4L2 device path (``/dev/video0``), a device index (``0``, read as
+    ``/dev/video0``) or anything FFmpeg opens (``rtsp://``, ``udp://``, ``http://``,
+    a named pipe); the table's integers are kept as their decimal text.
+    """
+
+    sources: tuple[tuple[str, str], ...] = ()
+
+    def source(self, camera: str) -> str | None:
+        return dict(self.sources).get(camera)
+
+
+@dataclass(frozen=True)
 class Settings:
     workspace: Workspace = field(default_factory=Workspace)
     silhouette: SilhouetteSettings = field(default_factory=SilhouetteSettings)
@@ -109,6 +124,7 @@ class Settings:
     centerline: CenterlineSettings = field(default_factory=CenterlineSettings)
     calibration: CalibrationSettings = field(default_factory=CalibrationSettings)
     session: SessionInfo = field(default_factory=SessionInfo)
+    live: LiveSettings = field(default_factory=LiveSettings)
 
 
 _SECTIONS: dict[str, type] = {
@@ -138,8 +154,8 @@ def load_settings(path: Path | None) -> Settings:
 
 def settings_from_dict(data: dict[str, Any], *, source: str = "session.toml") -> Settings:
     """Build validated :class:`Settings` from parsed TOML; raise SettingsError naming the key."""
-    _check_keys(data, _SECTIONS, source, "")
-    parts: dict[str, Any] = {}
+    _check_keys(data, {*_SECTIONS, "live"}, source, "")
+    parts: dict[str, Any] = {"live": _live(data.get("live", {}), source)}
     for name, cls in _SECTIONS.items():
         section = data.get(name, {})
         if not isinstance(section, dict):
@@ -150,6 +166,23 @@ def settings_from_dict(data: dict[str, Any], *, source: str = "session.toml") ->
     settings = Settings(**parts)
     _validate(settings, source)
     return settings
+
+
+def _live(section: Any, source: str) -> LiveSettings:
+    """``[live]``: camera name -> a source string, or a device index (a non-negative integer)."""
+    if not isinstance(section, dict):
+        raise SettingsError(f"{source}: [live] must be a table of camera name = source")
+    pairs = []
+    for camera, value in section.items():
+        if isinstance(value, int) and not isinstance(value, bool) and value >= 0:
+            value = str(value)
+        if not isinstance(value, str) or not value.strip():
+            raise SettingsError(
+                f"{source}: [live] {camera} must be a device path, a device index or a stream URL "
+                f'(e.g. "/dev/video0", 0, "udp://127.0.0.1:5000"), got {_short(value)}'
+            )
+        pairs.append((camera, value.strip()))
+    return LiveSettings(tuple(pairs))
 
 
 def _check_keys(data: dict[str, Any], allowed: Any, source: str, where: str) -> None:
