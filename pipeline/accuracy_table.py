@@ -22,6 +22,7 @@ one row per case with its description.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import sys
@@ -55,6 +56,8 @@ class Case:
     seed: int = 0
     unseen: bool = False
     polarity: str = "dark"
+    # The calibration.toml's error (pipeline.synth.calib_error); the videos use the true cameras.
+    calib_error_deg: float = 0.0
 
 
 def default_cases() -> list[Case]:
@@ -94,6 +97,7 @@ class CaseResult:
 def prepare_session(case: Case | DrawnCase, root: Path, frames: int, *, jobs: int = -1) -> Path:
     """Render ``case`` into ``root/<name>`` unless a complete identical rendering is there."""
     from .synth import render_session
+    from .synth.session_render import SceneOptions
     from .synth.variety import Case as DrawnCase
     from .synth.variety import render_case
 
@@ -116,6 +120,7 @@ def prepare_session(case: Case | DrawnCase, root: Path, frames: int, *, jobs: in
             radius_mm=case.radius_mm,
             arrangement=case.arrangement,
             polarity=case.polarity,
+            options=SceneOptions(calib_error_deg=case.calib_error_deg),
             progress=False,
             jobs=jobs,
         )
@@ -131,14 +136,27 @@ def _row_labels(case: Case | DrawnCase) -> tuple[str, str]:
 
 
 def run_case(
-    case: Case | DrawnCase, root: Path, frames: int, *, jobs: int = -1, polyfit: bool = True
+    case: Case | DrawnCase,
+    root: Path,
+    frames: int,
+    *,
+    jobs: int = -1,
+    polyfit: bool = True,
+    refine: str | bool | None = None,
 ) -> CaseResult:
-    """Render (or reuse), process with each centreline method, and evaluate one case."""
+    """Render (or reuse), process with each centreline method, and evaluate one case;
+    ``refine`` overrides the session's ``[calibration] refine``."""
     from .runner import process_session
     from .session import load_session
 
     directory = prepare_session(case, root / "sessions", frames, jobs=jobs)
     session = load_session(directory)
+    if refine is not None:
+        settings = session.settings
+        calibration = dataclasses.replace(settings.calibration, refine=refine)
+        session = dataclasses.replace(
+            session, settings=dataclasses.replace(settings, calibration=calibration)
+        )
     reports: dict[str, EvaluationReport] = {}
     for curve in ("fit", "polyfit") if polyfit else ("fit",):
         out_dir = root / "runs" / curve
@@ -250,6 +268,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="instead of the default cases, a random draw of the synthetic variety from SEED",
     )
     parser.add_argument("--no-polyfit", action="store_true", help="skip the polyfit baseline")
+    parser.add_argument(
+        "--calib-error",
+        metavar="DEG[,DEG...]",
+        help="each case with a calibration.toml off by each of these errors (see synth --calib-error)",
+    )
+    parser.add_argument(
+        "--refine",
+        choices=("auto", "true", "false"),
+        help="override [calibration] refine (default: the sessions' own, auto)",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
 
@@ -267,9 +295,23 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"unknown case(s) {', '.join(unknown)}; choose from {', '.join(c.name for c in cases)}"
             )
         cases = [c for c in cases if c.name in args.cases]
+    if args.calib_error:
+        try:
+            errors = [float(v) for v in args.calib_error.split(",")]
+        except ValueError:
+            parser.error(f"--calib-error takes degrees separated by commas, got {args.calib_error!r}")
+        if not all(isinstance(c, Case) for c in cases):
+            parser.error("--calib-error applies to the default cases, not to --draw")
+        cases = [
+            dataclasses.replace(c, name=f"{c.name}-calib{e:g}", calib_error_deg=e)
+            for e in errors
+            for c in cases
+            if isinstance(c, Case)
+        ]
+    refine = {"auto": "auto", "true": True, "false": False, None: None}[args.refine]
     try:
         results = [
-            run_case(case, args.out, args.frames, jobs=args.jobs, polyfit=not args.no_polyfit)
+            run_case(case, args.out, args.frames, jobs=args.jobs, polyfit=not args.no_polyfit, refine=refine)
             for case in cases
         ]
     except PipelineError as exc:

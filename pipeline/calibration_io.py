@@ -30,7 +30,7 @@ def read_calibration(path: Path) -> list[Camera]:
         data = load_toml(path)
     except FileNotFoundError:
         raise CalibrationError(
-            f"{path}: not found; every session needs a calibration.toml (see README, 'Input')"
+            f"{path}: not found; every session needs a calibration.toml (see docs/input.md)"
         ) from None
     except tomllib.TOMLDecodeError as exc:
         raise CalibrationError(f"{path}: TOML syntax error: {exc}") from None

@@ -101,6 +101,54 @@ def _cmd_process(args: argparse.Namespace) -> int:
     return summary.exit_code
 
 
+def _cmd_live(args: argparse.Namespace) -> int:
+    from .live.run import run_live
+    from .live.sources import open_rig
+    from .live.stream import DEFAULT_FOXGLOVE, parse_host_port, viewer_from_choice
+
+    if args.json not in (None, "-"):
+        _check_json_path(Path(args.json))
+    if args.duration is not None and not args.duration > 0:
+        args.usage_error(f"--duration must be > 0 seconds, got {args.duration:g}")
+    _rig_dir_after_viewer(args)
+    replay = None if args.replay is None else Path(args.replay) if args.replay else args.rig_dir
+    if args.rig_dir is None and replay is None:
+        args.usage_error("give RIG_DIR, or --replay SESSION_DIR")
+    rig, sources = open_rig(args.rig_dir, replay)
+    foxglove = None if args.foxglove is None else parse_host_port(args.foxglove or DEFAULT_FOXGLOVE)
+    viewer_url = viewer_from_choice(args.viewer or [])
+    summary = run_live(
+        rig,
+        sources,
+        out_dir=args.out,
+        viewer_url=viewer_url,
+        foxglove=foxglove,
+        duration_s=args.duration,
+        images=not args.no_images,
+        force=args.force,
+    )
+    problems = set(summary.problem_lines())
+    for line in summary.lines():
+        print(line, file=sys.stderr if line in problems or args.json == "-" else sys.stdout)
+    if args.json == "-":
+        print(json.dumps(summary.to_dict(), indent=2))
+    elif args.json is not None:
+        try:
+            Path(args.json).write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
+        except OSError as exc:
+            raise OutputError(f"{args.json}: cannot write the JSON summary ({exc.strerror or exc})") from None
+    return summary.exit_code
+
+
+def _rig_dir_after_viewer(args: argparse.Namespace) -> None:
+    """``--viewer connect 9876 rig/`` (or ``--viewer none rig/``): argparse gives the rig
+    directory to --viewer, whose words are ``spawn``, ``none`` or ``connect ADDRESS``."""
+    words = args.viewer or []
+    take = 2 if words[:1] == ["connect"] else 1
+    if len(words) == take + 1 and args.rig_dir is None:
+        args.rig_dir, args.viewer = Path(words[-1]), words[:take]
+
+
 def _check_json_path(path: Path) -> None:
     """Before the run: the JSON summary can be written to ``path`` (its folder exists)."""
     if path.is_dir():
@@ -123,6 +171,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         size=(width, height),
         distractor=args.distractor,
         flicker=args.flicker,
+        calib_error_deg=args.calib_error,
     )
     render_session(
         args.out_dir,
@@ -280,6 +329,60 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     )
     p.set_defaults(func=_cmd_process, usage_error=p.error)
 
+    p = sub.add_parser(
+        "live",
+        parents=[common],
+        help="reconstruct live cameras (or a replayed session) as it happens",
+        description="Read each camera of the rig ([live] in RIG_DIR/session.toml: a V4L2 device, a "
+        "device index or a stream URL), reconstruct every matched frame-set as it arrives, stream it "
+        "to a Rerun viewer (and a Foxglove server with --foxglove), and write OUT/<rig>.mcap and "
+        "OUT/<rig>.rrd, renamed into place when the run stops: Ctrl-C, SIGTERM, --duration, or the "
+        "end of a replay. Exit 0: frames reconstructed, some tube found; 1: some frames failed, or "
+        "no tube in any frame; 2: bad input (nothing written).",
+    )
+    p.add_argument(
+        "rig_dir",
+        type=Path,
+        nargs="?",
+        help="rig directory: calibration.toml + session.toml with [live]; with --replay SESSION_DIR "
+        "it may be left out (the session is its own rig)",
+    )
+    p.add_argument(
+        "-o", "--out", type=Path, default=Path("recordings"), help="output directory (default: recordings)"
+    )
+    p.add_argument(
+        "--viewer",
+        nargs="+",
+        metavar="MODE",
+        help="Rerun viewer: spawn one (default, where a window can open), none, or connect to a "
+        "running one's gRPC address (PORT, HOST:PORT or rerun+http://HOST:PORT/proxy)",
+    )
+    p.add_argument(
+        "--foxglove",
+        nargs="?",
+        const="",
+        metavar="HOST:PORT",
+        help="also serve the MCAP's topics on a Foxglove WebSocket server (default 127.0.0.1:8765)",
+    )
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    p.add_argument(
+        "--replay",
+        nargs="?",
+        const="",
+        metavar="SESSION_DIR",
+        help="play SESSION_DIR's videos at their frame rate as the cameras (default: RIG_DIR's own)",
+    )
+    p.add_argument(
+        "--json",
+        nargs="?",
+        const="-",
+        metavar="FILE",
+        help="also write the run's summary as JSON to FILE, or to stdout with - or no FILE",
+    )
+    p.add_argument("--no-images", action="store_true", help="do not store or stream the camera images")
+    p.add_argument("--force", action="store_true", help="replace existing outputs (when the run stops)")
+    p.set_defaults(func=_cmd_live, usage_error=p.error)
+
     from .synth_names import IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
 
     p = sub.add_parser(
@@ -315,6 +418,14 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     )
     p.add_argument("--distractor", action="store_true", help="a dark object in one camera's background")
     p.add_argument("--flicker", action="store_true", help="scene brightness varying frame to frame (4 %%)")
+    p.add_argument(
+        "--calib-error",
+        type=float,
+        default=0.0,
+        metavar="DEG",
+        help="write a calibration.toml off by this much (each camera turned DEG degrees, moved "
+        "6.7*DEG mm, focal 2*DEG %%, principal point 6.7*DEG px); the videos use the true cameras",
+    )
     p.add_argument("--frames", type=int, default=900, help="number of frames at 30 fps (default 900)")
     p.add_argument(
         "--seed", type=int, default=0, help="random seed (noise, textures; the shape for --shape random)"

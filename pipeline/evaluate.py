@@ -77,6 +77,8 @@ class EvaluationReport:
     off_flagged : how many of those the recording flagged suspect; None when not known.
     good_flagged : how many of the other ok frames it flagged suspect; None when not known.
     smoothed : the same figures for the temporally smoothed centrelines, if any.
+    cameras : the cameras the recording was reconstructed with ("given" or "refined ...");
+        "" when the recording does not say.
     """
 
     label: str
@@ -96,6 +98,7 @@ class EvaluationReport:
     off_flagged: int | None = None
     good_flagged: int | None = None
     smoothed: EvaluationReport | None = None
+    cameras: str = ""
 
     @property
     def frames_off(self) -> int:
@@ -370,6 +373,7 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
         report,
         off_flagged=len(off & suspect),
         good_flagged=len(suspect - off - set(report.failed_indices)),
+        cameras=rec.cameras,
     )
     if rec.smoothed_centerlines_m is not None:
         smoothed = evaluate_centerlines(
@@ -415,7 +419,7 @@ def _align(row: list[str], widths: list[int]) -> list[str]:
 
 
 def format_report(report: EvaluationReport) -> str:
-    """A plain-text table of the report (and its smoothed twin), with issue 4's targets."""
+    """A plain-text table of the report (and its smoothed twin), with the targets."""
     columns = [report] if report.smoothed is None else [report, report.smoothed]
     header = ["", *(r.label for r in columns), "target"]
     rows = [header]
@@ -432,6 +436,8 @@ def format_report(report: EvaluationReport) -> str:
     lines = ["  ".join(_align(row, widths)) for row in rows]
     lines.insert(1, "-" * len(lines[0]))
     lines.insert(0, f"{report.frames} frames evaluated")
+    if report.cameras:
+        lines.insert(1, f"cameras: {report.cameras}")
     if report.failed_indices:
         shown = ", ".join(str(i) for i in report.failed_indices[:20])
         more = " ..." if len(report.failed_indices) > 20 else ""

@@ -101,7 +101,7 @@ def decode_frames(paths: Sequence[Path], indices: Sequence[int]) -> list[tuple[i
     return out
 
 
-def _one_frame(
+def one_frame(
     index: int,
     images: Sequence[Image | None],
     model: Any,
@@ -127,18 +127,49 @@ def _one_frame(
         return FrameResult.failed(index, f"{type(exc).__name__}: {exc}"), None
 
 
-def _output(
+def frame_output(
     result: FrameResult,
     masks: Sequence[Mask] | None,
     images: Sequence[Image | None],
     encode_images: bool,
-    decode_s: float,
+    decode_s: float | None,
 ) -> FrameOutput:
+    """The frame's output, its media compressed; ``decode_s`` None: decoded elsewhere (live
+    cameras, in their reader threads), so not timed here."""
     t0 = time.perf_counter()
     jpegs = tuple(_encode_jpeg(im) for im in images) if encode_images else None
     pngs = None if masks is None else tuple(encode_silhouette(m) for m in masks)
-    timings = {"decode": decode_s, **result.timings_s, "encode": time.perf_counter() - t0}
+    decoded = {} if decode_s is None else {"decode": decode_s}
+    timings = {**decoded, **result.timings_s, "encode": time.perf_counter() - t0}
     return FrameOutput(dataclasses.replace(result, timings_s=timings), jpegs, pngs)
+
+
+class Tracker:
+    """Frames reconstructed one after another, each fitted from the track's last results.
+
+    A live run's core: the same per-frame computation as :func:`process_range`'s, with
+    one track that goes on across every frame (no segments: a live run has no fixed
+    frame indices to cut at) and starts again from the hull only where it is lost
+    (:mod:`pipeline.tracking`).
+    """
+
+    def __init__(self, model: Any, camera_names: Sequence[str], *, images: bool) -> None:
+        from .reconstruct import reconstruct_with_silhouettes
+
+        self._compute = reconstruct_with_silhouettes
+        self._model, self._names, self._images = model, tuple(camera_names), images
+        self._track: list[FrameResult] = []
+        self._problems: list[dict[int, str]] = [{} for _ in self._names]
+
+    def step(self, index: int, images: Sequence[Image]) -> FrameOutput:
+        """Frame ``index`` from its per camera (H, W) uint8 grey images."""
+
+        def fit(i: int, grey: Sequence[Image]) -> tuple[FrameResult, Sequence[Mask] | None]:
+            return self._compute(i, grey, self._model, self._track[-2:])
+
+        result, masks = one_frame(index, list(images), self._model, self._names, fit, self._problems)
+        self._track = [*self._track[-1:], result]
+        return frame_output(result, masks, list(images), self._images, None)
 
 
 def process_range(
@@ -186,7 +217,7 @@ def process_range(
         return compute(index, grey, model, track[-2:]) if tracked else compute(index, grey, model)
 
     def step(index: int, images_: list[Image | None]) -> tuple[FrameResult, Sequence[Mask] | None]:
-        result, masks = _one_frame(index, images_, model, camera_names, fit, problems)
+        result, masks = one_frame(index, images_, model, camera_names, fit, problems)
         track.append(result)
         return result, masks
 
@@ -215,7 +246,7 @@ def process_range(
             del track[:-2]
             recent.append((index, images_))
             if index >= start:
-                outputs.append(_output(result, masks, images_, images, decode_s))
+                outputs.append(frame_output(result, masks, images_, images, decode_s))
                 if counter is not None:
                     counter.write(b".")
     finally:

@@ -21,7 +21,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,6 +33,9 @@ from .interrupts import deferred_signals
 from .quality import DOUBTFUL_IOU, is_doubtful, reaches_walls
 from .session import Session, check_utf8_path
 from .smoothing import smooth_centerlines
+
+if TYPE_CHECKING:  # the recorders are imported when a run opens its writers
+    from .record_mcap import MessageMirror
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +53,8 @@ class RunSummary:
     frames_suspect : (frame index, reason) of "ok" frames whose curve may be wrong
         (``FrameResult.suspect_reason``), in order.
     tip : the tube end the fit assumed, and how it was chosen ("" when not told).
+    cameras : the cameras reconstructed with, given or refined, and why ("" when not told).
+    camera_warnings : a line per camera that seems to have moved since its calibration.
     exit_code : 0 when every frame is ok or empty, 1 when some failed or none holds a tube.
     """
 
@@ -63,6 +68,8 @@ class RunSummary:
     frames_at_walls: list[int] = field(default_factory=list)
     frames_suspect: list[tuple[int, str]] = field(default_factory=list)
     tip: str = ""
+    cameras: str = ""
+    camera_warnings: list[str] = field(default_factory=list)
 
     @property
     def frames_total(self) -> int:
@@ -82,6 +89,8 @@ class RunSummary:
         ]
         if self.tip:
             out.append(f"  tube end: {self.tip}")
+        if self.cameras:
+            out.append(f"  cameras: {self.cameras}")
         out += self.problem_lines()
         out.append(f"time: {self.wall_s:.1f} s wall, {self.fps:.1f} frames/s")
         out += [f"wrote {path} ({_human_size(size)})" for path, size in self.outputs]
@@ -91,6 +100,7 @@ class RunSummary:
         """The summary's failure and warning lines: failed frames, suspect frames, doubtful
         frames, frames at the walls, no tube found."""
         out = [f"  failed {span}: {reason}" for span, reason in compress_failures(self.frames_failed)]
+        out += [f"  {line}" for line in self.camera_warnings]
         if self.frames_suspect:
             first, why = self.frames_suspect[0]
             frames = [i for i, _ in self.frames_suspect]
@@ -135,6 +145,7 @@ class RunSummary:
             "doubtful": list(self.frames_doubtful),
             "at_walls": list(self.frames_at_walls),
             "tip": self.tip,
+            "cameras": self.cameras,
             "problems": [line.strip() for line in self.problem_lines()],
             "wall_s": self.wall_s,
             "fps": self.fps,
@@ -382,6 +393,8 @@ FLUSH_TIMEOUT_S = 60.0
 # their own and deaf to Ctrl-C, even when the run ends for another reason (the MCAP met
 # the full disk first).
 RERUN_WAIT_S = 10.0
+# What a live run's viewer may take to receive its last frames.
+VIEWER_FLUSH_S = 2.0
 
 
 # Rerun streams whose writer is stuck, kept from being dropped until the process exits.
@@ -450,9 +463,24 @@ def _smooth(centerlines_mm: NDArray[np.float64], times_s: NDArray[np.float64]) -
 
 
 class Writers:
-    """The MCAP and Rerun writers of one run, their temporary files, and the tallies."""
+    """The MCAP and Rerun writers of one run, their temporary files, and the tallies.
 
-    def __init__(self, session: Session, target: OutputTarget, *, images: bool) -> None:
+    A live run passes ``viewer_url`` (the frames are also logged, as they come, to a Rerun
+    viewer at that gRPC address) and ``mirror`` (every MCAP message is also handed to it:
+    the Foxglove server). ``cameras_used`` says in the MCAP's metadata which cameras the
+    frames were reconstructed with (the summary's line of :mod:`pipeline.refine_cameras`).
+    """
+
+    def __init__(
+        self,
+        session: Session,
+        target: OutputTarget,
+        *,
+        images: bool,
+        viewer_url: str | None = None,
+        mirror: MessageMirror | None = None,
+        cameras_used: str = "",
+    ) -> None:
         # Imported here, not with this module: a run's parent opens its writers once
         # the workers have their first frames, so Rerun's import no longer holds them up.
         import rerun as rr
@@ -465,6 +493,8 @@ class Writers:
         self.mcap_path, self.rrd_path = target.mcap_path, target.rrd_path
         self._mcap_file: IO[bytes] | None = None
         self._stream: Any = None
+        self._viewer_stream: Any = None
+        self.viewer: RerunRecorder | None = None
         self._stalled = False  # the Rerun writer did not finish within its bound
         self.frames: list[int] = []
         self.times_ns: list[int] = []
@@ -484,8 +514,13 @@ class Writers:
                 "centerline_method": session.settings.centerline.method,
                 "start_time": session.settings.session.start_time.isoformat(),
             }
-            self.mcap = McapRecorder(self._mcap_file, session.cameras, images=images, metadata=meta)
-            self._stream = rr.RecordingStream(application_id="pipeline", recording_id=uuid.uuid4())
+            if cameras_used:
+                meta["cameras_used"] = cameras_used
+            self.mcap = McapRecorder(
+                self._mcap_file, session.cameras, images=images, metadata=meta, mirror=mirror
+            )
+            recording_id = uuid.uuid4()
+            self._stream = rr.RecordingStream(application_id="pipeline", recording_id=recording_id)
             # Deterministic files: no wall-clock "log_time" timeline, only frame and time.
             self._stream.set_log_time_enabled(False)
             blueprint = default_blueprint(session.cameras, session.settings.workspace, fps=session.fps)
@@ -494,6 +529,18 @@ class Writers:
                 self._stalled = True
                 raise _stalled_error(self.rrd_path, "started")
             self._stream.send_recording_name(session.name)
+            if viewer_url is not None:
+                # A stream of its own, the same recording to the viewer: the viewer gets each
+                # frame within LIVE_SEND_S, the file its frames a hundred at a time as from
+                # process (the footer of an .rrd indexes every chunk: sent ten times a second,
+                # its index alone grew by 15 MiB a minute).
+                self._viewer_stream = rr.RecordingStream(application_id="pipeline", recording_id=recording_id)
+                self._viewer_stream.set_log_time_enabled(False)
+                self._viewer_stream.set_sinks(rr.GrpcSink(viewer_url), default_blueprint=blueprint)
+                self._viewer_stream.send_recording_name(session.name)
+                self.viewer = RerunRecorder(
+                    self._viewer_stream, session.cameras, session.settings.workspace, live=True
+                )
             self.rerun = RerunRecorder(self._stream, session.cameras, session.settings.workspace)
         except OSError as exc:
             self.abort()
@@ -503,14 +550,21 @@ class Writers:
             raise
         self.committed = False
 
-    def write(self, out: FrameOutput) -> None:
+    def write(
+        self, out: FrameOutput, *, time_ns: int | None = None, extra_metrics: dict[str, float] | None = None
+    ) -> None:
+        """One frame, at ``time_ns`` (ns since the Unix epoch; default: the session's time of
+        its index); ``extra_metrics``: figures its metrics gain (a live run's latency)."""
         result = out.result
-        time_ns = self.session.timestamp_ns(result.index)
+        if time_ns is None:
+            time_ns = self.session.timestamp_ns(result.index)
         try:
-            self.mcap.write_frame(result, time_ns, jpegs=out.jpegs)
+            self.mcap.write_frame(result, time_ns, jpegs=out.jpegs, extra_metrics=extra_metrics)
         except OSError as exc:
             raise output_error(self.target.out_dir, exc) from None
         self.rerun.write_frame(result, time_ns, jpegs=out.jpegs, silhouettes_png=out.silhouettes_png)
+        if self.viewer is not None:
+            self.viewer.write_frame(result, time_ns, jpegs=out.jpegs, silhouettes_png=out.silhouettes_png)
         self.frames.append(result.index)
         self.times_ns.append(time_ns)
         self.curves.append(result.centerline_mm if result.status == "ok" else None)
@@ -553,6 +607,8 @@ class Writers:
         if smoothed is not None:
             self.mcap.write_smoothed(smoothed, self.times_ns)
             self.rerun.write_smoothed(smoothed, self.frames, self.times_ns)
+            if self.viewer is not None:
+                self.viewer.write_smoothed(smoothed, self.frames, self.times_ns)
         self.mcap.finish()
         assert self._mcap_file is not None
         self._mcap_file.flush()
@@ -580,10 +636,25 @@ class Writers:
         if not _within(RERUN_WAIT_S, self._stream.disconnect):
             self._stalled = True
             raise _stalled_error(self.rrd_path, "closed")
+        self._close_viewer()
         _check_rrd_complete(self.target.partial(self.rrd_path), self.rrd_path)
         with deferred_signals():  # a signal between the two renames would split the pair
             self.target.commit()
             self.committed = True
+
+    def _close_viewer(self) -> None:
+        """Send the viewer what it has not got yet, within VIEWER_FLUSH_S: a viewer that went
+        away costs the run its view, never its files."""
+        if self.viewer is None:
+            return
+        try:
+            self.viewer.finish(flush_timeout_s=VIEWER_FLUSH_S)
+        except RuntimeError as exc:
+            log.warning(
+                "the Rerun viewer did not take the last frames (%s)", " ".join(str(exc).split())[:160]
+            )
+        self._viewer_stream.disconnect()
+        self.viewer = None
 
     def abort(self) -> None:
         """Close everything and remove the temporary files; finished outputs are untouched."""
@@ -603,6 +674,9 @@ class Writers:
             rr.unregister_shutdown()
             # Dropping the stream waits for its writer too (RecordingStream.__del__): keep it.
             _STUCK_STREAMS.append(self._stream)
+        if self._viewer_stream is not None:
+            with contextlib.suppress(Exception):
+                _within(RERUN_WAIT_S, self._viewer_stream.disconnect)
         for path in (self.mcap_path, self.rrd_path):
             with contextlib.suppress(FileNotFoundError):
                 self.target.partial(path).unlink()

@@ -210,7 +210,7 @@ def _curve_and_quality(
         radius, residual = radius_guess, float("nan")
     else:
         contrasts = frame_contrasts(images, model)
-        predicted = predict_axis(previous)
+        predicted = predict_axis(previous, index)
 
         def track(
             start_mm: NDArray[np.float64], radius_mm: float, radii_mm: NDArray[np.float64] | None

@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import IO, Any
 
 import numpy as np
@@ -45,7 +46,7 @@ from google.protobuf.message import Message
 from google.protobuf.timestamp_pb2 import Timestamp
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType, Writer
-from mcap_protobuf.schema import register_schema
+from mcap_protobuf.schema import build_file_descriptor_set, register_schema
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
@@ -121,9 +122,50 @@ METRICS_SCHEMA: dict[str, Any] = {
             "description": "why the curve may be wrong; empty if nothing says so",
         },
         "timings_s": {"type": "object", "additionalProperties": {"type": "number"}},
+        "latency_ms": {
+            "type": "number",
+            "description": "live runs only: from the capture of the frame's last image to its result "
+            "being written, milliseconds",
+        },
     },
     "required": ["frame", "status", "reason", "voxel_count"],
 }
+
+
+@dataclass(frozen=True)
+class ChannelSchema:
+    """What a reader needs to decode a topic's messages.
+
+    name, encoding, data : the schema (a protobuf FileDescriptorSet, or a JSON Schema).
+    message_encoding : "protobuf" or "json".
+    """
+
+    name: str
+    encoding: str
+    data: bytes
+    message_encoding: str
+
+
+# Called with every message the recorder writes, as written: (topic, schema, bytes, log time
+# in ns since the Unix epoch). A live run passes one to publish the same topics on a server.
+MessageMirror = Callable[[str, ChannelSchema, bytes, int], None]
+
+METRICS_CHANNEL_SCHEMA = ChannelSchema(
+    name=METRICS_SCHEMA["title"],
+    encoding=SchemaEncoding.JSONSchema,
+    data=json.dumps(METRICS_SCHEMA).encode(),
+    message_encoding=MessageEncoding.JSON,
+)
+
+
+def protobuf_schema(message: Message) -> ChannelSchema:
+    """The schema of ``message``'s type, as MCAP and Foxglove take it."""
+    return ChannelSchema(
+        name=message.DESCRIPTOR.full_name,
+        encoding=SchemaEncoding.Protobuf,
+        data=build_file_descriptor_set(type(message)).SerializeToString(),
+        message_encoding=MessageEncoding.Protobuf,
+    )
 
 
 def _metres(values_mm: Any) -> NDArray[np.float64]:
@@ -280,6 +322,7 @@ class McapRecorder:
     images : write ``/cameras/<name>/image`` when JPEG bytes are given.
     metadata : extra key/value strings for the "pipeline" metadata record.
     chunk_size : bytes of messages per zstd chunk.
+    mirror : also called with every message written (see :data:`MessageMirror`).
     """
 
     def __init__(
@@ -290,8 +333,11 @@ class McapRecorder:
         images: bool = True,
         metadata: dict[str, str] | None = None,
         chunk_size: int = 1024 * 1024,
+        mirror: MessageMirror | None = None,
     ) -> None:
         self._cameras = tuple(cameras)
+        self._mirror = mirror
+        self._mirror_schemas: dict[str, ChannelSchema] = {}
         self._names = tuple(c.name for c in cameras)
         self._images = images
         self._writer = Writer(sink, chunk_size=chunk_size, compression=CompressionType.ZSTD)
@@ -319,10 +365,9 @@ class McapRecorder:
 
     def _json_channel(self, topic: str) -> int:
         if topic not in self._channels:
+            schema = METRICS_CHANNEL_SCHEMA
             schema_id = self._writer.register_schema(
-                name=METRICS_SCHEMA["title"],
-                encoding=SchemaEncoding.JSONSchema,
-                data=json.dumps(METRICS_SCHEMA).encode(),
+                name=schema.name, encoding=schema.encoding, data=schema.data
             )
             self._channels[topic] = self._writer.register_channel(
                 topic=topic, message_encoding=MessageEncoding.JSON, schema_id=schema_id
@@ -331,9 +376,13 @@ class McapRecorder:
 
     def _write(self, topic: str, message: Message, time_ns: int) -> None:
         channel = self._protobuf_channel(topic, message)
-        self._writer.add_message(
-            channel_id=channel, log_time=time_ns, publish_time=time_ns, data=message.SerializeToString()
-        )
+        data = message.SerializeToString()
+        self._writer.add_message(channel_id=channel, log_time=time_ns, publish_time=time_ns, data=data)
+        if self._mirror is not None:
+            name = message.DESCRIPTOR.full_name
+            if name not in self._mirror_schemas:
+                self._mirror_schemas[name] = protobuf_schema(message)
+            self._mirror(topic, self._mirror_schemas[name], data, time_ns)
 
     # -- messages -------------------------------------------------------------------------------
 
@@ -345,8 +394,16 @@ class McapRecorder:
             self._write(f"/cameras/{camera.name}/calibration", camera_calibration(camera, time_ns), time_ns)
         self._statics_written = True
 
-    def write_frame(self, result: FrameResult, time_ns: int, *, jpegs: Sequence[bytes] | None = None) -> None:
-        """All messages of one frame; the metrics message comes last (see the module docstring)."""
+    def write_frame(
+        self,
+        result: FrameResult,
+        time_ns: int,
+        *,
+        jpegs: Sequence[bytes] | None = None,
+        extra_metrics: dict[str, float] | None = None,
+    ) -> None:
+        """All messages of one frame; the metrics message comes last (see the module docstring).
+        ``extra_metrics``: figures the frame's metrics gain (a live run's ``latency_ms``)."""
         if not self._statics_written:
             self.write_statics(time_ns)
         if self._images and jpegs is not None:
@@ -362,10 +419,13 @@ class McapRecorder:
             CENTERLINE_TOPIC, _line_update(curve, time_ns, CENTERLINE_ENTITY, _CENTERLINE_COLOR), time_ns
         )
         self._write(CENTERLINE_POINTS_TOPIC, centerline_cloud(curve, time_ns, _CENTERLINE_COLOR), time_ns)
-        metrics = json.dumps(frame_metrics(result, self._names), allow_nan=False).encode()
+        figures = frame_metrics(result, self._names) | (extra_metrics or {})
+        metrics = json.dumps(figures, allow_nan=False).encode()
         self._writer.add_message(
             channel_id=self._json_channel(METRICS_TOPIC), log_time=time_ns, publish_time=time_ns, data=metrics
         )
+        if self._mirror is not None:
+            self._mirror(METRICS_TOPIC, METRICS_CHANNEL_SCHEMA, metrics, time_ns)
 
     def write_smoothed(self, centerlines_mm: NDArray[np.float64], times_ns: Sequence[int]) -> None:
         """Temporally smoothed centrelines, (F, N, 3) mm with NaN rows, at their frames' times."""

@@ -25,6 +25,8 @@ Timelines: ``frame`` (sequence: frame index, the one the layout opens on) and ``
 
 from __future__ import annotations
 
+import math
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -90,6 +92,10 @@ def rerun_intrinsics(camera: Camera) -> NDArray[np.float64]:
     k[:2, 2] += OPENCV_TO_RERUN_PX
     return k
 
+
+# A live viewer's stream sends what it has this often: ten updates a second. A send is a
+# call per entity (~25); made for every frame, they cost the run more than its drawing is worth.
+LIVE_SEND_S = 0.1
 
 HULL_PATH = "world/hull"
 CENTERLINE_PATH = "world/centerline"
@@ -328,14 +334,25 @@ class RerunRecorder:
     stream : the recording, already given its sink (``stream.save(path)``) and blueprint.
     cameras : the session's cameras, in the order of FrameResult.iou and the media.
     workspace : the carving box, drawn once.
+    live : send what was written, plots included, every LIVE_SEND_S (a viewer is
+        watching); otherwise rows go out 100 frames at a time and the plots at the end.
     """
 
-    def __init__(self, stream: rr.RecordingStream, cameras: Sequence[Camera], workspace: Workspace) -> None:
+    def __init__(
+        self,
+        stream: rr.RecordingStream,
+        cameras: Sequence[Camera],
+        workspace: Workspace,
+        *,
+        live: bool = False,
+    ) -> None:
         self._rec = stream
         self._cameras = tuple(cameras)
         self._workspace = workspace
+        self._live = live
         self._series = _Series()
         self._columns = _Columns()
+        self._sent_at = -math.inf
         self._statics_written = False
 
     def write_statics(self) -> None:
@@ -447,9 +464,14 @@ class RerunRecorder:
         add(HULL_PATH, "points", frame, time_ns, np.asarray(result.points_mm).reshape(-1, 3))
         add(CENTERLINE_PATH, "strips3d", frame, time_ns, curve)
         add(TIP_PATH, "points", frame, time_ns, None if curve is None else curve[-1:])
-        if self._columns.full():
-            self._columns.send(self._rec)
         self._series.add(result.index, time_ns, self._scalars(result))
+        if self._live and time.monotonic() - self._sent_at >= LIVE_SEND_S:
+            self._columns.send(self._rec)
+            self._send_series(self._series)
+            self._series = _Series()
+            self._sent_at = time.monotonic()
+        elif self._columns.full():
+            self._columns.send(self._rec)
 
     def _scalars(self, result: FrameResult) -> dict[str, float]:
         values: dict[str, float] = {
@@ -479,7 +501,10 @@ class RerunRecorder:
         """Send the queued rows and the time series as columns, and flush the stream
         (RuntimeError if that takes longer than ``flush_timeout_s``)."""
         self._columns.send(self._rec)
-        series = self._series
+        self._send_series(self._series)
+        self._rec.flush(timeout_sec=flush_timeout_s)
+
+    def _send_series(self, series: _Series) -> None:
         frames = np.asarray(series.frames, dtype=np.int64)
         times = np.asarray(series.times_ns, dtype=np.int64).astype("datetime64[ns]")
         for path, column in series.values.items():
@@ -495,4 +520,3 @@ class RerunRecorder:
                 ],
                 columns=rr.Scalars.columns(scalars=values[keep]),
             )
-        self._rec.flush(timeout_sec=flush_timeout_s)

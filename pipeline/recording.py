@@ -65,6 +65,8 @@ class Recording:
     smoothed_centerlines_m : (F, N, 3) float64 after temporal smoothing, or None
         when the file has none (older run, or truncated before the end).
     complete : False when the file ended before its footer (a truncated recording).
+    cameras : the cameras the frames were reconstructed with, "given" or "refined ..."
+        (the refinement's summary line); "" when the file does not say.
     """
 
     path: Path
@@ -77,6 +79,7 @@ class Recording:
     metrics: list[dict[str, Any]]
     smoothed_centerlines_m: NDArray[np.float64] | None
     complete: bool
+    cameras: str = ""
 
     def __len__(self) -> int:
         return len(self.frame_indices)
@@ -309,4 +312,5 @@ def _assemble(
         # Written after the last frame: a file cut short may hold only part of it.
         smoothed_centerlines_m=_stack(smoothed, times, n) if smoothed and complete else None,
         complete=complete,
+        cameras=metadata.get("cameras_used", ""),
     )

@@ -395,6 +395,8 @@ def _run_with(
     writer: Writers | None = None
     done = 0
     tip = ""
+    refinement = None
+    written: list[tuple[Path, int]] = []
     # Local workers tell the bar of each frame as they finish it (a range's results
     # come back whole): one byte each, appended to a file of this run's.
     tally = _new_tally() if progress and backend != "dask" else None
@@ -409,10 +411,15 @@ def _run_with(
                 start_local_workers(n_jobs)
             if frame_fn is None:
                 from .model import build_model
+                from .refine_cameras import refined_cameras
                 from .tip_shape import with_session_tip
 
-                model: Any
-                model, choice = with_session_tip(build_model(session), session.video_paths, start, stop)
+                model: Any = build_model(session)
+                cameras, refinement = refined_cameras(model, session.video_paths, start, stop)
+                if cameras is not session.cameras:
+                    session = dataclasses.replace(session, cameras=cameras)
+                    model = build_model(session)
+                model, choice = with_session_tip(model, session.video_paths, start, stop)
                 tip = choice.describe() if choice is not None else ""
             else:
                 model = session  # a replacement frame function gets the session as its model
@@ -439,7 +446,12 @@ def _run_with(
                 results = _run_ranges(ranges, call, n_jobs)
                 # The writers open (importing Rerun, logging the cameras) while the workers
                 # start on the first ranges.
-                writer = Writers(session, target, images=images)
+                writer = Writers(
+                    session,
+                    target,
+                    images=images,
+                    cameras_used="" if refinement is None else refinement.describe(),
+                )
                 for span, outputs in results:
                     if isinstance(outputs, str):  # a range given up: its frames fail
                         outputs = _failed_range(span, outputs)
@@ -449,6 +461,16 @@ def _run_with(
                         _advance(bar, done)
         assert writer is not None
         writer.finish()
+        if frame_fn is None:
+            from .refine_cameras import remove_refined_calibration, write_refined_calibration
+
+            path = target.out_dir / f"{target.name}.calibration.toml"
+            if refinement is not None and refinement.applied:
+                written.append(
+                    write_refined_calibration(path, target.partial(path), session.cameras, refinement)
+                )
+            else:
+                remove_refined_calibration(path)  # an earlier run's: not these outputs' cameras
     except KeyboardInterrupt as exc:
         if writer is not None and writer.committed:
             message = f"interrupted as the run ended; {target.mcap_path} and {target.rrd_path} are complete"
@@ -470,7 +492,14 @@ def _run_with(
         if tally is not None:
             tally.unlink(missing_ok=True)
     wall = time.perf_counter() - t0
-    return dataclasses.replace(writer.summary(wall), tip=tip)
+    summary = writer.summary(wall)
+    return dataclasses.replace(
+        summary,
+        tip=tip,
+        cameras=refinement.describe() if refinement is not None else "",
+        camera_warnings=refinement.warnings() if refinement is not None else [],
+        outputs=summary.outputs + written,
+    )
 
 
 # The URL schemes of Dask's transports (distributed.comm); an address without one is tcp.

@@ -92,14 +92,7 @@ def load_session(directory: Path | str) -> Session:
             ", ".join(f"{c.name}: {n}" for c, n in zip(cameras, counts, strict=True)),
             min(counts),
         )
-    backgrounds = tuple(_background(directory, cam) for cam in cameras)
-    if settings.silhouette.method == "background":
-        missing = [c.name for c, b in zip(cameras, backgrounds, strict=True) if b is None]
-        if missing:
-            raise SessionError(
-                f"{directory / 'background'}: silhouette method 'background' needs "
-                f"background/{missing[0]}.png (missing for camera {missing[0]!r})"
-            )
+    backgrounds = _backgrounds(directory, cameras, settings)
     _check_workspace_visible(cameras, settings)
     _check_last_timestamp(directory, settings, fps, min(counts))
     return Session(
@@ -112,6 +105,52 @@ def load_session(directory: Path | str) -> Session:
         fps=fps,
         frame_count=min(counts),
         frame_counts=counts,
+    )
+
+
+# A live rig's nominal frame rate, until its cameras say (the layout plays the ``frame``
+# timeline at it; the summary gives each camera's measured rate).
+LIVE_NOMINAL_FPS = 30.0
+
+
+def load_rig(directory: Path | str) -> Session:
+    """Read and validate a rig directory for ``pipeline live``: calibration.toml and
+    session.toml (with its ``[live]`` sources), no videos.
+
+    The session it returns has no videos and no frames; its ``fps`` is nominal
+    (:data:`LIVE_NOMINAL_FPS`) and its name the directory's.
+    """
+    directory = Path(directory)
+    _check_not_dangling(directory)
+    check_utf8_path(directory, "rename the folder (or move the rig) to a UTF-8 path")
+    if not directory.is_dir():
+        raise SessionError(
+            f"{directory}: no such rig directory; give the folder that holds calibration.toml "
+            "and session.toml"
+        )
+    for name in ("session.toml", "calibration.toml"):
+        _check_not_dangling(directory / name)
+    settings = load_settings(directory / "session.toml")
+    cameras = read_calibration(directory / "calibration.toml")
+    names = [c.name for c in cameras]
+    for camera, _ in settings.live.sources:
+        if camera not in names:
+            raise SettingsError(
+                f"{directory / 'session.toml'}: [live] names camera {camera!r}, which calibration.toml "
+                f"does not have (cameras: {', '.join(names)}); fix the name or remove the line"
+            )
+    backgrounds = _backgrounds(directory, cameras, settings)
+    _check_workspace_visible(cameras, settings)
+    return Session(
+        directory=directory,
+        name=directory.resolve().name,
+        cameras=tuple(cameras),
+        video_paths=(),
+        backgrounds=backgrounds,
+        settings=settings,
+        fps=LIVE_NOMINAL_FPS,
+        frame_count=0,
+        frame_counts=(),
     )
 
 
@@ -163,6 +202,21 @@ def _common_fps(infos: list[VideoInfo]) -> float:
                 "record all cameras at the same rate"
             )
     return fps
+
+
+def _backgrounds(
+    directory: Path, cameras: list[Camera], settings: Settings
+) -> tuple[NDArray[np.uint8] | None, ...]:
+    """Per camera its background image (None: none), all of them for method "background"."""
+    backgrounds = tuple(_background(directory, cam) for cam in cameras)
+    if settings.silhouette.method == "background":
+        missing = [c.name for c, b in zip(cameras, backgrounds, strict=True) if b is None]
+        if missing:
+            raise SessionError(
+                f"{directory / 'background'}: silhouette method 'background' needs "
+                f"background/{missing[0]}.png (missing for camera {missing[0]!r})"
+            )
+    return backgrounds
 
 
 def _background(directory: Path, cam: Camera) -> NDArray[np.uint8] | None:

@@ -89,9 +89,31 @@ class CenterlineSettings:
 
 
 @dataclass(frozen=True)
+class CalibrationSettings:
+    # Cameras refined from the session's silhouettes (pipeline.refine_cameras): "auto"
+    # refines when the views disagree with the given cameras by more than their noise.
+    refine: str | bool = "auto"
+
+
+@dataclass(frozen=True)
 class SessionInfo:
     # Frame i is at start_time + i / fps; the Unix epoch when session.toml does not say.
     start_time: datetime = datetime(1970, 1, 1, tzinfo=UTC)
+
+
+@dataclass(frozen=True)
+class LiveSettings:
+    """``[live]``: camera name -> its source for ``pipeline live``, in the table's order.
+
+    A source is a V4L2 device path (``/dev/video0``), a device index (``0``, read as
+    ``/dev/video0``) or anything FFmpeg opens (``rtsp://``, ``udp://``, ``http://``,
+    a named pipe); the table's integers are kept as their decimal text.
+    """
+
+    sources: tuple[tuple[str, str], ...] = ()
+
+    def source(self, camera: str) -> str | None:
+        return dict(self.sources).get(camera)
 
 
 @dataclass(frozen=True)
@@ -100,7 +122,9 @@ class Settings:
     silhouette: SilhouetteSettings = field(default_factory=SilhouetteSettings)
     manipulator: ManipulatorSettings = field(default_factory=ManipulatorSettings)
     centerline: CenterlineSettings = field(default_factory=CenterlineSettings)
+    calibration: CalibrationSettings = field(default_factory=CalibrationSettings)
     session: SessionInfo = field(default_factory=SessionInfo)
+    live: LiveSettings = field(default_factory=LiveSettings)
 
 
 _SECTIONS: dict[str, type] = {
@@ -108,6 +132,7 @@ _SECTIONS: dict[str, type] = {
     "silhouette": SilhouetteSettings,
     "manipulator": ManipulatorSettings,
     "centerline": CenterlineSettings,
+    "calibration": CalibrationSettings,
     "session": SessionInfo,
 }
 
@@ -129,8 +154,8 @@ def load_settings(path: Path | None) -> Settings:
 
 def settings_from_dict(data: dict[str, Any], *, source: str = "session.toml") -> Settings:
     """Build validated :class:`Settings` from parsed TOML; raise SettingsError naming the key."""
-    _check_keys(data, _SECTIONS, source, "")
-    parts: dict[str, Any] = {}
+    _check_keys(data, {*_SECTIONS, "live"}, source, "")
+    parts: dict[str, Any] = {"live": _live(data.get("live", {}), source)}
     for name, cls in _SECTIONS.items():
         section = data.get(name, {})
         if not isinstance(section, dict):
@@ -141,6 +166,23 @@ def settings_from_dict(data: dict[str, Any], *, source: str = "session.toml") ->
     settings = Settings(**parts)
     _validate(settings, source)
     return settings
+
+
+def _live(section: Any, source: str) -> LiveSettings:
+    """``[live]``: camera name -> a source string, or a device index (a non-negative integer)."""
+    if not isinstance(section, dict):
+        raise SettingsError(f"{source}: [live] must be a table of camera name = source")
+    pairs = []
+    for camera, value in section.items():
+        if isinstance(value, int) and not isinstance(value, bool) and value >= 0:
+            value = str(value)
+        if not isinstance(value, str) or not value.strip():
+            raise SettingsError(
+                f"{source}: [live] {camera} must be a device path, a device index or a stream URL "
+                f'(e.g. "/dev/video0", 0, "udp://127.0.0.1:5000"), got {_short(value)}'
+            )
+        pairs.append((camera, value.strip()))
+    return LiveSettings(tuple(pairs))
 
 
 def _check_keys(data: dict[str, Any], allowed: Any, source: str, where: str) -> None:
@@ -186,6 +228,10 @@ def _convert(source: str, section: str, key: str, value: Any) -> Any:
     if key in ("threshold", "min_area_px", "points"):
         if isinstance(value, bool) or not isinstance(value, int):
             raise SettingsError(f"{source}: {name} must be an integer, got {_short(value)}")
+        return value
+    if key == "refine":
+        if not (isinstance(value, bool) or value == "auto"):
+            raise SettingsError(f'{source}: {name} must be "auto", true or false, got {_short(value)}')
         return value
     if key == "smooth":
         if not isinstance(value, bool):

@@ -75,27 +75,30 @@ def track_start(index: int) -> int:
     return max(0, segment_start(index) - WARMUP_FRAMES)
 
 
-def predict_axis(previous: Sequence[FrameResult]) -> FloatArray | None:
-    """(N, 3) mm: this frame's axis predicted from the last frames' results, or None.
+def predict_axis(previous: Sequence[FrameResult], index: int | None = None) -> FloatArray | None:
+    """(N, 3) mm: frame ``index``'s axis predicted from the last frames' results, or None.
 
-    ``previous``: the track's results so far, oldest first. The last ok curve,
-    moved on by its velocity from the one before when both are ok and
-    consecutive (the curves are uniform in arc length with the same sample
-    count, so sample k of one matches sample k of the other); None when the
-    last frame has no curve (the track is lost).
+    ``previous``: the track's results so far, oldest first; ``index``: the frame
+    predicted (default: the one after the last). The last ok curve, moved on at the
+    velocity it had from the one before when both are ok (the curves are uniform
+    in arc length with the same sample count, so sample k of one matches sample k
+    of the other): constant velocity, over any gap between the frames (a live run
+    drops frames when it falls behind); None when the last frame has no curve
+    (the track is lost).
     """
     if not previous or previous[-1].centerline_mm is None:
         return None
     last = previous[-1]
     axis = np.asarray(last.centerline_mm, dtype=np.float64)
+    ahead = 1 if index is None else index - last.index
     if len(previous) >= 2:
         before = previous[-2]
-        if (
-            before.centerline_mm is not None
-            and before.index == last.index - 1
-            and before.centerline_mm.shape == axis.shape
-        ):
-            axis = 2.0 * axis - np.asarray(before.centerline_mm, dtype=np.float64)
+        apart = last.index - before.index
+        if before.centerline_mm is not None and apart > 0 and before.centerline_mm.shape == axis.shape:
+            if apart == 1 and ahead == 1:
+                return 2.0 * axis - np.asarray(before.centerline_mm, dtype=np.float64)
+            velocity = (axis - np.asarray(before.centerline_mm, dtype=np.float64)) / apart
+            return axis + ahead * velocity
     return axis
 
 

@@ -57,7 +57,7 @@ _CORE = 0.6
 # many robust standard deviations of all residuals, if larger) is an outlier.
 _OUTLIER_RADII = 0.25
 _OUTLIER_SPREAD = 4.0
-# Two-edge readings a view needs for its own half-width (see _read_sides).
+# Two-edge readings a view needs for its own half-width (see read_sides).
 _OWN_WIDTH_READINGS = 5
 # refit_body: its rounds (each re-reads the images), and its crowding margin
 # (see _CROWD_MARGIN_PX): where a tip lies against the stem, the stem's
@@ -161,7 +161,7 @@ def fit_tube(
     max_length_mm : the tip is never moved past this arc length (the hull's
         end: the tube lies inside the hull).
     robust : after each solve, drop the readings it disagrees with and solve
-        again (see :func:`_consistent`).
+        again (see :func:`consistent_readings`).
     seek_radii : how far from ``curve_mm`` (in radii) the first round seeks the
         tube's peak: farther for a rough curve from the hull than for a
         tracked prediction.
@@ -191,7 +191,7 @@ def fit_tube(
         # The first round looks for the tube's peak within 1.6 radii of the
         # rough curve (the march may be a few mm off in crowded hull), later
         # rounds within 0.6 (the curve is on the tube by then).
-        obs = _read_sides(
+        obs = read_sides(
             pts,
             cameras,
             contrasts,
@@ -209,7 +209,7 @@ def fit_tube(
             pts, cameras, contrasts, float(local[-1]), cap=cap, masks=masks, max_length_mm=max_length_mm
         )
     pts = _resampled(pts, spacing_mm)
-    obs = _read_sides(pts, cameras, contrasts, np.interp(polyline_arclength(pts), along, radii), spacing_mm)
+    obs = read_sides(pts, cameras, contrasts, np.interp(polyline_arclength(pts), along, radii), spacing_mm)
     if obs.readings == 0:
         return TubeFit(pts, float("nan"), float("nan"), 0)
     return TubeFit(pts, obs.radius_mm, obs.residual_mm(), obs.readings, obs.radii_mm)
@@ -253,7 +253,7 @@ def refit_body(
     pts = _resampled(pts, spacing_mm)
     held = polyline_arclength(pts) >= hold_from_mm
     for _ in range(iterations):
-        obs = _read_sides(
+        obs = read_sides(
             pts, cameras, contrasts, radius_mm, spacing_mm, crowd_margin_px=_BODY_CROWD_MARGIN_PX
         )
         if obs.readings < 6:
@@ -264,7 +264,7 @@ def refit_body(
 
 def _step(
     pts: FloatArray,
-    obs: _Sides,
+    obs: SideReadings,
     *,
     base_fixed: bool,
     smoothness: float,
@@ -273,9 +273,9 @@ def _step(
 ) -> FloatArray:
     """(K, 3) Gauss-Newton correction of the samples ``pts`` (mm) from the readings
     ``obs``; ``robust``: solved again without the readings the first solve
-    disagrees with (see :func:`_consistent`)."""
+    disagrees with (see :func:`consistent_readings`)."""
     step = _solve_corrections(pts, obs, base_fixed=base_fixed, smoothness=smoothness, held=held)
-    kept = _consistent(obs, step) if robust else obs
+    kept = consistent_readings(obs, step) if robust else obs
     if kept is not obs:
         step = _solve_corrections(pts, kept, base_fixed=base_fixed, smoothness=smoothness, held=held)
     return step
@@ -354,7 +354,7 @@ def _tangents(pts: FloatArray) -> FloatArray:
 
 
 @dataclass(frozen=True, eq=False)
-class _Sides:
+class SideReadings:
     """Side readings at K samples in C cameras; (K, C) arrays unless noted, mm.
 
     ``left``/``right`` are the silhouette's edges along the image normal (negative
@@ -363,7 +363,8 @@ class _Sides:
     half-width at each sample, which a single trusted edge is moved in by;
     ``radii_mm`` (K,) the radius along the tube (:func:`_radius_profile`). ``rows`` (K, C, 3)
     maps a 3-D motion of the sample (mm) to the motion of its projection along
-    the normal (mm).
+    the normal (mm); ``across`` (K, C, 2) maps a motion of its projection (px) to
+    that motion along the normal (mm), or is None.
     """
 
     rows: FloatArray
@@ -373,6 +374,7 @@ class _Sides:
     radius_mm: float
     apparent: FloatArray
     radii_mm: FloatArray
+    across: FloatArray | None = None
 
     @property
     def readings(self) -> int:
@@ -411,6 +413,7 @@ class _CameraEdges:
     t_hat: FloatArray  # (C, K, 2) unit image tangents
     r_px: FloatArray  # the radius' image size
     rows: FloatArray  # (C, K, 3) d(motion along the normal, mm) / d(point, mm)
+    across: FloatArray  # (C, K, 2) d(motion along the normal, mm) / d(projection, px)
     lo: FloatArray  # negative-side edge, mm along the normal
     hi: FloatArray  # positive-side edge
     ok: NDArray[np.bool_]  # both edges found in a usable view
@@ -458,11 +461,20 @@ def _camera_edges(
     limit = (_WIDTH_TOLERANCE * r_px + 0.5) / safe
     floor = np.maximum(r_px / _WIDTH_TOLERANCE - 0.5, 0.0) / safe
     return _CameraEdges(
-        px, t_hat, r_px, row / safe[..., None], lo / safe, hi / safe, ok & found, limit, floor
+        px,
+        t_hat,
+        r_px,
+        row / safe[..., None],
+        normal / safe[..., None],
+        lo / safe,
+        hi / safe,
+        ok & found,
+        limit,
+        floor,
     )
 
 
-def _read_sides(
+def read_sides(
     pts: FloatArray,
     cameras: Sequence[Camera],
     contrasts: Sequence[NDArray[np.float32]],
@@ -471,7 +483,7 @@ def _read_sides(
     *,
     core: float = 0.6,
     crowd_margin_px: float = _CROWD_MARGIN_PX,
-) -> _Sides:
+) -> SideReadings:
     """Side readings at the K samples ``pts`` (mm) where the tube's radius is
     ``radius_mm`` (one for all, or (K,) along the tube)."""
     c = len(cameras)
@@ -518,7 +530,9 @@ def _read_sides(
         own = 0.5 * (right[:, j] - left[:, j])[both[:, j]]
         if own.size >= _OWN_WIDTH_READINGS and radius > 0:
             ratio[j] = median_1d(own) / radius
-    return _Sides(rows, left, right, use, radius, radii[:, None] * ratio[None, :], radii)
+    return SideReadings(
+        rows, left, right, use, radius, radii[:, None] * ratio[None, :], radii, e.across.transpose(1, 0, 2)
+    )
 
 
 def _radius_profile(
@@ -640,7 +654,7 @@ def _dot_rows(axes: FloatArray, px: FloatArray) -> FloatArray:
     return np.asarray(axes @ px.transpose(0, 2, 1) - np.einsum("cki,cki->ck", axes, px)[..., None])
 
 
-def _consistent(obs: _Sides, step: FloatArray) -> _Sides:
+def consistent_readings(obs: SideReadings, step: FloatArray) -> SideReadings:
     """``obs`` without the readings the solution ``step`` (K, 3) disagrees with.
 
     A reading contaminated by another part of the tube that the curve does not
@@ -680,7 +694,7 @@ def _second_difference_gram(k: int) -> FloatArray:
 
 def _solve_corrections(
     pts: FloatArray,
-    obs: _Sides,
+    obs: SideReadings,
     *,
     base_fixed: bool,
     smoothness: float,
@@ -691,6 +705,27 @@ def _solve_corrections(
     ``base_fixed`` holds the first sample where it is, ``held`` (K,) any others
     (their corrections are 0; the smoothness still joins their neighbours to them).
     """
+    band, g = normal_equations(pts, obs, base_fixed=base_fixed, smoothness=smoothness, held=held)
+    return np.asarray(solveh_banded(band, g)).reshape(len(pts), 3)
+
+
+# The normal equations' upper bandwidth: a sample couples with the two either side
+# of it through the second difference, 3 * 2 + 2 entries above the diagonal.
+BAND_UPPER = 8
+
+
+def normal_equations(
+    pts: FloatArray,
+    obs: SideReadings,
+    *,
+    base_fixed: bool,
+    smoothness: float,
+    held: NDArray[np.bool_] | None = None,
+) -> tuple[FloatArray, FloatArray]:
+    """The normal equations of :func:`_solve_corrections`: LAPACK's upper band
+    (BAND_UPPER + 1, 3K) of the (3K, 3K) matrix and the (3K,) right-hand side, for the
+    corrections of the K samples ``pts`` (mm) from the readings ``obs``. A held sample's
+    rows and columns are the identity's and its right-hand side 0."""
     k = len(pts)
     tangents = _tangents(pts)
     centre, w = obs.centres()
@@ -700,10 +735,9 @@ def _solve_corrections(
     # Motion along the tangent is not observed by the sides: hold it (weight 1),
     # plus a tiny damping so that a sample with no reading stays solvable.
     blocks += tangents[:, :, None] * tangents[:, None, :] + 1e-3 * np.eye(3)
-    # The system is banded (a sample couples with the two either side of it through
-    # the second difference): store it as LAPACK's upper band, 3 * 2 + 2 above the
-    # diagonal, and solve it in O(K) instead of densely.
-    n, upper = 3 * k, 8
+    # The system is banded: store it as LAPACK's upper band and solve it in O(K)
+    # instead of densely.
+    n, upper = 3 * k, BAND_UPPER
     band = np.zeros((upper + 1, n))
     for a in range(3):
         for b in range(a, 3):
@@ -727,4 +761,4 @@ def _solve_corrections(
                 band[upper - d, row] = 0.0  # column, above the diagonal
             band[upper, row] = 1.0
         g[3 * i : 3 * i + 3] = 0.0
-    return np.asarray(solveh_banded(band, g)).reshape(k, 3)
+    return band, g

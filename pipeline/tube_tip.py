@@ -154,7 +154,7 @@ def refit_tip(
 
     The end is sought along the curve's own continuation: a parabola in arc
     length fitted to the measured part before the last half radius (which has no
-    side readings, see :func:`_read_sides`), so that a loop's tip is sought on the
+    side readings, see :func:`read_sides`), so that a loop's tip is sought on the
     loop and not on a tangent line. That last part is regenerated from it.
     """
     arc = polyline_arclength(pts)

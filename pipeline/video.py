@@ -381,7 +381,7 @@ def _decode(
     """
     stream.codec_context.options = {"err_detect": "explode"}  # a damaged packet fails, not a garbled picture
     clock = _Clock.of(stream)
-    grey = _Greyer()
+    grey = Greyer()
     broken = True  # no reference picture until a keyframe: at the start, after a seek or damage
     keyframe_pts: int | None = None  # of the last keyframe sent to the decoder
     previous = start - 1
@@ -421,7 +421,7 @@ def _decode(
             yield i, grey(frame)
 
 
-class _Greyer:
+class Greyer:
     """Grey images of a stream's frames, bit for bit what OpenCV's reader gives.
 
     Via BGR as OpenCV converts (PyAV's own "gray" conversion differs by up to 2

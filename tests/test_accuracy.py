@@ -128,7 +128,7 @@ def test_smoothed_tip_jitter_and_accuracy(name: str, tmp_path: Path) -> None:
 # 30 frames a second, processed as a run does (pipeline.frame_task.process_range:
 # tracked, segments and all). Held here: the kinds the model covers, three cameras
 # and a uniform radius (disks included); tapered and stepped tubes and two-camera
-# rigs are measured in the README's accuracy table and not yet held to the targets.
+# rigs are measured in docs/accuracy.md and not yet held to the targets.
 # The bounds are the tracked model's targets; measured on these four cases (a random
 # shape beside a dark object, a straight tube with disks, a round end, disks beside a
 # dark object): mean 0.09-0.19, p95 0.19-0.38, tip median 0.24-0.41 mm, no frame off.

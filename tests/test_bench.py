@@ -24,6 +24,7 @@ from pipeline.bench.report import (
     RECONSTRUCT_CPU,
     BenchReport,
     EndToEndRun,
+    LiveRun,
     ScalingRow,
     ShapeRun,
     format_table,
@@ -357,3 +358,27 @@ def test_the_command_line_takes_the_per_shape_options() -> None:
     assert args.no_shapes and args.shape_repeats == 3
     defaults = build_parser().parse_args([])
     assert not defaults.no_shapes and defaults.shape_repeats == 1
+
+
+def test_live_rows_and_targets_against_issue_16(tmp_path: Path) -> None:
+    report = _fake_report()
+    report.live = [
+        LiveRun("demo", 900, 900, 0, 0, 14.0, 31.5, (30.0, 30.0, 29.9), 31.0, 420.0, 0.4, 0.012, 0),
+        LiveRun("loop", 900, 850, 50, 3, 35.0, 80.0, (30.0, 30.0, 30.0), 31.0, 430.0, 1.5, 0.3, 0),
+    ]
+    table = format_table(report)
+    # frame-sets, written, dropped, unmatched, p50, p99, camera rates, vs process, peak RSS, growth
+    assert "| demo | 900 | 900 | 0 | 0 | 14.0 | 31.5 | 30.0, 30.0, 29.9 | 0.012 | 420 | 0.4 |" in table
+    verdicts = {t.name: t.verdict for t in targets(report)}
+    assert verdicts["live demo: frame-sets dropped"] == "PASS"
+    assert verdicts["live demo: latency p50"] == "PASS"  # 14 <= 20 ms
+    assert verdicts["live demo: latency p99"] == "PASS"  # 31.5 <= 50 ms
+    assert verdicts["live demo: centrelines vs process (mean)"] == "PASS"  # 0.012 <= 0.05 mm
+    assert verdicts["live loop: frame-sets dropped"] == "MISS"
+    assert verdicts["live loop: latency p50"] == "MISS"
+    assert verdicts["live loop: latency p99"] == "MISS"
+    assert verdicts["live loop: centrelines vs process (mean)"] == "MISS"
+    write_json(report, tmp_path / "bench.json")
+    data = json.loads((tmp_path / "bench.json").read_text())
+    assert data["live"][1]["dropped"] == 50 and data["live"][0]["latency_p99_ms"] == 31.5
+    assert "live (`live --replay`" not in format_table(_fake_report())  # no live runs: no table

@@ -281,7 +281,7 @@ def test_recording_beyond_the_truth_is_a_user_error(partial_run: tuple[Path, Pat
         evaluate_recording(recording, tmp_path / "short.npz")
 
 
-# --- the README's accuracy table (pipeline.accuracy_table) ---------------------------
+# --- the accuracy table (docs/accuracy.md) (pipeline.accuracy_table) ---------------------------
 
 
 def test_accuracy_table_covers_every_shape_and_an_unseen_set() -> None:

@@ -100,7 +100,10 @@ def test_a_base_in_the_box_or_just_below_its_floor_is_accepted(base_mm: list[flo
         ({"centerline": {"points": 3}}, ("points", "4-10000")),
         ({"session": {"start_time": "yesterday"}}, ("start_time", "RFC 3339")),
         ({"workspace": {"voxel": 2}}, ("unknown key [workspace] 'voxel'", "origin_mm, size_mm, voxel_mm")),
-        ({"silhouete": {}}, ("unknown key 'silhouete'", "centerline, manipulator, session, silhouette")),
+        (
+            {"silhouete": {}},
+            ("unknown key 'silhouete'", "centerline, live, manipulator, session, silhouette"),
+        ),
     ],
     ids=lambda v: "-".join(f"{k}:{v[k]}" for k in v) if isinstance(v, dict) else "",
 )

@@ -50,6 +50,7 @@ RADIUS_MM = 6.0
 NAMES = ("cam0", "cam1", "cam2")
 GT_KEYS = {
     "centerlines",
+    "calib_error_deg",
     "timestamps_s",
     "radius_mm",
     "base_mm",

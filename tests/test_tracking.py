@@ -34,8 +34,9 @@ def test_the_prediction_moves_the_last_curve_on_by_its_velocity() -> None:
     predicted = predict_axis([_ok(4, axis), _ok(5, axis + step)])
     assert predicted is not None
     np.testing.assert_allclose(predicted, axis + 2 * step)
-    # Not consecutive frames: no velocity, the last curve as it is.
-    np.testing.assert_allclose(predict_axis([_ok(3, axis), _ok(5, axis + step)]), axis + step)  # type: ignore[arg-type]
+    # Across gaps (a live run drops frames): the same velocity per frame, over the gap.
+    np.testing.assert_allclose(predict_axis([_ok(3, axis), _ok(5, axis + step)]), axis + 1.5 * step)  # type: ignore[arg-type]
+    np.testing.assert_allclose(predict_axis([_ok(4, axis), _ok(5, axis + step)], 8), axis + 4 * step)  # type: ignore[arg-type]
 
 
 def test_a_track_whose_last_frame_has_no_curve_is_lost() -> None:

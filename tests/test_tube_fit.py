@@ -11,20 +11,20 @@ from numpy.typing import NDArray
 
 from pipeline.evaluate import centerline_distances
 from pipeline.polyline import polyline_arclength, resample_polyline
-from pipeline.tube_fit import _consistent, _crowded, _Sides, _solve_corrections, refit_body
+from pipeline.tube_fit import SideReadings, _crowded, _solve_corrections, consistent_readings, refit_body
 
 FloatArray = NDArray[np.float64]
 RADIUS = 6.0
 
 
-def _sides_along_x(k: int, offset: FloatArray) -> tuple[FloatArray, _Sides]:
+def _sides_along_x(k: int, offset: FloatArray) -> tuple[FloatArray, SideReadings]:
     """K samples 4 mm apart along x, each read by two views (one along y, one
     along z) that put the axis ``offset`` (K, 2) mm off it."""
     pts = np.column_stack([np.arange(k) * 4.0, np.zeros(k), np.zeros(k)])
     rows = np.zeros((k, 2, 3))
     rows[:, 0, 1] = 1.0
     rows[:, 1, 2] = 1.0
-    sides = _Sides(
+    sides = SideReadings(
         rows,
         offset - RADIUS,
         offset + RADIUS,
@@ -125,14 +125,14 @@ def test_consistent_drops_the_reading_the_solution_disagrees_with() -> None:
     offset[10, 0] = 4.0  # another part of the tube in view 0 at sample 10
     pts, sides = _sides_along_x(k, offset)
     step = _solve_corrections(pts, sides, base_fixed=False, smoothness=0.5)
-    kept = _consistent(sides, step)
+    kept = consistent_readings(sides, step)
     assert not kept.use[10, 0].any()
     # Everything else stays: its residuals are noise, far under a quarter radius.
     assert kept.readings == sides.readings - 2
     again = _solve_corrections(pts, kept, base_fixed=False, smoothness=0.5)
     # Without the outlier, sample 10 sits where its neighbours and the noise say.
     assert abs(again[10, 1]) < 0.3 < abs(step[10, 1])
-    assert _consistent(kept, again) is kept
+    assert consistent_readings(kept, again) is kept
 
 
 def test_the_radius_profile_follows_a_step_and_ignores_disks() -> None:

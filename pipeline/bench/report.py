@@ -40,6 +40,10 @@ STAGE_ORDER = (
 # the three videos alone, and the 99th percentile of RECONSTRUCT (a live camera's 30 fps).
 SHAPE_DECODE_RATIO_LIMIT = 20.0
 RECONSTRUCT_P99_LIMIT_MS = 33.0
+# Issue 16's live targets, replaying a 320x240 session at 30 fps on this machine.
+LIVE_P50_LIMIT_MS = 20.0
+LIVE_P99_LIMIT_MS = 50.0
+LIVE_GAP_LIMIT_MM = 0.05
 # Carving methods compared at 128^3 (BenchReport.carving_methods keys).
 OURS = "ours (coarse-to-fine)"
 LOOKUP = "lookup gather"
@@ -144,6 +148,43 @@ class ShapeRun:
 
 
 @dataclass(frozen=True)
+class LiveRun:
+    """One ``python -m pipeline live --replay`` subprocess (issue 16).
+
+    Attributes
+    ----------
+    label : what was replayed, e.g. "bend_rotate (demo)".
+    frame_sets : frame-sets matched (written + dropped).
+    written : frames reconstructed and written.
+    dropped : frame-sets dropped because the reconstruction fell behind.
+    unmatched : camera frames no frame of every other camera matched.
+    latency_p50_ms, latency_p99_ms : capture of a frame's last image to its result written, ms.
+    camera_fps : per camera, frames per second delivered.
+    wall_s : the subprocess's wall time, seconds.
+    peak_rss_mb : its peak RSS, MiB.
+    rss_growth_mb : its lowest RSS over 75-95 % of the run less its lowest over 25-45 %, MiB
+        (flat memory: ~0; the lows leave out the frames the Rerun writer batches up).
+    gap_to_process_mm : mean distance of its centrelines to ``process``'s on the frames
+        both hold, mm (NaN: no ``process`` recording to compare with).
+    exit_code : its exit status.
+    """
+
+    label: str
+    frame_sets: int
+    written: int
+    dropped: int
+    unmatched: int
+    latency_p50_ms: float
+    latency_p99_ms: float
+    camera_fps: tuple[float, ...]
+    wall_s: float
+    peak_rss_mb: float
+    rss_growth_mb: float
+    gap_to_process_mm: float
+    exit_code: int
+
+
+@dataclass(frozen=True)
 class Target:
     """One target of issue 8 or 14; ``passed`` is None when it was not measured in this run."""
 
@@ -186,6 +227,7 @@ class BenchReport:
     decode_frames : frames per video decoded for the floor.
     scaling : carving set-up and per-frame cost by resolution.
     shapes : the demo and further shapes against issue 14's speed targets.
+    live : ``live --replay`` of the demo and further shapes (issue 16).
     """
 
     meta: dict[str, Any] = field(default_factory=dict)
@@ -202,6 +244,7 @@ class BenchReport:
     decode_frames: int = 0
     scaling: list[ScalingRow] = field(default_factory=list)
     shapes: list[ShapeRun] = field(default_factory=list)
+    live: list[LiveRun] = field(default_factory=list)
 
     def run(self, *, jobs: int, voxel_mm: float) -> EndToEndRun | None:
         """The end-to-end run with ``jobs`` workers at ``voxel_mm``, if there was one."""
@@ -251,6 +294,22 @@ def targets(report: BenchReport) -> list[Target]:
         Target("peak memory", peak / 1024.0, 1.5, "GiB"),
         Target("2 workers / 1 worker", speedup_2_over_1(report), 1.6, "x", higher_is_better=True),
         *[t for shape in report.shapes for t in shape_targets(shape)],
+        *[t for run in report.live for t in live_targets(run)],
+    ]
+
+
+def live_targets(run: LiveRun) -> list[Target]:
+    """Issue 16's targets for one live replay."""
+    return [
+        Target(f"live {run.label}: frame-sets dropped", float(run.dropped), 0.0, "frames"),
+        Target(f"live {run.label}: latency p50", run.latency_p50_ms, LIVE_P50_LIMIT_MS, "ms"),
+        Target(f"live {run.label}: latency p99", run.latency_p99_ms, LIVE_P99_LIMIT_MS, "ms"),
+        Target(
+            f"live {run.label}: centrelines vs process (mean)",
+            run.gap_to_process_mm,
+            LIVE_GAP_LIMIT_MM,
+            "mm",
+        ),
     ]
 
 
@@ -349,6 +408,29 @@ def _end_to_end_rows(report: BenchReport) -> list[str]:
     return rows
 
 
+def _live_rows(report: BenchReport) -> list[str]:
+    rows = [
+        "| live (`live --replay`, 30 fps) | frame-sets | written | dropped | unmatched | latency p50 ms "
+        "| p99 ms | cameras fps | vs process mm | peak RSS MiB | RSS growth MiB |",
+        "|---|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|",
+    ]
+    for r in report.live:
+        status = "" if r.exit_code == 0 else f" (exit {r.exit_code})"
+        rates = ", ".join(_f(f, 1) for f in r.camera_fps)
+        rows.append(
+            f"| {r.label}{status} | {r.frame_sets} | {r.written} | {r.dropped} | {r.unmatched} "
+            f"| {_f(r.latency_p50_ms, 1)} | {_f(r.latency_p99_ms, 1)} | {rates} "
+            f"| {_f(r.gap_to_process_mm, 3)} | {_f(r.peak_rss_mb, 0)} | {_f(r.rss_growth_mb, 1)} |"
+        )
+    rows.append("")
+    rows.append(
+        "Latency: from the capture of a frame's last image to its result written. Targets: no frame-set "
+        f"dropped, p50 <= {LIVE_P50_LIMIT_MS:g} ms, p99 <= {LIVE_P99_LIMIT_MS:g} ms, centrelines within "
+        f"{LIVE_GAP_LIMIT_MM:g} mm of process's on the same frames (mean)."
+    )
+    return rows
+
+
 def _scaling_rows(report: BenchReport) -> list[str]:
     rows = [
         "| carving resolution | grid | masks | set-up s | carve median ms | carve p95 ms |",
@@ -391,7 +473,7 @@ def _shape_rows(report: BenchReport) -> list[str]:
 
 
 def format_table(report: BenchReport) -> str:
-    """The whole report as Markdown tables (the README quotes this)."""
+    """The whole report as Markdown tables (docs/speed.md quotes this)."""
     meta = report.meta
     head = (
         f"Benchmark: {meta.get('session', '?')}, {meta.get('frames', '?')} frames, "
@@ -423,6 +505,7 @@ def format_table(report: BenchReport) -> str:
         _stage_rows(report),
         _carving_rows(report),
         _end_to_end_rows(report),
+        *([_live_rows(report)] if report.live else []),
         summary,
         _scaling_rows(report),
         *([_shape_rows(report)] if report.shapes else []),

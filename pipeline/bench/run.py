@@ -12,7 +12,10 @@ session, then measures on this machine:
   1 and 2 workers, and at 1 mm; decode-only as the floor; peak memory of each run;
 - per shape (issue 14: the demo, a loop, a random shape with a round end, each rendered
   once beside the demo and reused): ``process`` with 2 workers over its decode floor,
-  and the 99th percentile of the per-frame silhouettes-to-quality time on one core.
+  and the 99th percentile of the per-frame silhouettes-to-quality time on one core;
+- live (issue 16): the demo and the loop replayed through ``python -m pipeline live`` at
+  30 fps: latency p50/p99, frame-sets dropped, camera rates, memory, and the centrelines
+  against what ``process`` recorded of the same frames.
 
 It writes recordings/bench.json and recordings/bench.png and prints a Markdown
 table with PASS/MISS per target. Misses never fail the command: speed is reported,
@@ -38,8 +41,9 @@ from ..errors import PipelineError
 from ..session import load_session
 from .chart import plot_report
 from .e2e import decode_floor, ensure_session, median_run, run_process, voxel_session
+from .live import run_live
 from .per_shape import DEMO_SHAPE, FLOOR_REPEATS, SHAPES, BenchShape, measure_shapes, shape_run
-from .report import STAGE_ORDER, BenchReport, EndToEndRun, format_table, write_json
+from .report import STAGE_ORDER, BenchReport, EndToEndRun, LiveRun, format_table, write_json
 from .timing import StageStats
 
 log = logging.getLogger("pipeline.bench")
@@ -83,6 +87,7 @@ def run_bench(
     shapes: Sequence[BenchShape] = SHAPES,
     shape_stage_frames: int = 300,
     shape_repeats: int = 1,
+    live: bool = True,
     work_dir: Path | None = None,
 ) -> BenchReport:
     """Measure everything ``make bench`` reports on the session in ``demo_dir``.
@@ -101,6 +106,8 @@ def run_bench(
         beside ``demo_dir``; the demo's row reuses the demo's own measurements.
     shape_stage_frames : frames of each further shape timed one by one.
     shape_repeats : end-to-end runs of each further shape (a 900-frame loop takes minutes).
+    live : replay the demo (and the loop, among ``shapes``) through ``pipeline live``
+        (issue 16), ``frames`` of each at 30 fps.
     work_dir : scratch directory for outputs (a temporary one by default).
     """
     from .stages import carving_scaling, compare_methods, time_stages
@@ -160,6 +167,8 @@ def run_bench(
             stage_frames=shape_stage_frames,
             repeats=shape_repeats,
         )
+        if live:
+            report.live = _live_runs(demo_dir, shapes, tmp, frames=n, fps=session.fps)
     stats = stages.timer.stats()
     order = [s for s in STAGE_ORDER if s in stats] + [s for s in stats if s not in STAGE_ORDER]
     report.stages = {name: stats[name] for name in order}
@@ -189,6 +198,27 @@ def run_bench(
     return report
 
 
+def _live_runs(
+    demo_dir: Path, shapes: Sequence[BenchShape], tmp: Path, *, frames: int, fps: float
+) -> list[LiveRun]:
+    """The demo, and the loop if among ``shapes``, replayed live for ``frames`` frames and
+    compared with what ``process`` recorded of them above."""
+    sessions = [(DEMO_SHAPE.name, demo_dir, tmp / "out" / f"{demo_dir.resolve().name}.mcap")]
+    for shape in shapes:
+        if shape.name == "loop":
+            out = tmp / "shapes" / shape.directory / "out" / f"{shape.directory}.mcap"
+            sessions.append((shape.name, demo_dir.parent / shape.directory, out))
+    runs = []
+    for label, directory, process_mcap in sessions:
+        count = load_session(directory).frame_count
+        # The whole replay, or the frames the other rows processed (--quick, --frames).
+        duration_s = None if frames >= count else frames / fps
+        runs.append(
+            run_live(directory, tmp / "live", label=label, duration_s=duration_s, process_mcap=process_mcap)
+        )
+    return runs
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m pipeline.bench",
@@ -207,6 +237,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="end-to-end runs of each shape beyond the demo, the median reported (default 1)",
     )
     parser.add_argument("--no-shapes", action="store_true", help="only the demo's row of the per-shape table")
+    parser.add_argument(
+        "--no-live", action="store_true", help="leave out the live replays (pipeline live, issue 16)"
+    )
     parser.add_argument(
         "--original-frames",
         type=int,
@@ -237,6 +270,7 @@ def _run(args: argparse.Namespace) -> BenchReport:
             shapes=shapes,
             shape_stage_frames=60,
             shape_repeats=args.shape_repeats,
+            live=not args.no_live,
         )
     return run_bench(
         args.demo,
@@ -244,6 +278,7 @@ def _run(args: argparse.Namespace) -> BenchReport:
         original_frames=args.original_frames or 10,
         shapes=shapes,
         shape_repeats=args.shape_repeats,
+        live=not args.no_live,
     )
 
 

@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from ..errors import PipelineError
 from ..synth_names import IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
+from .calib_error import perturbed_rig
 from .distractor import paint_distractor, place_distractor
 from .images import background_texture, flicker_gains, render_frame, threshold_for
 from .poses import out_of_view, outside_box, self_contact
@@ -151,7 +152,10 @@ class SceneOptions:
 
     tip : "flat" or "round"; profile : a name from PROFILES or a full RadiusProfile (its
     radius is replaced by ``radius_mm``); cameras : 3 or 2; size : (width, height) px;
-    distractor : a dark blob in one view's background; flicker : per-frame brightness.
+    distractor : a dark blob in one view's background; flicker : per-frame brightness;
+    calib_error_deg : the error of the calibration.toml written (see
+    :mod:`pipeline.synth.calib_error`; the videos are filmed with the true cameras,
+    which ground_truth.npz keeps).
     """
 
     tip: str = "flat"
@@ -160,6 +164,7 @@ class SceneOptions:
     size: tuple[int, int] = (320, 240)
     distractor: bool = False
     flicker: bool = False
+    calib_error_deg: float = 0.0
 
 
 def _validate(
@@ -194,6 +199,8 @@ def _validate(
     if tuple(options.size) not in IMAGE_SIZES:
         sizes = ", ".join(f"{w}x{h}" for w, h in IMAGE_SIZES)
         raise PipelineError(f"image size must be one of {sizes}, got {options.size[0]}x{options.size[1]}")
+    if not 0.0 <= options.calib_error_deg <= 2.0:
+        raise PipelineError(f"--calib-error must be in [0, 2] degrees, got {options.calib_error_deg}")
 
 
 def _profile(options: SceneOptions, radius_mm: float) -> RadiusProfile:
@@ -243,7 +250,7 @@ def render_session(
     """Render a synthetic session with its ground truth into ``out_dir``.
 
     Writes calibration.toml, cam0.mp4 .. (30 fps, mp4v), session.toml,
-    background/<cam>.png and ground_truth.npz (see the README). The same arguments
+    background/<cam>.png and ground_truth.npz (see docs/input.md). The same arguments
     give byte-identical ground truth and identical frames.
 
     Parameters
@@ -274,11 +281,14 @@ def render_session(
         (out_dir / "background").mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise PipelineError(f"{out_dir}: cannot create the session directory: {exc.strerror}") from None
+    if options.calib_error_deg:
+        given = perturbed_rig(cameras, options.calib_error_deg, seed=seed)
+        source = f"pipeline synth (true cameras with a {options.calib_error_deg:g} deg calibration error)"
+    else:
+        given, source = cameras, "pipeline synth (true cameras)"
     (out_dir / "calibration.toml").write_bytes(
         tomli_w.dumps(
-            calibration_document(
-                cameras, metadata={"source": "pipeline synth (true cameras)", "arrangement": arrangement}
-            )
+            calibration_document(given, metadata={"source": source, "arrangement": arrangement})
         ).encode()
     )
     (out_dir / "session.toml").write_bytes(
@@ -320,6 +330,7 @@ def render_session(
             "disk_thickness_mm": np.float64(0.0 if disks is None else disks.thickness_mm),
             "distractor_camera": np.int64(-1 if blob is None else blob.camera_index),
             "flicker_gain": gains,
+            "calib_error_deg": np.float64(options.calib_error_deg),
         },
     )
     # Named shapes with the original options pass the plain radius, exactly as before.

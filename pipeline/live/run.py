@@ -1,0 +1,308 @@
+"""A live run: cameras in, each frame's shape out as it happens, recordings at the stop.
+
+One reader thread per camera (:mod:`.capture`) stamps frames on arrival; the
+matcher (:mod:`.sync`) pairs them into frame-sets; a short queue (:mod:`.handoff`)
+hands those to this thread, which reconstructs each with the tracked core of
+``process`` (:class:`pipeline.frame_task.Tracker`) and writes it at once to the MCAP
+and Rerun writers of ``process`` (the Rerun stream also to a viewer, the MCAP's
+messages also to a Foxglove server). The run stops at Ctrl-C, SIGTERM or SIGHUP,
+after ``duration_s``, or at the end of a replay; the recordings are then finished
+and renamed into place as ``process`` does, holding every frame written.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import SessionError
+from ..frame_task import Tracker
+from ..interrupts import deferred_signals, signals_interrupt
+from ..outputs import OutputTarget, RunSummary, Writers, prepare_outputs
+from ..session import Session
+from .capture import CameraReader
+from .handoff import QUEUE_SETS, DroppingQueue
+from .sources import Source
+from .sync import CapturedFrame, FrameMatcher, half_period_ns
+
+log = logging.getLogger(__name__)
+
+# How often the run looks up from an empty queue (stop requests, the end of a replay).
+POLL_S = 0.05
+# Readers blocked in a read get this long to notice the stop (their reads time out).
+JOIN_S = 3.0
+
+
+@dataclass(frozen=True)
+class LiveSummary:
+    """How a live run went: the run's summary plus the live figures.
+
+    latencies_ms : (F,) per frame written, from the capture of its last image to its
+        result being written, ms.
+    dropped : frame-sets dropped because the reconstruction fell behind.
+    unmatched : per camera, frames that no frame of every other camera matched.
+    camera_fps : per camera, frames per second delivered.
+    outages : per camera, why it stopped each time it did (retried).
+    stopped_by : "a signal" (Ctrl-C, SIGTERM, SIGHUP), "--duration", "the end of the replay"
+        or "the cameras ending".
+    """
+
+    run: RunSummary
+    latencies_ms: np.ndarray
+    dropped: int
+    unmatched: dict[str, int]
+    camera_fps: dict[str, float]
+    outages: dict[str, list[str]] = field(default_factory=dict)
+    stopped_by: str = ""
+
+    @property
+    def exit_code(self) -> int:
+        return self.run.exit_code
+
+    def latency_ms(self, percentile: float) -> float:
+        return float(np.percentile(self.latencies_ms, percentile)) if len(self.latencies_ms) else float("nan")
+
+    def outage_lines(self) -> list[str]:
+        return [
+            f"  camera {name}: stopped {len(whys)} time(s), picked up again (first: {whys[0]})"
+            for name, whys in self.outages.items()
+            if whys
+        ]
+
+    def problem_lines(self) -> list[str]:
+        """The run's failure and warning lines, then the cameras that stopped."""
+        return self.run.problem_lines() + self.outage_lines()
+
+    def live_lines(self) -> list[str]:
+        rates = ", ".join(f"{name} {fps:.1f}" for name, fps in self.camera_fps.items())
+        unmatched = sum(self.unmatched.values())
+        return [
+            f"live: stopped by {self.stopped_by}; latency p50 {self.latency_ms(50):.1f} ms, "
+            f"p99 {self.latency_ms(99):.1f} ms; {self.dropped} frame-sets dropped, "
+            f"{unmatched} frames unmatched",
+            f"  cameras (frames/s): {rates}",
+        ]
+
+    def lines(self) -> list[str]:
+        """The run's summary with the cameras that stopped and the live lines before its time
+        and files."""
+        lines = self.run.lines()
+        at = next((i for i, line in enumerate(lines) if line.startswith("time:")), len(lines))
+        return lines[:at] + self.outage_lines() + self.live_lines() + lines[at:]
+
+    def to_dict(self) -> dict[str, Any]:
+        """:meth:`RunSummary.to_dict` with the live figures under "live" (null where unknown)."""
+        return self.run.to_dict() | {
+            "problems": [line.strip() for line in self.problem_lines()],
+            "live": {
+                "stopped_by": self.stopped_by,
+                "latency_ms": {"p50": _finite(self.latency_ms(50)), "p99": _finite(self.latency_ms(99))},
+                "frames_dropped": self.dropped,
+                "frames_unmatched": dict(self.unmatched),
+                "camera_fps": {name: _finite(fps) for name, fps in self.camera_fps.items()},
+                "outages": {name: list(whys) for name, whys in self.outages.items()},
+            },
+        }
+
+
+def _finite(value: float) -> float | None:
+    return value if np.isfinite(value) else None  # JSON has no NaN
+
+
+def run_live(
+    rig: Session,
+    sources: Sequence[Source],
+    *,
+    out_dir: Path,
+    viewer_url: str | None = None,
+    foxglove: tuple[str, int] | None = None,
+    duration_s: float | None = None,
+    images: bool = True,
+    force: bool = False,
+    queue_sets: int = QUEUE_SETS,
+) -> LiveSummary:
+    """Reconstruct ``rig``'s cameras live into ``out_dir/<rig name>.mcap`` and ``.rrd``.
+
+    Parameters
+    ----------
+    rig : the rig's cameras and settings (:func:`pipeline.session.load_rig`, or a
+        session when replaying it).
+    sources : per camera of ``rig``, in its order, where its frames come from.
+    out_dir : output directory, created if needed.
+    viewer_url : also stream the Rerun recording to this viewer's gRPC URL.
+    foxglove : (host, port) of a Foxglove WebSocket server to publish the MCAP's topics on.
+    duration_s : stop after this many seconds (None: at Ctrl-C, or the end of a replay).
+    images : store (and stream) the camera images.
+    force : replace existing outputs (when the run stops).
+    queue_sets : frame-sets that may wait for the reconstruction before the oldest is
+        dropped (a replay that must keep every frame, as the tests', passes many).
+
+    Raises
+    ------
+    OutputError, SettingsError : before any frame, as ``process``.
+    SessionError : a camera's frames do not fit its calibration, or a replay cannot be
+        read; nothing is left behind.
+    """
+    with signals_interrupt():
+        target = prepare_outputs(Path(out_dir), rig.name, force)
+        failed = True
+        try:
+            summary = _run(rig, sources, target, viewer_url, foxglove, duration_s, images, queue_sets)
+            failed = False
+        finally:
+            target.release(failed=failed)
+    return summary
+
+
+def _model(rig: Session, sources: Sequence[Source]) -> Any:
+    """The per-session model; a replay chooses its tube end from its videos, as ``process`` does."""
+    from ..model import build_model
+    from ..tip_shape import with_session_tip
+
+    model = build_model(rig)
+    if rig.settings.manipulator.tip == "auto" and not all(s.is_replay for s in sources):
+        log.warning(
+            '[manipulator] tip = "auto" is chosen from a session\'s frames; a live rig assumes a '
+            'flat end: set tip = "flat" or "round" in %s',
+            rig.directory / "session.toml",
+        )
+    if sources and all(s.is_replay for s in sources):
+        from ..video import probe_video
+
+        paths = [Path(s.url) for s in sources]
+        frames = min(probe_video(p).frame_count for p in paths)
+        model, _ = with_session_tip(model, paths, 0, frames)
+    return model
+
+
+def _run(
+    rig: Session,
+    sources: Sequence[Source],
+    target: OutputTarget,
+    viewer_url: str | None,
+    foxglove: tuple[str, int] | None,
+    duration_s: float | None,
+    images: bool,
+    queue_sets: int,
+) -> LiveSummary:
+    t0 = time.perf_counter()
+    names = [c.name for c in rig.cameras]
+    model = _model(rig, sources)
+    server = None
+    writer: Writers | None = None
+    stop = threading.Event()
+    readers: list[CameraReader] = []
+    try:
+        if foxglove is not None:
+            from .stream import FoxgloveServer
+
+            server = FoxgloveServer(*foxglove, name=f"pipeline live {rig.name}")
+            log.info("Foxglove: %s (in Foxglove: Open connection, Foxglove WebSocket)", server.address)
+        writer = Writers(rig, target, images=images, viewer_url=viewer_url, mirror=server)
+        queue = DroppingQueue(queue_sets)
+        matcher = FrameMatcher(len(sources), half_period_ns(rig.fps))
+        lock = threading.Lock()
+
+        def deliver(frame: CapturedFrame) -> None:
+            with lock:
+                # Half a period of the slowest camera, from the rates the streams declare
+                # once open (a replay's: its videos'); the rig's nominal rate until then.
+                rates = [r.rate_fps for r in readers if r.rate_fps]
+                matcher.tolerance_ns = half_period_ns(min(rates) if rates else rig.fps)
+                for frame_set in matcher.add(frame):
+                    queue.put(frame_set)
+
+        start_ns = time.monotonic_ns()
+        readers = [
+            CameraReader(k, s, rig.cameras[k].size_px, deliver, stop, start_ns=start_ns)
+            for k, s in enumerate(sources)
+        ]
+        for reader in readers:
+            reader.start()
+        log.info(
+            "capturing %s; Ctrl-C (or SIGTERM) stops and writes %s and %s",
+            ", ".join(s.describe() for s in sources),
+            target.mcap_path,
+            target.rrd_path,
+        )
+        latencies, stopped_by = _loop(readers, queue, writer, model, names, images, duration_s)
+        try:
+            with deferred_signals():  # from here a signal waits for the recordings to be complete
+                _stop_readers(stop, readers)
+                writer.finish()
+        except KeyboardInterrupt:
+            if not writer.committed:
+                raise
+            # A signal while finishing: the run was ending anyway, and its recordings are complete.
+    except BaseException:
+        _stop_readers(stop, readers)
+        if writer is not None and not writer.committed:
+            writer.abort()
+        raise
+    finally:
+        if server is not None:
+            server.stop()
+    return LiveSummary(
+        run=writer.summary(time.perf_counter() - t0),
+        latencies_ms=np.asarray(latencies, dtype=np.float64),
+        dropped=queue.dropped,
+        unmatched=dict(zip(names, matcher.unmatched, strict=True)),
+        camera_fps={n: r.stats.fps for n, r in zip(names, readers, strict=True)},
+        outages={n: list(r.stats.outages) for n, r in zip(names, readers, strict=True)},
+        stopped_by=stopped_by,
+    )
+
+
+def _loop(
+    readers: Sequence[CameraReader],
+    queue: DroppingQueue,
+    writer: Writers,
+    model: Any,
+    names: Sequence[str],
+    images: bool,
+    duration_s: float | None,
+) -> tuple[list[float], str]:
+    """Reconstruct and write frame-sets until the run stops; (latencies in ms, why it stopped)."""
+    tracker = Tracker(model, names, images=images)
+    # Frame times in the recordings: the arrival of the frame's last image, on the wall clock.
+    wall_from_monotonic_ns = time.time_ns() - time.monotonic_ns()
+    deadline = None if duration_s is None else time.monotonic() + duration_s
+    latencies: list[float] = []
+    try:
+        while True:
+            if deadline is not None and time.monotonic() >= deadline:
+                return latencies, "--duration"
+            frame_set = queue.get(POLL_S)
+            if frame_set is None:
+                for reader in readers:
+                    if reader.fault is not None:
+                        raise SessionError(reader.fault)
+                if all(r.finished.is_set() for r in readers) and not len(queue):
+                    replay = all(r.source.is_replay for r in readers)
+                    return latencies, "the end of the replay" if replay else "the cameras ending"
+                continue
+            # A signal waits for the frame to be written whole: the recordings stay consistent.
+            with deferred_signals():
+                out = tracker.step(frame_set.index, frame_set.images)
+                latency_ms = (time.monotonic_ns() - frame_set.last_arrival_ns) * 1e-6
+                writer.write(
+                    out,
+                    time_ns=frame_set.last_arrival_ns + wall_from_monotonic_ns,
+                    extra_metrics={"latency_ms": latency_ms},
+                )
+                latencies.append(latency_ms)
+    except KeyboardInterrupt:
+        return latencies, "a signal"
+
+
+def _stop_readers(stop: threading.Event, readers: Sequence[CameraReader]) -> None:
+    stop.set()
+    for reader in readers:
+        reader.join(JOIN_S)

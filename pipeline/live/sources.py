@@ -1,0 +1,117 @@
+"""Where each camera's frames come from in a live run: a device, a stream, or a replayed video.
+
+A :class:`Source` is what FFmpeg (through PyAV) opens for one camera. The rig's
+session.toml names them in its ``[live]`` table; ``--replay`` takes a session's
+videos instead and plays them at their frame rate, as if they were cameras.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..errors import SessionError, SettingsError
+from ..session import Session, load_rig, load_session
+
+# FFmpeg's demuxer for Video4Linux2 devices: a device path or index is opened with it.
+V4L2_FORMAT = "v4l2"
+
+
+@dataclass(frozen=True)
+class Source:
+    """One camera's source.
+
+    camera : the camera's name in calibration.toml.
+    url : what FFmpeg opens: a device path, a URL, a named pipe or a video file.
+    format : FFmpeg's input format, or None to let FFmpeg guess from ``url``.
+    replay_fps : play a video file at this rate (frames/s), as a camera would deliver
+        it, and end with it; None for a camera (which is retried when it stops).
+    """
+
+    camera: str
+    url: str
+    format: str | None = None
+    replay_fps: float | None = None
+
+    @property
+    def is_replay(self) -> bool:
+        return self.replay_fps is not None
+
+    def describe(self) -> str:
+        return f"camera {self.camera!r} ({self.url})"
+
+
+def parse_source(camera: str, text: str) -> Source:
+    """``[live]``'s value for ``camera`` -> its Source: a device index (``0`` -> ``/dev/video0``)
+    or a ``/dev/video*`` or ``/dev/v4l/...`` path opened as V4L2, anything else as FFmpeg
+    reads it."""
+    if text.isdigit():
+        return Source(camera, f"/dev/video{int(text)}", V4L2_FORMAT)
+    if text.startswith(("/dev/video", "/dev/v4l/")):  # by number, or by id or path (udev's links)
+        return Source(camera, text, V4L2_FORMAT)
+    return Source(camera, text)
+
+
+def rig_sources(rig: Session) -> list[Source]:
+    """Each camera's source from the rig's ``[live]`` table, in calibration order."""
+    live = rig.settings.live
+    toml = rig.directory / "session.toml"
+    if not live.sources:
+        raise SettingsError(
+            f"{toml}: no [live] table; add one naming each camera's source "
+            '(cam0 = "/dev/video0", cam1 = 1, cam2 = "udp://127.0.0.1:5002"), or use --replay SESSION_DIR'
+        )
+    sources = []
+    for cam in rig.cameras:
+        text = live.source(cam.name)
+        if text is None:
+            raise SettingsError(
+                f"{toml}: [live] gives no source for camera {cam.name!r}; add "
+                f'{cam.name} = "/dev/videoN" (or a device index, or a stream URL)'
+            )
+        sources.append(parse_source(cam.name, text))
+    return sources
+
+
+def replay_sources(rig: Session, replay: Session) -> list[Source]:
+    """The replayed session's videos as the rig's cameras' sources, played at its rate.
+
+    The session must hold a video for every camera of the rig (matched by name), of the
+    size the rig's calibration gives it.
+    """
+    videos: dict[str, Path] = {c.name: p for c, p in zip(replay.cameras, replay.video_paths, strict=True)}
+    sizes = {c.name: c.size_px for c in replay.cameras}  # its videos', checked when it was loaded
+    sources = []
+    for cam in rig.cameras:
+        if cam.name not in videos:
+            raise SessionError(
+                f"{replay.directory}: --replay has no video for camera {cam.name!r} of the rig "
+                f"(it has: {', '.join(videos)}); replay a session of this rig"
+            )
+        if sizes[cam.name] != cam.size_px:
+            (w, h), (rw, rh) = sizes[cam.name], cam.size_px
+            raise SessionError(
+                f"{videos[cam.name]}: frames are {w}x{h} but the rig's calibration.toml gives camera "
+                f"{cam.name!r} {rw}x{rh}; replay a session filmed at the rig's resolution"
+            )
+        sources.append(Source(cam.name, str(videos[cam.name]), replay_fps=replay.fps))
+    return sources
+
+
+def open_rig(rig_dir: Path | None, replay_dir: Path | None) -> tuple[Session, list[Source]]:
+    """The rig and its cameras' sources: ``[live]``'s, or a replayed session's videos.
+
+    ``rig_dir`` None: the replayed session is its own rig (its calibration and settings).
+    """
+    if replay_dir is None:
+        if rig_dir is None:
+            raise SessionError(
+                "give the rig directory (calibration.toml, session.toml), or --replay SESSION_DIR"
+            )
+        rig = load_rig(rig_dir)
+        return rig, rig_sources(rig)
+    replay = load_session(replay_dir)
+    if rig_dir is None or Path(rig_dir).resolve() == Path(replay_dir).resolve():
+        return replay, replay_sources(replay, replay)
+    rig = load_rig(rig_dir)
+    return rig, replay_sources(rig, replay)

@@ -1,0 +1,173 @@
+"""Where a live run's frames are shown as they happen: a Rerun viewer, a Foxglove server.
+
+The Rerun recording goes to a viewer's gRPC address (one spawned for the run, or
+one already running) beside its .rrd file; the MCAP's messages go, as written, to
+a Foxglove WebSocket server on the same topics (``foxglove-sdk``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import sys
+import threading
+from collections.abc import Sequence
+from typing import Any
+from urllib.parse import urlsplit
+
+from ..errors import SettingsError
+from ..record_mcap import TF_TOPIC, ChannelSchema
+
+log = logging.getLogger(__name__)
+
+DEFAULT_VIEWER_PORT = 9876  # Rerun's
+DEFAULT_FOXGLOVE = "127.0.0.1:8765"  # Foxglove's usual WebSocket address
+CONNECT_TIMEOUT_S = 2.0
+
+
+def grpc_url(address: str) -> str:
+    """A viewer's address as Rerun's gRPC URL: a port, HOST:PORT, or a ``rerun+http://`` URL."""
+    text = address.strip()
+    if text.isdigit():
+        text = f"127.0.0.1:{text}"
+    if "://" not in text:
+        text = f"rerun+http://{text}/proxy"
+    parts = urlsplit(text)
+    if parts.scheme not in ("rerun", "rerun+http", "rerun+https") or not parts.hostname or not parts.port:
+        raise SettingsError(
+            f"--viewer connect {address!r}: not a Rerun viewer address; give PORT, HOST:PORT or "
+            "rerun+http://HOST:PORT/proxy"
+        )
+    return text
+
+
+def check_viewer(url: str) -> None:
+    """Refuse, before the run, a viewer address where nothing listens (the stream would pile up)."""
+    parts = urlsplit(url)
+    assert parts.hostname is not None and parts.port is not None  # grpc_url's
+    try:
+        socket.create_connection((parts.hostname, parts.port), timeout=CONNECT_TIMEOUT_S).close()
+    except OSError as exc:
+        raise SettingsError(
+            f"--viewer connect {url}: no Rerun viewer answers there ({exc.strerror or exc}); start one "
+            "(rerun, or rerun --serve-grpc) or use --viewer spawn or none"
+        ) from None
+
+
+def has_display() -> bool:
+    """A window can be opened: not a headless Linux box (macOS and Windows always can)."""
+    if not sys.platform.startswith("linux"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def spawn_viewer(port: int = DEFAULT_VIEWER_PORT) -> str:
+    """Start a Rerun viewer (or reuse the one on ``port``) and return its gRPC URL."""
+    import rerun as rr
+
+    # connect=False: the run's own stream connects to it, beside its file.
+    rr.spawn(port=port, connect=False)
+    return f"rerun+http://127.0.0.1:{port}/proxy"
+
+
+def viewer_from_choice(choice: Sequence[str]) -> str | None:
+    """``--viewer``'s words -> the viewer's gRPC URL, or None: ``spawn`` (the default; none
+    where no window can open), ``none``, or ``connect ADDRESS``."""
+    words = list(choice) or ["spawn"]
+    if words == ["none"]:
+        return None
+    if words == ["spawn"]:
+        if not has_display():
+            log.warning(
+                "no display to open a Rerun viewer on; streaming to none (--viewer connect ADDRESS "
+                "streams to a running one; the .rrd is written either way)"
+            )
+            return None
+        return spawn_viewer()
+    if len(words) == 2 and words[0] == "connect":
+        url = grpc_url(words[1])
+        check_viewer(url)
+        return url
+    raise SettingsError(
+        f"--viewer {' '.join(words)}: expected spawn, none, or connect ADDRESS (PORT, HOST:PORT or "
+        "rerun+http://HOST:PORT/proxy)"
+    )
+
+
+def parse_host_port(text: str) -> tuple[str, int]:
+    """``--foxglove``'s HOST:PORT (or PORT) -> (host, port); port 0: any free one."""
+    host, _, port = text.rpartition(":")
+    if not port.isdigit() or int(port) > 65535:
+        raise SettingsError(f"--foxglove {text!r}: expected HOST:PORT (e.g. {DEFAULT_FOXGLOVE}) or PORT")
+    return host or "127.0.0.1", int(port)
+
+
+class FoxgloveServer:
+    """A Foxglove WebSocket server publishing what the MCAP recorder writes, as it writes it.
+
+    Call it as the recorder's mirror (:data:`pipeline.record_mcap.MessageMirror`): one
+    channel per topic, with the MCAP's schema. The static topics (``/tf``, the camera
+    calibrations) are written once at the start: each is sent again to every client
+    that subscribes to it later.
+    """
+
+    def __init__(self, host: str, port: int, *, name: str) -> None:
+        import foxglove
+
+        if not log.isEnabledFor(logging.DEBUG):
+            # The server's own start and stop lines: the run says where it serves.
+            logging.getLogger("foxglove").setLevel(logging.WARNING)
+        self._foxglove = foxglove
+        server = self
+
+        class Listener(foxglove.ServerListener):
+            def on_subscribe(self, client: Any, channel: Any) -> None:
+                server.resend_static(channel.topic)
+
+        self._context = foxglove.Context()
+        self._channels: dict[str, Any] = {}
+        self._statics: dict[str, tuple[bytes, int]] = {}
+        self._lock = threading.Lock()
+        try:
+            self._server = foxglove.start_server(
+                name=name, host=host, port=port, context=self._context, server_listener=Listener()
+            )
+        except Exception as exc:  # the SDK's error for a port in use or an unknown host
+            raise SettingsError(
+                f"--foxglove {host}:{port}: cannot serve there ({' '.join(str(exc).split())[:160]}); "
+                "choose another HOST:PORT"
+            ) from None
+        self.address = f"ws://{host}:{self._server.port}"
+
+    def __call__(self, topic: str, schema: ChannelSchema, data: bytes, time_ns: int) -> None:
+        with self._lock:
+            channel = self._channels.get(topic)
+            if channel is None:
+                channel = self._foxglove.Channel(
+                    topic,
+                    schema=self._foxglove.Schema(
+                        name=schema.name, encoding=schema.encoding, data=schema.data
+                    ),
+                    message_encoding=schema.message_encoding,
+                    context=self._context,
+                )
+                self._channels[topic] = channel
+            if _is_static(topic):
+                self._statics[topic] = (data, time_ns)
+        channel.log(data, log_time=time_ns)
+
+    def resend_static(self, topic: str) -> None:
+        """A client subscribed to ``topic``: a static topic's message goes out again for it."""
+        with self._lock:
+            static = self._statics.get(topic)
+            target = self._channels.get(topic)
+        if static is not None and target is not None:
+            target.log(static[0], log_time=static[1])
+
+    def stop(self) -> None:
+        self._server.stop()
+
+
+def _is_static(topic: str) -> bool:
+    return topic == TF_TOPIC or topic.endswith("/calibration")
