@@ -429,7 +429,12 @@ def test_a_signal_stops_the_run_and_keeps_previous_outputs(tmp_path: Path, sig: 
     env = {**os.environ, "PYTHONPATH": _hook_path(hook), "FAULTS_FRAME_S": "0.2"}
     command = [sys.executable, "-m", "pipeline", "process", str(session), "--out", str(out)]
     proc = subprocess.Popen(
-        [*command, "--jobs", "2", "--no-images", "--force"], stderr=subprocess.PIPE, text=True, env=env
+        [*command, "--jobs", "2", "--no-images", "--force"],
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        # A run started from a background job inherits SIGINT ignored, and honours it.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     try:
         # Wait until the run is under way (its temporary MCAP exists), then a little more:
@@ -894,6 +899,8 @@ def _start_dying_run(tmp_path: Path, frames: int, **env: str) -> tuple[subproces
         stderr=subprocess.PIPE,
         text=True,
         env={**os.environ, **variables, **env},
+        # A run started from a background job inherits SIGINT ignored, and honours it.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     return proc, out, mark
 

@@ -371,7 +371,14 @@ def test_a_signal_stops_the_run_with_complete_recordings(
     # Cameras that never end: only the signal stops the run.
     sender = udp_sender([session / f"cam{k}.mp4" for k in range(3)], ports)
     command = [sys.executable, "-m", "pipeline", "live", str(rig_dir), "--out", str(out), "--viewer", "none"]
-    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        command,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        # A run started from a background job inherits SIGINT ignored, and honours it.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     try:
         # Wait until the run is capturing (it says so), then let it reconstruct for a while.
         assert proc.stderr is not None
