@@ -16,7 +16,7 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from .errors import Interrupted, OutputError, PipelineError
 from .interrupts import signals_interrupt
@@ -59,6 +59,22 @@ def _frame_range(text: str) -> tuple[int, int | None]:
     return lo, hi
 
 
+
+def _report(summary: Any, json_to: str | None) -> None:
+    """Print a run's summary: the failures and warnings to stderr, where scripts and logs look
+    for them, the rest to stdout unless stdout carries the JSON summary (``json_to`` "-");
+    the JSON summary to ``json_to`` if given."""
+    problems = set(summary.problem_lines())
+    for line in summary.lines():
+        print(line, file=sys.stderr if line in problems or json_to == "-" else sys.stdout)
+    if json_to == "-":
+        print(json.dumps(summary.to_dict(), indent=2))
+    elif json_to is not None:
+        try:
+            Path(json_to).write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
+        except OSError as exc:  # the recordings are written; only the summary file is lost
+            raise OutputError(f"{json_to}: cannot write the JSON summary ({exc.strerror or exc})") from None
+
 def _cmd_process(args: argparse.Namespace) -> int:
     from .workers import started_early
 
@@ -86,18 +102,7 @@ def _cmd_process(args: argparse.Namespace) -> int:
             progress=sys.stderr.isatty(),
             started_at=started_at,
         )
-    # The failures and warnings go to stderr, where scripts and logs look for them; the rest
-    # to stdout, unless stdout carries the JSON summary.
-    problems = set(summary.problem_lines())
-    for line in summary.lines():
-        print(line, file=sys.stderr if line in problems or args.json == "-" else sys.stdout)
-    if args.json == "-":
-        print(json.dumps(summary.to_dict(), indent=2))
-    elif args.json is not None:
-        try:
-            Path(args.json).write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
-        except OSError as exc:  # the recordings are written; only the summary file is lost
-            raise OutputError(f"{args.json}: cannot write the JSON summary ({exc.strerror or exc})") from None
+    _report(summary, args.json)
     return summary.exit_code
 
 
@@ -127,16 +132,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
         images=not args.no_images,
         force=args.force,
     )
-    problems = set(summary.problem_lines())
-    for line in summary.lines():
-        print(line, file=sys.stderr if line in problems or args.json == "-" else sys.stdout)
-    if args.json == "-":
-        print(json.dumps(summary.to_dict(), indent=2))
-    elif args.json is not None:
-        try:
-            Path(args.json).write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
-        except OSError as exc:
-            raise OutputError(f"{args.json}: cannot write the JSON summary ({exc.strerror or exc})") from None
+    _report(summary, args.json)
     return summary.exit_code
 
 
