@@ -59,7 +59,6 @@ def _frame_range(text: str) -> tuple[int, int | None]:
     return lo, hi
 
 
-
 def _report(summary: Any, json_to: str | None) -> None:
     """Print a run's summary: the failures and warnings to stderr, where scripts and logs look
     for them, the rest to stdout unless stdout carries the JSON summary (``json_to`` "-");
@@ -74,6 +73,7 @@ def _report(summary: Any, json_to: str | None) -> None:
             Path(json_to).write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
         except OSError as exc:  # the recordings are written; only the summary file is lost
             raise OutputError(f"{json_to}: cannot write the JSON summary ({exc.strerror or exc})") from None
+
 
 def _cmd_process(args: argparse.Namespace) -> int:
     from .workers import started_early
