@@ -49,7 +49,7 @@ test: lint vulkan
 	$(PY) -m pytest -q
 
 bench: $(STAMP)
-	$(PY) -m pipeline.bench $(ARGS)
+	$(PY) -m pipeline.measure.bench $(ARGS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 from .errors import PipelineError
 
 if TYPE_CHECKING:
-    from .session import Session, load_session
+    from .session.folder import Session, load_session
 
 __all__ = ["PipelineError", "Session", "load_recording", "load_session", "process_session"]
 
@@ -23,15 +23,15 @@ def __getattr__(name: str) -> Any:
     # Lazy: importing pipeline must not pull in rerun, mcap and joblib, nor OpenCV
     # (``pipeline process`` starts its workers before it imports anything heavy).
     if name in ("Session", "load_session"):
-        from . import session
+        from .session import folder as session
 
         return getattr(session, name)
     if name == "process_session":
-        from .runner import process_session
+        from .run.runner import process_session
 
         return process_session
     if name == "load_recording":
-        from .recording import load_recording
+        from .record.load import load_recording
 
         return load_recording
     raise AttributeError(name)

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from .errors import Interrupted, OutputError, PipelineError
-from .interrupts import signals_interrupt
+from .run.interrupts import signals_interrupt
 
 log = logging.getLogger("pipeline")
 
@@ -76,7 +76,7 @@ def _report(summary: Any, json_to: str | None) -> None:
 
 
 def _cmd_process(args: argparse.Namespace) -> int:
-    from .workers import started_early
+    from .run.workers import started_early
 
     started_at = _process_started_at()
     if args.json not in (None, "-"):
@@ -85,8 +85,8 @@ def _cmd_process(args: argparse.Namespace) -> int:
     backend = args.backend or ("dask" if args.scheduler else "loky")
     # The workers spawn and import while this process loads the session and model.
     with started_early(args.jobs, backend):
-        from .runner import process_session
-        from .session import load_session
+        from .run.runner import process_session
+        from .session.folder import load_session
 
         session = load_session(args.video_dir)
         summary = process_session(
@@ -192,8 +192,8 @@ def _cmd_synth_calib(args: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from .calibrate import calibrate_directory
-    from .calibrate_report import format_table
+    from .calibrate.report import format_table
+    from .calibrate.solve import calibrate_directory
 
     result = calibrate_directory(
         args.calib_dir,
@@ -210,7 +210,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from .evaluate import evaluate_recording, format_report
+    from .measure.evaluate import evaluate_recording, format_report
 
     report = evaluate_recording(args.recording, args.ground_truth)
     print(report.to_json() if args.json else format_report(report))
@@ -379,7 +379,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace existing outputs (when the run stops)")
     p.set_defaults(func=_cmd_live, usage_error=p.error)
 
-    from .synth_names import IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
+    from .synth.names import IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
 
     p = sub.add_parser(
         "synth",
@@ -531,8 +531,8 @@ def _main(argv: Sequence[str] | None, prog: str) -> int:
         os.environ.setdefault("RUST_LOG", "off")
         _quiet_resource_trackers()
     if args.debug:
-        # FFmpeg's own diagnostics (silenced in pipeline.video) help debug a damaged video.
-        from .video import show_ffmpeg_messages
+        # FFmpeg's own diagnostics (silenced in pipeline.session.video) help debug a damaged video.
+        from .session.video import show_ffmpeg_messages
 
         show_ffmpeg_messages()
     func: Callable[[argparse.Namespace], int] = args.func

@@ -19,8 +19,9 @@ import pytest
 import tomli_w
 from numpy.typing import NDArray
 
-from pipeline.calibration_io import read_calibration, write_calibration
-from pipeline.camera import Camera
+from pipeline.geometry.camera import Camera
+from pipeline.session.calibration_io import read_calibration, write_calibration
+from pipeline.session.settings import Workspace
 from pipeline.synth.rig import make_rig
 
 # A rod standing on the default manipulator base (128, 128, 0) mm, 160 mm tall: inside
@@ -116,7 +117,7 @@ def _quiet_ffmpeg_after_each_test() -> Iterator[None]:
     """A test that runs the CLI with --debug lets FFmpeg's messages through, in this
     process and in every process it starts later (OPENCV_FFMPEG_LOGLEVEL, PyAV's
     levels): put them back, so that later tests' runs keep the quiet of a real one."""
-    import pipeline.video as video
+    import pipeline.session.video as video
 
     before = os.environ.get("OPENCV_FFMPEG_LOGLEVEL")
     yield
@@ -167,3 +168,20 @@ def remux_with_creation_time(source: Path, target: Path, when: str | None) -> Pa
                 packet.stream = stream
                 out.mux(packet)
     return target
+
+
+COARSE_WS = Workspace((0.0, 0.0, 0.0), (256.0, 256.0, 256.0), 8.0)  # 32^3: brute force in ~0.1 s
+
+
+def random_masks(cameras: list[Camera], seed: int, *, blobs: int = 6) -> list[NDArray[np.bool_]]:
+    """One mask per camera: a few random filled ellipses (large and thin ones)."""
+    rng = np.random.default_rng(seed)
+    masks = []
+    for cam in cameras:
+        m = np.zeros((cam.height, cam.width), np.uint8)
+        for _ in range(blobs):
+            centre = (int(rng.integers(0, cam.width)), int(rng.integers(0, cam.height)))
+            axes = (int(rng.integers(1, cam.width // 4)), int(rng.integers(1, cam.height // 4)))
+            cv2.ellipse(m, centre, axes, float(rng.uniform(0, 180)), 0, 360, 1, -1)
+        masks.append(m.astype(bool))
+    return masks

@@ -23,7 +23,7 @@ from conftest import build_session, rig_cameras, rod_image, write_video
 
 from pipeline.cli import EXIT_BAD_INPUT, main
 from pipeline.errors import PipelineError
-from pipeline.session import load_session
+from pipeline.session.folder import load_session
 
 
 @pytest.fixture(scope="module")
@@ -408,7 +408,7 @@ def test_a_malformed_scheduler_address(
 def test_a_server_that_is_not_a_scheduler_is_an_error_not_a_hang(
     session: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from pipeline import runner
+    from pipeline.run import runner
 
     monkeypatch.setattr(runner, "DASK_CONNECT_TIMEOUT_S", 1)
     # Accepts TCP connections and never says a word, as a stalled or foreign server does.

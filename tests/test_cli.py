@@ -16,11 +16,13 @@ from typing import Any
 
 import pytest
 
-from pipeline import cli, runner, session, workers
+from pipeline import cli
 from pipeline.cli import EXIT_BAD_INPUT, EXIT_FRAMES_FAILED, EXIT_INTERNAL_ERROR, main
 from pipeline.errors import CalibrationError
-from pipeline.outputs import RunSummary
-from pipeline.recording import load_recording
+from pipeline.record.load import load_recording
+from pipeline.run import runner, workers
+from pipeline.run.outputs import RunSummary
+from pipeline.session import folder as session
 from pipeline.synth.session_render import MIN_PARALLEL_FRAMES
 
 PIPELINE = str(Path(sys.executable).parent / "pipeline")  # the console script

@@ -16,9 +16,9 @@ from conftest import rig_cameras
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.calibration_io import calibration_dict, cameras_from_dict, read_calibration
 from pipeline.errors import PipelineError
-from pipeline.settings import _SECTIONS, Settings, load_settings, settings_from_dict
+from pipeline.session.calibration_io import calibration_dict, cameras_from_dict, read_calibration
+from pipeline.session.settings import _SECTIONS, Settings, load_settings, settings_from_dict
 
 # Bounded so the whole module stays within a few seconds; derandomized so that CI
 # runs the same examples every time (a fixed seed, like every other test).

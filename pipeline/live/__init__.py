@@ -1,4 +1,4 @@
-"""``pipeline live``: three cameras in, the shape out as it happens (issue 16).
+"""``pipeline live``: three cameras in, the shape out as it happens.
 
 ``sources`` (where each camera's frames come from), ``capture`` (a reader thread per
 camera), ``sync`` (frames matched into frame-sets by arrival time), ``handoff`` (the

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..video import Greyer
+from ..session.video import Greyer
 from .sources import V4L2_FORMAT, Source
 from .sync import CapturedFrame
 

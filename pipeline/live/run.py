@@ -3,7 +3,7 @@
 One reader thread per camera (:mod:`.capture`) stamps frames on arrival; the
 matcher (:mod:`.sync`) pairs them into frame-sets; a short queue (:mod:`.handoff`)
 hands those to this thread, which reconstructs each with the tracked core of
-``process`` (:class:`pipeline.frame_task.Tracker`) and writes it at once to the MCAP
+``process`` (:class:`pipeline.reconstruct.frame_task.Tracker`) and writes it at once to the MCAP
 and Rerun writers of ``process`` (the Rerun stream also to a viewer, the MCAP's
 messages also to a Foxglove server). The run stops at Ctrl-C, SIGTERM or SIGHUP,
 after ``duration_s``, or at the end of a replay; the recordings are then finished
@@ -23,10 +23,10 @@ from typing import Any
 import numpy as np
 
 from ..errors import SessionError
-from ..frame_task import Tracker
-from ..interrupts import deferred_signals, signals_interrupt
-from ..outputs import OutputTarget, RunSummary, Writers, prepare_outputs
-from ..session import Session
+from ..reconstruct.frame_task import Tracker
+from ..run.interrupts import deferred_signals, signals_interrupt
+from ..run.outputs import OutputTarget, RunSummary, Writers, prepare_outputs
+from ..session.folder import Session
 from .capture import CameraReader
 from .handoff import QUEUE_SETS, DroppingQueue
 from .sources import Source
@@ -132,7 +132,7 @@ def run_live(
 
     Parameters
     ----------
-    rig : the rig's cameras and settings (:func:`pipeline.session.load_rig`, or a
+    rig : the rig's cameras and settings (:func:`pipeline.session.folder.load_rig`, or a
         session when replaying it).
     sources : per camera of ``rig``, in its order, where its frames come from.
     out_dir : output directory, created if needed.
@@ -163,8 +163,8 @@ def run_live(
 
 def _model(rig: Session, sources: Sequence[Source]) -> Any:
     """The per-session model; a replay chooses its tube end from its videos, as ``process`` does."""
-    from ..model import build_model
-    from ..tip_shape import with_session_tip
+    from ..reconstruct.model import build_model
+    from ..reconstruct.tip_shape import with_session_tip
 
     model = build_model(rig)
     if rig.settings.manipulator.tip == "auto" and not all(s.is_replay for s in sources):
@@ -174,7 +174,7 @@ def _model(rig: Session, sources: Sequence[Source]) -> Any:
             rig.directory / "session.toml",
         )
     if sources and all(s.is_replay for s in sources):
-        from ..video import probe_video
+        from ..session.video import probe_video
 
         paths = [Path(s.url) for s in sources]
         frames = min(probe_video(p).frame_count for p in paths)

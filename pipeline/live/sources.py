@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import SessionError, SettingsError
-from ..session import Session, load_rig, load_session
+from ..session.folder import Session, load_rig, load_session
 
 # FFmpeg's demuxer for Video4Linux2 devices: a device path or index is opened with it.
 V4L2_FORMAT = "v4l2"

@@ -17,7 +17,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from ..errors import SettingsError
-from ..record_mcap import TF_TOPIC, ChannelSchema
+from ..record.mcap_log import TF_TOPIC, ChannelSchema
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +106,7 @@ def parse_host_port(text: str) -> tuple[str, int]:
 class FoxgloveServer:
     """A Foxglove WebSocket server publishing what the MCAP recorder writes, as it writes it.
 
-    Call it as the recorder's mirror (:data:`pipeline.record_mcap.MessageMirror`): one
+    Call it as the recorder's mirror (:data:`pipeline.record.mcap_log.MessageMirror`): one
     channel per topic, with the MCAP's schema. The static topics (``/tf``, the camera
     calibrations) are written once at the start: each is sent again to every client
     that subscribes to it later.

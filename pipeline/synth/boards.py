@@ -4,17 +4,17 @@ Every pixel is supersampled: each sub-pixel's (distorted) position is undistorte
 into a ray of the true camera, the ray is intersected with the board plane and
 the board's texture is read there: the analytic chessboard, or the image
 ``cv2.aruco.CharucoBoard.generateImage`` prints, area-averaged over each
-sub-pixel's footprint. Nothing here uses ``pipeline.camera``: this is the oracle
+sub-pixel's footprint. Nothing here uses ``pipeline.geometry.camera``: this is the oracle
 ``pipeline calibrate`` is tested against.
 
-Board frame (the same as ``pipeline.boards`` and the world frame of world.png):
+Board frame (the same as ``pipeline.calibrate.boards`` and the world frame of world.png):
 inner corner (i, j) sits at (i * square, j * square, 0); z leaves the printed
 face; the square diagonally outside corner (0, 0) is black. The world board lies
 on the plane z = 0 face up with corner (0, 0) at the world origin, so board frame
 = world frame there. A ChArUco board of C x R squares has (C - 1) x (R - 1) inner
 corners in the same frame; seen from its printed face (x right, y up) corner
 (0, 0) is the bottom-left inner corner of OpenCV's generated image (see
-``pipeline.boards``), and ChArUco views may show the board only in part.
+``pipeline.calibrate.boards``), and ChArUco views may show the board only in part.
 
 Folder layout written (the layout ``pipeline calibrate`` reads)::
 

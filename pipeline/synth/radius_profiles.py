@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from ..synth_names import PROFILES
+from .names import PROFILES
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from ..synth_names import TIPS
+from .names import TIPS
 from .radius_profiles import Disks
 from .ray_pieces import Hits, ball_hits, cone_hits, disc_hits, nearest, short_cylinder_hits
 from .rig import SynthCamera

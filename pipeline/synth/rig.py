@@ -2,7 +2,7 @@
 
 Shared by the session renderer and the calibration-board renderer so that both
 film with the same (true) cameras. Deliberately independent of
-``pipeline.camera``: the renderer is the oracle the reconstruction is tested
+``pipeline.geometry.camera``: the renderer is the oracle the reconstruction is tested
 against, so it keeps its own description of a camera.
 """
 

@@ -23,10 +23,10 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from ..errors import PipelineError
-from ..synth_names import IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
 from .calib_error import perturbed_rig
 from .distractor import paint_distractor, place_distractor
 from .images import background_texture, flicker_gains, render_frame, threshold_for
+from .names import IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
 from .poses import out_of_view, outside_box, self_contact
 from .radius_profiles import Disks, RadiusProfile, disks_of, radius_along
 from .random_shapes import draw_shape, shape_at
@@ -256,7 +256,7 @@ def render_session(
     Parameters
     ----------
     out_dir : the session directory to write (created; existing files are replaced).
-    shape : one of pipeline.synth_names.SHAPES, or RANDOM_SHAPE (drawn from ``seed``).
+    shape : one of pipeline.synth.names.SHAPES, or RANDOM_SHAPE (drawn from ``seed``).
     frames : number of frames (30 fps).
     seed : background textures, sensor noise, and for the random shape, the shape.
     polarity : "dark" tube on a light scene, or "bright" (the negative).

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from ..synth_names import SHAPES
+from .names import SHAPES
 
 # The motion repeats every PERIOD_FRAMES frames (10 s at 30 fps) so that a 900-frame
 # session shows three bending cycles; shorter sessions fit one whole cycle instead,

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import PipelineError
-from ..synth_names import PROFILES, RANDOM_SHAPE, SHAPES, TIPS
+from .names import PROFILES, RANDOM_SHAPE, SHAPES, TIPS
 from .poses import outside_box, self_contact
 from .radius_profiles import RadiusProfile, disks_of, radius_along
 from .rig import ARRANGEMENTS

@@ -1,0 +1,287 @@
+"""Cameras refined from the silhouettes of a session's own frames.
+
+A calibration is never exact, and half a pixel of error over the workspace
+costs more accuracy than the whole centreline fit. A session holds far more
+evidence about its cameras than a few board images: in every frame the same tube
+must project onto every view's silhouette at once. Here the tubes of a few
+frames spread over the session and the cameras are adjusted together, by
+Gauss-Newton on the side readings of the tube fit (:func:`pipeline.reconstruct.tube_fit.read_sides`):
+each reading says where the tube's axis projects across the tube in one view,
+and moves either the tube's sample or the camera.
+
+Each camera has nine parameters: a turn about its optical centre (3, radians,
+camera axes), a shift of that centre (3, mm, world axes), a relative change of
+its focal length and a shift of its principal point (2, px). Lens distortion is
+kept. The tubes' corrections are those of the tube fit (smooth along the tube,
+none along it, the base held at the mount). The normal equations are solved
+with the tubes eliminated frame by frame (a Schur complement: each frame's
+block is banded), so the cost is linear in the number of frames.
+
+Where the silhouettes say little (a camera orbiting the workspace, its focal
+length against its distance), a prior keeps each camera near the given one
+(:data:`PRIOR_SIGMA`). What they cannot tell at all (the whole rig turned, moved
+or scaled with the tubes it sees) is then set by the given rig: the adjusted one
+is moved, as a whole, to where its images of the tubes best match the given
+cameras' (:func:`in_given_frame`). The world frame stays the user's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import solveh_banded
+from scipy.optimize import least_squares
+
+from ..geometry.camera import Camera
+from ..geometry.polyline import by_fraction, polyline_arclength, resample_polyline
+from ..reconstruct.tube_fit import SideReadings, consistent_readings, normal_equations, read_sides
+
+FloatArray = NDArray[np.float64]
+
+N_PARAMS = 9
+# The prior's spread of each parameter: how far a calibrated camera may be from
+# its calibration before the silhouettes alone decide (0.3 deg, 3 mm, 1 %, 3 px).
+PRIOR_SIGMA = np.array([np.deg2rad(0.3)] * 3 + [3.0] * 3 + [0.01] + [3.0] * 2)
+# Central-difference steps of the parameters for the projection's Jacobian.
+_FD_STEP = np.array([1e-6] * 3 + [1e-3] * 3 + [1e-6] + [1e-3] * 2)
+# Sample spacing along the tubes (mm), the tube fit's; smoothness of their corrections.
+SPACING_MM = 4.0
+_SMOOTHNESS = 0.5
+# The prior is weighed against the readings as if each were this uncertain (mm):
+# neighbouring readings along a tube are far from independent (they share the
+# blur, the video's compression blocks and the tube's own errors of shape), and
+# weighed as independent they let the cameras drift along what they barely
+# tell (a camera orbiting the workspace, its focal length against its distance).
+_READING_SIGMA_MM = 1.0
+# The tube fit's crowding margin for tracked tubes (px): the tubes are on the tube.
+_CROWD_MARGIN_PX = 4.0
+
+
+def moved_camera(camera: Camera, params: FloatArray) -> Camera:
+    """``camera`` changed by the nine ``params`` (see the module)."""
+    turn = cv2.Rodrigues(np.asarray(params[:3], dtype=np.float64))[0]
+    rotation = turn @ camera.camera_from_world
+    centre = camera.center_mm + params[3:6]
+    matrix = np.array(camera.matrix, dtype=np.float64)
+    matrix[0, 0] *= 1.0 + params[6]
+    matrix[1, 1] *= 1.0 + params[6]
+    matrix[0, 2] += params[7]
+    matrix[1, 2] += params[8]
+    return Camera(
+        name=camera.name,
+        size_px=camera.size_px,
+        matrix=matrix,
+        distortions=camera.distortions,
+        rotation=np.asarray(cv2.Rodrigues(rotation)[0], dtype=np.float64).ravel(),
+        translation_mm=-rotation @ centre,
+    )
+
+
+def parameter_jacobian(camera: Camera, points_mm: FloatArray) -> FloatArray:
+    """(N, 2, 9) d(pixel) / d(params) of ``points_mm`` (N, 3) in ``camera``, at params 0."""
+    out = np.empty((len(points_mm), 2, N_PARAMS))
+    for j in range(N_PARAMS):
+        step = np.zeros(N_PARAMS)
+        step[j] = _FD_STEP[j]
+        ahead = moved_camera(camera, step).project(points_mm)
+        behind = moved_camera(camera, -step).project(points_mm)
+        out[:, :, j] = (ahead - behind) / (2.0 * _FD_STEP[j])
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Tube:
+    """One frame's evidence: its tube and the views' contrast images.
+
+    points_mm : (K, 3) axis samples base -> tip, mm; radii_mm : (K,) radius along it, mm;
+    contrasts : per camera (H, W) float32 (:func:`pipeline.reconstruct.tube_fit.foreground_contrast`).
+    """
+
+    points_mm: FloatArray
+    radii_mm: FloatArray
+    contrasts: tuple[NDArray[np.float32], ...]
+
+
+def resampled_tube(
+    points_mm: FloatArray,
+    radii_mm: FloatArray | None,
+    radius_mm: float,
+    contrasts: Sequence[NDArray[np.float32]],
+) -> Tube:
+    """A frame's centreline (M, 3) with its radii (M,) (or one ``radius_mm``) as a
+    :class:`Tube` sampled every ~``SPACING_MM``."""
+    arc = polyline_arclength(points_mm)
+    k = max(round(float(arc[-1]) / SPACING_MM) + 1, 4)
+    pts = resample_polyline(points_mm, k, arclength_mm=arc)
+    radii = (
+        np.full(k, radius_mm) if radii_mm is None else by_fraction(np.asarray(radii_mm, dtype=np.float64), k)
+    )
+    return Tube(pts, radii, tuple(contrasts))
+
+
+@dataclass(frozen=True)
+class Adjustment:
+    """The result of :func:`adjust_cameras`.
+
+    cameras : the adjusted cameras, in the given order.
+    params : (C, 9) each camera's change from the given one (see the module).
+    tubes : the frames' tubes as adjusted with them (in the adjusted rig's world frame,
+        before :func:`in_given_frame` holds it to the given one's).
+    before_px, after_px : RMS distance (px) between where the silhouettes put the
+        tubes' axes and where the tubes fitted to them project, with the given and
+        with the adjusted cameras: the views' (in)consistency.
+    readings : side readings used in the last round.
+    """
+
+    cameras: tuple[Camera, ...]
+    params: FloatArray
+    tubes: tuple[Tube, ...]
+    before_px: float
+    after_px: float
+    readings: int
+
+
+@dataclass(frozen=True, eq=False)
+class _FrameSystem:
+    """One frame's part of the normal equations, its tube eliminated (a Schur complement).
+
+    solved : (3K, 1 + P) the tube's block solved against [its right-hand side, its
+        coupling to the P = 9 C camera parameters]; schur : (P, P) and rhs : (P,) the
+        frame's contribution to the cameras' reduced system; residual_px : the readings'
+        distances across the tube after a tube-only solve; obs : the readings used.
+    """
+
+    solved: FloatArray
+    schur: FloatArray
+    rhs: FloatArray
+    residual_px: FloatArray
+    obs: SideReadings
+
+    def tube_step(self, camera_step: FloatArray) -> FloatArray:
+        """(K, 3) the tube's correction (mm) given the cameras' (P,)."""
+        return (self.solved[:, 0] - self.solved[:, 1:] @ camera_step).reshape(-1, 3)
+
+
+def _frame_system(tube: Tube, cameras: Sequence[Camera], base_fixed: bool) -> _FrameSystem | None:
+    """The frame's part of the normal equations; None without enough readings."""
+    obs = read_sides(
+        tube.points_mm, cameras, tube.contrasts, tube.radii_mm, SPACING_MM, crowd_margin_px=_CROWD_MARGIN_PX
+    )
+    across = obs.across
+    if obs.readings < 6 or across is None:
+        return None
+    k, c = obs.rows.shape[:2]
+    band, g = normal_equations(tube.points_mm, obs, base_fixed=base_fixed, smoothness=_SMOOTHNESS)
+    # Drop the readings a tube-only solve disagrees with (another part of the tube
+    # beside this one, that the tube does not know of), as the tube fit does.
+    tube_only = solveh_banded(band, g).reshape(k, 3)
+    kept = consistent_readings(obs, tube_only)
+    if kept is not obs:
+        obs = kept
+        band, g = normal_equations(tube.points_mm, obs, base_fixed=base_fixed, smoothness=_SMOOTHNESS)
+        tube_only = solveh_banded(band, g).reshape(k, 3)
+    centre, w = obs.centres()
+    scale = 1.0 / np.maximum(np.linalg.norm(across, axis=-1), 1e-12)  # px per mm across
+    residual_px = ((centre - np.einsum("kci,ki->kc", obs.rows, tube_only)) * scale)[w > 0]
+    jac = np.stack([parameter_jacobian(cam, tube.points_mm) for cam in cameras])  # (C, K, 2, 9)
+    d: FloatArray = np.einsum("kci,ckij->kcj", across, jac)  # (K, C, 9): mm across per parameter
+    coupling = np.einsum("kc,kci,kcj->kicj", w, obs.rows, d).reshape(3 * k, c * N_PARAMS)
+    if base_fixed:
+        coupling[:3] = 0.0  # the base sample is held
+    solved = solveh_banded(band, np.column_stack([g, coupling]))
+    cameras_block = np.zeros((c, N_PARAMS, c, N_PARAMS))
+    for j in range(c):
+        cameras_block[j, :, j, :] = np.einsum("k,ki,kl->il", w[:, j], d[:, j], d[:, j])
+    h = np.einsum("kc,kcj,kc->cj", w, d, centre).ravel()
+    schur = cameras_block.reshape(c * N_PARAMS, -1) - coupling.T @ solved[:, 1:]
+    rhs = h - coupling.T @ solved[:, 0]
+    return _FrameSystem(solved, schur, rhs, residual_px, obs)
+
+
+def adjust_cameras(
+    cameras: Sequence[Camera],
+    tubes: Sequence[Tube],
+    *,
+    base_mm: FloatArray | None = None,
+    rounds: int = 6,
+    prior_sigma: FloatArray = PRIOR_SIGMA,
+) -> Adjustment:
+    """Adjust ``cameras`` and the frames' ``tubes`` together so that the tubes project
+    onto every silhouette (see the module); ``rounds`` Gauss-Newton rounds, each
+    reading the images again. ``base_mm`` (3,): the mount, each tube's first sample,
+    or None if unknown."""
+    base_fixed = base_mm is not None
+    c = len(cameras)
+    params = np.zeros((c, N_PARAMS))
+    tubes = list(tubes)
+    prior = np.tile(1.0 / np.asarray(prior_sigma) ** 2, c)
+    before = after = float("nan")
+    readings = 0
+    for round_ in range(rounds + 1):
+        current = [moved_camera(cam, p) for cam, p in zip(cameras, params, strict=True)]
+        systems = [_frame_system(t, current, base_fixed) for t in tubes]
+        found = [s for s in systems if s is not None]
+        residuals = np.concatenate([s.residual_px for s in found] or [np.zeros(0)])
+        rms = float(np.sqrt(np.mean(residuals**2))) if residuals.size else float("nan")
+        if round_ == 0:
+            before = rms
+        after = rms
+        readings = sum(s.obs.readings for s in found)
+        if round_ == rounds or not readings:
+            break
+        schur = np.diag(prior * _READING_SIGMA_MM**2) + sum(s.schur for s in found)
+        rhs = -prior * _READING_SIGMA_MM**2 * params.ravel() + sum(s.rhs for s in found)
+        step = np.asarray(np.linalg.solve(schur, rhs), dtype=np.float64)
+        params = params + step.reshape(c, N_PARAMS)
+        for i, s in enumerate(systems):
+            if s is not None:
+                moved = tubes[i].points_mm + s.tube_step(step)
+                tubes[i] = replace(tubes[i], points_mm=moved, radii_mm=s.obs.radii_mm)
+    adjusted = [moved_camera(cam, p) for cam, p in zip(cameras, params, strict=True)]
+    points = np.concatenate([t.points_mm for t in tubes])
+    anchored = in_given_frame(adjusted, cameras, points)
+    return Adjustment(tuple(anchored), params, tuple(tubes), before, after, readings)
+
+
+def similar_camera(camera: Camera, rotation: FloatArray, scale: float, shift_mm: FloatArray) -> Camera:
+    """``camera`` seeing the world through the similarity X -> scale R X + shift (R the
+    (3, 3) ``rotation``): the camera whose image of X is ``camera``'s image of that point."""
+    r_cam = camera.camera_from_world
+    return replace(
+        camera,
+        rotation=np.asarray(cv2.Rodrigues(r_cam @ rotation)[0], dtype=np.float64).ravel(),
+        translation_mm=(r_cam @ shift_mm + camera.translation_mm) / scale,
+    )
+
+
+def in_given_frame(
+    adjusted: Sequence[Camera], given: Sequence[Camera], points_mm: FloatArray
+) -> list[Camera]:
+    """The ``adjusted`` cameras moved, as a rig, by the similarity (rotation, scale and
+    shift of the world) that best maps their images of ``points_mm`` (N, 3) onto the
+    ``given`` cameras' images.
+
+    The silhouettes cannot tell a rig from the same rig turned, moved or scaled with
+    the tubes it sees: that is for the calibration to say. Held this way, the adjusted
+    rig keeps the given one's world frame. (Holding the mount point instead, the base
+    of every tube, measured worse: the tubes bend near the base to meet it.)
+    """
+    target = np.concatenate([cam.project(points_mm).ravel() for cam in given])
+    centre = points_mm.mean(axis=0)
+
+    def rig_through(q: FloatArray) -> list[Camera]:
+        # X -> s R (X - centre) + centre + shift: about the points' centre.
+        rotation = np.asarray(cv2.Rodrigues(q[:3])[0], dtype=np.float64)
+        scale = float(np.exp(q[3]))
+        shift = centre - scale * rotation @ centre + q[4:7]
+        return [similar_camera(cam, rotation, scale, shift) for cam in adjusted]
+
+    def residual(q: FloatArray) -> FloatArray:
+        return np.concatenate([cam.project(points_mm).ravel() for cam in rig_through(q)]) - target
+
+    solution = least_squares(residual, np.zeros(7), x_scale=np.array([1e-3] * 4 + [0.1] * 3))
+    return rig_through(solution.x)

@@ -1,0 +1,220 @@
+"""The session's cameras, refined from its own silhouettes (``[calibration] refine``).
+
+Frames spread over the session are reconstructed with the given cameras; their
+tubes and the cameras are then adjusted together
+(:func:`pipeline.calibrate.adjust.adjust_cameras`) and the whole session is
+reconstructed with the adjusted ones. With "auto" the adjusted cameras are used
+only when they explain the silhouettes clearly better than the given ones and
+move some camera's image of the tubes by more than the readings' noise; an
+exact calibration is kept as it is.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import OutputError
+from ..geometry.camera import Camera
+from ..reconstruct.frame import frame_contrasts, reconstruct_with_silhouettes
+from ..reconstruct.frame_task import decode_frames
+from ..reconstruct.model import SessionModel
+from ..reconstruct.tip_shape import sample_frames
+from ..session.calibration_io import write_calibration
+from ..session.toml_file import load_toml
+from .adjust import Tube, adjust_cameras, resampled_tube
+
+FloatArray = NDArray[np.float64]
+
+# Frames adjusted with the cameras, spread over the session, and the adjustment's rounds.
+SAMPLE_FRAMES = 16
+ROUNDS = 4
+# "auto" uses the adjusted cameras when the silhouettes' inconsistency (px) falls by
+# this factor and some camera's image of the tubes moves by more than _AUTO_MOVE_PX.
+# With exact cameras (renders of five shapes, both rigs) the adjustment moves each
+# image by 0.02-0.04 px and the inconsistency falls by less than 1.3x.
+_AUTO_GAIN = 1.5
+_AUTO_MOVE_PX = 0.1
+# A camera whose image of the tubes moves by more than this (px) is named in a warning:
+# more than a calibration that passed its report (0.1-0.3 px RMS) is off by.
+MOVED_PX = 0.5
+
+
+@dataclass(frozen=True)
+class CameraChange:
+    """How one camera was corrected: its turn (deg) and the shift of its centre (mm), the
+    change of its focal length (%) and principal point (px), and the RMS motion (px) of its
+    image of the tubes it was refined on."""
+
+    name: str
+    turn_deg: float
+    shift_mm: float
+    focal_percent: float
+    principal_px: float
+    image_px: float
+
+    def describe(self) -> str:
+        return (
+            f"{self.name} {self.image_px:.2f} px ({self.turn_deg:.3f} deg, {self.shift_mm:.2f} mm, "
+            f"focal {self.focal_percent:+.2f} %, principal point {self.principal_px:.2f} px)"
+        )
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """The refinement of a session's cameras and its evidence.
+
+    applied : the adjusted cameras were used; reason : why not, when not.
+    frames : frames the cameras were adjusted on.
+    before_px, after_px : the silhouettes' inconsistency (RMS, px) with the given cameras
+        and with the adjusted ones (:class:`pipeline.calibrate.adjust.Adjustment`).
+    changes : each camera's correction.
+    seconds : the refinement's wall time, the frames' first reconstruction included.
+    """
+
+    applied: bool
+    frames: int
+    before_px: float
+    after_px: float
+    changes: tuple[CameraChange, ...]
+    reason: str = ""
+    seconds: float = float("nan")
+
+    def describe(self) -> str:
+        """One line for the summary."""
+        if not self.frames:
+            return f"given ({self.reason})"
+        figures = (
+            f"silhouettes {self.before_px:.3f} px apart with the given cameras, "
+            f"{self.after_px:.3f} px refined, on {self.frames} frames in {self.seconds:.1f} s"
+        )
+        if not self.applied:
+            return f"given ({self.reason}; {figures})"
+        return f"refined ({figures}): " + "; ".join(c.describe() for c in self.changes)
+
+    def warnings(self) -> list[str]:
+        """A line per camera that seems to have moved since it was calibrated."""
+        return [
+            f"camera {c.name} seems to have moved since it was calibrated: its image of the tube is "
+            f"{c.image_px:.1f} px off; recalibrate it, or keep [calibration] refine on"
+            for c in self.changes
+            if c.image_px > MOVED_PX
+        ]
+
+
+def camera_change(given: Camera, refined: Camera, points_mm: FloatArray) -> CameraChange:
+    """The correction from ``given`` to ``refined``, its image motion judged at ``points_mm`` (N, 3)."""
+    relative = refined.camera_from_world @ given.camera_from_world.T
+    turn = float(np.degrees(np.linalg.norm(cv2.Rodrigues(relative)[0])))
+    motion = refined.project(points_mm) - given.project(points_mm)
+    return CameraChange(
+        name=given.name,
+        turn_deg=turn,
+        shift_mm=float(np.linalg.norm(refined.center_mm - given.center_mm)),
+        focal_percent=float(100.0 * (refined.focal_px / given.focal_px - 1.0)),
+        principal_px=float(np.linalg.norm(refined.matrix[:2, 2] - given.matrix[:2, 2])),
+        image_px=float(np.sqrt(np.nanmean(np.sum(motion**2, axis=1)))),
+    )
+
+
+def sample_tubes(
+    model: SessionModel, frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]]
+) -> list[Tube]:
+    """The tubes of ``frames`` (index, per camera grey image), each reconstructed alone
+    with ``model``'s cameras; frames without a curve are left out."""
+    tubes = []
+    for index, images in frames:
+        result, _ = reconstruct_with_silhouettes(index, images, model)
+        if result.status != "ok" or result.centerline_mm is None or not np.isfinite(result.radius_mm):
+            continue
+        tubes.append(
+            resampled_tube(
+                result.centerline_mm, result.radii_mm, result.radius_mm, frame_contrasts(images, model)
+            )
+        )
+    return tubes
+
+
+def refine(
+    model: SessionModel, tubes: Sequence[Tube], mode: str | bool
+) -> tuple[tuple[Camera, ...], Refinement]:
+    """The cameras to reconstruct with, given the refinement ``mode`` ("auto", True or
+    False), and the refinement's report."""
+    given = model.cameras
+    base = model.settings.manipulator.base_mm
+    adjustment = adjust_cameras(
+        given, tubes, base_mm=None if base is None else np.asarray(base), rounds=ROUNDS
+    )
+    points = np.concatenate([t.points_mm for t in adjustment.tubes])
+    changes = tuple(camera_change(g, r, points) for g, r in zip(given, adjustment.cameras, strict=True))
+    gain = adjustment.before_px / max(adjustment.after_px, 1e-9)
+    moved = max(c.image_px for c in changes)
+    reason = ""
+    if mode == "auto" and gain < _AUTO_GAIN:
+        reason = f"they agree with the silhouettes to within {gain:.2f}x of the refined ones"
+    elif mode == "auto" and moved <= _AUTO_MOVE_PX:
+        reason = f"refining moves no camera's image by more than {moved:.2f} px"
+    applied = not reason
+    report = Refinement(applied, len(tubes), adjustment.before_px, adjustment.after_px, changes, reason)
+    return (adjustment.cameras if applied else given), report
+
+
+def refined_cameras(
+    model: SessionModel, video_paths: Sequence[Path], start: int, stop: int
+) -> tuple[tuple[Camera, ...], Refinement | None]:
+    """The cameras to reconstruct frames ``[start, stop)`` with, under the settings'
+    ``[calibration] refine``, and the refinement's report (None when not asked for, or
+    when too few frames show the tube to refine on)."""
+    mode = model.settings.calibration.refine
+    if mode is False or model.settings.centerline.method != "fit":
+        return model.cameras, None
+    if len(model.cameras) < 3:
+        # Each sample of a tube's sides is read once per view, across it: two views give
+        # exactly the two numbers that place it, and nothing is left to tell the cameras by.
+        reason = "two views of a tube's sides say nothing about the cameras; refining needs three or more"
+        return model.cameras, Refinement(False, 0, float("nan"), float("nan"), (), reason)
+    started = time.perf_counter()
+    tubes = sample_tubes(model, decode_frames(video_paths, sample_frames(start, stop, SAMPLE_FRAMES)))
+    if len(tubes) < 3:
+        return model.cameras, None
+    cameras, report = refine(model, tubes, mode)
+    return cameras, dataclasses.replace(report, seconds=time.perf_counter() - started)
+
+
+_SOURCE = "pipeline process: refined from the session's silhouettes"
+
+
+def remove_refined_calibration(path: Path) -> None:
+    """Remove ``path`` if it is a refined calibration an earlier run wrote (its metadata
+    says so); any other file is left alone."""
+    try:
+        if load_toml(path).get("metadata", {}).get("source") == _SOURCE:
+            path.unlink()
+    except (OSError, ValueError, AttributeError):
+        pass
+
+
+def write_refined_calibration(
+    path: Path, partial: Path, cameras: Sequence[Camera], refinement: Refinement
+) -> tuple[Path, int]:
+    """Write the refined ``cameras`` to ``path`` (through the temporary ``partial``, renamed
+    into place), with the refinement in its metadata; (path, bytes written)."""
+    metadata = {
+        "source": _SOURCE,
+        "silhouettes_apart_px": {"given": refinement.before_px, "refined": refinement.after_px},
+        "frames": refinement.frames,
+    }
+    try:
+        write_calibration(partial, list(cameras), metadata)
+        partial.replace(path)
+    except OSError as exc:
+        partial.unlink(missing_ok=True)
+        raise OutputError(f"{path}: cannot write the refined calibration: {exc.strerror}") from None
+    return path, path.stat().st_size

@@ -1,0 +1,341 @@
+"""Board images -> calibration.toml: intrinsics, a common world frame, joint refinement.
+
+Input layout (camera names come from the folder names)::
+
+    CALIB_DIR/board.toml                 optional: type = "chessboard", inner_corners = [cols, rows],
+                                         square_mm; or type = "charuco", squares = [cols, rows],
+                                         square_mm, marker_mm, dictionary
+    CALIB_DIR/<camera>/intrinsics/*      board images (.png .jpg) or a video of the board moving
+    CALIB_DIR/<camera>/world.png|jpg     the board lying where the world frame should be
+    CALIB_DIR/<camera>/shared/NN.png     optional: boards seen by several cameras at the same
+                                         instant (same NN); links a camera without world.png
+
+Steps: corners per image (``pipeline.calibrate.views``), intrinsics per camera
+(cv2.calibrateCamera; corners that stand out replaced by its prediction), then one joint
+refinement of all cameras over every board (cv2.calibrateMultiviewExtended,
+which chains cameras through pairwise shared views), and finally the world
+frame: the board of world.png (origin at its first inner corner, z out of the
+board).
+
+ChArUco views show subsets of the corners. Intrinsics use each view's own
+subset; the joint refinement uses, per board pose, only the corners seen by
+every camera that saw it (repeated up to the board's corner count, as the solver
+wants equal counts), because calibrateMultiviewExtended gives wrong results with
+points marked unseen (-1, -1) inside a seen view.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import CalibrationError
+from ..geometry.camera import Camera
+from ..session.calibration_io import write_calibration
+from .boards import Board, load_board
+from .result import CalibrationResult, ImageError
+from .views import WORLD, View, detect_directory
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+MM_PER_M = 1000.0
+# A camera whose view of a shared board pose leaves fewer corners than this in
+# common with the other cameras' views uses that view as a pose of its own.
+MIN_COMMON_CORNERS = 6
+# A corner is dropped when its residual is this many times the camera's median
+# residual and above CORNER_FLOOR_PX: the sector detector occasionally lands a
+# corner of a steeply tilted board a pixel off, which would pull the world frame.
+CORNER_FACTOR, CORNER_FLOOR_PX = 6.0, 0.4
+
+
+def calibrate_directory(
+    calib_dir: Path,
+    output: Path,
+    *,
+    board: tuple[int, int] | None = None,
+    square_mm: float | None = None,
+    charuco: tuple[int, int] | None = None,
+    shared_intrinsics: bool = False,
+    drop_outliers: bool = False,
+    report_dir: Path | None = None,
+) -> CalibrationResult:
+    """Calibrate every camera of ``calib_dir`` and write ``output`` (calibration.toml) and a report.
+
+    Parameters
+    ----------
+    calib_dir : folder in the layout of the module docstring.
+    output : calibration.toml to write (aniposelib layout, mm, world frame of world.*).
+    board, square_mm : inner corners (cols, rows) and square size; override board.toml.
+    charuco : a ChArUco board's (cols, rows) squares; overrides board.toml (markers
+        0.75 square and DICT_4X4_50 unless board.toml says).
+    shared_intrinsics : one K and distortion for all cameras (identical cameras).
+    drop_outliers : drop the images whose error stands out (see ``calibrate_report``) and recalibrate.
+    report_dir : where the pictures go; default: next to ``output``.
+    """
+    from .report import find_outliers, write_report
+
+    calib_dir = Path(calib_dir)
+    if not calib_dir.is_dir():
+        raise CalibrationError(f"{calib_dir}: not a folder; expected CALIB_DIR/<camera>/intrinsics/*.png")
+    the_board = load_board(calib_dir, board=board, square_mm=square_mm, charuco=charuco)
+    views = detect_directory(calib_dir, the_board)
+    result = calibrate_views(views, the_board, shared_intrinsics=shared_intrinsics)
+    outliers = find_outliers(result.image_errors)
+    if drop_outliers and outliers:
+        drop = {(e.camera, e.key) for e in outliers if e.key != WORLD}
+        log.info("dropping %d outlier image(s) and recalibrating", len(drop))
+        kept = [v for v in views if (v.camera, v.key) not in drop]
+        result = calibrate_views(kept, the_board, shared_intrinsics=shared_intrinsics)
+        result.dropped = sorted(e.source for e in outliers if e.key != WORLD)
+        outliers = find_outliers(result.image_errors)
+    result.outliers = outliers
+    metadata = {
+        "source": "pipeline calibrate",
+        "calib_dir": str(calib_dir),
+        "board": the_board.describe(),
+        "rms_px": result.rms_px,
+        "mean_reprojection_error_px": result.camera_mean_px(),
+        "images": {c.name: sum(e.camera == c.name for e in result.image_errors) for c in result.cameras},
+        "dropped": result.dropped,
+    }
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    write_calibration(output, result.cameras, metadata)
+    report = Path(report_dir) if report_dir is not None else output.parent
+    result.report_files = write_report(result, views, report)
+    return result
+
+
+def calibrate_views(views: list[View], board: Board, *, shared_intrinsics: bool = False) -> CalibrationResult:
+    """Cameras in the world frame of the ``world`` views, from detected corners.
+
+    Parameters
+    ----------
+    views : detections of every camera (at least one camera has a ``world`` view).
+    board : the board seen.
+    shared_intrinsics : one K and distortion for all cameras.
+    """
+    names = sorted({v.camera for v in views})
+    world_cams = [n for n in names if any(v.camera == n and v.key == WORLD for v in views)]
+    if not world_cams:
+        raise CalibrationError(f"no camera has a world image; put CALIB_DIR/{names[0]}/world.png")
+    # The multiview solver expresses everything in its camera 0: use a camera that sees the world board.
+    order = [world_cams[0]] + [n for n in names if n != world_cams[0]]
+    _check_connected(views, order)
+    sizes = {n: next(v.size_px for v in views if v.camera == n) for n in order}
+    obj = board.object_points()
+    corners = _clean_corners(views, board, sizes, shared_intrinsics)
+    intrinsics = _intrinsics(views, board, sizes, corners, shared_intrinsics)
+
+    frames = _joint_frames(views)
+    keys = [key for key, _ in frames]
+    frame_of = {(v.camera, v.key): fi for fi, (_, seen) in enumerate(frames) for v in seen.values()}
+    detection = np.zeros((len(order), len(frames)), np.uint8)
+    image_points: list[list[NDArray[np.float32]]] = [[] for _ in order]
+    obj_m = []
+    for fi, (_, seen) in enumerate(frames):
+        # The solver wants the same number of points in every frame: a frame's common
+        # corners are repeated up to the board's count, which weights its corners up
+        # (every frame then weighs the same) but adds no bias.
+        ids = np.resize(_common_ids(list(seen.values())), board.n_corners)
+        for ci, name in enumerate(order):
+            pts = np.full((len(ids), 2), -1.0, np.float32)  # (-1, -1): camera did not see this pose
+            view = seen.get(name)
+            if view is not None:
+                # Rows of this view's corners that hold the common ids (view.ids increasing).
+                pts[:] = corners[(name, view.key)][np.searchsorted(view.ids, ids)]
+                detection[ci, fi] = 1
+            image_points[ci].append(pts)
+        # Metres, not mm: the solver scales the board by its squared size, and a board
+        # in mm trips its "Pattern points are collinear" guard.
+        obj_m.append((obj[ids] / MM_PER_M).astype(np.float32))
+    try:
+        # Rs, Ts = None: outputs only (the stubs want sequences).
+        rms, Ks, dists, Rs, Ts, _pairs, rvecs0, tvecs0, _ = cv2.calibrateMultiviewExtended(  # type: ignore[call-overload]
+            obj_m,
+            image_points,
+            [sizes[n] for n in order],
+            detection,
+            np.full(len(order), cv2.CALIB_MODEL_PINHOLE, np.uint8),
+            [intrinsics[n][0] for n in order],
+            [intrinsics[n][1] for n in order],
+            None,
+            None,
+            flagsForIntrinsics=np.zeros(len(order), np.int32),
+            flags=cv2.CALIB_USE_INTRINSIC_GUESS,
+        )
+    except cv2.error as exc:
+        raise CalibrationError(
+            f"joint calibration failed ({exc.err}); check the shared and world views"
+        ) from None
+
+    # Board of frame f in camera 0: x0 = R0f X + t0f; camera i: xi = Ri x0 + Ti (Rs are
+    # rotation vectors, whatever the docstring says).
+    world_index = keys.index(WORLD)
+    R_w, _ = cv2.Rodrigues(np.asarray(rvecs0[world_index], np.float64))
+    t_w = np.asarray(tvecs0[world_index], np.float64).ravel() * MM_PER_M
+    cameras = []
+    for ci, name in enumerate(order):
+        R_i, _ = cv2.Rodrigues(np.asarray(Rs[ci], np.float64).reshape(3))
+        T_i = np.asarray(Ts[ci], np.float64).ravel() * MM_PER_M
+        R = R_i @ R_w  # camera from world
+        rvec, _ = cv2.Rodrigues(R)
+        cameras.append(
+            Camera(
+                name=name,
+                size_px=sizes[name],
+                matrix=np.asarray(Ks[ci], np.float64),
+                distortions=np.asarray(dists[ci], np.float64).ravel()[:5],
+                rotation=np.asarray(rvec, np.float64).ravel(),
+                translation_mm=R_i @ t_w + T_i,
+            )
+        )
+    errors = _image_errors(views, board, cameras, order, frame_of, rvecs0, tvecs0)
+    cameras.sort(key=lambda c: c.name)
+    return CalibrationResult(cameras=cameras, image_errors=errors, board=board, rms_px=float(rms))
+
+
+def _common_ids(seen: list[View]) -> NDArray[np.intp]:
+    """(K,) increasing corner ids present in every view of ``seen``."""
+    return np.asarray(sorted(set.intersection(*(set(v.ids.tolist()) for v in seen))), np.intp)
+
+
+def _joint_frames(views: list[View]) -> list[tuple[str, dict[str, View]]]:
+    """The board poses of the joint refinement: (instant, the views of it per camera).
+
+    A shared instant whose cameras have fewer than MIN_COMMON_CORNERS corners in
+    common (partly seen ChArUco boards) loses the cameras that saw the fewest
+    corners until they do; each camera dropped keeps its view as a board pose of
+    its own, so it still counts for that camera alone.
+    """
+    by_instant: dict[str, dict[str, View]] = {}
+    for v in views:
+        by_instant.setdefault(v.instant, {})[v.camera] = v
+    frames = []
+    for key in sorted(by_instant):
+        seen = by_instant[key]
+        while len(seen) > 1 and len(_common_ids(list(seen.values()))) < MIN_COMMON_CORNERS:
+            weakest = min(seen, key=lambda name: len(seen[name].ids))
+            log.debug("%s %s: too few corners in common with the other cameras", weakest, key)
+            frames.append((f"{weakest}:{key}", {weakest: seen.pop(weakest)}))
+        frames.append((key, seen))
+    return frames
+
+
+def _check_connected(views: list[View], order: list[str]) -> None:
+    """Every camera must reach the world camera through boards seen by two cameras at once."""
+    seen_by: dict[str, set[str]] = {}
+    for v in views:
+        if v.shared:
+            seen_by.setdefault(v.key, set()).add(v.camera)
+    reached, frontier = {order[0]}, [order[0]]
+    while frontier:
+        cam = frontier.pop()
+        for cams in seen_by.values():
+            if cam in cams:
+                new = cams - reached
+                reached |= new
+                frontier.extend(new)
+    for name in order:
+        if name not in reached:
+            raise CalibrationError(
+                f"camera {name!r}: no world.png, and no shared/NN image whose board a camera "
+                f"linked to the world also saw; add CALIB_DIR/{name}/world.png or shared views"
+            )
+
+
+def _intrinsics(
+    views: list[View],
+    board: Board,
+    sizes: dict[str, tuple[int, int]],
+    corners: dict[tuple[str, str], FloatArray],
+    shared: bool,
+) -> dict[str, tuple[FloatArray, FloatArray]]:
+    """(K (3, 3), distortion (5,)) per camera from all its views (``corners`` per (camera, key))."""
+    obj = board.object_points().astype(np.float32)
+    groups = {"*": list(sizes)} if shared else {n: [n] for n in sizes}
+    if shared and len(set(sizes.values())) > 1:
+        raise CalibrationError("--shared-intrinsics needs every camera's images to have the same size")
+    out: dict[str, tuple[FloatArray, FloatArray]] = {}
+    for members in groups.values():
+        mine = [v for v in views if v.camera in members]
+        imgs = [corners[(v.camera, v.key)].astype(np.float32) for v in mine]
+        objs = [obj[v.ids] for v in mine]
+        _, K, dist, _, _ = cv2.calibrateCamera(objs, imgs, sizes[members[0]], None, None)
+        for n in members:
+            out[n] = (np.asarray(K, np.float64), np.asarray(dist, np.float64).ravel()[:5])
+    return out
+
+
+def _clean_corners(
+    views: list[View], board: Board, sizes: dict[str, tuple[int, int]], shared: bool
+) -> dict[tuple[str, str], FloatArray]:
+    """Per view, its corners with the ones that stand out replaced by a first calibration's prediction.
+
+    Replacing rather than leaving out: the multiview solver's pairwise
+    initialisation does not cope with partly seen boards, and a handful of
+    predicted corners among 54 measured ones barely weighs.
+    """
+    raw = {(v.camera, v.key): v.corners_px for v in views}
+    intrinsics = _intrinsics(views, board, sizes, raw, shared)
+    obj = board.object_points()
+    predicted, residuals = {}, {}
+    for v in views:
+        K, dist = intrinsics[v.camera]
+        _, rvec, tvec = cv2.solvePnP(obj[v.ids], v.corners_px, K, dist)
+        px, _ = cv2.projectPoints(obj[v.ids], rvec, tvec, K, dist)
+        predicted[(v.camera, v.key)] = px.reshape(-1, 2).astype(np.float64)
+        residuals[(v.camera, v.key)] = np.linalg.norm(predicted[(v.camera, v.key)] - v.corners_px, axis=1)
+    cleaned = {}
+    for name in sizes:
+        median = float(np.median(np.concatenate([r for (c, _), r in residuals.items() if c == name])))
+        limit = max(CORNER_FACTOR * median, CORNER_FLOOR_PX)
+        for (c, key), r in residuals.items():
+            if c == name:
+                bad = r > limit
+                cleaned[(c, key)] = np.where(bad[:, None], predicted[(c, key)], raw[(c, key)])
+                if bad.any():
+                    log.debug("%s %s: %d corner(s) replaced", c, key, int(bad.sum()))
+    return cleaned
+
+
+def _image_errors(
+    views: list[View],
+    board: Board,
+    cameras: list[Camera],
+    order: list[str],
+    frame_of: dict[tuple[str, str], int],
+    rvecs0: list[NDArray[np.float64]],
+    tvecs0: list[NDArray[np.float64]],
+) -> list[ImageError]:
+    """Mean re-projection error of every image under the final calibration (all corners)."""
+    obj = board.object_points()
+    cams = {c.name: c for c in cameras}
+    R_w0, t_w0 = _world_from_cam0(cams[order[0]])
+    errors = []
+    for v in views:
+        cam = cams[v.camera]
+        fi = frame_of[(v.camera, v.key)]
+        r0, t0 = rvecs0[fi], tvecs0[fi]
+        if r0 is None or np.asarray(r0).size != 3:
+            continue
+        # Board pose in this camera: through camera 0's board pose and the camera's pose relative to it.
+        R0, _ = cv2.Rodrigues(np.asarray(r0, np.float64))
+        x0 = obj[v.ids] @ R0.T + np.asarray(t0, np.float64).ravel() * MM_PER_M  # camera 0 frame, mm
+        px = cam.project(x0 @ R_w0.T + t_w0)
+        errors.append(
+            ImageError(v.camera, v.key, v.source, float(np.linalg.norm(px - v.corners_px, axis=1).mean()))
+        )
+    return errors
+
+
+def _world_from_cam0(cam0: Camera) -> tuple[FloatArray, FloatArray]:
+    """(R, t) with X_world = R @ x_cam0 + t."""
+    R = cam0.camera_from_world
+    return R.T, -R.T @ cam0.translation_mm

@@ -1,0 +1,166 @@
+"""A calibration folder -> the board corners seen in each of its images.
+
+Layout read (camera names come from the folder names)::
+
+    CALIB_DIR/<camera>/intrinsics/*      board images (.png .jpg ...) or a video of the board moving
+    CALIB_DIR/<camera>/world.png|jpg     the board lying where the world frame should be
+    CALIB_DIR/<camera>/shared/NN.png     boards seen by several cameras at the same instant (same NN)
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from joblib import Parallel, delayed
+from numpy.typing import NDArray
+
+from ..errors import CalibrationError
+from .boards import Board, detect
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+VIDEO_EXTS = (".mp4", ".avi", ".mkv", ".mov")
+MIN_VIEWS = 5
+VIDEO_SAMPLES = 30  # frames taken, evenly spaced, from an intrinsics video
+WORLD = "world"
+
+
+@dataclass(frozen=True)
+class View:
+    """One board image of one camera: ``key`` names the instant (shared across cameras)."""
+
+    camera: str
+    key: str
+    source: str  # file (or video#frame) for messages and the report
+    corners_px: FloatArray  # (M, 2) float64: the corners ``ids`` (all, for a chessboard)
+    size_px: tuple[int, int]
+    ids: NDArray[np.intp]  # (M,) increasing indices into Board.object_points()
+
+    @property
+    def shared(self) -> bool:
+        """True for world.* and shared/NN views, which may be seen by several cameras."""
+        return not self.key.startswith("intrinsics/")
+
+    @property
+    def instant(self) -> str:
+        """The board pose this view saw: shared by the cameras of a shared view, private otherwise."""
+        return self.key if self.shared else f"{self.camera}:{self.key}"
+
+
+def camera_dirs(calib_dir: Path) -> list[Path]:
+    """Sub-folders of ``calib_dir`` that hold a camera's images, sorted by name."""
+    dirs = sorted(
+        d
+        for d in Path(calib_dir).iterdir()
+        if d.is_dir() and ((d / "intrinsics").is_dir() or _world_file(d) is not None)
+    )
+    if len(dirs) < 2:
+        raise CalibrationError(
+            f"{calib_dir}: found {len(dirs)} camera folder(s); expected at least two "
+            "CALIB_DIR/<camera>/intrinsics/ folders"
+        )
+    return dirs
+
+
+def _world_file(cam_dir: Path) -> Path | None:
+    found = [cam_dir / f"world{ext}" for ext in IMAGE_EXTS if (cam_dir / f"world{ext}").is_file()]
+    return found[0] if found else None
+
+
+def _read_grey(path: Path) -> NDArray[np.uint8]:
+    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise CalibrationError(f"{path}: cannot read this image")
+    return np.asarray(image, dtype=np.uint8)
+
+
+def _video_frames(path: Path) -> list[tuple[str, NDArray[np.uint8]]]:
+    """Up to VIDEO_SAMPLES grey frames, evenly spaced, of an intrinsics video."""
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise CalibrationError(f"{path}: cannot open this video")
+    frames = []
+    try:
+        count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        wanted = set(np.linspace(0, max(count - 1, 0), min(VIDEO_SAMPLES, max(count, 1))).astype(int))
+        index = 0
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            if index in wanted:
+                frames.append(
+                    (f"{path.name}#{index}", np.asarray(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY), np.uint8))
+                )
+            index += 1
+    finally:
+        cap.release()
+    return frames
+
+
+def detect_directory(calib_dir: Path, board: Board) -> list[View]:
+    """Corners of every usable image of every camera of ``calib_dir``.
+
+    An intrinsics or shared image without a board is skipped with a warning;
+    a world image without one is an error (it defines the frame).
+    """
+    views: list[View] = []
+    for cam_dir in camera_dirs(calib_dir):
+        cam = cam_dir.name
+        images: list[tuple[str, str, NDArray[np.uint8]]] = []  # key, source, image
+        intr = cam_dir / "intrinsics"
+        for path in sorted(intr.iterdir()) if intr.is_dir() else []:
+            if path.suffix.lower() in IMAGE_EXTS:
+                images.append((f"intrinsics/{path.name}", str(path), _read_grey(path)))
+            elif path.suffix.lower() in VIDEO_EXTS:
+                for name, frame in _video_frames(path):
+                    images.append((f"intrinsics/{name}", str(intr / name), frame))
+        shared = cam_dir / "shared"
+        for path in sorted(shared.iterdir()) if shared.is_dir() else []:
+            if path.suffix.lower() in IMAGE_EXTS:
+                images.append((f"shared/{path.stem}", str(path), _read_grey(path)))
+        world = _world_file(cam_dir)
+        if world is not None:
+            images.append((WORLD, str(world), _read_grey(world)))
+        sizes = {(im.shape[1], im.shape[0]) for _, _, im in images}
+        if len(sizes) > 1:
+            first = images[0]
+            odd = next(src for _, src, im in images if (im.shape[1], im.shape[0]) != first[2].shape[::-1])
+            raise CalibrationError(
+                f"camera {cam!r}: images of different sizes ({first[1]} is "
+                f"{first[2].shape[1]}x{first[2].shape[0]}, {odd} is not); one camera, one size"
+            )
+        # Threads: OpenCV releases the GIL, and images are independent.
+        found = Parallel(n_jobs=-1, prefer="threads")(delayed(detect)(im, board) for _, _, im in images)
+        for (key, source, image), detection in zip(images, found, strict=True):
+            if detection is None:
+                if key == WORLD:
+                    raise CalibrationError(f"{source}: {_not_found(board)} (it defines the world frame)")
+                log.warning("%s: %s, image skipped", source, _not_found(board))
+                continue
+            ids, corners = detection
+            views.append(View(cam, key, source, corners, (image.shape[1], image.shape[0]), ids))
+        usable = sum(v.camera == cam for v in views)
+        if usable < MIN_VIEWS:
+            raise CalibrationError(
+                f"camera {cam!r}: board found in only {usable} image(s) of {len(images)}; "
+                f"need at least {MIN_VIEWS} (more views, whole board visible, check --board)"
+            )
+    return views
+
+
+def _not_found(board: Board) -> str:
+    """Why an image gave no detection, and what to check."""
+    if board.kind == "charuco":
+        return (
+            f"too few ChArUco corners found ({board.describe()}); show more of the board, larger, "
+            "and check --charuco COLSxROWS, --square-mm and board.toml's dictionary"
+        )
+    return f"board {board.cols}x{board.rows} not found; show the whole board and check --board COLSxROWS"

@@ -1,0 +1,445 @@
+"""Accuracy of reconstructed centrelines against ground truth.
+
+The figures are the ones issue 4 sets targets for: the symmetric distance between
+the reconstructed and true centrelines (mean and 95th percentile, every point of
+both curves pooled over every ok frame), the tip and base errors, the length
+error in percent, the failed frames, and the tip jitter (RMS of the second time
+difference of the tip position), reconstructed against true.
+
+:func:`evaluate_centerlines` works on arrays in millimetres;
+:func:`evaluate_recording` reads an MCAP and a ground_truth.npz and is the only
+place here that converts the recording's metres to millimetres.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..errors import EvaluationError
+from ..geometry.polyline import polyline_arclength
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+# The accuracy targets, shown beside the figures in format_report.
+TARGETS = {
+    "mean_mm": 0.2,
+    "p95_mm": 0.5,
+    "tip_median_mm": 0.5,
+    "length_error_pct": 0.5,
+    "failed_frames": 0,
+    "jitter_ratio": 1.5,
+}
+
+# Two samples further apart than this many median time steps are not consecutive
+# (frames missing from the recording): no second difference is taken across them.
+_GAP_FACTOR = 1.5
+
+# Bound on the (points x segments x 3) temporaries of centerline_distances.
+_MAX_CHUNK_ELEMENTS = 4_000_000
+
+# A frame whose curve is farther than this from the truth anywhere is wrong, not
+# merely imprecise: the suspect flag should name it.
+OFF_MM = 2.0
+
+
+@dataclass(frozen=True)
+class EvaluationReport:
+    """Accuracy of one set of centrelines against the truth; lengths in mm.
+
+    Attributes
+    ----------
+    label : what was evaluated ("per-frame", "smoothed", ...).
+    frames : number of frames evaluated.
+    failed_frames : frames without a centreline (NaN rows: status failed or empty).
+    failed_indices : their frame indices.
+    mean_mm, p95_mm : mean and 95th percentile of the symmetric centreline
+        distance, pooled over both directions and every ok frame.
+    tip_median_mm, tip_p95_mm : |pred[-1] - truth[-1]| over ok frames.
+    base_mean_mm : mean |pred[0] - truth[0]| over ok frames.
+    length_error_pct : mean |L_pred - L_true| / L_true, in percent.
+    tip_jitter_mm, truth_tip_jitter_mm : RMS norm of the tip's second time
+        difference (mm per frame step squared), over runs of consecutive ok frames.
+    jitter_ratio : tip_jitter_mm / truth_tip_jitter_mm (NaN if the true tip is still).
+    off_indices : ok frames whose curve is more than ``OFF_MM`` from the truth somewhere
+        (either way: a reconstructed point from the true curve, or a true one from it).
+    off_flagged : how many of those the recording flagged suspect; None when not known.
+    good_flagged : how many of the other ok frames it flagged suspect; None when not known.
+    smoothed : the same figures for the temporally smoothed centrelines, if any.
+    cameras : the cameras the recording was reconstructed with ("given" or "refined ...");
+        "" when the recording does not say.
+    """
+
+    label: str
+    frames: int
+    failed_frames: int
+    failed_indices: tuple[int, ...]
+    mean_mm: float
+    p95_mm: float
+    tip_median_mm: float
+    tip_p95_mm: float
+    base_mean_mm: float
+    length_error_pct: float
+    tip_jitter_mm: float
+    truth_tip_jitter_mm: float
+    jitter_ratio: float
+    off_indices: tuple[int, ...] = ()
+    off_flagged: int | None = None
+    good_flagged: int | None = None
+    smoothed: EvaluationReport | None = None
+    cameras: str = ""
+
+    @property
+    def frames_off(self) -> int:
+        """Ok frames more than ``OFF_MM`` from the truth somewhere."""
+        return len(self.off_indices)
+
+    @property
+    def good_frames(self) -> int:
+        """Ok frames within ``OFF_MM`` of the truth everywhere."""
+        return self.frames - self.failed_frames - len(self.off_indices)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict (JSON-ready: NaN becomes None, the smoothed report nests)."""
+        return _json_ready(dataclasses.asdict(self))
+
+    def to_json(self) -> str:
+        """The report as indented JSON (strict: no NaN literals)."""
+        return json.dumps(self.to_dict(), indent=2)
+
+
+def _json_ready(value: Any) -> Any:
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _json_ready(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_ready(v) for v in value]
+    return value
+
+
+def centerline_distances(a_mm: ArrayLike, b_mm: ArrayLike) -> FloatArray:
+    """Distance from each point of ``a_mm`` to the polyline ``b_mm``.
+
+    Exact: each point is projected on every segment of ``b_mm`` (not only on its
+    vertices), so two parallel lines 1 mm apart are 1 mm apart everywhere.
+
+    Parameters
+    ----------
+    a_mm : (N, 3) float64 points, mm.
+    b_mm : (M, 3) float64 polyline vertices in order, mm; M >= 1.
+
+    Returns
+    -------
+    (N,) float64 distances, mm.
+    """
+    a = np.asarray(a_mm, dtype=np.float64).reshape(-1, 3)
+    b = np.asarray(b_mm, dtype=np.float64).reshape(-1, 3)
+    if len(b) == 0:
+        raise ValueError("centerline_distances: the polyline b_mm has no vertices")
+    if len(b) == 1:
+        return np.asarray(np.linalg.norm(a - b[0], axis=1), dtype=np.float64)
+    start = b[:-1]
+    seg = b[1:] - start  # (S, 3)
+    seg_sq = np.einsum("ij,ij->i", seg, seg)
+    # Zero-length segments (repeated vertices) project everything onto their start.
+    inv_sq = np.divide(1.0, seg_sq, out=np.zeros_like(seg_sq), where=seg_sq > 0)
+    out = np.empty(len(a))
+    chunk = max(1, _MAX_CHUNK_ELEMENTS // (3 * len(seg)))
+    for lo in range(0, len(a), chunk):
+        rel = a[lo : lo + chunk, None, :] - start[None]  # (n, S, 3)
+        t = np.clip(np.einsum("nsk,sk->ns", rel, seg) * inv_sq, 0.0, 1.0)
+        gap = rel - t[..., None] * seg[None]
+        out[lo : lo + chunk] = np.sqrt(np.einsum("nsk,nsk->ns", gap, gap).min(axis=1))
+    return out
+
+
+def polyline_length(points_mm: ArrayLike) -> float:
+    """Length (mm) of the polyline through ``points_mm`` : (N, 3) float64, mm."""
+    return float(polyline_arclength(np.asarray(points_mm, dtype=np.float64))[-1])
+
+
+def tip_jitter(tips_mm: ArrayLike, *, timestamps_s: ArrayLike | None = None) -> float:
+    """RMS norm of the second time difference of a tip track, mm per frame step squared.
+
+    Parameters
+    ----------
+    tips_mm : (F, 3) float64 tip positions, mm; NaN rows for frames without a tip.
+    timestamps_s : (F,) float64, s; optional. With timestamps, steps longer than
+        1.5 median steps break the track (missing frames), and uneven steps use the
+        non-uniform second difference rescaled to the median step, so the figure
+        equals ``x[i+1] - 2 x[i] + x[i-1]`` whenever frames are evenly spaced.
+
+    Returns
+    -------
+    float, mm; NaN if no three consecutive frames have a tip.
+    """
+    x = np.asarray(tips_mm, dtype=np.float64).reshape(-1, 3)
+    if len(x) < 3:
+        return float("nan")
+    if timestamps_s is None:
+        t = np.arange(len(x), dtype=np.float64)
+    else:
+        t = np.asarray(timestamps_s, dtype=np.float64).reshape(-1)
+        if t.shape != (len(x),):
+            raise ValueError(f"tip_jitter: {len(t)} timestamps for {len(x)} tips")
+    h = np.diff(t)
+    step = float(np.median(h))
+    if not step > 0:
+        return float("nan")
+    h_prev, h_next = h[:-1], h[1:]
+    ok: NDArray[np.bool_] = np.asarray(np.isfinite(x).all(axis=1))
+    usable = ok[:-2] & ok[1:-1] & ok[2:] & (h_prev > 0) & (h_next > 0)
+    usable &= (h_prev <= _GAP_FACTOR * step) & (h_next <= _GAP_FACTOR * step)
+    if not usable.any():
+        return float("nan")
+    hp, hn = h_prev[usable, None], h_next[usable, None]
+    x0, x1, x2 = x[:-2][usable], x[1:-1][usable], x[2:][usable]
+    second = 2.0 * step**2 * ((x2 - x1) / hn - (x1 - x0) / hp) / (hp + hn)
+    return float(np.sqrt(np.mean(np.einsum("ij,ij->i", second, second))))
+
+
+def evaluate_centerlines(
+    pred_mm: ArrayLike,
+    truth_mm: ArrayLike,
+    *,
+    timestamps_s: ArrayLike | None = None,
+    frame_indices: ArrayLike | None = None,
+    label: str = "per-frame",
+) -> EvaluationReport:
+    """Compare predicted centrelines with the true ones, frame by frame.
+
+    Parameters
+    ----------
+    pred_mm : (F, N, 3) float64 predicted centrelines ordered base -> tip, world
+        frame, mm; a frame with any NaN is a failed frame.
+    truth_mm : (F, M, 3) float64 true centrelines ordered base -> tip, mm.
+    timestamps_s : (F,) float64 frame times, s; optional (see :func:`tip_jitter`).
+    frame_indices : (F,) int frame indices used to name failed frames; default 0..F-1.
+    label : name of this set of centrelines in the report.
+
+    Returns
+    -------
+    EvaluationReport
+    """
+    pred = np.asarray(pred_mm, dtype=np.float64)
+    truth = np.asarray(truth_mm, dtype=np.float64)
+    if pred.ndim != 3 or truth.ndim != 3 or pred.shape[2] != 3 or truth.shape[2] != 3:
+        raise ValueError(f"expected (F, N, 3) and (F, M, 3) arrays, got {pred.shape} and {truth.shape}")
+    if len(pred) != len(truth):
+        raise ValueError(f"{len(pred)} predicted frames but {len(truth)} true frames")
+    frames = len(pred)
+    index = np.arange(frames) if frame_indices is None else np.asarray(frame_indices).reshape(-1)
+    ok: NDArray[np.bool_] = np.asarray(np.isfinite(pred).all(axis=(1, 2)) & (pred.shape[1] > 0))
+
+    pooled = [
+        np.concatenate([centerline_distances(p, q), centerline_distances(q, p)])
+        for p, q in zip(pred[ok], truth[ok], strict=True)
+    ]
+    worst = np.array([d.max() for d in pooled])
+    distances = np.concatenate(pooled) if pooled else np.zeros(0)
+    tip_err = np.linalg.norm(pred[ok, -1] - truth[ok, -1], axis=1)
+    base_err = np.linalg.norm(pred[ok, 0] - truth[ok, 0], axis=1)
+    length_pred = np.array([polyline_length(p) for p in pred[ok]])
+    length_true = np.array([polyline_length(q) for q in truth[ok]])
+
+    tips = np.where(ok[:, None], pred[:, -1], np.nan)
+    jitter = tip_jitter(tips, timestamps_s=timestamps_s)
+    # The truth's jitter over the same frames, so the ratio compares like with like.
+    truth_jitter = tip_jitter(np.where(ok[:, None], truth[:, -1], np.nan), timestamps_s=timestamps_s)
+    return EvaluationReport(
+        label=label,
+        frames=frames,
+        failed_frames=int((~ok).sum()),
+        failed_indices=tuple(int(i) for i in index[~ok]),
+        mean_mm=_stat(np.mean, distances),
+        p95_mm=_stat(lambda d: np.percentile(d, 95), distances),
+        tip_median_mm=_stat(np.median, tip_err),
+        tip_p95_mm=_stat(lambda d: np.percentile(d, 95), tip_err),
+        base_mean_mm=_stat(np.mean, base_err),
+        length_error_pct=_stat(np.mean, 100.0 * np.abs(length_pred - length_true) / length_true),
+        tip_jitter_mm=jitter,
+        truth_tip_jitter_mm=truth_jitter,
+        jitter_ratio=jitter / truth_jitter if truth_jitter > 0 else float("nan"),
+        off_indices=tuple(int(i) for i in index[ok][worst > OFF_MM]),
+    )
+
+
+def _stat(func: Any, values: FloatArray) -> float:
+    return float(func(values)) if len(values) else float("nan")
+
+
+def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
+    """Read the true centrelines of a synthetic session.
+
+    Parameters
+    ----------
+    path : ground_truth.npz, or a session directory holding one.
+
+    Returns
+    -------
+    centerlines_mm : (F, M, 3) float64, base -> tip, world frame, mm.
+    timestamps_s : (F,) float64, s, or None if the file has none.
+    """
+    path = Path(path)
+    file = path / "ground_truth.npz" if path.is_dir() else path
+    if not file.is_file():
+        where = f"{path} holds no ground_truth.npz" if path.is_dir() else f"{path} does not exist"
+        raise EvaluationError(f"ground truth: {where}; give a ground_truth.npz or the session directory")
+    try:
+        with open(file, "rb") as head:
+            if head.read(4) != b"PK\x03\x04":  # every .npz is a zip archive
+                raise EvaluationError(
+                    f"{file}: is not a ground_truth.npz (a NumPy .npz archive); give the one "
+                    "`pipeline synth` wrote, or the session directory that holds it"
+                )
+        with np.load(file) as data:
+            if "centerlines" not in data:
+                raise EvaluationError(f"{file}: no 'centerlines' array; is this a synthetic ground truth?")
+            centerlines = np.asarray(data["centerlines"], dtype=np.float64)
+            timestamps = (
+                np.asarray(data["timestamps_s"], dtype=np.float64).reshape(-1)
+                if "timestamps_s" in data
+                else None
+            )
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # cut short or damaged
+        raise EvaluationError(f"{file}: not a readable .npz file ({exc})") from None
+    if centerlines.ndim != 3 or centerlines.shape[2] != 3:
+        raise EvaluationError(f"{file}: 'centerlines' has shape {centerlines.shape}, expected (F, M, 3)")
+    return centerlines, timestamps
+
+
+def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> EvaluationReport:
+    """Evaluate an MCAP recording against a synthetic session's ground truth.
+
+    Frames are matched by frame index, so a recording of part of a session
+    (``--frames``) is compared with the right true frames. When the recording
+    holds smoothed centrelines, they are evaluated too (``report.smoothed``).
+
+    Parameters
+    ----------
+    recording : the .mcap written by ``python -m pipeline process``.
+    ground_truth : ground_truth.npz, or the session directory holding it.
+
+    Returns
+    -------
+    EvaluationReport (label "per-frame"), with ``smoothed`` set when present.
+    """
+    from ..record.load import load_recording
+
+    recording = Path(recording)
+    if not recording.is_file():
+        raise EvaluationError(f"recording {recording} does not exist; run `python -m pipeline process` first")
+    truth_mm, truth_times = load_ground_truth(ground_truth)
+    rec = load_recording(recording)
+    indices = np.asarray(rec.frame_indices, dtype=np.int64).reshape(-1)
+    if len(indices) == 0:
+        raise EvaluationError(f"{recording}: the recording holds no frames")
+    outside = indices[(indices < 0) | (indices >= len(truth_mm))]
+    if len(outside):
+        raise EvaluationError(
+            f"{recording}: frame {int(outside[0])} is beyond the ground truth's {len(truth_mm)} frames; "
+            "is this the ground truth of the same session?"
+        )
+    truth = truth_mm[indices]
+    if truth_times is not None and len(truth_times) == len(truth_mm):
+        times = truth_times[indices]
+    else:
+        times = np.asarray(rec.timestamps_ns, dtype=np.float64) * 1e-9
+    if len(indices) < len(truth_mm):
+        log.info("%s: %d of the ground truth's %d frames recorded", recording, len(indices), len(truth_mm))
+
+    # The MCAP stores metres (the Foxglove convention); everything here is millimetres.
+    def to_mm(centerlines_m: ArrayLike) -> FloatArray:
+        return np.asarray(centerlines_m, dtype=np.float64) * 1000.0
+
+    report = evaluate_centerlines(
+        to_mm(rec.centerlines_m), truth, timestamps_s=times, frame_indices=indices, label="per-frame"
+    )
+    suspect = {int(m["frame"]) for m in rec.metrics if m.get("suspect")}
+    off = set(report.off_indices)
+    report = dataclasses.replace(
+        report,
+        off_flagged=len(off & suspect),
+        good_flagged=len(suspect - off - set(report.failed_indices)),
+        cameras=rec.cameras,
+    )
+    if rec.smoothed_centerlines_m is not None:
+        smoothed = evaluate_centerlines(
+            to_mm(rec.smoothed_centerlines_m),
+            truth,
+            timestamps_s=times,
+            frame_indices=indices,
+            label="smoothed",
+        )
+        report = dataclasses.replace(report, smoothed=smoothed)
+    return report
+
+
+_ROWS = (
+    ("mean_mm", "centreline mean (mm)", "{:.3f}"),
+    ("p95_mm", "centreline p95 (mm)", "{:.3f}"),
+    ("tip_median_mm", "tip median (mm)", "{:.3f}"),
+    ("tip_p95_mm", "tip p95 (mm)", "{:.3f}"),
+    ("base_mean_mm", "base mean (mm)", "{:.3f}"),
+    ("length_error_pct", "length error (%)", "{:.2f}"),
+    ("failed_frames", "failed frames", "{:d}"),
+    ("tip_jitter_mm", "tip jitter (mm/frame^2)", "{:.4f}"),
+    ("truth_tip_jitter_mm", "true tip jitter (mm/frame^2)", "{:.4f}"),
+    ("jitter_ratio", "jitter ratio", "{:.2f}"),
+    ("frames_off", f"frames > {OFF_MM:g} mm off", "{:d}"),
+    ("off_flagged", "  of those flagged suspect", "{:d}"),
+    ("good_flagged", "other frames flagged suspect", "{:d}"),
+)
+
+
+def _cell(fmt: str, value: object) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    return fmt.format(value)
+
+
+def _align(row: list[str], widths: list[int]) -> list[str]:
+    # Names left-aligned, numbers right-aligned.
+    return [
+        cell.ljust(w) if i == 0 else cell.rjust(w)
+        for i, (cell, w) in enumerate(zip(row, widths, strict=True))
+    ]
+
+
+def format_report(report: EvaluationReport) -> str:
+    """A plain-text table of the report (and its smoothed twin), with the targets."""
+    columns = [report] if report.smoothed is None else [report, report.smoothed]
+    header = ["", *(r.label for r in columns), "target"]
+    rows = [header]
+    for key, name, fmt in _ROWS:
+        target = TARGETS.get(key)
+        rows.append(
+            [
+                name,
+                *(_cell(fmt, getattr(r, key)) for r in columns),
+                "" if target is None else f"<= {target}",
+            ]
+        )
+    widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
+    lines = ["  ".join(_align(row, widths)) for row in rows]
+    lines.insert(1, "-" * len(lines[0]))
+    lines.insert(0, f"{report.frames} frames evaluated")
+    if report.cameras:
+        lines.insert(1, f"cameras: {report.cameras}")
+    if report.failed_indices:
+        shown = ", ".join(str(i) for i in report.failed_indices[:20])
+        more = " ..." if len(report.failed_indices) > 20 else ""
+        lines.append(f"failed frames: {shown}{more}")
+    return "\n".join(lines)

@@ -1,0 +1,304 @@
+"""The per-frame path: images -> silhouettes -> hull -> centreline -> quality.
+
+Pure: arrays in, a :class:`~pipeline.reconstruct.frame_result.FrameResult` out; no logging,
+no files. A frame that cannot be reconstructed is a result with status "empty"
+or "failed" and a reason, never an exception. What never changes over a session
+(cameras, settings, the voxel grid and its lookup tables, background images) is
+a :class:`~pipeline.reconstruct.model.SessionModel`, built once in the parent and sent to every worker.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from ..carve.hull import carve, voxel_centers_mm
+from ..carve.silhouette import extract_silhouette
+from ..geometry.camera import project_in_views
+from ..geometry.polyline import by_fraction
+from .centerline import fit_centerline, radius_from_silhouettes, smooth_curve
+from .frame_result import FrameResult
+from .model import SessionModel
+from .model import build_model as build_model  # re-exported: build the model, then reconstruct frames
+from .ordering import infer_base
+from .quality import misfit_fractions, suspect_reason, tube_figures
+from .tracking import TrackedFit, drawn_radius, predict_axis, track_tube
+from .tube_fit import foreground_contrast
+
+# Fewer occupied voxels than this cannot hold a tube: the frame is "failed"
+# (something was seen, but no curve can come of it).
+MIN_VOXELS = 8
+# Radius used to start the search when neither session.toml nor the silhouettes give one (mm).
+_FALLBACK_RADIUS_MM = 6.0
+
+
+def frame_silhouettes(images: Sequence[NDArray[np.uint8]], model: SessionModel) -> list[NDArray[np.bool_]]:
+    """Per camera (H, W) bool silhouette of one frame's (H, W) uint8 grey images."""
+    sil = model.settings.silhouette
+    use_bg = sil.method == "background"
+    return [
+        extract_silhouette(image, sil, background=bg if use_bg else None)
+        for image, bg in zip(images, model.backgrounds, strict=True)
+    ]
+
+
+def frame_contrasts(images: Sequence[NDArray[np.uint8]], model: SessionModel) -> list[NDArray[np.float32]]:
+    """Per camera (H, W) float32 "how much tube" of one frame's grey images
+    (:func:`pipeline.reconstruct.tube_fit.foreground_contrast`), which the fit reads."""
+    sil = model.settings.silhouette
+    return [
+        foreground_contrast(
+            image, polarity=sil.polarity, background=bg if sil.method == "background" else None
+        )
+        for image, bg in zip(images, model.backgrounds, strict=True)
+    ]
+
+
+def reconstruct_frame(
+    index: int,
+    images: Sequence[NDArray[np.uint8] | None],
+    model: SessionModel,
+    previous: Sequence[FrameResult] = (),
+) -> FrameResult:
+    """One frame, from its grey images (one per camera, None if undecodable)."""
+    for cam, image in zip(model.cameras, images, strict=True):
+        if image is None:
+            return FrameResult.failed(index, f"camera {cam.name!r} image could not be decoded")
+    result, _ = reconstruct_with_silhouettes(index, [im for im in images if im is not None], model, previous)
+    return result
+
+
+def reconstruct_with_silhouettes(
+    index: int,
+    images: Sequence[NDArray[np.uint8]],
+    model: SessionModel,
+    previous: Sequence[FrameResult] = (),
+) -> tuple[FrameResult, list[NDArray[np.bool_]]]:
+    """:func:`frame_silhouettes` + :func:`reconstruct_from_silhouettes`, with the
+    silhouette time recorded under "silhouette"; the silhouettes are returned too
+    (the runner logs them)."""
+    start = time.perf_counter()
+    masks = frame_silhouettes(images, model)
+    elapsed = time.perf_counter() - start
+    result = reconstruct_from_silhouettes(index, images, masks, model, previous)
+    result.timings_s["silhouette"] = elapsed
+    return result, masks
+
+
+def reconstruct_from_silhouettes(
+    index: int,
+    images: Sequence[NDArray[np.uint8]],
+    masks: Sequence[NDArray[np.bool_]],
+    model: SessionModel,
+    previous: Sequence[FrameResult] = (),
+) -> FrameResult:
+    """Hull, centreline and quality figures of one frame from its silhouettes.
+
+    Parameters
+    ----------
+    index : frame index in the session.
+    images : per camera (H, W) uint8 grey image (the tube fit reads its edges).
+    masks : per camera (H, W) bool silhouette.
+    model : the session's model.
+    previous : the track's results before this frame, oldest first
+        (:mod:`pipeline.reconstruct.tracking`); empty: the frame is fitted from the hull alone.
+
+    Returns
+    -------
+    FrameResult with status "ok", "empty" (no silhouette in some view, or no
+    occupied voxel) or "failed" (with the reason: too little hull for a curve,
+    or a numerical failure of the fit).
+    """
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    for cam, mask in zip(model.cameras, masks, strict=True):
+        if not mask.any():
+            return FrameResult(
+                index=index,
+                status="empty",
+                reason=f"nothing seen by camera {cam.name!r}",
+                timings_s=timings,
+            )
+    points = voxel_centers_mm(model.settings.workspace, carve(model.grid, masks))
+    timings["carve"] = time.perf_counter() - start
+    if len(points) == 0:
+        return FrameResult(
+            index=index,
+            status="empty",
+            reason="the silhouettes share no voxel of the workspace",
+            timings_s=timings,
+        )
+    if len(points) < MIN_VOXELS:
+        return FrameResult.failed(
+            index,
+            f"only {len(points)} occupied voxels, too few for a curve",
+            points_mm=points,
+            timings_s=timings,
+        )
+    # The fit and the quality figures see only what the hull supports (see hull_supported).
+    masks = hull_supported(masks, points, model)
+    try:
+        return _curve_and_quality(index, images, masks, points, model, timings, previous)
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+        # Numerical trouble with this frame's data is a failed frame, not a crash.
+        return FrameResult.failed(index, f"centreline fit failed: {exc}", points_mm=points, timings_s=timings)
+
+
+def hull_supported(
+    masks: Sequence[NDArray[np.bool_]], points_mm: NDArray[np.floating], model: SessionModel
+) -> list[NDArray[np.bool_]]:
+    """Per camera, the (H, W) silhouette without the blobs no other view confirms.
+
+    A dark object in one view's background is silhouette there but carves no
+    voxel: the other views do not see it where it would have to be. The
+    tube's own silhouette is one blob (or a few, where it leaves the image)
+    that the occupied voxels ``points_mm`` ((P, 3), mm) project into; the
+    blobs none of them projects into are dropped. Whole blobs are kept, not
+    only the pixels near a voxel: a tube thinner than the voxels (a tapered
+    tip) carves few of them, but its silhouette is joined to the rest.
+    """
+    pts = np.asarray(points_mm, dtype=np.float64)
+    out = []
+    for mask, px in zip(masks, project_in_views(model.cameras, pts), strict=True):
+        count, labels = cv2.connectedComponents(mask.view(np.uint8), connectivity=8)
+        if count <= 2:  # background and one blob: nothing to drop
+            out.append(mask)
+            continue
+        h, w = mask.shape
+        ij = np.round(px[np.isfinite(px).all(axis=1)]).astype(np.int64)
+        ij = ij[(ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)]
+        hit = np.zeros(count, dtype=bool)
+        hit[labels[ij[:, 1], ij[:, 0]]] = True
+        hit[0] = False  # the background
+        out.append(hit[labels])
+    return out
+
+
+def _curve_and_quality(
+    index: int,
+    images: Sequence[NDArray[np.uint8]],
+    masks: Sequence[NDArray[np.bool_]],
+    points: NDArray[np.float32],
+    model: SessionModel,
+    timings: dict[str, float],
+    previous: Sequence[FrameResult],
+) -> FrameResult:
+    settings = model.settings
+    cameras = model.cameras
+    start = time.perf_counter()
+    pts = points.astype(np.float64)
+    radius_guess = settings.manipulator.radius_mm or radius_from_silhouettes(cameras, masks, pts.mean(axis=0))
+    if not np.isfinite(radius_guess) or radius_guess <= 0:
+        radius_guess = _FALLBACK_RADIUS_MM
+    known = settings.manipulator.base_mm is not None
+    if settings.manipulator.base_mm is not None:
+        base = np.asarray(settings.manipulator.base_mm, dtype=np.float64)
+    else:
+        ws = settings.workspace
+        base = infer_base(pts, np.asarray(ws.origin_mm), np.asarray(ws.size_mm), radius_mm=radius_guess)
+    n_points = settings.centerline.points
+    predicted: NDArray[np.float64] | None = None
+    tracked = False
+    radii: NDArray[np.float64] | None = None
+    if settings.centerline.method == "polyfit":
+        curve = smooth_curve(_polyfit()(pts, base if known else None, n_points=n_points), n_points=n_points)
+        radius, residual = radius_guess, float("nan")
+    else:
+        contrasts = frame_contrasts(images, model)
+        predicted = predict_axis(previous, index)
+
+        def track(
+            start_mm: NDArray[np.float64], radius_mm: float, radii_mm: NDArray[np.float64] | None
+        ) -> TrackedFit:
+            return track_tube(
+                start_mm,
+                cameras,
+                masks,
+                contrasts,
+                radius_mm=radius_mm,
+                base_known=known,
+                cap=model.tip,
+                radii_mm=radii_mm,
+            )
+
+        held = None
+        if predicted is not None:
+            held = track(predicted, previous[-1].radius_mm, previous[-1].radii_mm)
+        if held is not None and held.fit is not None and not held.lost:
+            fit, tracked = held.fit, True
+        else:
+            # A track starts here, or was lost: the tube from the hull, fitted
+            # again as a tracked frame would be; of that, the hull's own fit
+            # and the lost track's, the one that leaves least of the
+            # silhouettes unexplained.
+            _, init = fit_centerline(
+                pts,
+                cameras,
+                masks,
+                contrasts,
+                base_mm=base,
+                base_known=known,
+                radius_mm=radius_guess,
+                voxel_mm=settings.workspace.voxel_mm,
+                n_points=n_points,
+                cap=model.tip,
+            )
+            options = [track(init.points_mm, init.radius_mm, init.radii_mm)]
+            if held is not None:
+                options.append(held)
+            if np.isfinite(init.radius_mm) and init.radius_mm > 0:
+                misfit = max(misfit_fractions(cameras, masks, init.points_mm, drawn_radius(init)))
+                options.append(TrackedFit(init, misfit, ""))
+            best = min(options, key=lambda o: o.misfit)
+            fit = best.fit if best.fit is not None else init
+        curve = smooth_curve(fit.points_mm, n_points=n_points)
+        radius, residual = fit.radius_mm, fit.residual_mm
+        # The fit's samples and the curve's are both uniform in arc length, end to end.
+        radii = None if fit.radii_mm is None else by_fraction(fit.radii_mm, n_points)
+    timings["centerline"] = time.perf_counter() - start
+    start = time.perf_counter()
+    if not np.all(np.isfinite(curve.points_mm)):
+        raise ValueError("the curve has non-finite points")
+    draw_radius = radius if np.isfinite(radius) else radius_guess
+    drawn = radii if radii is not None and np.isfinite(radii).all() else draw_radius
+    iou, misfits = tube_figures(cameras, masks, curve.points_mm, drawn)
+    reason = suspect_reason(
+        cameras,
+        masks,
+        curve.points_mm,
+        drawn,
+        iou=iou,
+        misfit=misfits,
+        # A prediction from a suspect frame says nothing of this one's.
+        predicted_mm=predicted if previous and not previous[-1].suspect else None,
+        previous_length_mm=previous[-1].length_mm if previous else float("nan"),
+    )
+    timings["quality"] = time.perf_counter() - start
+    return FrameResult(
+        index=index,
+        status="ok",
+        points_mm=points,
+        centerline_mm=curve.points_mm,
+        tangents=curve.tangents,
+        curvature_per_mm=curve.curvature_per_mm,
+        length_mm=curve.length_mm,
+        radius_mm=float(radius),
+        radii_mm=radii,
+        fit_residual_mm=float(residual),
+        iou=iou,
+        tracked=tracked,
+        suspect_reason=reason,
+        timings_s=timings,
+    )
+
+
+def _polyfit() -> Callable[..., Any]:
+    """The original method's curve (a baseline), imported only when asked for."""
+    from ..baseline.curve import polyfit_centerline
+
+    return polyfit_centerline

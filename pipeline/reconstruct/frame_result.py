@@ -1,0 +1,74 @@
+"""What one frame's reconstruction produces: small arrays and a status.
+
+This is the only thing that crosses from a worker back to the parent process,
+so it holds no images, only the hull points and the curve.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+STATUSES = ("ok", "empty", "failed")
+
+
+@dataclass(frozen=True, eq=False)
+class FrameResult:
+    """One frame's reconstruction.
+
+    Attributes
+    ----------
+    index : frame index in the session (0-based).
+    status : "ok", "empty" (nothing to reconstruct) or "failed" (see ``reason``).
+    reason : why the frame is empty or failed; "" when ok.
+    points_mm : (P, 3) float32 occupied voxel centres, world frame, mm.
+    centerline_mm : (N, 3) float64 curve ordered base -> tip, uniform in arc
+        length, world frame, mm; None unless status is "ok".
+    tangents : (N, 3) float64 unit tangents along the curve, or None.
+    curvature_per_mm : (N,) float64 curvature (1/mm), or None.
+    length_mm : curve length, NaN when there is no curve.
+    radius_mm : tube radius estimated from the silhouettes, NaN when unknown.
+    radii_mm : (N,) float64 the radius at each centreline point (a tapered or stepped
+        tube), mm, or None.
+    fit_residual_mm : RMS residual of the curve fit, NaN when unknown.
+    iou : per-camera IoU of the re-projected tube with the silhouette (camera order).
+    tracked : the curve was fitted from the previous frames' (:mod:`pipeline.reconstruct.tracking`),
+        not initialised from the hull.
+    suspect_reason : why the curve may be wrong, judged without ground truth
+        (:func:`pipeline.reconstruct.quality.suspect_reason`); "" when nothing says so.
+    timings_s : stage name -> seconds spent on this frame.
+    """
+
+    index: int
+    status: str
+    reason: str = ""
+    points_mm: NDArray[np.float32] = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    centerline_mm: NDArray[np.float64] | None = None
+    tangents: NDArray[np.float64] | None = None
+    curvature_per_mm: NDArray[np.float64] | None = None
+    length_mm: float = float("nan")
+    radius_mm: float = float("nan")
+    radii_mm: NDArray[np.float64] | None = None
+    fit_residual_mm: float = float("nan")
+    iou: tuple[float, ...] = ()
+    tracked: bool = False
+    suspect_reason: str = ""
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def voxel_count(self) -> int:
+        return len(self.points_mm)
+
+    @property
+    def suspect(self) -> bool:
+        return bool(self.suspect_reason)
+
+    @property
+    def tip_mm(self) -> NDArray[np.float64] | None:
+        return None if self.centerline_mm is None else self.centerline_mm[-1]
+
+    @classmethod
+    def failed(cls, index: int, reason: str, **kwargs: object) -> FrameResult:
+        return cls(index=index, status="failed", reason=reason, **kwargs)  # type: ignore[arg-type]

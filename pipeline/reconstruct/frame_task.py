@@ -1,0 +1,259 @@
+"""One task of a run: decode a contiguous range of frames and reconstruct them.
+
+Runs in the worker processes. A task opens the videos itself, decodes only its
+frames and returns, per frame, the small :class:`~pipeline.reconstruct.frame_result.FrameResult`
+plus compressed media (JPEG images, 1-bit PNG silhouettes): no full-resolution
+frame crosses a process boundary.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import struct
+import time
+import zlib
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from ..session.video import read_frames
+from .frame_result import FrameResult
+from .tracking import WARMUP_FRAMES, segment_start, track_start
+
+JPEG_QUALITY = 85
+# Silhouettes are drawn over the camera image in Rerun: a translucent tint (RGBA).
+SILHOUETTE_RGBA = (0, 200, 255, 110)
+
+Mask = NDArray[np.bool_]
+Image = NDArray[np.uint8]
+# (frame index, grey images in camera order, model[, the track's last results]) ->
+# (result, silhouettes or None); the last argument only for a tracked process_range.
+FrameFunction = Callable[..., tuple[FrameResult, Sequence[Mask] | None]]
+
+
+@dataclass(frozen=True, eq=False)
+class FrameOutput:
+    """What a task returns per frame: the result and small, compressed media.
+
+    jpegs : per camera JPEG bytes of the grey frame (b"" when not decoded), or None
+        when images are disabled.
+    silhouettes_png : per camera RGBA PNG bytes of the tinted silhouette, or None.
+    """
+
+    result: FrameResult
+    jpegs: tuple[bytes, ...] | None
+    silhouettes_png: tuple[bytes, ...] | None
+
+
+def _png_chunk(tag: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data))
+
+
+def encode_silhouette(mask: Mask) -> bytes:
+    """(H, W) bool silhouette -> PNG bytes: 1 bit per pixel, transparent / tinted.
+
+    Written by hand as a 1-bit palette PNG with a transparency chunk: ~0.1 ms and
+    ~200 bytes per mask, where tinting an RGBA image and encoding it with OpenCV
+    takes ~5 ms (three masks a frame would cost more than decoding the frame).
+    """
+    height, width = mask.shape
+    rows = np.packbits(np.asarray(mask, dtype=bool), axis=1)  # MSB first, as PNG wants
+    raw = np.hstack([np.zeros((height, 1), np.uint8), rows]).tobytes()  # filter 0 per row
+    r, g, b, a = SILHOUETTE_RGBA
+    return b"".join(
+        [
+            b"\x89PNG\r\n\x1a\n",
+            _png_chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 1, 3, 0, 0, 0)),
+            _png_chunk(b"PLTE", bytes([0, 0, 0, r, g, b])),
+            _png_chunk(b"tRNS", bytes([0, a])),  # palette entry 0 fully transparent
+            _png_chunk(b"IDAT", zlib.compress(raw, 6)),
+            _png_chunk(b"IEND", b""),
+        ]
+    )
+
+
+def _encode_jpeg(image: Image | None) -> bytes:
+    if image is None:
+        return b""
+    ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    return jpeg.tobytes() if ok else b""
+
+
+def decode_frames(paths: Sequence[Path], indices: Sequence[int]) -> list[tuple[int, list[Image]]]:
+    """(index, per camera grey image) of each frame of ``indices`` that every video provides."""
+    out = []
+    for index in indices:
+        images = []
+        for path in paths:
+            reader = read_frames(Path(path), index, index + 1, problems={})
+            images.append(next(reader, (index, None))[1])
+            close = getattr(reader, "close", None)  # release the decoder now, not at GC
+            if close is not None:
+                close()
+        if all(image is not None for image in images):
+            out.append((index, [image for image in images if image is not None]))
+    return out
+
+
+def one_frame(
+    index: int,
+    images: Sequence[Image | None],
+    model: Any,
+    camera_names: Sequence[str],
+    fit: Callable[[int, Sequence[Image]], tuple[FrameResult, Sequence[Mask] | None]],
+    problems: Sequence[dict[int, str]],
+) -> tuple[FrameResult, Sequence[Mask] | None]:
+    """One frame's result and silhouettes; ``problems``: per camera, frame index -> why
+    its image is None (read_frames')."""
+    missing = [k for k, im in enumerate(images) if im is None]
+    if missing:
+        by_reason: dict[str, list[str]] = {}
+        for k in missing:
+            why = problems[k].get(index, "frame could not be decoded")
+            by_reason.setdefault(why, []).append(camera_names[k])
+        reason = "; ".join(
+            f"camera{'s' * (len(names) > 1)} {', '.join(names)}: {why}" for why, names in by_reason.items()
+        )
+        return FrameResult.failed(index, reason), None
+    try:
+        return fit(index, [im for im in images if im is not None])
+    except Exception as exc:  # a frame's failure is data, never the end of the run
+        return FrameResult.failed(index, f"{type(exc).__name__}: {exc}"), None
+
+
+def frame_output(
+    result: FrameResult,
+    masks: Sequence[Mask] | None,
+    images: Sequence[Image | None],
+    encode_images: bool,
+    decode_s: float | None,
+) -> FrameOutput:
+    """The frame's output, its media compressed; ``decode_s`` None: decoded elsewhere (live
+    cameras, in their reader threads), so not timed here."""
+    t0 = time.perf_counter()
+    jpegs = tuple(_encode_jpeg(im) for im in images) if encode_images else None
+    pngs = None if masks is None else tuple(encode_silhouette(m) for m in masks)
+    decoded = {} if decode_s is None else {"decode": decode_s}
+    timings = {**decoded, **result.timings_s, "encode": time.perf_counter() - t0}
+    return FrameOutput(dataclasses.replace(result, timings_s=timings), jpegs, pngs)
+
+
+class Tracker:
+    """Frames reconstructed one after another, each fitted from the track's last results.
+
+    A live run's core: the same per-frame computation as :func:`process_range`'s, with
+    one track that goes on across every frame (no segments: a live run has no fixed
+    frame indices to cut at) and starts again from the hull only where it is lost
+    (:mod:`pipeline.reconstruct.tracking`).
+    """
+
+    def __init__(self, model: Any, camera_names: Sequence[str], *, images: bool) -> None:
+        from .frame import reconstruct_with_silhouettes
+
+        self._compute = reconstruct_with_silhouettes
+        self._model, self._names, self._images = model, tuple(camera_names), images
+        self._track: list[FrameResult] = []
+        self._problems: list[dict[int, str]] = [{} for _ in self._names]
+
+    def step(self, index: int, images: Sequence[Image]) -> FrameOutput:
+        """Frame ``index`` from its per camera (H, W) uint8 grey images."""
+
+        def fit(i: int, grey: Sequence[Image]) -> tuple[FrameResult, Sequence[Mask] | None]:
+            return self._compute(i, grey, self._model, self._track[-2:])
+
+        result, masks = one_frame(index, list(images), self._model, self._names, fit, self._problems)
+        self._track = [*self._track[-1:], result]
+        return frame_output(result, masks, list(images), self._images, None)
+
+
+def process_range(
+    model: Any,
+    video_paths: Sequence[Path],
+    camera_names: Sequence[str],
+    start: int,
+    stop: int,
+    *,
+    images: bool = True,
+    frame_fn: FrameFunction | None = None,
+    tracked: bool | None = None,
+    tally: str | None = None,
+) -> list[FrameOutput]:
+    """Decode frames ``start <= i < stop`` of every video and process them (one task).
+
+    The default computation tracks the tube from frame to frame
+    (:mod:`pipeline.reconstruct.tracking`): the task decodes from the start of its first
+    frame's track, and restarts the track, from the frames before, at each
+    segment it enters, so that every frame's curve is the one any other split
+    of the work would give. A replacement ``frame_fn`` sees each frame alone,
+    unless ``tracked``: it is then called with the track's last results too,
+    as ``frame_fn(index, images, model, previous)``. ``tally``: a file that gets a
+    byte appended for each frame done (the parent's progress bar reads its size).
+    """
+    tracked = frame_fn is None if tracked is None else tracked
+    compute: Callable[..., tuple[FrameResult, Sequence[Mask] | None]]
+    if frame_fn is None:
+        from .frame import reconstruct_with_silhouettes as compute
+    else:
+        compute = frame_fn
+    first = track_start(start) if tracked else start
+    # Why a camera has no image for a frame goes into that frame's reason, and so into the
+    # run's summary (merged over frames, in order), not into each worker's log.
+    problems: list[dict[int, str]] = [{} for _ in video_paths]
+    readers = [
+        read_frames(Path(p), first, stop, problems=found)
+        for p, found in zip(video_paths, problems, strict=True)
+    ]
+    track: list[FrameResult] = []
+    segment: int | None = None  # the segment whose track is running
+    recent: deque[tuple[int, list[Image | None]]] = deque(maxlen=WARMUP_FRAMES)
+
+    def fit(index: int, grey: Sequence[Image]) -> tuple[FrameResult, Sequence[Mask] | None]:
+        return compute(index, grey, model, track[-2:]) if tracked else compute(index, grey, model)
+
+    def step(index: int, images_: list[Image | None]) -> tuple[FrameResult, Sequence[Mask] | None]:
+        result, masks = one_frame(index, images_, model, camera_names, fit, problems)
+        track.append(result)
+        return result, masks
+
+    outputs = []
+    frames = zip(*readers, strict=True)
+    counter = open(tally, "ab", buffering=0) if tally else None  # closed in the finally below
+    try:
+        while True:
+            t0 = time.perf_counter()
+            decoded = next(frames, None)
+            if decoded is None:
+                break
+            index = decoded[0][0]
+            images_ = [image for _, image in decoded]
+            decode_s = time.perf_counter() - t0
+            # The frames before ``start`` are the first segment's warm-up.
+            if tracked and segment_start(max(index, start)) != segment:
+                if segment is not None:
+                    # A new segment: its track starts again from the frames before it.
+                    track.clear()
+                    for before, grey in recent:
+                        if before >= track_start(index):
+                            step(before, grey)
+                segment = segment_start(max(index, start))
+            result, masks = step(index, images_)
+            del track[:-2]
+            recent.append((index, images_))
+            if index >= start:
+                outputs.append(frame_output(result, masks, images_, images, decode_s))
+                if counter is not None:
+                    counter.write(b".")
+    finally:
+        if counter is not None:
+            counter.close()
+        for reader in readers:
+            close = getattr(reader, "close", None)  # release the decoders now, not at GC
+            if close is not None:
+                close()
+    return outputs

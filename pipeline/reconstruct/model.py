@@ -1,0 +1,44 @@
+"""The per-session model: what every frame of a session shares, built once.
+
+Cameras, settings, the voxel grid with its per-camera lookup tables and the
+background images never change over a session: the parent builds them once and
+sends them to every worker. Kept apart from the per-frame path
+(:mod:`pipeline.reconstruct.frame`): building it needs the cameras and the grid, not
+the centreline's modules.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..carve.hull import HullGrid, build_grid
+from ..geometry.camera import Camera
+from ..session.folder import Session
+from ..session.settings import Settings
+
+
+@dataclass(frozen=True, eq=False)
+class SessionModel:
+    """What every frame of a session shares; built once, pickled to workers."""
+
+    cameras: tuple[Camera, ...]
+    settings: Settings
+    grid: HullGrid
+    backgrounds: tuple[NDArray[np.uint8] | None, ...]
+    # The tube's end the fit assumes, "flat" or "round": the settings' choice, or
+    # what pipeline.reconstruct.tip_shape chose from the session's frames for "auto".
+    tip: str = "flat"
+
+
+def build_model(session: Session) -> SessionModel:
+    """The per-session model: cameras, settings, voxel grid with its lookup tables."""
+    return SessionModel(
+        cameras=session.cameras,
+        settings=session.settings,
+        grid=build_grid(session.cameras, session.settings.workspace),
+        backgrounds=session.backgrounds,
+        tip=session.settings.manipulator.tip if session.settings.manipulator.tip != "auto" else "flat",
+    )

@@ -1,0 +1,280 @@
+"""Per-frame quality figures, computed without ground truth.
+
+A user flags a frame by these: how many voxels the hull holds, how well the
+reconstructed tube re-projects onto each silhouette (IoU per camera), the RMS
+residual of the tube fit, and the tube radius read from the silhouettes (a radius
+far from the robot's, or a low IoU, says the frame is not to be trusted).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..geometry.camera import Camera, project_in_views
+from ..geometry.polyline import (
+    axis_gap_mm,
+    polyline_arclength,
+    resample_polyline,
+    self_intersects,
+    vector_norms,
+)
+from ..session.settings import Workspace
+
+FloatArray = NDArray[np.float64]
+
+# Below this IoU in some camera a frame's curve is doubtful. Measured on 27 synthetic
+# sessions (every shape, both rigs, tube radii 4-9 mm, 2-4 cameras, 320-640 px wide) and
+# their re-encodings: the worst camera of a good frame scores >= 0.78; frames tens of mm
+# off (a threshold on the wrong side of the tube's grey level, Otsu splitting the
+# background, 160x120 images) score 0.003-0.38, a few up to 0.69.
+DOUBTFUL_IOU = 0.7
+
+# A frame is suspect (see suspect_reason) where its tube leaves more than this
+# fraction of some silhouette unexplained (misfit_fractions) ...
+SUSPECT_MISFIT = 0.02
+# ... where two of its parts come closer than this many radii (a tube cannot
+# pass through itself) ...
+SUSPECT_CLOSEST_RADII = 1.5
+# ... where it lies farther than this many radii from its track's prediction ...
+SUSPECT_JUMP_RADII = 1.0
+# ... or where its length changed by more than this fraction since the frame before.
+SUSPECT_LENGTH_CHANGE = 0.03
+
+# cv2 drawing takes fixed-point coordinates with this many fractional bits.
+_SHIFT = 4
+# Spacing of the discs that make up the drawn tube, as a fraction of the radius:
+# discs closer than r/2 leave no visible scallops between them.
+_DISC_SPACING = 0.5
+
+
+def is_doubtful(iou: Sequence[float]) -> bool:
+    """Whether a frame's per-camera IoUs say its curve is not to be trusted (DOUBTFUL_IOU)."""
+    return bool(iou) and min(iou) < DOUBTFUL_IOU
+
+
+def reaches_walls(points_mm: NDArray[np.floating], workspace: Workspace, base_mm: ArrayLike) -> bool:
+    """Whether occupied voxels lie against a wall of the carving box other than the base's.
+
+    points_mm : (P, 3) occupied voxel centres, world frame, mm.
+    base_mm : (3,) the curve's base; the wall nearest it is where the tube is mounted.
+
+    The box cuts off whatever leaves it: a hull against another wall says the tube may
+    go on beyond it, and its curve ends short there.
+    """
+    pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+    lo = np.asarray(workspace.origin_mm, dtype=np.float64)
+    hi = lo + np.asarray(workspace.size_mm, dtype=np.float64)
+    base = np.asarray(base_mm, dtype=np.float64)
+    # Walls as (axis, side): side 0 the low wall, 1 the high one; the base's is the nearest.
+    gaps = np.stack([base - lo, hi - base], axis=1)  # (3, 2)
+    base_wall = np.unravel_index(int(np.argmin(np.abs(gaps))), gaps.shape)
+    on_wall = np.stack([pts < lo + workspace.voxel_mm, pts > hi - workspace.voxel_mm], axis=2)  # (P, 3, 2)
+    on_wall[:, base_wall[0], base_wall[1]] = False
+    return bool(on_wall.any())
+
+
+def tube_mask(
+    camera: Camera, centerline_mm: FloatArray, radius_mm: float | FloatArray, *, supersample: int = 1
+) -> NDArray[np.bool_]:
+    """(H, W) bool: the tube of ``radius_mm`` around ``centerline_mm`` seen by ``camera``.
+
+    The tube (with round ends) is drawn as the union of discs of the projected
+    radius (f r / depth) centred on the projected axis, resampled at r/2 along the
+    curve. Exact for the sides to well under a pixel at the depths of this rig;
+    ``supersample`` > 1 draws at that many times the resolution and keeps pixels
+    more than half covered.
+
+    Parameters
+    ----------
+    camera : the camera.
+    centerline_mm : (N, 3) float64 axis, world frame, mm.
+    radius_mm : tube radius, mm: one for all, or (N,) at each axis point (a tapered tube).
+    supersample : drawing resolution factor.
+    """
+    dense, radii = _disc_centres(centerline_mm, radius_mm)
+    return _draw_tube(camera, dense, camera.project(dense), radii, supersample=supersample)
+
+
+def tube_masks(
+    cameras: Sequence[Camera], centerline_mm: FloatArray, radius_mm: float | FloatArray
+) -> list[NDArray[np.bool_]]:
+    """:func:`tube_mask` in each camera (the same masks): the discs' centres found
+    once and projected in all views at once."""
+    dense, radii = _disc_centres(centerline_mm, radius_mm)
+    return [
+        _draw_tube(cam, dense, px, radii, supersample=1)
+        for cam, px in zip(cameras, project_in_views(cameras, dense), strict=True)
+    ]
+
+
+def _disc_centres(centerline_mm: FloatArray, radius_mm: float | FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The drawn discs: (n, 3) centres, the axis resampled every ~r/2 (mm, world frame;
+    r the least radius), and (n,) their radii (mm) from ``radius_mm`` (a float, or (N,)
+    along the axis)."""
+    pts = np.asarray(centerline_mm, dtype=np.float64)
+    along = np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), (len(pts),))
+    if len(pts) <= 1:
+        return pts, np.array(along)
+    seg = vector_norms(pts[1:] - pts[:-1])
+    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    n = max(2, math.ceil(float(seg.sum()) / (_DISC_SPACING * float(along.min()))) + 1)
+    # The same arc length resample_polyline would compute (the segments' cumulative sum).
+    dense = resample_polyline(pts, n, arclength_mm=arc)
+    return dense, np.interp(np.linspace(0.0, arc[-1], n), arc, along)
+
+
+def _draw_tube(
+    camera: Camera, dense: FloatArray, px: FloatArray, radii_mm: FloatArray, *, supersample: int
+) -> NDArray[np.bool_]:
+    """:func:`tube_mask` from the discs' centres (n, 3), their pixels (n, 2) and radii (n,) mm."""
+    w, h = camera.size_px
+    canvas = np.zeros((h * supersample, w * supersample), np.uint8)
+    depth = camera.to_camera(dense)[:, 2]
+    focal = camera.focal_px
+    ok = np.isfinite(px).all(axis=1) & (depth > radii_mm)
+    scale = supersample * (1 << _SHIFT)
+    # Pixel centres sit at integer coordinates; at s-times resolution pixel (u, v)'s
+    # centre is at s*u + (s-1)/2.
+    centres = np.round((px[ok] + (supersample - 1) / (2 * supersample)) * scale).astype(np.int64)
+    # cv2 fills a disc of radius R out to about R + 0.5 canvas pixels (measured:
+    # 35 px for R = 3 against pi R^2 = 28): draw half a canvas pixel smaller.
+    radii = np.round((focal * radii_mm[ok] / depth[ok] * supersample - 0.5) * (1 << _SHIFT)).astype(np.int64)
+    # Drawn in 1 at full resolution, so that the canvas is the mask (no threshold
+    # pass over the image); in 255 when it is averaged down.
+    colour = 255 if supersample > 1 else 1
+    for (cx, cy), r in zip(centres.tolist(), radii.tolist(), strict=True):
+        cv2.circle(canvas, (cx, cy), r, colour, -1, cv2.LINE_8, _SHIFT)
+    if supersample > 1:
+        return np.asarray(cv2.resize(canvas, (w, h), interpolation=cv2.INTER_AREA) > 127)
+    return canvas.view(bool)
+
+
+def silhouette_iou(predicted: NDArray[np.bool_], observed: NDArray[np.bool_]) -> float:
+    """Intersection over union of two (H, W) bool masks; 1.0 when both are empty."""
+    union = np.count_nonzero(predicted | observed)
+    if union == 0:
+        return 1.0
+    return np.count_nonzero(predicted & observed) / union
+
+
+def reprojection_iou(
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    centerline_mm: FloatArray,
+    radius_mm: float | FloatArray,
+) -> tuple[float, ...]:
+    """Per-camera IoU of the reconstructed tube, re-projected, with each silhouette
+    (``radius_mm``: one, or (N,) along the axis)."""
+    tubes = tube_masks(cameras, centerline_mm, radius_mm)
+    return tuple(silhouette_iou(tube, mask) for tube, mask in zip(tubes, masks, strict=True))
+
+
+def misfit_fractions(
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    centerline_mm: FloatArray,
+    radius_mm: float | FloatArray,
+) -> tuple[float, ...]:
+    """Gross disagreement of the re-projected tube with each (H, W) silhouette.
+
+    Per camera: pixels of either that lie more than a pixel away from the other
+    (silhouette pixels the tube misses, tube pixels off the silhouette), as a
+    fraction of the silhouette's area (0 where it is empty). The drawn tube's
+    round ends are left out of the stray pixels (the real ends may be flat: a
+    disc there strays by up to half its area, which is not a misfit). Unlike
+    1 - IoU this does not grow with the outline's length in pixels, so it means
+    the same at any resolution: a fit that follows the tube leaves ~0-2 %, one
+    that misses a part of the tube or strays off it, several %.
+    """
+    return tube_figures(cameras, masks, centerline_mm, radius_mm)[1]
+
+
+def tube_figures(
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    centerline_mm: FloatArray,
+    radius_mm: float | FloatArray,
+) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """Per camera, :func:`reprojection_iou` and :func:`misfit_fractions` of one tube,
+    drawn once."""
+    pts = np.asarray(centerline_mm, dtype=np.float64)
+    tubes = tube_masks(cameras, pts, radius_mm)
+    along = np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), (len(pts),))
+    ends = (float(along[0]), float(along[-1]))
+    views = list(zip(cameras, masks, tubes, strict=True))
+    iou = tuple(silhouette_iou(tube, mask) for _, mask, tube in views)
+    return iou, tuple(_misfit(cam, mask, pts, tube, ends) for cam, mask, tube in views)
+
+
+def _misfit(
+    camera: Camera,
+    mask: NDArray[np.bool_],
+    pts: FloatArray,
+    tube: NDArray[np.bool_],
+    end_radii_mm: tuple[float, float],
+) -> float:
+    """:func:`misfit_fractions` in one camera, given its drawn tube (H, W) and the axis (N, 3) mm."""
+    area = np.count_nonzero(mask)
+    if area == 0:
+        return 0.0
+    grow = np.ones((3, 3), np.uint8)
+    missed = mask & ~cv2.dilate(tube.view(np.uint8), grow).view(bool)
+    stray = tube & ~cv2.dilate(mask.view(np.uint8), grow).view(bool)
+    ends = np.zeros(mask.shape, np.uint8)
+    px = camera.project(pts[[0, -1]])
+    depth = camera.to_camera(pts[[0, -1]])[:, 2]
+    focal = camera.focal_px
+    for (x, y), z, r in zip(px.tolist(), depth.tolist(), end_radii_mm, strict=True):
+        if math.isfinite(x) and math.isfinite(y) and z > r and abs(x) < 1e5 and abs(y) < 1e5:
+            radius_px = focal * r / z + 1.5  # the disc, its outline and a pixel of rounding
+            cv2.circle(ends, (round(x * 16), round(y * 16)), round(radius_px * 16), 1, -1, cv2.LINE_8, 4)
+    stray &= ends == 0
+    return (np.count_nonzero(missed) + np.count_nonzero(stray)) / area
+
+
+def suspect_reason(
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    centerline_mm: FloatArray,
+    radius_mm: float | FloatArray,
+    *,
+    iou: Sequence[float],
+    misfit: Sequence[float],
+    predicted_mm: FloatArray | None = None,
+    previous_length_mm: float = math.nan,
+) -> str:
+    """Why a frame's curve (N, 3) mm may be wrong, without ground truth; "" if nothing says so.
+
+    The tube re-projects poorly (``iou``, :func:`is_doubtful`) or leaves part of a
+    silhouette unexplained (``misfit``, ``SUSPECT_MISFIT``; both per camera, from
+    :func:`tube_figures`); it passes through itself; it
+    lies far from what the track predicted (``predicted_mm``, (M, 3) mm, None
+    where the frame was not tracked); or its length jumped since the frame
+    before (``previous_length_mm``). ``radius_mm``: one, or (N,) along the
+    curve. The reasons found are joined by "; ".
+    """
+    names = [cam.name for cam in cameras]
+    reasons = []
+    if is_doubtful(iou):
+        worst = int(np.argmin(iou))
+        reasons.append(f"camera {names[worst]} re-projects poorly (IoU {iou[worst]:.2f})")
+    worst = int(np.argmax(misfit))
+    if misfit[worst] > SUSPECT_MISFIT:
+        share = 100 * misfit[worst]
+        reasons.append(f"camera {names[worst]} sees {share:.0f} % of its silhouette unexplained")
+    radius = float(np.median(radius_mm))  # the tube's, for the distances below
+    if self_intersects(centerline_mm, radius, closest_radii=SUSPECT_CLOSEST_RADII):
+        reasons.append("the tube passes through itself")
+    if predicted_mm is not None:
+        gap = axis_gap_mm(centerline_mm, predicted_mm)
+        if gap > SUSPECT_JUMP_RADII * radius:
+            reasons.append(f"{gap:.1f} mm from its track's prediction")
+    length = float(polyline_arclength(centerline_mm)[-1])
+    if abs(length - previous_length_mm) > SUSPECT_LENGTH_CHANGE * previous_length_mm:
+        reasons.append(f"length changed by {length - previous_length_mm:+.1f} mm in one frame")
+    return "; ".join(reasons)

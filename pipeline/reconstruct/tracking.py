@@ -1,0 +1,203 @@
+"""Tracking: each frame's tube starts from the frames before it.
+
+A manipulator moves continuously at 30 frames a second: the previous frames'
+tubes are the best evidence there is for this frame's. Within a track, a
+frame's fit starts from the last two tubes extrapolated with their velocity
+(:func:`predict_axis`) and needs only a few rounds; a global initialisation
+(the march through the hull, :func:`pipeline.reconstruct.centerline.fit_centerline`) runs
+where a track starts and wherever it is lost.
+
+Tracks are cut at fixed frame indices, not where the runner happens to split
+the work: frame ``i`` belongs to the segment starting at
+``SEGMENT_FRAMES * (i // SEGMENT_FRAMES)``, whose track starts ``WARMUP_FRAMES``
+before it (:func:`track_start`), so that each segment's first frames are
+already settled. A frame's curve therefore depends on the frames from its
+track's start to itself only, the same whatever ``--jobs``, ``--frames`` or
+backend the run uses.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..geometry.camera import Camera
+from ..geometry.polyline import axis_gap_mm, by_fraction, self_intersects
+from .frame_result import FrameResult
+from .quality import misfit_fractions
+from .tube_fit import TubeFit, fit_tube
+from .tube_tip import bend_tip_to_pixels, tip_meets_tube
+
+FloatArray = NDArray[np.float64]
+
+# Frames per segment (1 s at 30 fps): each starts one global initialisation, so
+# the march runs on ~4 % of the frames of a steady track, and a wrong start is
+# forgotten within a second.
+SEGMENT_FRAMES = 30
+# A segment's track starts this many frames before it, so that its first frame is
+# the third tracked one, not the initialisation.
+WARMUP_FRAMES = 3
+# Gauss-Newton rounds of a tracked fit (each re-reads the images): the
+# prediction is within a fraction of a radius of the tube.
+TRACK_ROUNDS = 2
+# ... seeking the tube's peak this close to the prediction (radii).
+TRACK_SEEK_RADII = 0.6
+# A fit that moved farther than this many radii from its prediction is given as
+# many rounds again, from where it got to.
+TRACK_SETTLED_RADII = 0.5
+# With every part where the prediction puts it, the crowding test knows where
+# another part's blurred edges reach a sample's: two edges' worth, not one
+# (the margin pipeline.reconstruct.tube_fit.refit_body uses once a loop's tip is placed).
+TRACK_CROWD_MARGIN_PX = 4.0
+# Where the tip lies against another part, the grey levels place it
+# (pipeline.reconstruct.tube_tip.bend_tip_to_pixels), sought within a few mm of the fit.
+TRACK_BEND_STEPS_MM = (2.0, 1.0, 0.5, 0.25)
+# The track is lost where the fitted tube leaves more than this fraction of a
+# silhouette unexplained (pipeline.reconstruct.quality.misfit_fractions; the same bar as
+# the initialisation's, pipeline.reconstruct.centerline.MISFIT) ...
+LOST_MISFIT = 0.01
+# ... passes through itself (parts' axes closer than this many radii) ...
+LOST_CLOSEST_RADII = 1.5
+# ... or moved farther than this many radii from its prediction in one frame.
+LOST_JUMP_RADII = 1.5
+
+
+def segment_start(index: int) -> int:
+    """First frame of the segment that frame ``index`` belongs to."""
+    return SEGMENT_FRAMES * (index // SEGMENT_FRAMES)
+
+
+def track_start(index: int) -> int:
+    """The frame where the track that reconstructs frame ``index`` starts."""
+    return max(0, segment_start(index) - WARMUP_FRAMES)
+
+
+def predict_axis(previous: Sequence[FrameResult], index: int | None = None) -> FloatArray | None:
+    """(N, 3) mm: frame ``index``'s axis predicted from the last frames' results, or None.
+
+    ``previous``: the track's results so far, oldest first; ``index``: the frame
+    predicted (default: the one after the last). The last ok curve, moved on at the
+    velocity it had from the one before when both are ok (the curves are uniform
+    in arc length with the same sample count, so sample k of one matches sample k
+    of the other): constant velocity, over any gap between the frames (a live run
+    drops frames when it falls behind); None when the last frame has no curve
+    (the track is lost).
+    """
+    if not previous or previous[-1].centerline_mm is None:
+        return None
+    last = previous[-1]
+    axis = np.asarray(last.centerline_mm, dtype=np.float64)
+    ahead = 1 if index is None else index - last.index
+    if len(previous) >= 2:
+        before = previous[-2]
+        apart = last.index - before.index
+        if before.centerline_mm is not None and apart > 0 and before.centerline_mm.shape == axis.shape:
+            if apart == 1 and ahead == 1:
+                return 2.0 * axis - np.asarray(before.centerline_mm, dtype=np.float64)
+            velocity = (axis - np.asarray(before.centerline_mm, dtype=np.float64)) / apart
+            return axis + ahead * velocity
+    return axis
+
+
+@dataclass(frozen=True)
+class TrackedFit:
+    """A tube fitted from a prediction.
+
+    fit : the fitted tube; None where the fit found no radius.
+    misfit : the worst view's share of its silhouette the tube leaves
+        unexplained (:func:`pipeline.reconstruct.quality.misfit_fractions`); inf without a fit.
+    lost : why the track is lost here ("" where it holds).
+    """
+
+    fit: TubeFit | None
+    misfit: float
+    lost: str
+
+
+def track_tube(
+    predicted_mm: FloatArray,
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    contrasts: Sequence[NDArray[np.float32]],
+    *,
+    radius_mm: float,
+    base_known: bool,
+    cap: str = "flat",
+    radii_mm: FloatArray | None = None,
+) -> TrackedFit:
+    """The tube fitted from its prediction (N, 3) mm, and whether the track holds.
+
+    A few rounds of :func:`pipeline.reconstruct.tube_fit.fit_tube` from the prediction,
+    seeking the tube's sides near it; where the tip then lies against another
+    part in some view, whose edges pull its side readings, the tip is placed by
+    the grey levels instead (:func:`pipeline.reconstruct.tube_tip.bend_tip_to_pixels`).
+    The track is lost (the caller initialises again from the hull) where the
+    fit leaves part of a silhouette unexplained, passes through itself, or
+    jumped from the prediction (``LOST_*``). ``cap``: the tube's end, "flat"
+    or "round"; ``radii_mm``: (N,) the radius at each point of the prediction, mm
+    (default ``radius_mm`` everywhere).
+    """
+    if not (np.isfinite(radius_mm) and radius_mm > 0):
+        return TrackedFit(None, np.inf, "no radius to track")
+
+    def rounds(start_mm: FloatArray, radius: float, radii: FloatArray | None) -> TubeFit:
+        return fit_tube(
+            start_mm,
+            cameras,
+            contrasts,
+            radius_mm=radius,
+            radii_mm=radii,
+            base_fixed=base_known,
+            masks=masks,
+            iterations=TRACK_ROUNDS,
+            cap=cap,
+            seek_radii=TRACK_SEEK_RADII,
+            crowd_margin_px=TRACK_CROWD_MARGIN_PX,
+        )
+
+    fit = rounds(predicted_mm, radius_mm, radii_mm)
+    if (
+        np.isfinite(fit.radius_mm)
+        and axis_gap_mm(fit.points_mm, predicted_mm) > TRACK_SETTLED_RADII * radius_mm
+    ):
+        # A prediction this far off (fast motion) has not settled in a few rounds.
+        fit = rounds(fit.points_mm, fit.radius_mm, fit.radii_mm)
+    radius = fit.radius_mm
+    if not (np.isfinite(radius) and radius > 0) or len(fit.points_mm) < 3:
+        return TrackedFit(None, np.inf, "the fit read no tube")
+    if tip_meets_tube(fit.points_mm, cameras, radius):
+        bent = bend_tip_to_pixels(
+            fit.points_mm,
+            cameras,
+            masks,
+            contrasts,
+            fit.end_radius_mm,
+            rejects=lambda axis: self_intersects(axis, radius),
+            steps_mm=TRACK_BEND_STEPS_MM,
+            cap=cap,
+        )
+        # The radii follow the bent tip by sample fraction.
+        fit = replace(
+            fit,
+            points_mm=bent,
+            radii_mm=None if fit.radii_mm is None else by_fraction(fit.radii_mm, len(bent)),
+        )
+    misfit = max(misfit_fractions(cameras, masks, fit.points_mm, drawn_radius(fit)))
+    lost = ""
+    if misfit > LOST_MISFIT:
+        lost = "leaves part of a silhouette unexplained"
+    elif self_intersects(fit.points_mm, radius, closest_radii=LOST_CLOSEST_RADII):
+        lost = "passes through itself"
+    elif axis_gap_mm(fit.points_mm, predicted_mm) > LOST_JUMP_RADII * radius:
+        lost = "jumped from its prediction"
+    return TrackedFit(fit, misfit, lost)
+
+
+def drawn_radius(fit: TubeFit) -> float | FloatArray:
+    """The radius to draw ``fit``'s tube with: (K,) along it where known, else the one radius."""
+    if fit.radii_mm is not None and len(fit.radii_mm) == len(fit.points_mm):
+        return fit.radii_mm
+    return fit.radius_mm

@@ -1,0 +1,316 @@
+"""Read a session's MCAP back into numpy arrays for analysis.
+
+The file is read as a stream of records (never through its summary section), so a
+recording whose writer was killed mid-write is read up to its last complete chunk.
+
+Example::
+
+    rec = pipeline.load_recording("recordings/demo.mcap")
+    table = rec.metrics_table()                   # (F,) NumPy columns, one per metric
+    ok = table["status"] == "ok"
+    tips_m = rec.centerlines_m[ok, -1]            # (F_ok, 3) tip positions, metres
+    print(table["frame"][ok][:5], tips_m[:5], table["iou/cam0"][ok].min())
+
+Other MCAP readers decode the metrics channel (JSON) with :class:`JsonDecoderFactory`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import struct
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zstandard
+from mcap.decoder import DecoderFactory as McapDecoderFactory
+from mcap.exceptions import McapError
+from mcap.records import Channel, Footer, Message, Metadata, Schema
+from mcap.stream_reader import CRCValidationError, StreamReader
+from mcap.well_known import MessageEncoding
+from mcap_protobuf.decoder import DecoderFactory
+from numpy.typing import NDArray
+
+from ..errors import RecordingError
+from .commit_marker import killed_commits
+from .mcap_log import (
+    CENTERLINE_TOPIC,
+    METADATA_NAME,
+    METRICS_SCHEMA,
+    METRICS_TOPIC,
+    POINTS_TOPIC,
+    SMOOTHED_TOPIC,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class Recording:
+    """A session's reconstruction, as arrays (metres, world frame).
+
+    Attributes
+    ----------
+    path : the MCAP file.
+    camera_names : the cameras, in the order of the per-camera metrics.
+    timestamps_ns : (F,) int64 frame times, ns since the Unix epoch.
+    frame_indices : (F,) int64 frame indices in the session, increasing.
+    statuses : (F,) str "ok", "empty" or "failed".
+    centerlines_m : (F, N, 3) float64 curves base -> tip; NaN rows where no curve.
+    points_m : F arrays (P_i, 3) float32 of occupied voxel centres.
+    metrics : F dicts, the JSON of ``/reconstruction/metrics``.
+    smoothed_centerlines_m : (F, N, 3) float64 after temporal smoothing, or None
+        when the file has none (older run, or truncated before the end).
+    complete : False when the file ended before its footer (a truncated recording).
+    cameras : the cameras the frames were reconstructed with, "given" or "refined ..."
+        (the refinement's summary line); "" when the file does not say.
+    """
+
+    path: Path
+    camera_names: tuple[str, ...]
+    timestamps_ns: NDArray[np.int64]
+    frame_indices: NDArray[np.int64]
+    statuses: NDArray[np.str_]
+    centerlines_m: NDArray[np.float64]
+    points_m: list[NDArray[np.float32]]
+    metrics: list[dict[str, Any]]
+    smoothed_centerlines_m: NDArray[np.float64] | None
+    complete: bool
+    cameras: str = ""
+
+    def __len__(self) -> int:
+        return len(self.frame_indices)
+
+    def metrics_table(self) -> dict[str, NDArray[Any]]:
+        """The per-frame metrics as columns, each an (F,) array in frame order.
+
+        ``timestamp_ns``, ``frame`` and ``voxel_count`` int64; ``status`` and ``reason``
+        str; ``length_m``, ``mean_curvature_per_m``, ``radius_m``, ``fit_residual_m``
+        float64; nested figures under ``key/name``: ``tip_m/x`` (``/y``, ``/z``),
+        ``iou/<camera>``, ``timings_s/<stage>``. NaN where a figure is unknown (null in
+        the file, or absent from a frame). ``pandas.DataFrame(rec.metrics_table())``
+        makes it a data frame.
+        """
+        names = dict.fromkeys(_schema_columns(self.camera_names))
+        rows = [_flatten(m) for m in self.metrics]
+        for row in rows:
+            names.update(dict.fromkeys(row))
+        table = {"timestamp_ns": self.timestamps_ns.copy()}
+        table.update({name: _column([row.get(name) for row in rows]) for name in names})
+        return table
+
+
+class JsonDecoderFactory(McapDecoderFactory):
+    """Decodes JSON channels, such as ``/reconstruction/metrics``, into dicts for the plain
+    mcap reader, which has no JSON decoder of its own::
+
+        from mcap.reader import make_reader
+        from mcap_protobuf.decoder import DecoderFactory
+        from pipeline.record.load import JsonDecoderFactory
+
+        with open("recordings/demo.mcap", "rb") as f:
+            reader = make_reader(f, decoder_factories=[DecoderFactory(), JsonDecoderFactory()])
+            for _, _, _, metrics in reader.iter_decoded_messages(topics=["/reconstruction/metrics"]):
+                print(metrics["frame"], metrics["iou"])
+    """
+
+    def decoder_for(self, message_encoding: str, schema: Schema | None) -> Callable[[bytes], Any] | None:
+        return json.loads if message_encoding == MessageEncoding.JSON else None
+
+
+def _schema_columns(camera_names: Sequence[str]) -> list[str]:
+    """The metrics' columns every recording has, whatever its frames hold (in schema order)."""
+    names: list[str] = []
+    for key in METRICS_SCHEMA["properties"]:
+        if key == "tip_m":
+            names += [f"{key}/{axis}" for axis in "xyz"]
+        elif key == "iou":
+            names += [f"{key}/{name}" for name in camera_names]
+        elif key != "timings_s":  # its stages are whatever the frames recorded
+            names.append(key)
+    return names
+
+
+def _flatten(metrics: dict[str, Any]) -> dict[str, Any]:
+    """One frame's metrics with nested figures under ``key/name`` (``tip_m/x``, ``iou/cam0``)."""
+    flat: dict[str, Any] = {}
+    for key, value in metrics.items():
+        if isinstance(value, dict):
+            flat.update({f"{key}/{name}": v for name, v in value.items()})
+        elif isinstance(value, list):
+            flat.update({f"{key}/{axis}": v for axis, v in zip("xyz", value, strict=False)})
+        elif value is not None:  # unknown: left out, as absent figures are (NaN in the column)
+            flat[key] = value
+    return flat
+
+
+def _column(values: list[Any]) -> NDArray[Any]:
+    """A column's values (None where unknown) -> bool, int64 or str when every value is one
+    of those, str with "" for a missing string; otherwise float64 with NaN for unknown."""
+    known = [v for v in values if v is not None]
+    complete = len(known) == len(values)
+    if known and all(isinstance(v, str) for v in known):
+        return np.array([v if v is not None else "" for v in values], dtype=np.str_)
+    if complete and known and all(isinstance(v, bool) for v in known):
+        return np.array(values, dtype=bool)
+    if complete and known and all(isinstance(v, int) and not isinstance(v, bool) for v in known):
+        return np.array(values, dtype=np.int64)
+    return np.array([np.nan if v is None else float(v) for v in values], dtype=np.float64)
+
+
+# What a truncated or torn file raises while its records are parsed.
+_TRUNCATION_ERRORS = (
+    McapError,
+    CRCValidationError,
+    zstandard.ZstdError,
+    struct.error,
+    EOFError,
+    ValueError,
+    MemoryError,
+)
+
+
+# The first bytes of a Rerun .rrd file ("RRF2"; older versions wrote RRF0, RRF1).
+_RRD_MAGIC = b"RRF"
+
+
+def load_recording(path: Path | str) -> Recording:
+    """Read ``path`` (an MCAP written by the pipeline) into a :class:`Recording`."""
+    path = Path(path)
+    if killed_commits(path.parent, path.stem):
+        log.warning(
+            "%s: the run that wrote it was killed while putting its outputs in place: %s may be "
+            "an earlier run's; the next 'pipeline process' of %s into %s puts the pair together",
+            path,
+            path.with_suffix(".rrd").name,
+            path.stem,
+            path.parent,
+        )
+    try:
+        with path.open("rb") as f:
+            if f.read(len(_RRD_MAGIC)) == _RRD_MAGIC:
+                raise RecordingError(
+                    f"{path}: is a Rerun recording (open it in the Rerun viewer); give load_recording "
+                    "the .mcap written beside it"
+                )
+            f.seek(0)
+            return _read(f, path)
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read: {exc.strerror}") from None
+
+
+def _read(stream: Any, path: Path) -> Recording:
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    decoders = DecoderFactory()
+    metadata: dict[str, str] = {}
+    metrics: dict[int, tuple[int, dict[str, Any]]] = {}  # frame -> (log_time, metrics)
+    points: dict[int, NDArray[np.float32]] = {}  # log_time -> points
+    curves: dict[int, NDArray[np.float64] | None] = {}
+    smoothed: dict[int, NDArray[np.float64] | None] = {}
+    complete = False
+    # validate_crcs: a chunk cut short fails its CRC (or its decompression) and is dropped whole.
+    reader = StreamReader(stream, validate_crcs=True)
+    try:
+        for record in reader.records:
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Metadata) and record.name == METADATA_NAME:
+                metadata = dict(record.metadata)
+            elif isinstance(record, Footer):
+                complete = True
+            elif isinstance(record, Message) and record.channel_id in channels:
+                channel = channels[record.channel_id]
+                topic = channel.topic
+                if topic == METRICS_TOPIC:
+                    data = json.loads(record.data)
+                    metrics[int(data["frame"])] = (record.log_time, data)
+                    continue
+                if topic not in (POINTS_TOPIC, CENTERLINE_TOPIC, SMOOTHED_TOPIC):
+                    continue
+                decode = decoders.decoder_for(channel.message_encoding, schemas.get(channel.schema_id))
+                if decode is None:
+                    continue
+                message = decode(record.data)
+                if topic == POINTS_TOPIC:
+                    points[record.log_time] = _points_from_cloud(message)
+                elif topic == CENTERLINE_TOPIC:
+                    curves[record.log_time] = _curve_from_update(message)
+                else:
+                    smoothed[record.log_time] = _curve_from_update(message)
+    except _TRUNCATION_ERRORS as exc:
+        if not metrics and not metadata:
+            why = " ".join(str(exc).split()) or type(exc).__name__
+            raise RecordingError(f"{path}: not a readable MCAP recording ({why})") from None
+        if metrics:
+            log.warning("%s: truncated or damaged after frame %d; read what precedes it", path, max(metrics))
+        else:
+            log.warning("%s: truncated or damaged before its first frame", path)
+    if not complete:
+        log.warning("%s: no footer (the run did not finish); %d frames read", path, len(metrics))
+    return _assemble(path, metadata, metrics, points, curves, smoothed, complete)
+
+
+def _points_from_cloud(cloud: Any) -> NDArray[np.float32]:
+    """PointCloud with x, y, z float32 at offsets 0, 4, 8 -> (P, 3) float32 metres."""
+    stride = cloud.point_stride or 12
+    raw = np.frombuffer(cloud.data, dtype=np.uint8).reshape(-1, stride)
+    offsets = {f.name: f.offset for f in cloud.fields}
+    cols = [raw[:, offsets[a] : offsets[a] + 4].copy().view("<f4").ravel() for a in "xyz"]
+    return np.column_stack(cols).astype(np.float32) if len(raw) else np.zeros((0, 3), np.float32)
+
+
+def _curve_from_update(update: Any) -> NDArray[np.float64] | None:
+    """SceneUpdate with one LINE_STRIP entity -> (N, 3) float64 metres; None for a deletion."""
+    for entity in update.entities:
+        for line in entity.lines:
+            return np.array([(p.x, p.y, p.z) for p in line.points], dtype=np.float64).reshape(-1, 3)
+    return None
+
+
+def _stack(curves: dict[int, NDArray[np.float64] | None], times: list[int], n: int) -> NDArray[np.float64]:
+    out = np.full((len(times), n, 3), np.nan)
+    for row, t in enumerate(times):
+        curve = curves.get(t)
+        if curve is not None and curve.shape == (n, 3):
+            out[row] = curve
+    return out
+
+
+def _assemble(
+    path: Path,
+    metadata: dict[str, str],
+    metrics: dict[int, tuple[int, dict[str, Any]]],
+    points: dict[int, NDArray[np.float32]],
+    curves: dict[int, NDArray[np.float64] | None],
+    smoothed: dict[int, NDArray[np.float64] | None],
+    complete: bool,
+) -> Recording:
+    frames = sorted(metrics)
+    times = [metrics[i][0] for i in frames]
+    lengths = {len(c) for c in curves.values() if c is not None}
+    n = max(lengths) if lengths else int(metadata.get("centerline_points", 0))
+    if len(lengths) > 1:
+        log.warning(
+            "%s: centrelines of different lengths %s; shorter ones read as NaN", path, sorted(lengths)
+        )
+    names = tuple(n for n in metadata.get("cameras", "").split(",") if n)
+    return Recording(
+        path=path,
+        camera_names=names,
+        timestamps_ns=np.array(times, dtype=np.int64),
+        frame_indices=np.array(frames, dtype=np.int64),
+        statuses=np.array([metrics[i][1]["status"] for i in frames], dtype=np.str_),
+        centerlines_m=_stack(curves, times, n),
+        points_m=[points.get(t, np.zeros((0, 3), np.float32)) for t in times],
+        metrics=[metrics[i][1] for i in frames],
+        # Written after the last frame: a file cut short may hold only part of it.
+        smoothed_centerlines_m=_stack(smoothed, times, n) if smoothed and complete else None,
+        complete=complete,
+        cameras=metadata.get("cameras_used", ""),
+    )

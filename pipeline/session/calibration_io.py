@@ -1,0 +1,147 @@
+"""calibration.toml in the aniposelib layout: read (validated) and write.
+
+One table per camera (``[cam_0]``, ``[cam_1]``, ...) with ``name``, ``size``
+(width, height px), ``matrix`` (3x3), ``distortions`` (k1 k2 p1 p2 k3),
+``rotation`` (Rodrigues vector, camera from world) and ``translation`` (mm);
+an optional ``[metadata]`` table is kept as free-form data.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import tomli_w
+
+from ..errors import CalibrationError
+from ..geometry.camera import Camera
+from .toml_file import load_toml
+
+REQUIRED_KEYS = ("name", "size", "matrix", "distortions", "rotation", "translation")
+
+
+def read_calibration(path: Path) -> list[Camera]:
+    """Read and validate calibration.toml; raise CalibrationError naming file, camera and key."""
+    try:
+        data = load_toml(path)
+    except FileNotFoundError:
+        raise CalibrationError(
+            f"{path}: not found; every session needs a calibration.toml (see docs/input.md)"
+        ) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise CalibrationError(f"{path}: TOML syntax error: {exc}") from None
+    except UnicodeDecodeError:
+        raise CalibrationError(f"{path}: is not UTF-8 text; save it as UTF-8") from None
+    except OSError as exc:
+        raise CalibrationError(f"{path}: cannot read: {exc.strerror}") from None
+    return cameras_from_dict(data, source=str(path))
+
+
+def cameras_from_dict(data: dict[str, Any], *, source: str = "calibration.toml") -> list[Camera]:
+    tables = {k: v for k, v in data.items() if k != "metadata"}
+    if not tables:
+        raise CalibrationError(f"{source}: no camera tables ([cam_0], [cam_1], ...)")
+    cameras = [_camera(source, key, table) for key, table in tables.items()]
+    names = [c.name for c in cameras]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise CalibrationError(f"{source}: camera name {dupes[0]!r} appears more than once")
+    return cameras
+
+
+def _array(source: str, where: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
+    try:
+        arr = np.asarray(value)
+        # Text and booleans are not numbers even where numpy would convert them ("1.5", true).
+        if arr.dtype.kind not in "iufO":
+            raise TypeError(arr.dtype)
+        # Object arrays hold TOML's unbounded integers (OverflowError) or dates (TypeError).
+        arr = arr.astype(np.float64)
+    except (TypeError, ValueError, OverflowError):
+        raise CalibrationError(f"{source}: {where} must be numbers of shape {shape}") from None
+    if arr.shape != shape:
+        raise CalibrationError(f"{source}: {where} has shape {arr.shape}, expected {shape}")
+    if not np.all(np.isfinite(arr)):
+        raise CalibrationError(f"{source}: {where} holds a non-finite number")
+    return arr
+
+
+def _camera(source: str, key: str, table: Any) -> Camera:
+    # A quoted TOML key may hold a newline; the message must stay one line.
+    label = f"[{key}]" if key.isprintable() else f"[{key!r}]"
+    if not isinstance(table, dict):
+        raise CalibrationError(f"{source}: {label} must be a table")
+    missing = [k for k in REQUIRED_KEYS if k not in table]
+    if missing:
+        raise CalibrationError(f"{source}: {label} is missing key(s) {', '.join(missing)}")
+    name = table["name"]
+    if not isinstance(name, str) or not name:
+        raise CalibrationError(f"{source}: {label} name must be a non-empty string")
+    where = f"{label} (camera {name!r})"
+    size = table["size"]
+    if (
+        not isinstance(size, list)
+        or len(size) != 2
+        or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)
+    ):
+        raise CalibrationError(f"{source}: {where} size must be [width, height] positive integers")
+    matrix = _array(source, f"{where} matrix", table["matrix"], (3, 3))
+    fx, fy = matrix[0, 0], matrix[1, 1]
+    if fx <= 0 or fy <= 0 or not np.allclose(matrix[2], [0, 0, 1]) or matrix[1, 0] != 0:
+        raise CalibrationError(
+            f"{source}: {where} matrix must be [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0"
+        )
+    dist = np.asarray(table["distortions"], dtype=object).ravel()
+    if len(dist) not in (4, 5, 8, 12, 14):
+        raise CalibrationError(f"{source}: {where} distortions must hold 4, 5, 8, 12 or 14 numbers")
+    distortions = _array(source, f"{where} distortions", list(dist), (len(dist),))
+    rotation = _rotation(source, where, table["rotation"])
+    translation = _array(source, f"{where} translation", table["translation"], (3,))
+    return Camera(
+        name=name,
+        size_px=(int(size[0]), int(size[1])),
+        matrix=matrix,
+        distortions=distortions,
+        rotation=rotation,
+        translation_mm=translation,
+    )
+
+
+def _rotation(source: str, where: str, value: Any) -> np.ndarray:
+    """A Rodrigues 3-vector, or a 3x3 matrix that must be a proper rotation."""
+    arr = np.asarray(value, dtype=object)
+    if arr.shape == (3, 3):
+        rot = _array(source, f"{where} rotation", value, (3, 3))
+        if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) or not math.isclose(
+            float(np.linalg.det(rot)), 1.0, abs_tol=1e-6
+        ):
+            raise CalibrationError(f"{source}: {where} rotation matrix is not a rotation")
+        rvec, _ = cv2.Rodrigues(rot)
+        return np.asarray(rvec, dtype=np.float64).ravel()
+    return _array(source, f"{where} rotation", value, (3,))
+
+
+def calibration_dict(cameras: list[Camera], metadata: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The TOML document for ``cameras`` (aniposelib layout)."""
+    doc: dict[str, Any] = {}
+    for i, cam in enumerate(cameras):
+        doc[f"cam_{i}"] = {
+            "name": cam.name,
+            "size": [int(cam.size_px[0]), int(cam.size_px[1])],
+            "matrix": np.asarray(cam.matrix, dtype=float).tolist(),
+            "distortions": np.asarray(cam.distortions, dtype=float).ravel().tolist(),
+            "rotation": np.asarray(cam.rotation, dtype=float).ravel().tolist(),
+            "translation": np.asarray(cam.translation_mm, dtype=float).ravel().tolist(),
+        }
+    if metadata:
+        doc["metadata"] = metadata
+    return doc
+
+
+def write_calibration(path: Path, cameras: list[Camera], metadata: dict[str, Any] | None = None) -> None:
+    """Write calibration.toml (aniposelib layout)."""
+    Path(path).write_text(tomli_w.dumps(calibration_dict(cameras, metadata)))

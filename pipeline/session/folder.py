@@ -1,0 +1,316 @@
+"""A session directory (VIDEO_DIR) -> a validated :class:`Session`.
+
+Every mistake a user can make in a session directory is found here, before any
+work starts, and raised as a :class:`~pipeline.errors.PipelineError` naming the
+file or camera.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import os
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import PipelineError, SessionError, SettingsError, VideoError
+from ..geometry.camera import Camera
+from .calibration_io import read_calibration
+from .settings import LAST_TIMESTAMP, SessionInfo, Settings, load_settings
+from .video import VIDEO_EXTENSIONS, VideoInfo, probe_video
+
+log = logging.getLogger(__name__)
+
+FPS_TOLERANCE = 1e-3
+_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
+# SessionInfo's default, this very object, stands for "session.toml gives no start_time":
+# one given as 1970-01-01 is a different object and is kept.
+_NO_START_TIME = SessionInfo().start_time
+
+
+@dataclass(frozen=True, eq=False)
+class Session:
+    """Everything needed to process one recording, validated.
+
+    cameras[i], video_paths[i] and backgrounds[i] belong together.
+    ``frame_count`` is the number of frames common to all videos.
+    """
+
+    directory: Path
+    name: str
+    cameras: tuple[Camera, ...]
+    video_paths: tuple[Path, ...]
+    backgrounds: tuple[NDArray[np.uint8] | None, ...]
+    settings: Settings
+    fps: float
+    frame_count: int
+    frame_counts: tuple[int, ...]
+
+    def timestamp_ns(self, index: int) -> int:
+        """Frame ``index``'s time: start_time + index / fps, in ns since the Unix epoch."""
+        start = self.settings.session.start_time
+        start_ns = (start - _EPOCH) // timedelta(microseconds=1) * 1000
+        return start_ns + round(index * 1e9 / self.fps)
+
+
+def load_session(directory: Path | str) -> Session:
+    """Read and validate ``directory``: calibration.toml, one video per camera, session.toml."""
+    directory = Path(directory)
+    _check_not_dangling(directory)
+    check_utf8_path(directory, "rename the folder (or move the session) to a UTF-8 path")
+    if directory.is_file():
+        raise SessionError(f"{directory}: is a file; give the session directory that holds it")
+    if not directory.is_dir():
+        raise SessionError(f"{directory}: no such session directory")
+    if not any(directory.iterdir()):
+        raise SessionError(f"{directory}: the session directory is empty")
+    for name in ("session.toml", "calibration.toml"):
+        _check_not_dangling(directory / name)
+    settings = load_settings(directory / "session.toml")
+    cameras = read_calibration(directory / "calibration.toml")
+    videos = _find_videos(directory, [c.name for c in cameras])
+    infos = [probe_video(videos[c.name]) for c in cameras]
+    for cam, info in zip(cameras, infos, strict=True):
+        if (info.width, info.height) != cam.size_px:
+            raise VideoError(
+                f"{info.path}: frames are {info.width}x{info.height} but calibration.toml gives "
+                f"camera {cam.name!r} size {cam.size_px[0]}x{cam.size_px[1]}; "
+                "use the calibration of this rig and resolution"
+            )
+    fps = _common_fps(infos)
+    settings = _with_start_time(settings, infos)
+    counts = tuple(i.frame_count for i in infos)
+    if len(set(counts)) > 1:
+        log.warning(
+            "videos differ in length (%s); processing the %d common frames",
+            ", ".join(f"{c.name}: {n}" for c, n in zip(cameras, counts, strict=True)),
+            min(counts),
+        )
+    backgrounds = _backgrounds(directory, cameras, settings)
+    _check_workspace_visible(cameras, settings)
+    _check_last_timestamp(directory, settings, fps, min(counts))
+    return Session(
+        directory=directory,
+        name=directory.resolve().name,
+        cameras=tuple(cameras),
+        video_paths=tuple(videos[c.name] for c in cameras),
+        backgrounds=backgrounds,
+        settings=settings,
+        fps=fps,
+        frame_count=min(counts),
+        frame_counts=counts,
+    )
+
+
+# A live rig's nominal frame rate, until its cameras say (the layout plays the ``frame``
+# timeline at it; the summary gives each camera's measured rate).
+LIVE_NOMINAL_FPS = 30.0
+
+
+def load_rig(directory: Path | str) -> Session:
+    """Read and validate a rig directory for ``pipeline live``: calibration.toml and
+    session.toml (with its ``[live]`` sources), no videos.
+
+    The session it returns has no videos and no frames; its ``fps`` is nominal
+    (:data:`LIVE_NOMINAL_FPS`) and its name the directory's.
+    """
+    directory = Path(directory)
+    _check_not_dangling(directory)
+    check_utf8_path(directory, "rename the folder (or move the rig) to a UTF-8 path")
+    if not directory.is_dir():
+        raise SessionError(
+            f"{directory}: no such rig directory; give the folder that holds calibration.toml "
+            "and session.toml"
+        )
+    for name in ("session.toml", "calibration.toml"):
+        _check_not_dangling(directory / name)
+    settings = load_settings(directory / "session.toml")
+    cameras = read_calibration(directory / "calibration.toml")
+    names = [c.name for c in cameras]
+    for camera, _ in settings.live.sources:
+        if camera not in names:
+            raise SettingsError(
+                f"{directory / 'session.toml'}: [live] names camera {camera!r}, which calibration.toml "
+                f"does not have (cameras: {', '.join(names)}); fix the name or remove the line"
+            )
+    backgrounds = _backgrounds(directory, cameras, settings)
+    _check_workspace_visible(cameras, settings)
+    return Session(
+        directory=directory,
+        name=directory.resolve().name,
+        cameras=tuple(cameras),
+        video_paths=(),
+        backgrounds=backgrounds,
+        settings=settings,
+        fps=LIVE_NOMINAL_FPS,
+        frame_count=0,
+        frame_counts=(),
+    )
+
+
+def _with_start_time(settings: Settings, infos: list[VideoInfo]) -> Settings:
+    """``settings`` whose start_time is session.toml's, else the earliest creation time
+    the videos carry (the first camera to start recording), else the Unix epoch."""
+    if settings.session.start_time is not _NO_START_TIME:
+        return settings
+    stamps = [i.creation_time for i in infos if i.creation_time is not None]
+    if not stamps:
+        return settings
+    start = min(stamps)
+    log.debug("session start %s: the videos' creation time", start.isoformat())
+    return dataclasses.replace(settings, session=dataclasses.replace(settings.session, start_time=start))
+
+
+def _find_videos(directory: Path, names: list[str]) -> dict[str, Path]:
+    found: dict[str, Path] = {}
+    for path in sorted(directory.iterdir()):
+        if path.suffix.lower() in VIDEO_EXTENSIONS:
+            _check_not_dangling(path)
+        if not path.is_file() or path.suffix.lower() not in VIDEO_EXTENSIONS:
+            continue
+        if path.stem not in names:
+            raise SessionError(
+                f"{path}: no camera named {path.stem!r} in calibration.toml "
+                f"(cameras: {', '.join(names)}); rename the video or add its calibration"
+            )
+        if path.stem in found:
+            raise SessionError(
+                f"{directory}: two videos for camera {path.stem!r} "
+                f"({found[path.stem].name}, {path.name}); keep one"
+            )
+        found[path.stem] = path
+    for name in names:
+        if name not in found:
+            raise SessionError(
+                f"{directory}: camera {name!r} in calibration.toml has no video ({name}.mp4, .avi or .mkv)"
+            )
+    return found
+
+
+def _common_fps(infos: list[VideoInfo]) -> float:
+    fps = infos[0].fps
+    for info in infos[1:]:
+        if not math.isclose(info.fps, fps, rel_tol=FPS_TOLERANCE):
+            raise VideoError(
+                f"{info.path}: {info.fps:g} fps but {infos[0].path.name} has {fps:g} fps; "
+                "record all cameras at the same rate"
+            )
+    return fps
+
+
+def _backgrounds(
+    directory: Path, cameras: list[Camera], settings: Settings
+) -> tuple[NDArray[np.uint8] | None, ...]:
+    """Per camera its background image (None: none), all of them for method "background"."""
+    backgrounds = tuple(_background(directory, cam) for cam in cameras)
+    if settings.silhouette.method == "background":
+        missing = [c.name for c, b in zip(cameras, backgrounds, strict=True) if b is None]
+        if missing:
+            raise SessionError(
+                f"{directory / 'background'}: silhouette method 'background' needs "
+                f"background/{missing[0]}.png (missing for camera {missing[0]!r})"
+            )
+    return backgrounds
+
+
+def _background(directory: Path, cam: Camera) -> NDArray[np.uint8] | None:
+    path = directory / "background" / f"{cam.name}.png"
+    _check_not_dangling(path)
+    if not path.exists():
+        return None
+    image = _read_grey_8bit(path)
+    if (image.shape[1], image.shape[0]) != cam.size_px:
+        raise SessionError(
+            f"{path}: is {image.shape[1]}x{image.shape[0]} but camera {cam.name!r} is "
+            f"{cam.size_px[0]}x{cam.size_px[1]}"
+        )
+    return np.ascontiguousarray(image, dtype=np.uint8)
+
+
+def _read_grey_8bit(path: Path) -> NDArray[np.uint8]:
+    """The image at ``path`` as (H, W) uint8 grey levels, the videos' depth.
+
+    OpenCV's grey read scales a 16-bit PNG down by 256, so a 16-bit file holding 8-bit
+    values (as some tools save them) read as black, and every pixel became silhouette.
+    A 16-bit image is taken as 8-bit values when none exceeds 255, and scaled from the
+    full 16-bit range otherwise.
+    """
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise SessionError(f"{path}: cannot be read as an image; save it as an 8-bit greyscale PNG")
+    if raw.dtype == np.uint8:
+        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)  # OpenCV's own grey conversion, as before
+        return np.asarray(image, dtype=np.uint8)
+    if raw.dtype != np.uint16:
+        raise SessionError(
+            f"{path}: holds {raw.dtype} pixels, not 8- or 16-bit grey levels; save it as an 8-bit "
+            "greyscale PNG"
+        )
+    if raw.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if raw.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        raw = cv2.cvtColor(raw, code)
+    if int(raw.max()) <= 255:
+        return raw.astype(np.uint8)
+    return np.round(raw / 257.0).astype(np.uint8)  # 65535 -> 255
+
+
+def _check_not_dangling(path: Path) -> None:
+    """A symbolic link to nothing is named as such, not taken for a missing file."""
+    if path.is_symlink() and not path.exists():
+        raise SessionError(
+            f"{path}: is a symbolic link to {os.readlink(path)}, which does not exist; "
+            "fix the link or copy the file in"
+        )
+
+
+def check_utf8_path(path: Path, what_to_do: str, error: type[PipelineError] = SessionError) -> None:
+    """Refuse a path (given or absolute) holding bytes that are not UTF-8: OpenCV, PyAV and
+    Rerun take paths as UTF-8 text (OpenCV crashed on other bytes), and the summary prints them."""
+    for form in (path, path.absolute()):
+        try:
+            str(form).encode("utf-8")
+        except UnicodeEncodeError:
+            shown = os.fsencode(path).decode("utf-8", "replace")
+            raise error(f"{shown}: the path holds bytes that are not UTF-8 text; {what_to_do}") from None
+
+
+def _check_last_timestamp(directory: Path, settings: Settings, fps: float, frames: int) -> None:
+    """The last frame's time must fit a ns timestamp too, not only start_time."""
+    start = settings.session.start_time
+    end = start + timedelta(seconds=(frames - 1) / fps)
+    if end > LAST_TIMESTAMP:
+        raise SettingsError(
+            f"{directory / 'session.toml'}: [session] start_time {start.isoformat()} puts the last "
+            f"frame at {end.isoformat()}, past 2262-04-11, the last time a nanosecond timestamp "
+            "holds; give an earlier start_time"
+        )
+
+
+def _check_workspace_visible(cameras: list[Camera], settings: Settings) -> None:
+    """Every camera must see some part of the workspace, or the hull is empty by construction."""
+    ws = settings.workspace
+    lo = np.asarray(ws.origin_mm)
+    hi = lo + np.asarray(ws.size_mm)
+    # A 9^3 lattice over the box catches a camera that sees any sizeable part of it.
+    axes = [np.linspace(a, b, 9) for a, b in zip(lo, hi, strict=True)]
+    probe = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    for cam in cameras:
+        px = cam.project(probe)
+        inside = (
+            np.isfinite(px).all(axis=1)
+            & (px[:, 0] >= 0)
+            & (px[:, 0] < cam.width)
+            & (px[:, 1] >= 0)
+            & (px[:, 1] < cam.height)
+        )
+        if not inside.any():
+            raise SessionError(
+                f"camera {cam.name!r} does not see the workspace (origin {ws.origin_mm} mm, "
+                f"size {ws.size_mm} mm); check calibration.toml or [workspace] in session.toml"
+            )

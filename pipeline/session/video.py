@@ -1,0 +1,475 @@
+"""Video files: probing (OpenCV), and reading a contiguous range of frames (PyAV).
+
+Frames are read with PyAV rather than OpenCV because placing each one by the
+container's index, not by a count of packets, needs the packets' byte positions.
+
+Kept apart from the array code: everything downstream receives (H, W) uint8 grey
+images and never a path.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import math
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from fractions import Fraction
+from pathlib import Path
+
+import av
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import VideoError
+
+VIDEO_EXTENSIONS = (".mp4", ".avi", ".mkv", ".mov", ".m4v")
+
+log = logging.getLogger(__name__)
+
+# An AVI packet starts after its chunk's header (fourcc and size), where idx1 points.
+_CHUNK_HEADER_BYTES = 8
+# H.264 and HEVC show a frame at most 16 frames after it is decoded.
+_MAX_REORDER_FRAMES = 16
+
+# A damaged or half-copied video is reported by us, once, naming the file; OpenCV's and
+# FFmpeg's own lines ("moov atom not found", "overread 8") would bury that message and
+# repeat for every bad frame. FFmpeg reads its level when first used, so this also holds
+# in worker processes; set OPENCV_FFMPEG_LOGLEVEL yourself (e.g. 24) to see them again.
+_USER_FFMPEG_LEVEL = os.environ.get("OPENCV_FFMPEG_LOGLEVEL")  # a level you set stays yours
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
+cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+
+
+def _pyav_log_level(setting: str) -> int | None:
+    """PyAV's log level for an OPENCV_FFMPEG_LOGLEVEL value (the same FFmpeg scale); None: quiet."""
+    try:
+        level = int(setting)
+    except ValueError:
+        return None
+    return level if level >= 0 else None
+
+
+def _set_pyav_level(setting: str) -> None:
+    """PyAV's and FFmpeg's own levels from an OPENCV_FFMPEG_LOGLEVEL value. Quiet means
+    both: with PyAV's logging off, FFmpeg prints to the terminal at its own level
+    (swscale's "deprecated pixel format used" on MJPEG frames, among others)."""
+    level = _pyav_log_level(setting)
+    av.logging.set_level(level)
+    av.logging.set_libav_level(level if level is not None else -8)  # AV_LOG_QUIET
+
+
+# PyAV is quiet unless told otherwise; the same variable makes it pass FFmpeg's lines
+# to the "libav" loggers. Read at import, so it holds in worker processes too.
+_set_pyav_level(os.environ["OPENCV_FFMPEG_LOGLEVEL"])
+
+
+def show_ffmpeg_messages() -> None:
+    """Let FFmpeg's warnings through (``--debug``), in OpenCV and PyAV, here and in workers started later.
+
+    Call it before the first video is opened: OpenCV reads its level once. A level
+    set in OPENCV_FFMPEG_LOGLEVEL before this module was imported is left as it is.
+    """
+    if _USER_FFMPEG_LEVEL is None:
+        os.environ["OPENCV_FFMPEG_LOGLEVEL"] = "24"  # AV_LOG_WARNING
+    _set_pyav_level(os.environ["OPENCV_FFMPEG_LOGLEVEL"])
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    """``creation_time``: when the container says the recording was made (timezone-aware),
+    or None where it does not say."""
+
+    path: Path
+    width: int
+    height: int
+    fps: float
+    frame_count: int
+    creation_time: datetime | None = None
+
+
+def probe_video(path: Path) -> VideoInfo:
+    """Open ``path`` and read its size, fps and frame count; VideoError if it is not a video."""
+    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    try:
+        if not cap.isOpened():
+            raise VideoError(
+                f"{path}: cannot be opened as a video (empty, unreadable, copied half-way "
+                "or not a video); re-copy or re-export it"
+            )
+        width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+        height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        fps = float(cap.get(cv2.CAP_PROP_FPS))
+        count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        ok, _ = cap.read()
+        if not ok or width <= 0 or height <= 0:
+            raise VideoError(f"{path}: holds no decodable frame; re-copy or re-export it")
+        if not fps > 0:
+            raise VideoError(f"{path}: has no frame rate; re-export it with a fixed fps")
+    finally:
+        cap.release()
+    count = _counted_frames(path) or count
+    return VideoInfo(
+        path=Path(path),
+        width=width,
+        height=height,
+        fps=fps,
+        frame_count=max(count, 1),
+        creation_time=creation_time(path),
+    )
+
+
+def creation_time(path: Path) -> datetime | None:
+    """The container's ``creation_time`` (MP4/MOV, Matroska; the container's own, else its
+    first video stream's), timezone-aware (UTC where it names no zone); None where the file
+    has none, or one that is not an ISO 8601 date-time."""
+    try:
+        with av.open(str(path)) as container:
+            streams = container.streams.video
+            text = container.metadata.get("creation_time") or (
+                streams[0].metadata.get("creation_time") if streams else None
+            )
+    except (av.error.FFmpegError, OSError):
+        return None
+    if not text:
+        return None
+    try:
+        stamp = datetime.fromisoformat(text)
+    except ValueError:
+        log.debug("%s: creation_time %r is not ISO 8601; ignored", path, text)
+        return None
+    return stamp if stamp.tzinfo else stamp.replace(tzinfo=UTC)
+
+
+def _counted_frames(path: Path) -> int | None:
+    """The first video stream's packets, demuxed without decoding, where the container
+    keeps no frame count (Matroska, WebM); None where it keeps one (MP4, AVI), or where
+    the file cannot be demuxed to its end (OpenCV's count stands).
+
+    OpenCV estimates a count the container does not keep as its duration x fps, and a
+    Matroska duration runs from time 0: a stream that starts 2 s in was counted 60 frames
+    too long, and those frames "failed" as cut short.
+    """
+    try:
+        with av.open(str(path)) as container:
+            stream = container.streams.video[0]
+            if stream.frames > 0:
+                return None
+            return sum(1 for packet in container.demux(stream) if packet.size > 0)
+    except (av.error.FFmpegError, OSError, IndexError):
+        return None
+
+
+def read_frames(
+    path: Path, start: int, stop: int, *, problems: dict[int, str] | None = None
+) -> Iterator[tuple[int, NDArray[np.uint8] | None]]:
+    """Yield ``(index, grey image or None)`` for every frame ``start <= index < stop``, in order.
+
+    Parameters
+    ----------
+    path : the video file.
+    start, stop : frame range; frame ``i`` is the one the container times at ``i / fps``.
+    problems : where given, each frame that gets None has its reason put here (frame
+        index -> reason, set before the None is yielded) instead of in the log.
+
+    Yields
+    ------
+    index : int, ``start``, ``start + 1``, ... ``stop - 1``.
+    image : (H, W) uint8 grey image (OpenCV's BGR-to-grey of the decoded picture), or
+        None where the file cannot provide that frame: cut short, a packet lost in
+        damaged bytes or rejected by the decoder, or an inter-coded frame that would be
+        decoded from a damaged reference. Why goes into ``problems``, or (without it) is
+        logged once per call, naming the frames.
+
+    Notes
+    -----
+    Each frame is placed by its timestamp, never by counting packets: an AVI has no
+    timestamps of its own and FFmpeg numbers its packets as they come, so one chunk
+    lost in damaged bytes would shift every later frame by one. Where the container
+    indexes every frame (AVI idx1, MP4 sample tables), a packet takes the timestamp of
+    the index entry it starts at instead.
+    """
+    if stop <= start:
+        return
+    logged = problems is None
+    found: dict[int, str] = {} if problems is None else problems
+    try:
+        container = av.open(str(path))
+    except (av.error.FFmpegError, OSError) as exc:  # probe_video reports this before a run
+        if logged:
+            log.warning("%s: cannot be opened (%s); frames %d-%d failed", path, exc, start, stop - 1)
+        for i in range(start, stop):
+            found[i] = f"cannot be opened ({exc})"
+            yield i, None
+        return
+    try:
+        expected = start
+        if container.streams.video:
+            for index, image in _decode(container, container.streams.video[0], start, stop, found):
+                if index < expected:  # a repeated timestamp: keep the first
+                    continue
+                for lost in range(expected, index):
+                    found.setdefault(lost, "missing from the stream")
+                    yield lost, None
+                yield index, image
+                expected = index + 1
+        for i in range(expected, stop):
+            found.setdefault(i, "not in the file (cut short?)")
+            yield i, None
+    finally:
+        container.close()
+        if logged:
+            _log_problems(path, {i: r for i, r in found.items() if start <= i < stop})
+
+
+class _FrameIndex:
+    """The container's own index of a video stream: one entry per frame, in file order.
+
+    Byte positions ascend with the entries (AVI idx1 and MP4 sample tables list the
+    frames as they are stored, in decoding order). Entries are read as they are
+    needed (one per packet, a few more after damage), never all at once: a range of
+    a long video costs no more than one of a short one.
+    """
+
+    def __init__(self, entries: av.index.IndexEntries) -> None:
+        self._entries = entries
+        self._count = len(entries)
+
+    @classmethod
+    def of(cls, stream: av.video.stream.VideoStream) -> _FrameIndex | None:
+        """The index of ``stream``, or None unless it has an entry for each of its frames.
+
+        Matroska's cues list only some keyframes, but its blocks carry timestamps the
+        demuxer passes on. An AVI cut short has lost its idx1 (the demuxer indexes
+        packets as it reads them), and its count of packets is all there is.
+        """
+        entries = stream.index_entries
+        return cls(entries) if 0 < len(entries) == stream.frames else None
+
+    def __getitem__(self, k: int) -> av.index.IndexEntry:
+        return self._entries[k]
+
+    def locate(self, packet: av.Packet, expected: int | None) -> int | None:
+        """The entry ``packet`` was read from: ``expected`` or a later one (any, if None).
+
+        None if it starts at no entry (give or take an AVI chunk header) or is not its
+        entry's size: bytes the demuxer resynchronised into after damage.
+        """
+        pos, size = packet.pos, packet.size
+        if pos is None:
+            return None
+        if expected is not None and self._holds(expected, pos, size):
+            return expected  # the usual case, one entry read
+        first = 0 if expected is None else expected + 1
+        k = bisect.bisect_right(self._entries, pos, first, self._count, key=lambda e: e.pos) - 1
+        return k if k >= first and self._holds(k, pos, size) else None
+
+    def _holds(self, k: int, pos: int, size: int) -> bool:
+        """Whether a packet of ``size`` bytes read at byte ``pos`` is entry ``k``."""
+        if not 0 <= k < self._count:
+            return False
+        entry = self._entries[k]
+        return 0 <= pos - entry.pos <= _CHUNK_HEADER_BYTES and size == entry.size
+
+
+@dataclass(frozen=True)
+class _Clock:
+    """Frame index <-> timestamp (in the stream's time base) of a video stream."""
+
+    start_ts: int
+    frames_per_tick: float
+
+    @classmethod
+    def of(cls, stream: av.video.stream.VideoStream) -> _Clock:
+        rate = stream.average_rate or stream.guessed_rate or 30
+        # PyAV types time_base as optional; a demuxed stream always has one.
+        return cls(stream.start_time or 0, float((stream.time_base or Fraction(1, 1000)) * rate))
+
+    def index(self, timestamp: int) -> int:
+        return round((timestamp - self.start_ts) * self.frames_per_tick)
+
+    def timestamp(self, index: int) -> int:
+        return self.start_ts + math.floor(index / self.frames_per_tick)
+
+
+def _packets(
+    container: av.container.InputContainer,
+    stream: av.video.stream.VideoStream,
+    clock: _Clock,
+    start: int,
+    problems: dict[int, str],
+) -> Iterator[tuple[av.Packet, bool, bool]]:
+    """Yield ``(packet, keyframe, after_loss)`` from a keyframe at or before ``start`` on.
+
+    A seek goes by decoding timestamps, so with B-frames it can land on a keyframe
+    shown after ``start``, and a damaged keyframe sends the demuxer past it: then
+    the seek is made again from further back, and last from the top of the file.
+    """
+    index = _FrameIndex.of(stream)
+    for landing in sorted({start, max(start - _MAX_REORDER_FRAMES, 0), 0}, reverse=True):
+        if start > 0:
+            container.seek(clock.timestamp(landing), stream=stream, backward=True)
+        # Where a seek lands is the demuxer's choice: the first packet is found in the index.
+        packets = _retimed(
+            container.demux(stream), index, clock, problems, next_entry=0 if start == 0 else None
+        )
+        first = next(packets, None)
+        if first is None:
+            return
+        if landing > 0 and first[0].pts is not None and clock.index(first[0].pts) > start:
+            continue
+        yield first
+        yield from packets
+        return
+
+
+def _retimed(
+    packets: Iterator[av.Packet],
+    index: _FrameIndex | None,
+    clock: _Clock,
+    problems: dict[int, str],
+    *,
+    next_entry: int | None,
+) -> Iterator[tuple[av.Packet, bool, bool]]:
+    """Yield ``(packet, keyframe, after_loss)`` for ``packets`` in file order.
+
+    Packets carry their true timestamps: the index's, where it has one entry per
+    frame, else the demuxer's. ``after_loss`` is True for the first packet after
+    packets lost in damaged bytes, which go into ``problems`` (frame index -> reason).
+    ``next_entry`` is the index entry the first packet should be (None: any). The
+    last packet is the empty one that flushes the decoder.
+    """
+    after_loss = False
+    for packet in packets:
+        if index is None or not packet.size:
+            yield packet, packet.is_keyframe, False
+            continue
+        k = index.locate(packet, next_entry)
+        if k is None:  # bytes the demuxer resynchronised into: no frame of the index
+            after_loss = True
+            continue
+        for lost in range(k if next_entry is None else next_entry, k):
+            problems.setdefault(clock.index(index[lost].timestamp), "lost in damaged bytes")
+            after_loss = True
+        next_entry = k + 1
+        entry = index[k]
+        shift = entry.timestamp - packet.dts if packet.dts is not None else 0
+        if shift:  # the index's timestamp, not the demuxer's count of the packets it found
+            packet.dts = entry.timestamp
+            if packet.pts is not None:
+                packet.pts += shift
+        yield packet, entry.is_keyframe, after_loss
+        after_loss = False
+
+
+def _decode(
+    container: av.container.InputContainer,
+    stream: av.video.stream.VideoStream,
+    start: int,
+    stop: int,
+    problems: dict[int, str],
+) -> Iterator[tuple[int, NDArray[np.uint8]]]:
+    """Yield ``(index, grey image)`` for the frames from ``start`` that decode cleanly, ascending.
+
+    Frames that do not come out are left out (the caller fills the gaps with None)
+    and their reason goes into ``problems`` (frame index -> reason). An inter-coded
+    frame is not decoded after damage until the next keyframe: its picture would be
+    built on a damaged reference.
+    """
+    stream.codec_context.options = {"err_detect": "explode"}  # a damaged packet fails, not a garbled picture
+    clock = _Clock.of(stream)
+    grey = Greyer()
+    broken = True  # no reference picture until a keyframe: at the start, after a seek or damage
+    keyframe_pts: int | None = None  # of the last keyframe sent to the decoder
+    previous = start - 1
+    for packet, keyframe, after_loss in _packets(container, stream, clock, start, problems):
+        broken = broken or after_loss
+        if packet.size:
+            if keyframe:
+                broken = False
+                keyframe_pts = packet.pts
+            elif broken:
+                if packet.pts is not None:
+                    problems.setdefault(clock.index(packet.pts), "its reference frame was damaged")
+                continue
+        try:
+            frames = packet.decode()
+        except av.error.FFmpegError as exc:
+            if packet.pts is not None:
+                problems.setdefault(clock.index(packet.pts), f"rejected by the decoder ({exc.strerror})")
+            broken = True
+            continue
+        for frame in frames:
+            i = previous + 1 if frame.pts is None else clock.index(frame.pts)
+            previous = i
+            if i >= stop:
+                return
+            if i < start:
+                continue
+            if i in problems:  # its packet was rejected: what a decoder still hands out is a remnant
+                continue
+            if frame.is_corrupt:
+                problems.setdefault(i, "decoded with errors")
+                # Later frames refer to it, unless a keyframe was sent since (with
+                # B-frames, a frame comes out some packets after its own).
+                if keyframe_pts is None or frame.pts is None or frame.pts >= keyframe_pts:
+                    broken = True
+                continue
+            yield i, grey(frame)
+
+
+class Greyer:
+    """Grey images of a stream's frames, bit for bit what OpenCV's reader gives.
+
+    Via BGR as OpenCV converts (PyAV's own "gray" conversion differs by up to 2
+    levels), in a filter graph: its output frames come from a pool, where a
+    reformatted frame per picture would cost a fresh 230 kB allocation each.
+    The graph is built for the first frame's size, format, colour space and range
+    (a stream does not always state the last two, and the frames do).
+    """
+
+    def __init__(self) -> None:
+        self._graph: av.filter.Graph | None = None  # kept: its filters die with it
+
+    def __call__(self, frame: av.VideoFrame) -> NDArray[np.uint8]:
+        if self._graph is None:
+            self._graph = av.filter.Graph()
+            source = self._graph.add(
+                "buffer",
+                f"video_size={frame.width}x{frame.height}:pix_fmt={frame.format.name}"
+                f":time_base={frame.time_base or Fraction(1, 1000)}"
+                f":pixel_aspect=1/1:colorspace={int(frame.colorspace)}:range={int(frame.color_range)}",
+            )
+            to_bgr = self._graph.add("format", "bgr24")
+            sink = self._graph.add("buffersink")
+            source.link_to(to_bgr)
+            to_bgr.link_to(sink)
+            self._graph.configure()
+            self._source, self._sink = source, sink
+        self._source.push(frame)
+        bgr = self._sink.pull()
+        assert isinstance(bgr, av.VideoFrame)  # a video graph's output (typed Frame)
+        return np.asarray(cv2.cvtColor(bgr.to_ndarray(), cv2.COLOR_BGR2GRAY), dtype=np.uint8)
+
+
+def _log_problems(path: Path, problems: dict[int, str]) -> None:
+    """One warning per reason, naming the frames that got None for it."""
+    by_reason: dict[str, list[int]] = {}
+    for i, reason in sorted(problems.items()):
+        by_reason.setdefault(reason, []).append(i)
+    for reason, frames in by_reason.items():
+        log.warning("%s: frame(s) %s failed: %s", path, _spans(frames), reason)
+
+
+def _spans(frames: list[int]) -> str:
+    """``[2, 3, 4, 7]`` -> ``"2-4, 7"`` (ascending input)."""
+    spans: list[list[int]] = []
+    for i in frames:
+        if spans and i == spans[-1][1] + 1:
+            spans[-1][1] = i
+        else:
+            spans.append([i, i])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in spans)

@@ -1,0 +1,185 @@
+"""Cameras refined from a session's silhouettes: a calibration that is off comes closer to
+the true rig, an exact one is kept, a moved camera is named, the world frame stays."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from conftest import rig_cameras
+
+from pipeline.calibrate.adjust import in_given_frame, moved_camera, similar_camera
+from pipeline.calibrate.refine import refine, sample_tubes
+from pipeline.errors import SettingsError
+from pipeline.geometry.camera import Camera
+from pipeline.reconstruct.frame_task import decode_frames
+from pipeline.reconstruct.model import build_model
+from pipeline.reconstruct.tip_shape import sample_frames
+from pipeline.session.folder import load_session
+from pipeline.session.settings import settings_from_dict
+from pipeline.synth import render_session
+from pipeline.synth.session_render import SceneOptions
+
+FRAMES = 30
+
+
+def _true_cameras(session_dir: Path) -> list[Camera]:
+    gt = np.load(session_dir / "ground_truth.npz")
+    return [
+        Camera(
+            str(name),
+            (int(gt["image_size"][0]), int(gt["image_size"][1])),
+            gt["K"][i],
+            gt["dist"][i],
+            cv2.Rodrigues(gt["R"][i])[0].ravel(),
+            gt["t"][i],
+        )
+        for i, name in enumerate(gt["camera_names"])
+    ]
+
+
+def _image_error_px(
+    cameras: list[Camera] | tuple[Camera, ...], truth: list[Camera], points_mm: np.ndarray
+) -> np.ndarray:
+    """(C,) RMS distance (px) between each camera's and the true camera's images of the points."""
+    return np.array(
+        [
+            np.sqrt(np.mean(np.sum((c.project(points_mm) - t.project(points_mm)) ** 2, axis=1)))
+            for c, t in zip(cameras, truth, strict=True)
+        ]
+    )
+
+
+@pytest.fixture(scope="module")
+def sessions(tmp_path_factory: pytest.TempPathFactory) -> dict[float, Path]:
+    """A random shape (seeded) filmed with the true cameras, its calibration exact or off."""
+    root = tmp_path_factory.mktemp("refine")
+    out = {}
+    for error_deg in (0.0, 0.15):
+        out[error_deg] = root / f"e{error_deg:g}"
+        render_session(
+            out[error_deg],
+            shape="random",
+            frames=FRAMES,
+            seed=23,
+            radius_mm=6.0,
+            options=SceneOptions(calib_error_deg=error_deg),
+            progress=False,
+            jobs=1,
+        )
+    return out
+
+
+def _refined(session_dir: Path, mode: str | bool = "auto"):  # type: ignore[no-untyped-def]
+    session = load_session(session_dir)
+    model = build_model(session)
+    tubes = sample_tubes(model, decode_frames(session.video_paths, sample_frames(0, FRAMES, 12)))
+    return model, refine(model, tubes, mode)
+
+
+def test_synth_writes_a_calibration_off_by_the_error_asked_for(sessions: dict[float, Path]) -> None:
+    truth = _true_cameras(sessions[0.15])
+    given = load_session(sessions[0.15]).cameras
+    centrelines = np.load(sessions[0.15] / "ground_truth.npz")["centerlines"].reshape(-1, 3)
+    error = _image_error_px(given, truth, centrelines)
+    assert np.all(error > 0.3) and np.all(error < 4.0)
+    exact = _image_error_px(load_session(sessions[0.0]).cameras, _true_cameras(sessions[0.0]), centrelines)
+    assert np.all(exact < 1e-6)
+
+
+def test_a_calibration_that_is_off_comes_closer_to_the_true_rig(sessions: dict[float, Path]) -> None:
+    model, (cameras, report) = _refined(sessions[0.15])
+    truth = _true_cameras(sessions[0.15])
+    points = np.load(sessions[0.15] / "ground_truth.npz")["centerlines"].reshape(-1, 3)
+    before = _image_error_px(model.cameras, truth, points)
+    after = _image_error_px(cameras, truth, points)
+    assert report.applied
+    assert report.after_px < 0.5 * report.before_px
+    assert np.sqrt(np.mean(after**2)) < np.sqrt(np.mean(before**2))
+    # Up to a turn, scale and shift of the whole rig (which the silhouettes cannot
+    # tell, and the given calibration anchors), the refined rig is the true one.
+    rms = [
+        np.sqrt(np.mean(_image_error_px(in_given_frame(list(c), truth, points), truth, points) ** 2))
+        for c in (model.cameras, cameras)
+    ]
+    assert rms[1] < 0.5 * rms[0]
+    # The cameras named as moved are among those that are off by more than half a pixel.
+    named = {c.name for c in model.cameras if any(f"camera {c.name} " in line for line in report.warnings())}
+    assert named and named <= {c.name for c, e in zip(model.cameras, before, strict=True) if e > 0.5}
+
+
+def test_an_exact_calibration_is_kept(sessions: dict[float, Path]) -> None:
+    model, (cameras, report) = _refined(sessions[0.0])
+    assert not report.applied and report.reason
+    assert cameras is model.cameras
+    assert report.warnings() == []
+
+
+def test_the_world_frame_is_the_given_rigs() -> None:
+    """A rig turned, scaled and moved with its scene is brought back to the given one."""
+    given = rig_cameras()
+    rng = np.random.default_rng(4)
+    points = np.array([128.0, 128.0, 128.0]) + rng.uniform(-60, 60, (200, 3))
+    rotation = cv2.Rodrigues(np.array([0.004, -0.003, 0.005]))[0]
+    moved = [similar_camera(cam, rotation, 1.004, np.array([0.8, -0.5, 0.6])) for cam in given]
+    assert np.max(_image_error_px(moved, given, points)) > 0.5
+    back = in_given_frame(moved, given, points)
+    assert np.max(_image_error_px(back, given, points)) < 1e-3
+
+
+def test_zero_parameters_leave_a_camera_as_it_is() -> None:
+    cam = rig_cameras()[1]
+    points = np.array([[128.0, 128.0, 100.0], [90.0, 150.0, 40.0]])
+    np.testing.assert_allclose(moved_camera(cam, np.zeros(9)).project(points), cam.project(points), atol=1e-9)
+    turned = moved_camera(cam, np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0, -1.0]))
+    np.testing.assert_allclose(turned.project(points) - cam.project(points), [[2.0, -1.0]] * 2, atol=1e-9)
+
+
+@pytest.mark.parametrize("value", ["sometimes", 1, 0.5])
+def test_refine_setting_takes_auto_true_or_false(value: object) -> None:
+    with pytest.raises(SettingsError, match=r"\[calibration\] refine"):
+        settings_from_dict({"calibration": {"refine": value}})
+    for ok in ("auto", True, False):
+        assert settings_from_dict({"calibration": {"refine": ok}}).calibration.refine == ok
+
+
+def test_process_writes_the_refined_calibration_beside_the_outputs(
+    sessions: dict[float, Path], tmp_path: Path
+) -> None:
+    from pipeline import process_session
+    from pipeline.session.calibration_io import read_calibration
+
+    session = load_session(sessions[0.15])
+    summary = process_session(session, out_dir=tmp_path, jobs=1, progress=False, frames=(0, 12))
+    written = tmp_path / f"{session.name}.calibration.toml"
+    assert written in [path for path, _ in summary.outputs]
+    assert summary.cameras.startswith("refined")
+    refined = read_calibration(written)
+    assert [c.name for c in refined] == [c.name for c in session.cameras]
+    # The cameras written are those the frames were reconstructed with, not the user's.
+    given = session.cameras
+    assert any(
+        not np.allclose(r.translation_mm, g.translation_mm) for r, g in zip(refined, given, strict=True)
+    )
+
+
+def test_two_cameras_are_kept_and_the_summary_says_why(tmp_path: Path) -> None:
+    from pipeline.calibrate.refine import refined_cameras
+
+    render_session(
+        tmp_path / "two",
+        shape="random",
+        frames=4,
+        seed=5,
+        options=SceneOptions(cameras=2, calib_error_deg=0.15),
+        progress=False,
+        jobs=1,
+    )
+    session = load_session(tmp_path / "two")
+    model = build_model(session)
+    cameras, report = refined_cameras(model, session.video_paths, 0, 4)
+    assert cameras is model.cameras
+    assert report is not None and not report.applied
+    assert "three or more" in report.describe()

@@ -1,0 +1,230 @@
+"""pipeline calibrate: synthetic renders against the true cameras, real stereo images against OpenCV."""
+
+from __future__ import annotations
+
+import shutil
+import tomllib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from conftest import assert_meets_calibration_targets, rotation_angle_deg
+
+from pipeline.calibrate.boards import detect_corners, load_board
+from pipeline.calibrate.report import format_table
+from pipeline.calibrate.solve import CalibrationResult, calibrate_directory, calibrate_views, detect_directory
+from pipeline.errors import CalibrationError
+from pipeline.session.calibration_io import read_calibration
+from pipeline.synth.boards import render_calibration_views
+
+STEREO = Path("/work/shared/data/stereo-chessboard")
+if not STEREO.is_dir():
+    STEREO = Path(__file__).resolve().parents[2] / "shared" / "data" / "stereo-chessboard"
+
+
+@pytest.fixture(scope="module", params=["oblique", "ninety"])
+def synth(request, tmp_path_factory) -> tuple[Path, CalibrationResult]:
+    root = tmp_path_factory.mktemp(f"calib_{request.param}")
+    render_calibration_views(root, arrangement=request.param, seed=0, progress=False)
+    result = calibrate_directory(root, root / "out" / "calibration.toml")
+    return root, result
+
+
+def test_synth_calibration_meets_issue_targets(synth) -> None:
+    root, result = synth
+    # Measured: <= 0.030 px, 0.072 %, 1.06 mm, 0.112 deg (targets: the helper's docstring).
+    assert_meets_calibration_targets(result.cameras, result.camera_mean_px(), root / "truth_calibration.toml")
+
+
+def test_output_toml_and_report(synth) -> None:
+    root, result = synth
+    out = root / "out"
+    doc = tomllib.loads((out / "calibration.toml").read_text())
+    assert set(doc["metadata"]["mean_reprojection_error_px"]) == {"cam0", "cam1", "cam2"}
+    assert [c.name for c in read_calibration(out / "calibration.toml")] == ["cam0", "cam1", "cam2"]
+    assert (out / "reprojection_errors.png").is_file()
+    # One world-axes picture per camera that has a world image.
+    worlds = sorted(p.parent.name for p in root.glob("*/world.png"))
+    assert sorted(p.stem.removeprefix("world_axes_") for p in out.glob("world_axes_*.png")) == worlds
+    table = format_table(result)
+    assert "cam2" in table and "world" in table
+
+
+def test_world_axes_land_on_the_board(synth) -> None:
+    """The world origin projects onto the first inner corner detected in world.png."""
+    root, result = synth
+    board = load_board(root)
+    for cam in result.cameras:
+        world = root / cam.name / "world.png"
+        if not world.is_file():
+            continue
+        corners = detect_corners(cv2.imread(str(world), cv2.IMREAD_GRAYSCALE), board)
+        assert corners is not None
+        origin = cam.project(np.zeros((1, 3)))[0]
+        # Half a pixel: the corner of a board seen at a grazing angle is located to ~0.15 px.
+        assert np.linalg.norm(origin - corners[0]) < 0.5
+
+
+@pytest.fixture(scope="module")
+def small_rig(tmp_path_factory) -> Path:
+    """Two cameras, 6 intrinsics views each: the base for the bad-input cases."""
+    root = tmp_path_factory.mktemp("calib_small")
+    render_calibration_views(root, arrangement="oblique", seed=3, views=6, progress=False)
+    shutil.rmtree(root / "cam2")
+    for cam in ("cam0", "cam1"):
+        shutil.rmtree(root / cam / "shared")
+    return root
+
+
+def _copy(src: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / "calib"
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_missing_world_without_link_is_named(small_rig, tmp_path) -> None:
+    root = _copy(small_rig, tmp_path)
+    (root / "cam1" / "world.png").unlink()
+    with pytest.raises(CalibrationError, match=r"camera 'cam1': no world\.png"):
+        calibrate_directory(root, tmp_path / "c.toml")
+
+
+def test_board_not_in_world_image(small_rig, tmp_path) -> None:
+    root = _copy(small_rig, tmp_path)
+    cv2.imwrite(str(root / "cam0" / "world.png"), np.full((240, 320), 128, np.uint8))
+    with pytest.raises(CalibrationError, match=r"cam0/world.png: board 9x6 not found"):
+        calibrate_directory(root, tmp_path / "c.toml")
+
+
+def test_too_few_views(small_rig, tmp_path) -> None:
+    root = _copy(small_rig, tmp_path)
+    for path in sorted((root / "cam1" / "intrinsics").glob("*.png"))[:3]:
+        path.unlink()
+    with pytest.raises(CalibrationError, match="camera 'cam1': board found in only 4 image"):
+        calibrate_directory(root, tmp_path / "c.toml")
+
+
+def test_inconsistent_image_sizes(small_rig, tmp_path) -> None:
+    root = _copy(small_rig, tmp_path)
+    path = root / "cam0" / "intrinsics" / "00.png"
+    cv2.imwrite(str(path), cv2.resize(cv2.imread(str(path)), (640, 480)))
+    with pytest.raises(CalibrationError, match="camera 'cam0': images of different sizes"):
+        calibrate_directory(root, tmp_path / "c.toml")
+
+
+def test_wrong_board_size_is_named(small_rig, tmp_path) -> None:
+    # A sub-board is found in a few images at most: named as too few views, pointing at --board.
+    with pytest.raises(CalibrationError, match=r"board (8x5 not found|found in only .*check --board)"):
+        calibrate_directory(small_rig, tmp_path / "c.toml", board=(8, 5), square_mm=20.0)
+
+
+def test_drop_outliers_removes_a_foreign_view(small_rig, tmp_path) -> None:
+    """An intrinsics image from the other camera stands out and --drop-outliers removes it."""
+    root = _copy(small_rig, tmp_path)
+    shutil.copy(root / "cam1" / "intrinsics" / "02.png", root / "cam0" / "intrinsics" / "99.png")
+    kept = calibrate_directory(root, tmp_path / "a.toml")
+    assert any(e.key == "intrinsics/99.png" for e in kept.outliers)
+    dropped = calibrate_directory(root, tmp_path / "b.toml", drop_outliers=True)
+    assert dropped.dropped == [str(root / "cam0" / "intrinsics" / "99.png")]
+    assert dropped.camera_mean_px()["cam0"] < kept.camera_mean_px()["cam0"]
+
+
+def test_shared_intrinsics_give_one_camera_matrix(small_rig, tmp_path) -> None:
+    result = calibrate_directory(small_rig, tmp_path / "c.toml", shared_intrinsics=True)
+    cam0, cam1 = result.cameras
+    np.testing.assert_array_equal(cam0.matrix, cam1.matrix)
+    np.testing.assert_array_equal(cam0.distortions, cam1.distortions)
+
+
+def test_intrinsics_from_a_video(small_rig, tmp_path) -> None:
+    """A video of the board in intrinsics/ is sampled frame by frame."""
+    root = _copy(small_rig, tmp_path)
+    images = sorted((root / "cam1" / "intrinsics").glob("*.png"))
+    writer = cv2.VideoWriter(
+        str(root / "cam1" / "intrinsics" / "board.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 5, (320, 240)
+    )
+    for path in images:
+        writer.write(cv2.imread(str(path)))
+        path.unlink()
+    writer.release()
+    result = calibrate_directory(root, tmp_path / "c.toml")
+    keys = [e.key for e in result.image_errors if e.camera == "cam1"]
+    assert [k for k in keys if k.startswith("intrinsics/")] == [f"intrinsics/board.avi#{i}" for i in range(6)]
+    # Motion-JPEG at OpenCV's default quality costs some accuracy, well within the 0.2 px target.
+    assert result.camera_mean_px()["cam1"] < 0.2
+
+
+@pytest.mark.skipif(not STEREO.is_dir(), reason="real stereo images not available")
+def test_real_stereo_pairs_agree_with_opencv_stereo(tmp_path) -> None:
+    """25 real pairs: pair 01 is the world view, the others shared views of both cameras."""
+    root = tmp_path / "stereo"
+    for side in ("left", "right"):
+        (root / side / "shared").mkdir(parents=True)
+        (root / side / "world.jpg").symlink_to(STEREO / f"{side}01.jpg")
+        for i in range(2, 26):
+            (root / side / "shared" / f"{i:02d}.jpg").symlink_to(STEREO / f"{side}{i:02d}.jpg")
+    board = load_board(root, board=(9, 6), square_mm=24.0)
+    views = detect_directory(root, board)
+    result = calibrate_views(views, board)
+    means = result.camera_mean_px()
+    assert means["left"] <= 0.3 and means["right"] <= 0.3  # issue 7 target for real images
+    left, right = result.cameras
+    R_rel = right.camera_from_world @ left.camera_from_world.T
+    t_rel = right.translation_mm - R_rel @ left.translation_mm
+
+    # OpenCV's stereo calibration of the same detections (pairs seen by both cameras).
+    by = {(v.camera, v.key): v.corners_px.astype(np.float32) for v in views}
+    keys = sorted(k for c, k in by if c == "left" and ("right", k) in by)
+    obj = [board.object_points().astype(np.float32)] * len(keys)
+    pts_l = [by[("left", k)] for k in keys]
+    pts_r = [by[("right", k)] for k in keys]
+    size = (640, 512)
+    K1 = cv2.calibrateCamera(obj, pts_l, size, None, None)[1]
+    K2 = cv2.calibrateCamera(obj, pts_r, size, None, None)[1]
+    # Independent intrinsics (k3 free, no corner cleaning): focal lengths within 0.5 %,
+    # the issue's own intrinsics tolerance.
+    assert abs(left.matrix[0, 0] / K1[0, 0] - 1) < 0.005
+    assert abs(right.matrix[0, 0] / K2[0, 0] - 1) < 0.005
+    # Extrinsics with our intrinsics held fixed: the same problem solved by
+    # cv2.stereoCalibrate. Both minimise the same re-projection error, so they
+    # should meet far below the rig's uncertainty: 0.5 % baseline, 0.05 degrees.
+    rms, *_, R, T, _, _ = cv2.stereoCalibrate(
+        obj,
+        pts_l,
+        pts_r,
+        left.matrix,
+        left.distortions,
+        right.matrix,
+        right.distortions,
+        size,
+        flags=cv2.CALIB_FIX_INTRINSIC,
+    )
+    assert rms < 0.3
+    assert abs(np.linalg.norm(t_rel) / np.linalg.norm(T) - 1) < 0.005
+    assert rotation_angle_deg(R_rel, R) < 0.05
+
+
+@pytest.mark.slow
+def test_reconstruction_with_calibrated_cameras(synth, tmp_path) -> None:
+    """synth-calib -> calibrate -> process -> evaluate: calibrated cameras cost <= 0.2 mm."""
+    from pipeline.measure.evaluate import evaluate_recording
+    from pipeline.run.runner import process_session
+    from pipeline.session.folder import load_session
+    from pipeline.synth import render_session
+
+    root, _ = synth
+    arrangement = tomllib.loads((root / "truth_calibration.toml").read_text())["metadata"]["arrangement"]
+    true_dir = tmp_path / "true"
+    render_session(true_dir, frames=10, seed=0, arrangement=arrangement, progress=False, jobs=1)
+    calibrated_dir = tmp_path / "calibrated"
+    shutil.copytree(true_dir, calibrated_dir)
+    shutil.copy(root / "out" / "calibration.toml", calibrated_dir / "calibration.toml")
+    errors = {}
+    for session_dir in (true_dir, calibrated_dir):
+        out = tmp_path / f"rec_{session_dir.name}"
+        process_session(load_session(session_dir), out_dir=out, jobs=1, images=False, progress=False)
+        report = evaluate_recording(out / f"{session_dir.name}.mcap", session_dir / "ground_truth.npz")
+        errors[session_dir.name] = report.mean_mm
+    # Issue 7 target: at most 0.2 mm worse in mean centreline error.
+    assert errors["calibrated"] <= errors["true"] + 0.2, errors

@@ -1,0 +1,26 @@
+"""The accuracy table's command line: the default cases and a random draw of the variety."""
+
+from __future__ import annotations
+
+import pytest
+
+from pipeline.measure import accuracy_table
+from pipeline.synth.variety import Case as DrawnCase
+from pipeline.synth.variety import draw_cases
+
+
+def test_draw_needs_one_number_of_cases(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        accuracy_table.main(["--draw", "3", "--cases", "loop", "helix"])
+    assert exc.value.code == 2
+    assert "with --draw, --cases takes one number of cases, got loop helix" in capsys.readouterr().err
+
+
+def test_drawn_cases_are_labelled_by_their_description() -> None:
+    case = draw_cases(3, 1)[0]
+    assert isinstance(case, DrawnCase)
+    session, rig = accuracy_table._row_labels(case)
+    assert session == case.describe() and case.tip in session and case.profile in session
+    assert rig == f"{case.arrangement}, {case.cameras} cameras"
+    named = accuracy_table.default_cases()[-1]
+    assert accuracy_table._row_labels(named) == (f"{named.name} (unseen)", named.arrangement)

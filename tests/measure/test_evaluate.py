@@ -1,0 +1,319 @@
+"""Accuracy figures against ground truth: exact answers on analytic curves."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from pipeline.errors import EvaluationError
+from pipeline.measure.evaluate import (
+    TARGETS,
+    EvaluationReport,
+    centerline_distances,
+    evaluate_centerlines,
+    evaluate_recording,
+    format_report,
+    load_ground_truth,
+    tip_jitter,
+)
+from pipeline.reconstruct.frame_result import FrameResult
+
+
+def line(
+    n: int, *, length_mm: float = 100.0, offset_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+) -> NDArray[np.float64]:
+    """(n, 3) points from offset up +z over ``length_mm``, uniform."""
+    z = np.linspace(0.0, length_mm, n)
+    return np.stack([np.zeros(n), np.zeros(n), z], axis=1) + np.asarray(offset_mm, dtype=np.float64)
+
+
+# --- centerline_distances ------------------------------------------------------------
+
+
+def test_parallel_lines_1mm_apart_are_1mm_apart_between_vertices() -> None:
+    # b has vertices only at its ends: a vertex-only distance would be ~50 mm mid-way.
+    a = np.stack([np.linspace(0.0, 10.0, 41), np.zeros(41), np.zeros(41)], axis=1)
+    b = np.array([[-5.0, 1.0, 0.0], [15.0, 1.0, 0.0]])
+    np.testing.assert_allclose(centerline_distances(a, b), 1.0, rtol=0, atol=1e-12)
+
+
+def test_point_set_against_itself_is_zero() -> None:
+    pts = np.random.default_rng(0).normal(0.0, 20.0, (50, 3))
+    np.testing.assert_allclose(centerline_distances(pts, pts), 0.0, atol=1e-12)
+
+
+def test_points_beyond_the_ends_measure_to_the_end_vertex() -> None:
+    b = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [10.0, 10.0, 0.0]])
+    a = np.array([[-3.0, 4.0, 0.0], [13.0, 14.0, 0.0], [5.0, 2.0, 0.0], [12.0, 5.0, 0.0]])
+    np.testing.assert_allclose(centerline_distances(a, b), [5.0, 5.0, 2.0, 2.0], atol=1e-12)
+
+
+def test_single_vertex_and_repeated_vertices() -> None:
+    a = np.array([[3.0, 4.0, 0.0]])
+    assert centerline_distances(a, np.zeros((1, 3)))[0] == pytest.approx(5.0, abs=1e-12)
+    # A zero-length segment must not divide by zero.
+    b = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
+    np.testing.assert_allclose(centerline_distances(a, b), [4.0], atol=1e-12)
+
+
+# --- evaluate_centerlines ------------------------------------------------------------
+
+
+def test_lateral_shift_gives_the_shift_everywhere() -> None:
+    truth = np.stack([line(101)] * 6)
+    pred = np.stack([line(64, offset_mm=(0.5, 0.0, 0.0))] * 6)
+    report = evaluate_centerlines(pred, truth)
+    for value in (
+        report.mean_mm,
+        report.p95_mm,
+        report.tip_median_mm,
+        report.tip_p95_mm,
+        report.base_mean_mm,
+    ):
+        assert value == pytest.approx(0.5, abs=1e-12)
+    assert report.length_error_pct == pytest.approx(0.0, abs=1e-12)
+    assert report.failed_frames == 0 and report.failed_indices == ()
+
+
+def test_a_longer_curve_gives_tip_and_length_errors() -> None:
+    truth = np.stack([line(101)] * 3)
+    pred = np.stack([line(64, length_mm=102.0)] * 3)
+    report = evaluate_centerlines(pred, truth)
+    assert report.tip_median_mm == pytest.approx(2.0, abs=1e-12)
+    assert report.base_mean_mm == pytest.approx(0.0, abs=1e-12)
+    assert report.length_error_pct == pytest.approx(2.0, abs=1e-9)
+    # Only pred's points beyond the true tip are off the true curve, by up to 2 mm.
+    assert report.mean_mm < 0.05 and report.p95_mm < 2.0
+
+
+def test_failed_frames_are_counted_and_named_and_skipped() -> None:
+    truth = np.stack([line(101)] * 8)
+    pred = np.stack([line(64, offset_mm=(0.0, 0.3, 0.0))] * 8)
+    pred[[2, 5]] = np.nan
+    report = evaluate_centerlines(pred, truth, frame_indices=np.arange(100, 108))
+    assert report.failed_frames == 2
+    assert report.failed_indices == (102, 105)
+    assert report.mean_mm == pytest.approx(0.3, abs=1e-12)
+
+
+def test_all_frames_failed_gives_nan_figures_not_an_error() -> None:
+    report = evaluate_centerlines(np.full((4, 8, 3), np.nan), np.stack([line(10)] * 4))
+    assert report.failed_frames == 4
+    assert np.isnan(report.mean_mm) and np.isnan(report.tip_median_mm) and np.isnan(report.jitter_ratio)
+
+
+def sine_tips(amplitude_mm: float, frames: int = 91) -> tuple[NDArray[np.float64], float]:
+    """Tip tracks x = A sin(w k) at 0.5 Hz and 30 fps, and w (rad per frame)."""
+    w = 2 * np.pi * 0.5 / 30.0
+    x = amplitude_mm * np.sin(w * np.arange(frames))
+    return np.stack([x, np.zeros(frames), np.full(frames, 100.0)], axis=1), w
+
+
+def test_jitter_of_a_sine_is_its_analytic_second_difference() -> None:
+    tips, w = sine_tips(20.0)
+    # x[k+1] - 2 x[k] + x[k-1] = -4 sin^2(w/2) x[k] exactly, for every interior k.
+    expected = 4 * np.sin(w / 2) ** 2 * np.sqrt(np.mean(tips[1:-1, 0] ** 2))
+    assert tip_jitter(tips) == pytest.approx(expected, rel=1e-12)
+
+
+def test_jitter_ratio_compares_with_the_true_tip() -> None:
+    truth_tips, _ = sine_tips(20.0)
+    pred_tips, _ = sine_tips(40.0)
+    truth = np.stack([line(5)] * len(truth_tips))
+    pred = truth.copy()
+    truth[:, -1], pred[:, -1] = truth_tips, pred_tips
+    report = evaluate_centerlines(pred, truth, timestamps_s=np.arange(len(truth)) / 30.0)
+    assert report.jitter_ratio == pytest.approx(2.0, rel=1e-12)
+
+
+def test_uneven_timestamps_use_the_non_uniform_second_difference() -> None:
+    # x = a t^2 has second difference 2 a step^2 at any spacing (step = median step).
+    t = np.cumsum(np.random.default_rng(2).uniform(0.03, 0.045, 30))
+    tips = np.stack([3.0 * t**2, np.zeros_like(t), np.zeros_like(t)], axis=1)
+    step = np.median(np.diff(t))
+    assert tip_jitter(tips, timestamps_s=t) == pytest.approx(2 * 3.0 * step**2, rel=1e-9)
+
+
+def test_no_second_difference_across_missing_frames() -> None:
+    # The tip holds still, then (while frames 10-19 were not recorded) moves 10 mm.
+    t = np.concatenate([np.arange(10), np.arange(20, 30)]) / 30.0
+    tips = np.zeros((20, 3))
+    tips[10:, 0] = 10.0
+    assert tip_jitter(tips, timestamps_s=t) == 0.0
+    assert tip_jitter(tips) > 1.0  # without timestamps the jump looks like jitter
+
+
+# --- report output -------------------------------------------------------------------
+
+
+def small_report() -> EvaluationReport:
+    truth = np.stack([line(101)] * 5)
+    pred = np.stack([line(64, offset_mm=(0.2, 0.0, 0.0))] * 5)
+    pred[3] = np.nan
+    return evaluate_centerlines(pred, truth)
+
+
+def test_json_is_strict_and_round_trips() -> None:
+    report = small_report()
+    data = json.loads(report.to_json())
+    assert data["failed_indices"] == [3]
+    assert data["mean_mm"] == pytest.approx(0.2)
+    # A still tip has zero jitter: the ratio is undefined and must be null, not NaN.
+    assert data["jitter_ratio"] is None
+    assert data["smoothed"] is None
+
+
+def test_format_report_shows_figures_targets_and_failed_frames() -> None:
+    text = format_report(small_report())
+    assert "centreline mean (mm)" in text and "0.200" in text
+    assert f"<= {TARGETS['mean_mm']}" in text
+    assert "failed frames: 3" in text
+
+
+# --- files ---------------------------------------------------------------------------
+
+
+def test_ground_truth_from_a_session_directory(tmp_path: Path) -> None:
+    centerlines = np.stack([line(20)] * 3)
+    np.savez(tmp_path / "ground_truth.npz", centerlines=centerlines, timestamps_s=np.arange(3) / 30.0)
+    loaded, times = load_ground_truth(tmp_path)
+    np.testing.assert_array_equal(loaded, centerlines)
+    assert times is not None and len(times) == 3
+
+
+def test_missing_inputs_are_user_errors(tmp_path: Path) -> None:
+    with pytest.raises(EvaluationError, match=r"holds no ground_truth\.npz"):
+        load_ground_truth(tmp_path)
+    with pytest.raises(EvaluationError, match="does not exist"):
+        load_ground_truth(tmp_path / "nope.npz")
+    (tmp_path / "bad.npz").write_text("not a zip")
+    with pytest.raises(EvaluationError, match=r"bad\.npz: is not a ground_truth\.npz \(a NumPy \.npz"):
+        load_ground_truth(tmp_path / "bad.npz")
+    (tmp_path / "cut.npz").write_bytes(b"PK\x03\x04 and then nothing")
+    with pytest.raises(EvaluationError, match=r"cut\.npz: not a readable \.npz"):
+        load_ground_truth(tmp_path / "cut.npz")
+    np.savez(tmp_path / "other.npz", x=np.zeros(3))
+    with pytest.raises(EvaluationError, match="no 'centerlines' array"):
+        load_ground_truth(tmp_path / "other.npz")
+    with pytest.raises(EvaluationError, match=r"missing\.mcap does not exist"):
+        evaluate_recording(tmp_path / "missing.mcap", tmp_path / "other.npz")
+
+
+# --- a recording made by the runner -------------------------------------------------
+
+RUN_FRAMES = 8
+
+
+def rod_truth(index: int) -> NDArray[np.float64]:
+    """(20, 3) the true curve of frame ``index``: a vertical rod moved ``index`` mm along x."""
+    return line(20, length_mm=160.0, offset_mm=(128.0 + index, 128.0, 0.0))
+
+
+def shifted_rod(index: int, images: object, model: object) -> tuple[FrameResult, None]:
+    """Stand-in frame function: the true rod 0.5 mm off along y; frame 5 fails."""
+    if index == 5:
+        return FrameResult.failed(index, "test failure"), None
+    curve = line(16, length_mm=160.0, offset_mm=(128.0 + index, 128.5, 0.0))
+    points = curve.astype(np.float32)
+    return FrameResult(index=index, status="ok", points_mm=points, centerline_mm=curve, length_mm=160.0), None
+
+
+@pytest.fixture(scope="module")
+def partial_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A recording of frames 2..7 of an 8-frame session, and the session's ground truth."""
+    from conftest import build_session
+
+    from pipeline.run.runner import process_session
+    from pipeline.session.folder import load_session
+
+    root = tmp_path_factory.mktemp("evaluate_run")
+    session_dir = build_session(root / "rod", frames=RUN_FRAMES)
+    truth = np.stack([rod_truth(i) for i in range(RUN_FRAMES)])
+    np.savez(session_dir / "ground_truth.npz", centerlines=truth, timestamps_s=np.arange(RUN_FRAMES) / 30.0)
+    process_session(
+        load_session(session_dir),
+        out_dir=root / "out",
+        jobs=1,
+        frames=(2, RUN_FRAMES),
+        images=False,
+        progress=False,
+        frame_fn=shifted_rod,
+    )
+    return root / "out" / "rod.mcap", session_dir
+
+
+def test_recording_is_matched_to_the_truth_by_frame_index(partial_run: tuple[Path, Path]) -> None:
+    recording, session_dir = partial_run
+    report = evaluate_recording(recording, session_dir)
+    assert report.frames == RUN_FRAMES - 2
+    assert report.failed_indices == (5,)
+    # Matched frame for frame, only the 0.5 mm shift remains; a frame off would add 1 mm.
+    assert report.mean_mm == pytest.approx(0.5, abs=1e-6)  # metres and back: rounding only
+    assert report.tip_median_mm == pytest.approx(0.5, abs=1e-6)
+    assert report.length_error_pct == pytest.approx(0.0, abs=1e-6)
+    # The runner smooths after the last frame: a uniform motion passes through unchanged.
+    assert report.smoothed is not None
+    assert report.smoothed.failed_indices == (5,)
+    assert report.smoothed.mean_mm == pytest.approx(0.5, abs=1e-6)
+
+
+def test_cli_evaluate_prints_the_table_and_json(
+    partial_run: tuple[Path, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    from pipeline.cli import main
+
+    recording, session_dir = partial_run
+    assert main(["evaluate", str(recording), str(session_dir / "ground_truth.npz")]) == 0
+    assert "centreline mean (mm)" in capsys.readouterr().out
+    assert main(["evaluate", str(recording), str(session_dir), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["failed_indices"] == [5]
+
+
+def test_recording_beyond_the_truth_is_a_user_error(partial_run: tuple[Path, Path], tmp_path: Path) -> None:
+    recording, _ = partial_run
+    np.savez(tmp_path / "short.npz", centerlines=np.stack([rod_truth(0)] * 4))
+    with pytest.raises(EvaluationError, match="frame 4 is beyond the ground truth's 4 frames"):
+        evaluate_recording(recording, tmp_path / "short.npz")
+
+
+# --- the accuracy table (docs/accuracy.md) (pipeline.measure.accuracy_table) ---------------------------
+
+
+def test_accuracy_table_covers_every_shape_and_an_unseen_set() -> None:
+    from pipeline.measure.accuracy_table import default_cases
+    from pipeline.synth.names import SHAPES
+
+    cases = default_cases()
+    assert {c.shape for c in cases if not c.unseen} == set(SHAPES)
+    unseen = [c for c in cases if c.unseen]
+    assert {c.arrangement for c in unseen} == {"ninety", "oblique"}
+    assert {4.0, 9.0} <= {c.radius_mm for c in unseen}
+    assert {c.polarity for c in unseen} == {"dark", "bright"}
+    assert {c.shape for c in unseen} == set(SHAPES)
+    assert len({c.name for c in cases}) == len(cases)
+
+
+def test_accuracy_table_is_markdown_with_ours_smoothed_and_polyfit() -> None:
+    from pipeline.measure.accuracy_table import COLUMNS, Case, CaseResult, format_table, results_json
+
+    ours = dataclasses.replace(small_report(), smoothed=dataclasses.replace(small_report(), label="smoothed"))
+    results = [
+        CaseResult(Case("loop", "loop"), 5, ours, small_report()),
+        CaseResult(Case("ninety-helix-r4", "helix", "ninety", 4.0, unseen=True), 5, small_report(), None),
+    ]
+    lines = format_table(results).splitlines()
+    assert lines[1] == "|" + "---|" * len(COLUMNS)
+    first = [cell.strip() for cell in lines[2].strip("|").split("|")]
+    assert len(first) == len(COLUMNS)
+    assert first[:4] == ["loop", "oblique", "6", "0.20"]
+    assert first[7] == "1/5"  # failed / frames
+    assert first[8:10] == ["0 (-)", "-"]  # frames off (flagged), good frames flagged: not known here
+    assert first[11] == "0.20" and first[15] == "0.20"  # smoothed and polyfit means
+    second = [cell.strip() for cell in lines[3].strip("|").split("|")]
+    assert second[0] == "ninety-helix-r4 (unseen)" and second[11] == "-" and second[-1] == "-"
+    assert json.loads(results_json(results))[1]["polyfit"] is None

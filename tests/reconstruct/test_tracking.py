@@ -1,0 +1,93 @@
+"""Tracking: segments at fixed frames, the prediction, and curves that do not depend
+on how a run splits its frames."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.reconstruct.frame_result import FrameResult
+from pipeline.reconstruct.frame_task import process_range
+from pipeline.reconstruct.model import build_model
+from pipeline.reconstruct.tracking import (
+    SEGMENT_FRAMES,
+    WARMUP_FRAMES,
+    predict_axis,
+    segment_start,
+    track_start,
+)
+from pipeline.session.folder import load_session
+from pipeline.synth import render_session
+
+
+def _ok(index: int, axis_mm: np.ndarray) -> FrameResult:
+    return FrameResult(index=index, status="ok", centerline_mm=axis_mm, radius_mm=5.0)
+
+
+def test_tracks_start_a_few_frames_before_their_segment() -> None:
+    assert segment_start(0) == 0 and track_start(0) == 0
+    assert segment_start(SEGMENT_FRAMES - 1) == 0
+    assert segment_start(SEGMENT_FRAMES) == SEGMENT_FRAMES
+    assert track_start(SEGMENT_FRAMES + 5) == SEGMENT_FRAMES - WARMUP_FRAMES
+    assert track_start(WARMUP_FRAMES - 1) == 0
+
+
+def test_the_prediction_moves_the_last_curve_on_by_its_velocity() -> None:
+    axis = np.column_stack([np.zeros(8), np.zeros(8), np.linspace(0.0, 70.0, 8)])
+    step = np.array([1.0, -0.5, 0.0])
+    predicted = predict_axis([_ok(4, axis), _ok(5, axis + step)])
+    assert predicted is not None
+    np.testing.assert_allclose(predicted, axis + 2 * step)
+    # Across gaps (a live run drops frames): the same velocity per frame, over the gap.
+    np.testing.assert_allclose(predict_axis([_ok(3, axis), _ok(5, axis + step)]), axis + 1.5 * step)  # type: ignore[arg-type]
+    np.testing.assert_allclose(predict_axis([_ok(4, axis), _ok(5, axis + step)], 8), axis + 4 * step)  # type: ignore[arg-type]
+
+
+def test_a_track_whose_last_frame_has_no_curve_is_lost() -> None:
+    axis = np.column_stack([np.zeros(8), np.zeros(8), np.linspace(0.0, 70.0, 8)])
+    assert predict_axis([]) is None
+    assert predict_axis([_ok(4, axis), FrameResult.failed(5, "camera lost")]) is None
+
+
+@pytest.fixture(scope="module")
+def session_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    directory = tmp_path_factory.mktemp("tracking") / "bend"
+    # Long enough to cross a segment boundary; the motion is fast (one cycle), which
+    # is fine here: the test is about which frames a curve depends on, not accuracy.
+    render_session(directory, frames=SEGMENT_FRAMES + 12, progress=False, jobs=1, seed=4)
+    return directory
+
+
+def test_a_frames_curve_does_not_depend_on_how_the_run_splits_the_frames(session_dir: Path) -> None:
+    session = load_session(session_dir)
+    model = build_model(session)
+    names = [c.name for c in session.cameras]
+    n = session.frame_count
+
+    def curves(*spans: tuple[int, int]) -> dict[int, np.ndarray]:
+        out = {}
+        for start, stop in spans:
+            for o in process_range(model, session.video_paths, names, start, stop, images=False):
+                assert o.result.status == "ok", o.result.reason
+                assert o.result.centerline_mm is not None
+                out[o.result.index] = o.result.centerline_mm
+        return out
+
+    whole = curves((0, n))
+    # Split inside a segment, at a segment boundary, and a range starting late.
+    split = curves((0, 17), (17, SEGMENT_FRAMES), (SEGMENT_FRAMES, n))
+    late = curves((SEGMENT_FRAMES + 5, n))
+    assert sorted(whole) == sorted(split) == list(range(n))
+    for i in range(n):
+        np.testing.assert_array_equal(whole[i], split[i])
+    for i in late:
+        np.testing.assert_array_equal(whole[i], late[i])
+    # The progress tally gets a byte per frame of the range, none for its warm-up.
+    tally = session_dir.parent / "tally"
+    process_range(model, session.video_paths, names, SEGMENT_FRAMES + 5, n, images=False, tally=str(tally))
+    assert tally.stat().st_size == n - (SEGMENT_FRAMES + 5)
+    # Most frames are fitted from their track, not from the hull.
+    tracked = [o.result.tracked for o in process_range(model, session.video_paths, names, 0, n, images=False)]
+    assert sum(tracked) >= n - 2 * (WARMUP_FRAMES + 1)

@@ -1,0 +1,161 @@
+"""The tube fit's parts: held samples, the crowding test's margin, the stem refitted.
+
+(fit_tube on rendered tubes is tested in test_centerline.py.)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from pipeline.geometry.polyline import polyline_arclength, resample_polyline
+from pipeline.measure.evaluate import centerline_distances
+from pipeline.reconstruct.tube_fit import (
+    SideReadings,
+    _crowded,
+    _solve_corrections,
+    consistent_readings,
+    refit_body,
+)
+
+FloatArray = NDArray[np.float64]
+RADIUS = 6.0
+
+
+def _sides_along_x(k: int, offset: FloatArray) -> tuple[FloatArray, SideReadings]:
+    """K samples 4 mm apart along x, each read by two views (one along y, one
+    along z) that put the axis ``offset`` (K, 2) mm off it."""
+    pts = np.column_stack([np.arange(k) * 4.0, np.zeros(k), np.zeros(k)])
+    rows = np.zeros((k, 2, 3))
+    rows[:, 0, 1] = 1.0
+    rows[:, 1, 2] = 1.0
+    sides = SideReadings(
+        rows,
+        offset - RADIUS,
+        offset + RADIUS,
+        np.ones((k, 2, 2), dtype=bool),
+        RADIUS,
+        np.full((k, 2), RADIUS),
+        np.full(k, RADIUS),
+    )
+    return pts, sides
+
+
+def test_held_samples_stay_and_their_neighbours_join_them() -> None:
+    k = 20
+    offset = np.full((k, 2), 1.0)  # every view says: 1 mm over, in y and z
+    pts, sides = _sides_along_x(k, offset)
+    held = np.arange(k) >= 15
+    step = _solve_corrections(pts, sides, base_fixed=True, smoothness=0.5, held=held)
+    np.testing.assert_array_equal(step[held], 0.0)
+    np.testing.assert_array_equal(step[0], 0.0)
+    # Away from both held ends the readings win (the smoothness ties the
+    # corrections only near them): within 0.05 mm of the 1 mm they ask for.
+    np.testing.assert_allclose(step[6:10, 1:], 1.0, atol=0.05)
+    # The join is smooth: the corrections fall towards the held part.
+    assert step[14, 1] < step[10, 1]
+    # Holding the first sample is the same as base_fixed.
+    first = np.zeros(k, dtype=bool)
+    first[0] = True
+    np.testing.assert_array_equal(
+        _solve_corrections(pts, sides, base_fixed=False, smoothness=0.5, held=first),
+        _solve_corrections(pts, sides, base_fixed=True, smoothness=0.5),
+    )
+
+
+def test_crowding_margin_is_how_close_another_part_may_come() -> None:
+    # One view: a part along +x at y = 0, and another coming back along -x at
+    # y = 2 r + 3 px (60 mm later along the curve): their silhouettes are 3 px
+    # apart. Within a 2 px margin they do not touch; within 4 px they do.
+    r_px = 5.0
+    x = np.arange(0.0, 40.0, 2.0)
+    out = np.column_stack([x, np.zeros_like(x)])
+    back = np.column_stack([x[::-1], np.full_like(x, 2 * r_px + 3.0)])
+    px = np.concatenate([out, back])[None]
+    t_hat = np.concatenate([np.tile([1.0, 0.0], (len(x), 1)), np.tile([-1.0, 0.0], (len(x), 1))])[None]
+    arc = np.concatenate([x, 100.0 + x])
+    radii = np.full((1, len(arc)), r_px)
+    apart = 20.0
+    loose = _crowded(px, t_hat, radii, arc, apart, margin_px=2.0)
+    strict = _crowded(px, t_hat, radii, arc, apart, margin_px=4.0)
+    assert not loose.any()
+    # The normal of the outgoing part, (-t_y, t_x) = (0, 1), points at the other
+    # part: its positive side is touched, its negative side is not; and the
+    # other way round for the part coming back.
+    assert strict[0, : len(x), 1].all() and not strict[0, : len(x), 0].any()
+    assert strict[0, len(x) :, 1].all() and not strict[0, len(x) :, 0].any()
+
+
+@pytest.fixture(scope="module")
+def rendered_arc() -> tuple[FloatArray, list, list]:
+    """A C-shaped tube (200 mm, bend radius 110 mm) rendered with the demo rig:
+    its axis, the cameras, the foreground contrasts."""
+    from conftest import rig_cameras
+
+    from pipeline.reconstruct.tube_fit import foreground_contrast
+    from pipeline.synth.images import background_texture, render_frame
+    from pipeline.synth.rig import make_rig
+
+    s = np.linspace(0.0, 200.0, 400)
+    curve = np.array([128.0, 128.0, 0.0]) + np.column_stack(
+        [110.0 * (1 - np.cos(s / 110.0)), 0 * s, 110.0 * np.sin(s / 110.0)]
+    )
+    backgrounds = [background_texture(320, 240, seed=3, camera_index=i) for i in range(3)]
+    images = render_frame(make_rig(), curve, RADIUS, backgrounds, seed=3)
+    return curve, rig_cameras(), [foreground_contrast(im, polarity="dark") for im in images]
+
+
+def test_refit_body_brings_a_bumped_stem_back_and_holds_the_tip(rendered_arc: tuple) -> None:
+    curve, cams, contrasts = rendered_arc
+    pts = resample_polyline(curve, 51)  # 4 mm apart
+    arc = polyline_arclength(pts)
+    # A 3 mm bump sideways (y) mid-curve, as a tip's edges leave on the stem.
+    bumped = pts + (3.0 * np.exp(-(((arc - 80.0) / 15.0) ** 2)))[:, None] * np.array([0.0, 1.0, 0.0])
+    hold = float(arc[-1]) - 4.0 * RADIUS
+    out = refit_body(bumped, cams, contrasts, radius_mm=RADIUS, hold_from_mm=hold)
+    # Back on the axis: sub-pixel edges at ~0.5 px/mm, as fit_tube (~0.1 mm).
+    assert centerline_distances(out, curve).max() < 0.5
+    # The part past ``hold`` (in the input's arc length) is where it was,
+    # resampled as the fit resamples it; the tip and the base are exactly kept.
+    before = resample_polyline(bumped, len(out))
+    held = polyline_arclength(before) >= hold
+    assert held.sum() >= 6
+    np.testing.assert_allclose(out[held], before[held], atol=1e-9)
+    np.testing.assert_allclose(out[[0, -1]], bumped[[0, -1]], atol=1e-9)
+
+
+def test_consistent_drops_the_reading_the_solution_disagrees_with() -> None:
+    k = 20
+    offset = np.random.default_rng(0).normal(0.0, 0.05, (k, 2))  # edge noise, mm
+    offset[10, 0] = 4.0  # another part of the tube in view 0 at sample 10
+    pts, sides = _sides_along_x(k, offset)
+    step = _solve_corrections(pts, sides, base_fixed=False, smoothness=0.5)
+    kept = consistent_readings(sides, step)
+    assert not kept.use[10, 0].any()
+    # Everything else stays: its residuals are noise, far under a quarter radius.
+    assert kept.readings == sides.readings - 2
+    again = _solve_corrections(pts, kept, base_fixed=False, smoothness=0.5)
+    # Without the outlier, sample 10 sits where its neighbours and the noise say.
+    assert abs(again[10, 1]) < 0.3 < abs(step[10, 1])
+    assert consistent_readings(kept, again) is kept
+
+
+def test_the_radius_profile_follows_a_step_and_ignores_disks() -> None:
+    from pipeline.reconstruct.tube_fit import _radius_profile
+
+    k = 50
+    arc = np.arange(k) * 4.0
+    # Two views; the tube steps from 6 to 4 mm half way; every fifth sample reads a
+    # spacer disk (9 mm) in both views; the last samples have no reading (the tip zone).
+    truth = np.where(arc < 100.0, 6.0, 4.0)
+    half = np.repeat(truth[:, None], 2, axis=1)
+    half[::5] = 9.0
+    both = np.ones((k, 2), dtype=bool)
+    both[-3:] = False
+    radii = _radius_profile(arc, half, both, np.full(k, 6.0))
+    far_from_step = np.abs(arc - 100.0) > 20.0
+    np.testing.assert_allclose(radii[far_from_step], truth[far_from_step])
+    assert radii[-1] == 4.0  # the tip takes the thin end's radius
+    # Without readings, the expected radius stands.
+    np.testing.assert_array_equal(_radius_profile(arc, half, np.zeros((k, 2), bool), np.full(k, 6.0)), 6.0)

@@ -1,0 +1,187 @@
+"""load_recording: MCAP -> numpy, agreeing with the plain mcap reader, and lenient
+with files cut short mid-write."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import rig_cameras
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+
+import pipeline
+from pipeline.errors import PipelineError
+from pipeline.reconstruct.frame_result import FrameResult
+from pipeline.record.load import JsonDecoderFactory
+from pipeline.record.mcap_log import McapRecorder
+
+T0_NS = 1_600_000_000_000_000_000
+DT_NS = 40_000_000
+N_FRAMES = 24
+N_POINTS = 7
+FAILED = {5, 6, 17}
+
+
+def _curve(i: int) -> np.ndarray:
+    s = np.linspace(0.0, 1.0, N_POINTS)
+    return np.column_stack([128 + 10 * s * np.cos(i), 128 + 10 * s * np.sin(i), 150 * s])
+
+
+def _result(i: int, rng: np.random.Generator) -> FrameResult:
+    if i in FAILED:
+        return FrameResult.failed(i, "worker died twice")
+    points = rng.uniform(0, 256, (20 + i, 3)).astype(np.float32)
+    return FrameResult(
+        index=i,
+        status="ok",
+        points_mm=points,
+        centerline_mm=_curve(i),
+        iou=(1.0, 0.5, 0.25),
+        timings_s={"carve": 0.001 * i},
+    )
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[FrameResult]]:
+    rng = np.random.default_rng(3)
+    results = [_result(i, rng) for i in range(N_FRAMES)]
+    path = tmp_path_factory.mktemp("recording") / "s.mcap"
+    buf = io.BytesIO()
+    # Small chunks so that truncations fall between and inside many of them.
+    recorder = McapRecorder(
+        buf, rig_cameras(), chunk_size=3000, metadata={"centerline_points": str(N_POINTS)}
+    )
+    for r in results:
+        recorder.write_frame(r, T0_NS + r.index * DT_NS, jpegs=[b"jpeg"] * 3)
+    smoothed = np.stack([_curve(i) + 1.0 for i in range(N_FRAMES)])
+    smoothed[list(FAILED)] = np.nan
+    recorder.write_smoothed(smoothed, [T0_NS + i * DT_NS for i in range(N_FRAMES)])
+    recorder.finish()
+    path.write_bytes(buf.getvalue())
+    return path, results
+
+
+def test_arrays_hold_the_written_frames_in_metres(written: tuple[Path, list[FrameResult]]) -> None:
+    path, results = written
+    rec = pipeline.load_recording(path)
+    assert rec.complete and len(rec) == N_FRAMES
+    assert rec.camera_names == ("cam0", "cam1", "cam2")
+    np.testing.assert_array_equal(rec.frame_indices, np.arange(N_FRAMES))
+    np.testing.assert_array_equal(rec.timestamps_ns, T0_NS + np.arange(N_FRAMES) * DT_NS)
+    assert rec.centerlines_m.shape == (N_FRAMES, N_POINTS, 3)
+    for r in results:
+        if r.index in FAILED:
+            assert np.isnan(rec.centerlines_m[r.index]).all()
+            assert rec.statuses[r.index] == "failed"
+            assert rec.metrics[r.index]["reason"] == "worker died twice"
+            continue
+        assert r.centerline_mm is not None
+        # Centrelines travel as float64: exact up to the mm -> m multiplication.
+        np.testing.assert_allclose(rec.centerlines_m[r.index], r.centerline_mm / 1000, rtol=1e-15)
+        # Points travel as float32 metres: 7 significant digits.
+        np.testing.assert_allclose(rec.points_m[r.index], r.points_mm / 1000, rtol=1e-6)
+    assert rec.smoothed_centerlines_m is not None
+    np.testing.assert_allclose(rec.smoothed_centerlines_m[0], (_curve(0) + 1.0) / 1000, rtol=1e-15)
+    assert np.isnan(rec.smoothed_centerlines_m[5]).all()
+
+
+def test_loader_agrees_with_the_plain_mcap_reader(written: tuple[Path, list[FrameResult]]) -> None:
+    path, _ = written
+    rec = pipeline.load_recording(path)
+    curves: dict[int, np.ndarray] = {}
+    metrics: dict[int, dict] = {}
+    with path.open("rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _, channel, message in reader.iter_messages(
+            topics=["/reconstruction/centerline", "/reconstruction/metrics"]
+        ):
+            if channel.topic == "/reconstruction/metrics":
+                data = json.loads(message.data)
+                metrics[message.log_time] = data
+        f.seek(0)
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _, _, message, update in reader.iter_decoded_messages(topics=["/reconstruction/centerline"]):
+            if update.entities:
+                line = update.entities[0].lines[0]
+                curves[message.log_time] = np.array([(p.x, p.y, p.z) for p in line.points])
+    assert [metrics[t]["frame"] for t in sorted(metrics)] == rec.frame_indices.tolist()
+    assert [metrics[t] for t in sorted(metrics)] == rec.metrics
+    for row, t in enumerate(rec.timestamps_ns.tolist()):
+        if t in curves:
+            np.testing.assert_array_equal(rec.centerlines_m[row], curves[t])
+        else:
+            assert np.isnan(rec.centerlines_m[row]).all()
+
+
+def test_metrics_table_has_one_column_per_figure_and_camera(written: tuple[Path, list[FrameResult]]) -> None:
+    path, _ = written
+    rec = pipeline.load_recording(path)
+    table = rec.metrics_table()
+    assert {len(column) for column in table.values()} == {N_FRAMES}
+    np.testing.assert_array_equal(table["timestamp_ns"], rec.timestamps_ns)
+    np.testing.assert_array_equal(table["frame"], np.arange(N_FRAMES))
+    assert table["frame"].dtype == np.int64 and table["voxel_count"].dtype == np.int64
+    np.testing.assert_array_equal(table["status"], rec.statuses)
+    failed = np.isin(np.arange(N_FRAMES), sorted(FAILED))
+    assert set(table["reason"][failed]) == {"worker died twice"} and set(table["reason"][~failed]) == {""}
+    for k, name in enumerate(("cam0", "cam1", "cam2")):
+        column = table[f"iou/{name}"]
+        assert column.dtype == np.float64
+        np.testing.assert_array_equal(column[~failed], (1.0, 0.5, 0.25)[k])
+        assert np.isnan(column[failed]).all()  # a failed frame has no IoU: NaN, not a number
+    tips_m = np.column_stack([table[f"tip_m/{axis}"] for axis in "xyz"])
+    np.testing.assert_array_equal(tips_m[~failed], rec.centerlines_m[~failed, -1])
+    assert np.isnan(tips_m[failed]).all()
+    for name in ("length_m", "mean_curvature_per_m", "radius_m", "fit_residual_m"):
+        assert table[name].dtype == np.float64
+    # Every column matches the frame's JSON; a stage a failed frame never ran is NaN.
+    for row, metrics in enumerate(rec.metrics):
+        assert table["voxel_count"][row] == metrics["voxel_count"]
+        if failed[row]:
+            assert np.isnan(table["timings_s/carve"][row])
+        else:
+            assert table["timings_s/carve"][row] == metrics["timings_s"]["carve"] == 0.001 * row
+
+
+def test_the_plain_mcap_reader_decodes_the_metrics_with_the_documented_decoder(
+    written: tuple[Path, list[FrameResult]],
+) -> None:
+    path, _ = written
+    with path.open("rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory(), JsonDecoderFactory()])
+        decoded = [m for *_, m in reader.iter_decoded_messages(topics=["/reconstruction/metrics"])]
+    assert decoded == pipeline.load_recording(path).metrics
+
+
+def test_a_file_cut_mid_write_reads_up_to_its_last_complete_chunk(
+    written: tuple[Path, list[FrameResult]], tmp_path: Path
+) -> None:
+    path, _ = written
+    data = path.read_bytes()
+    full = pipeline.load_recording(path)
+    counts = []
+    for fraction in (0.05, 0.2, 0.37, 0.5, 0.71, 0.9, 0.999):
+        cut = tmp_path / f"cut{fraction}.mcap"
+        cut.write_bytes(data[: int(len(data) * fraction)])
+        rec = pipeline.load_recording(cut)
+        assert not rec.complete
+        n = len(rec)
+        counts.append(n)
+        # What is read is exactly the start of the full recording, nothing invented.
+        np.testing.assert_array_equal(rec.frame_indices, full.frame_indices[:n])
+        np.testing.assert_array_equal(rec.centerlines_m, full.centerlines_m[:n])
+        assert rec.metrics == full.metrics[:n]
+    assert counts == sorted(counts) and counts[-1] == N_FRAMES and 0 < counts[2] < N_FRAMES
+
+
+def test_not_an_mcap_is_a_pipeline_error(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(b"this is not an mcap file at all")
+    with pytest.raises(PipelineError, match=r"bad\.mcap: not a readable MCAP"):
+        pipeline.load_recording(bad)
+    with pytest.raises(PipelineError, match=r"missing\.mcap: cannot read"):
+        pipeline.load_recording(tmp_path / "missing.mcap")

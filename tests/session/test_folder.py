@@ -1,0 +1,168 @@
+"""VIDEO_DIR -> Session: what a valid directory gives, and the checks across files."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from datetime import UTC, datetime
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from conftest import build_session, remux_with_creation_time
+
+from pipeline.errors import SessionError
+from pipeline.session.folder import load_session
+
+
+@pytest.fixture(scope="module")
+def good_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return build_session(tmp_path_factory.mktemp("good") / "take_01", frames=3, fps=25.0)
+
+
+@pytest.fixture
+def session(good_session: Path, tmp_path: Path) -> Path:
+    return Path(shutil.copytree(good_session, tmp_path / "take_01"))
+
+
+def test_valid_session(good_session: Path) -> None:
+    s = load_session(good_session)
+    assert s.name == "take_01"
+    assert [c.name for c in s.cameras] == ["cam0", "cam1", "cam2"]
+    assert [p.name for p in s.video_paths] == ["cam0.avi", "cam1.avi", "cam2.avi"]
+    assert s.fps == 25.0
+    assert (s.frame_count, s.frame_counts) == (3, (3, 3, 3))
+    assert s.backgrounds == (None, None, None)
+
+
+def test_timestamps_follow_start_time_and_fps(tmp_path: Path) -> None:
+    session = build_session(
+        tmp_path / "s", frames=2, fps=25.0, settings={"session": {"start_time": "2024-01-01T00:00:00Z"}}
+    )
+    s = load_session(session)
+    start_ns = 1_704_067_200 * 10**9  # 2024-01-01T00:00:00Z in Unix time
+    assert s.timestamp_ns(0) == start_ns
+    assert s.timestamp_ns(1) == start_ns + 40_000_000  # 1/25 s
+    assert s.timestamp_ns(250) == start_ns + 10 * 10**9
+
+
+def _stamped_session(directory: Path, settings: dict[str, object] | None = None) -> Path:
+    """A session whose MP4s were created at 12:00:05, 12:00:03 (the earliest) and 12:00:04."""
+    session = build_session(directory, frames=2, fps=25.0, ext=".mp4", settings=settings)
+    for name, second in (("cam0", 5), ("cam1", 3), ("cam2", 4)):
+        path = session / f"{name}.mp4"
+        when = f"2024-05-01T12:00:0{second}Z"
+        remux_with_creation_time(path, path.with_suffix(".part.mp4"), when).replace(path)
+    return session
+
+
+def test_session_time_is_the_videos_creation_time(tmp_path: Path) -> None:
+    s = load_session(_stamped_session(tmp_path / "s"))
+    start_ns = int(datetime(2024, 5, 1, 12, 0, 3, tzinfo=UTC).timestamp()) * 10**9
+    assert s.settings.session.start_time == datetime(2024, 5, 1, 12, 0, 3, tzinfo=UTC)
+    assert s.timestamp_ns(0) == start_ns  # the first camera to start
+    assert s.timestamp_ns(25) == start_ns + 10**9
+
+
+@pytest.mark.parametrize(
+    ("start_time", "expected"),
+    [
+        ("2023-02-03T04:05:06Z", datetime(2023, 2, 3, 4, 5, 6, tzinfo=UTC)),
+        # Given explicitly, even the default's value is kept over the videos'.
+        ("1970-01-01T00:00:00Z", datetime(1970, 1, 1, tzinfo=UTC)),
+    ],
+)
+def test_start_time_in_session_toml_overrides_the_creation_time(
+    tmp_path: Path, start_time: str, expected: datetime
+) -> None:
+    session = _stamped_session(tmp_path / "s", settings={"session": {"start_time": start_time}})
+    s = load_session(session)
+    assert s.settings.session.start_time == expected
+    assert s.timestamp_ns(0) == round(expected.timestamp()) * 10**9
+
+
+def test_without_creation_time_or_start_time_the_epoch(session: Path) -> None:
+    s = load_session(session)  # OpenCV's AVIs carry no creation time
+    assert s.timestamp_ns(0) == 0
+
+
+def test_mp4_and_avi_mixed(session: Path) -> None:
+    cap = cv2.VideoCapture(str(session / "cam1.avi"))
+    frames = [cap.read()[1] for _ in range(3)]
+    cap.release()
+    (session / "cam1.avi").unlink()
+    writer = cv2.VideoWriter(str(session / "cam1.mp4"), cv2.VideoWriter.fourcc(*"mp4v"), 25.0, (320, 240))
+    for frame in frames:
+        writer.write(frame)
+    writer.release()
+    s = load_session(session)
+    assert s.video_paths[1].name == "cam1.mp4" and s.frame_count == 3
+
+
+def test_videos_of_different_lengths_warn_with_each_count(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    session = build_session(tmp_path / "s", frame_counts={"cam0": 5, "cam1": 3, "cam2": 4})
+    with caplog.at_level(logging.WARNING, logger="pipeline.session.folder"):
+        s = load_session(session)
+    assert (s.frame_count, s.frame_counts) == (3, (5, 3, 4))
+    assert "cam0: 5, cam1: 3, cam2: 4" in caplog.text and "3 common frames" in caplog.text
+
+
+def test_other_files_are_ignored(session: Path) -> None:
+    (session / "notes.txt").write_text("camera 1 was bumped")
+    (session / "ground_truth.npz").write_bytes(b"")
+    (session / "cam0.avi.part").write_bytes(b"")
+    assert len(load_session(session).cameras) == 3
+
+
+def test_background_method_needs_every_background(session: Path) -> None:
+    (session / "session.toml").write_text('[silhouette]\nmethod = "background"\n')
+    (session / "background").mkdir()
+    cv2.imwrite(str(session / "background" / "cam0.png"), np.full((240, 320), 150, np.uint8))
+    with pytest.raises(SessionError, match=r"background/cam1\.png \(missing for camera 'cam1'\)"):
+        load_session(session)
+    for name in ("cam1", "cam2"):
+        cv2.imwrite(str(session / "background" / f"{name}.png"), np.full((240, 320), 150, np.uint8))
+    s = load_session(session)
+    assert all(b is not None and b.shape == (240, 320) and b.dtype == np.uint8 for b in s.backgrounds)
+
+
+def test_background_of_wrong_size(session: Path) -> None:
+    (session / "background").mkdir()
+    cv2.imwrite(str(session / "background" / "cam2.png"), np.zeros((100, 100), np.uint8))
+    with pytest.raises(SessionError, match=r"cam2\.png: is 100x100 but camera 'cam2' is 320x240"):
+        load_session(session)
+
+
+def test_background_not_an_image(session: Path) -> None:
+    (session / "background").mkdir()
+    (session / "background" / "cam1.png").write_bytes(b"not a png")
+    with pytest.raises(SessionError, match=r"cam1\.png: cannot be read as an image"):
+        load_session(session)
+
+
+def test_workspace_partly_seen_is_accepted(session: Path) -> None:
+    # A box reaching far beyond the images is fine as long as each camera sees some of it.
+    (session / "session.toml").write_text(
+        "[workspace]\norigin_mm = [-1000.0, -1000.0, 0.0]\n"
+        "size_mm = [2256.0, 2256.0, 256.0]\nvoxel_mm = 8.0\n"
+    )
+    assert load_session(session).settings.workspace.voxel_mm == 8.0
+
+
+def test_workspace_behind_a_camera_is_refused(session: Path) -> None:
+    # A small box placed just behind cam0's optical centre: cam0 cannot see it at all.
+    cam0 = load_session(session).cameras[0]
+    behind = cam0.center_mm + 50.0 * (cam0.center_mm - np.array([128.0, 128.0, 128.0])) / np.linalg.norm(
+        cam0.center_mm - 128.0
+    )
+    origin = ", ".join(f"{v:.1f}" for v in behind - 5.0)
+    base = ", ".join(f"{v:.1f}" for v in behind)  # the base goes with the box
+    (session / "session.toml").write_text(
+        f"[workspace]\norigin_mm = [{origin}]\nsize_mm = [10.0, 10.0, 10.0]\nvoxel_mm = 1.0\n"
+        f"[manipulator]\nbase_mm = [{base}]\n"
+    )
+    with pytest.raises(SessionError, match="camera 'cam0' does not see the workspace"):
+        load_session(session)
