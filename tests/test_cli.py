@@ -18,10 +18,11 @@ import pytest
 
 from pipeline import cli
 from pipeline.cli import EXIT_BAD_INPUT, EXIT_FRAMES_FAILED, EXIT_INTERNAL_ERROR, main
+from pipeline.cli import parser as cli_parser
 from pipeline.errors import CalibrationError
 from pipeline.record.load import load_recording
 from pipeline.run import runner, workers
-from pipeline.run.outputs import RunSummary
+from pipeline.run.summary import RunSummary
 from pipeline.session import folder as session
 from pipeline.synth.session_render import MIN_PARALLEL_FRAMES
 
@@ -33,13 +34,13 @@ PIPELINE = str(Path(sys.executable).parent / "pipeline")  # the console script
     [("0:300", (0, 300)), (":10", (0, 10)), ("5:", (5, None)), ("7:8", (7, 8))],
 )
 def test_frame_range_parses(text: str, expected: tuple[int, int | None]) -> None:
-    assert cli._frame_range(text) == expected
+    assert cli_parser._frame_range(text) == expected
 
 
 @pytest.mark.parametrize("text", ["10", "a:b", "5:5", "9:3", "-1:4", ""])
 def test_frame_range_rejects(text: str) -> None:
     with pytest.raises(argparse.ArgumentTypeError, match="START:STOP"):
-        cli._frame_range(text)
+        cli_parser._frame_range(text)
 
 
 def test_bad_argument_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
@@ -62,7 +63,7 @@ def _raising(exc: BaseException) -> object:
 def test_pipeline_error_is_one_line_and_exit_2(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    monkeypatch.setattr(cli, "_cmd_evaluate", _raising(CalibrationError("cal.toml: bad\n  camera 'c0'")))
+    monkeypatch.setattr(cli_parser, "_cmd_evaluate", _raising(CalibrationError("cal.toml: bad\n  camera 'c0'")))
     assert main(["evaluate", "r.mcap", "gt.npz"]) == EXIT_BAD_INPUT
     assert capsys.readouterr().err == "error: cal.toml: bad camera 'c0'\n"
 
@@ -70,7 +71,7 @@ def test_pipeline_error_is_one_line_and_exit_2(
 def test_a_bug_is_one_line_and_exit_3_without_debug(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    monkeypatch.setattr(cli, "_cmd_evaluate", _raising(ZeroDivisionError("division by zero")))
+    monkeypatch.setattr(cli_parser, "_cmd_evaluate", _raising(ZeroDivisionError("division by zero")))
     assert main(["evaluate", "r.mcap", "gt.npz"]) == EXIT_INTERNAL_ERROR
     err = capsys.readouterr().err
     assert err.startswith("internal error: ZeroDivisionError: division by zero")
@@ -78,13 +79,13 @@ def test_a_bug_is_one_line_and_exit_3_without_debug(
 
 
 def test_debug_lets_a_bug_through(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(cli, "_cmd_evaluate", _raising(ZeroDivisionError("division by zero")))
+    monkeypatch.setattr(cli_parser, "_cmd_evaluate", _raising(ZeroDivisionError("division by zero")))
     with pytest.raises(ZeroDivisionError):
         main(["--debug", "evaluate", "r.mcap", "gt.npz"])
 
 
 def test_debug_may_follow_the_subcommand(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(cli, "_cmd_evaluate", _raising(ZeroDivisionError("division by zero")))
+    monkeypatch.setattr(cli_parser, "_cmd_evaluate", _raising(ZeroDivisionError("division by zero")))
     with pytest.raises(ZeroDivisionError):
         main(["evaluate", "r.mcap", "gt.npz", "--debug"])
 
@@ -117,8 +118,8 @@ def test_the_program_names_itself_as_invoked(command: list[str], usage: str) -> 
 def test_a_run_counts_its_wall_time_from_the_process_start() -> None:
     # Half a second passes before the CLI is even imported: the wall time must include it.
     code = (
-        "import time; time.sleep(0.5); from pipeline import cli; "
-        "print(time.perf_counter() - cli._process_started_at())"
+        "import time; time.sleep(0.5); from pipeline.cli import commands; "
+        "print(time.perf_counter() - commands._process_started_at())"
     )
     proc = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
@@ -233,7 +234,7 @@ def test_json_to_a_missing_folder_fails_before_the_run(
 
 
 def test_interrupt_exits_130(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
-    monkeypatch.setattr(cli, "_cmd_evaluate", _raising(KeyboardInterrupt()))
+    monkeypatch.setattr(cli_parser, "_cmd_evaluate", _raising(KeyboardInterrupt()))
     assert main(["evaluate", "r.mcap", "gt.npz"]) == 130
     assert "interrupted" in capsys.readouterr().err
 

@@ -86,3 +86,14 @@ def by_fraction(values: FloatArray, n: int) -> FloatArray:
     """(n,) ``values`` (M,), given at M samples spread evenly along a curve, at n such samples
     (linear interpolation by the fraction of the way along)."""
     return np.interp(np.linspace(0.0, 1.0, n), np.linspace(0.0, 1.0, len(values)), values)
+
+
+def unit_tangents(pts: FloatArray) -> FloatArray:
+    """(N, 3) unit tangents of the polyline ``pts`` (N, 3), by central differences."""
+    # np.gradient's own arithmetic (central differences / 2, one-sided at the
+    # ends), without its per-call overhead.
+    d = np.empty_like(pts)
+    d[1:-1] = (pts[2:] - pts[:-2]) / 2.0
+    d[0] = pts[1] - pts[0]
+    d[-1] = pts[-1] - pts[-2]
+    return d / np.maximum(vector_norms(d)[:, None], 1e-12)

@@ -25,7 +25,9 @@ import numpy as np
 from ..errors import SessionError
 from ..reconstruct.frame_task import Tracker
 from ..run.interrupts import deferred_signals, signals_interrupt
-from ..run.outputs import OutputTarget, RunSummary, Writers, prepare_outputs
+from ..run.output_target import OutputTarget, prepare_outputs
+from ..run.outputs import Writers
+from ..run.summary import RunSummary
 from ..session.folder import Session
 from .capture import CameraReader
 from .handoff import QUEUE_SETS, DroppingQueue

@@ -21,14 +21,16 @@ from ..carve.hull import carve, voxel_centers_mm
 from ..carve.silhouette import extract_silhouette
 from ..geometry.camera import project_in_views
 from ..geometry.polyline import by_fraction
-from .centerline import fit_centerline, radius_from_silhouettes, smooth_curve
+from .centerline import fit_centerline
 from .frame_result import FrameResult
 from .model import SessionModel
 from .model import build_model as build_model  # re-exported: build the model, then reconstruct frames
 from .ordering import infer_base
 from .quality import misfit_fractions, suspect_reason, tube_figures
+from .spline import smooth_curve
 from .tracking import TrackedFit, drawn_radius, predict_axis, track_tube
 from .tube_fit import foreground_contrast
+from .tube_scores import radius_from_silhouettes
 
 # Fewer occupied voxels than this cannot hold a tube: the frame is "failed"
 # (something was seen, but no curve can come of it).

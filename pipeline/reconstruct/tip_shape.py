@@ -4,9 +4,9 @@ A flat end and a hemispherical one cover different pixels around the tip: seen
 side-on, the flat end's outline is square where the round one's is a half
 disc, and the round end reaches a radius past its centre (the backbone's end).
 On frames spread over the session, each frame's curve has its tip placed by
-the grey levels under either end (:func:`pipeline.reconstruct.tube_tip.bend_tip_to_pixels`);
+the grey levels under either end (:func:`pipeline.reconstruct.tip_bend.bend_tip_to_pixels`);
 the end whose tubes match the grey levels better, summed over the frames
-(:func:`pipeline.reconstruct.tube_tip.coverage_mismatch`), is the session's.
+(:func:`pipeline.reconstruct.tube_drawing.coverage_mismatch`), is the session's.
 """
 
 from __future__ import annotations
@@ -22,7 +22,8 @@ from numpy.typing import NDArray
 from .frame import frame_contrasts, reconstruct_with_silhouettes
 from .frame_task import decode_frames
 from .model import SessionModel
-from .tube_tip import bend_tip_to_pixels, coverage_mismatch, pixel_coverages
+from .tip_bend import bend_tip_to_pixels
+from .tube_drawing import coverage_mismatch, pixel_coverages
 
 # Frames sampled over the session: enough that one frame whose tip is hidden
 # (end-on in most views, or against another part) does not decide.

@@ -28,8 +28,8 @@ from ..geometry.camera import Camera
 from ..geometry.polyline import axis_gap_mm, by_fraction, self_intersects
 from .frame_result import FrameResult
 from .quality import misfit_fractions
+from .tip_bend import bend_tip_to_pixels, tip_meets_tube
 from .tube_fit import TubeFit, fit_tube
-from .tube_tip import bend_tip_to_pixels, tip_meets_tube
 
 FloatArray = NDArray[np.float64]
 
@@ -53,11 +53,11 @@ TRACK_SETTLED_RADII = 0.5
 # (the margin pipeline.reconstruct.tube_fit.refit_body uses once a loop's tip is placed).
 TRACK_CROWD_MARGIN_PX = 4.0
 # Where the tip lies against another part, the grey levels place it
-# (pipeline.reconstruct.tube_tip.bend_tip_to_pixels), sought within a few mm of the fit.
+# (pipeline.reconstruct.tip_bend.bend_tip_to_pixels), sought within a few mm of the fit.
 TRACK_BEND_STEPS_MM = (2.0, 1.0, 0.5, 0.25)
 # The track is lost where the fitted tube leaves more than this fraction of a
 # silhouette unexplained (pipeline.reconstruct.quality.misfit_fractions; the same bar as
-# the initialisation's, pipeline.reconstruct.centerline.MISFIT) ...
+# the initialisation's, pipeline.reconstruct.tube_scores.MISFIT) ...
 LOST_MISFIT = 0.01
 # ... passes through itself (parts' axes closer than this many radii) ...
 LOST_CLOSEST_RADII = 1.5
@@ -133,7 +133,7 @@ def track_tube(
     A few rounds of :func:`pipeline.reconstruct.tube_fit.fit_tube` from the prediction,
     seeking the tube's sides near it; where the tip then lies against another
     part in some view, whose edges pull its side readings, the tip is placed by
-    the grey levels instead (:func:`pipeline.reconstruct.tube_tip.bend_tip_to_pixels`).
+    the grey levels instead (:func:`pipeline.reconstruct.tip_bend.bend_tip_to_pixels`).
     The track is lost (the caller initialises again from the hull) where the
     fit leaves part of a silhouette unexplained, passes through itself, or
     jumped from the prediction (``LOST_*``). ``cap``: the tube's end, "flat"

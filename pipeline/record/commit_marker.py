@@ -1,7 +1,7 @@
 """The marker a run leaves beside its outputs while it renames the pair into place.
 
 ``.<session>.<run>.commit`` exists only between a run's two renames (the .mcap, then the
-.rrd; :meth:`pipeline.run.outputs.OutputTarget.commit`): one still there means that run was
+.rrd; :meth:`pipeline.run.output_target.OutputTarget.commit`): one still there means that run was
 killed between them, and the folder may hold its new .mcap beside an earlier .rrd until the
 next run of the session there puts the rest in place. Kept apart from
 :mod:`pipeline.run.outputs` so that the loader can look for it without the writers' imports.

@@ -11,14 +11,9 @@ writers, whose files carry temporary names until the run is complete.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
 import math
-import os
-import sys
-import tempfile
-import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -29,15 +24,23 @@ from ..reconstruct.frame_result import FrameResult
 from ..reconstruct.frame_task import FrameFunction, FrameOutput, encode_silhouette, process_range
 from ..reconstruct.tracking import SEGMENT_FRAMES, segment_start
 from ..session.folder import Session
-from .interrupts import deferred_signals, signals_blocked_in_children, signals_interrupt
-from .outputs import OutputTarget, RunSummary, Writers, compress_failures, prepare_outputs
+from .backends import (
+    BACKENDS,
+    DASK_CONNECT_TIMEOUT_S,
+    check_scheduler,
+    check_scheduler_address,
+    parallel_backend,
+)
+from .interrupts import signals_blocked_in_children, signals_interrupt
+from .output_target import OutputTarget, prepare_outputs
+from .outputs import Writers
+from .progress import advance, new_tally, progress_bar
+from .summary import RunSummary, compress_failures
 from .workers import (
     available_cores,
     describe_pool_failure,
     effective_jobs,
-    loky_options,
     release_local_workers,
-    shared_with_local_workers,
     start_local_workers,
     wait_for_local_workers,
 )
@@ -60,9 +63,6 @@ log = logging.getLogger(__name__)
 MAX_RANGE_FRAMES = 3 * SEGMENT_FRAMES
 # ... and at least a segment: a range costs a task, three seeks and its track's warm-up.
 MIN_RANGE_FRAMES = SEGMENT_FRAMES
-BACKENDS = ("loky", "threading", "dask")
-DASK_CONNECT_TIMEOUT_S = 10
-PROGRESS_REDRAW_S = 0.5
 
 
 def frame_ranges(start: int, stop: int, n_workers: int) -> list[tuple[int, int]]:
@@ -89,114 +89,6 @@ def frame_ranges(start: int, stop: int, n_workers: int) -> list[tuple[int, int]]
         ranges.append((at, at + size))
         at += size
     return ranges
-
-
-@contextlib.contextmanager
-def _backend(backend: str, scheduler: str | None, n_jobs: int, model: Any) -> Iterator[tuple[int, Any]]:
-    """joblib's parallel_config for ``backend``, yielding the number of workers and the
-    model to hand them; for Dask, a client for the run (and a local cluster when no
-    scheduler is given)."""
-    import joblib
-
-    if backend in ("loky", "threading"):
-        options = loky_options() if backend == "loky" else {}
-        with joblib.parallel_config(backend=backend, n_jobs=n_jobs, **options):
-            if backend == "loky" and n_jobs > 1:
-                with shared_with_local_workers(model) as shared:
-                    yield n_jobs, shared
-            else:
-                yield n_jobs, model
-        return
-    # distributed logs ~45 INFO lines while a cluster starts, and warnings as an interrupted
-    # one stops (cancelled tasks, workers killed), in this process and in its workers
-    # (which read the variable): the run's own lines say what matters.
-    quiet = not log.isEnabledFor(logging.DEBUG)
-    if quiet:
-        os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "critical")
-    from distributed import Client, LocalCluster
-
-    if quiet:
-        # Dask's logging config gives these their own handlers (tornado's: a client's
-        # callback that finds its connections closed as an interrupted run stops).
-        for name in ("distributed", "tornado", "tornado.application"):
-            logging.getLogger(name).setLevel(logging.CRITICAL)
-
-    cluster = None
-    if scheduler:
-        try:
-            client = Client(scheduler, timeout=DASK_CONNECT_TIMEOUT_S)
-        except OSError as exc:  # refused, unreachable, timed out
-            raise SettingsError(
-                f"cannot reach the Dask scheduler at {scheduler} ({exc}); "
-                "check --scheduler and that the scheduler is running"
-            ) from None
-    else:
-        # A cluster interrupted while it starts cannot be closed (distributed's own exit
-        # handler then fails on it with a traceback): a signal waits the seconds it takes.
-        with deferred_signals(), signals_blocked_in_children():
-            cluster = LocalCluster(n_workers=n_jobs, threads_per_worker=1, processes=True)
-            client = Client(cluster)
-    try:
-        # The model is scattered to the workers once, not shipped with every range.
-        with joblib.parallel_config(backend="dask", client=client, scatter=[model]):
-            workers = len(client.scheduler_info().get("workers", {}))
-            yield max(1, workers), model
-    finally:
-        _close_dask(client, cluster)
-
-
-def _close_dask(client: Any, cluster: Any) -> None:
-    """Close the run's client, and its local cluster if it started one (whose workers are
-    killed if they do not stop within seconds), without letting a failure to close hide
-    how the run ended."""
-    for closing in (client, cluster):
-        if closing is not None:
-            try:
-                closing.close()
-            except Exception as exc:
-                log.debug("closing %s failed: %s", type(closing).__name__, exc)
-
-
-def _check_scheduler(address: str, timeout_s: float) -> None:
-    """Ask ``address`` who it is, all within ``timeout_s``, and raise SettingsError unless
-    a scheduler with workers answers. The Client's own timeout covers the connection, not
-    the handshake after it: a server that accepts TCP but is not a scheduler (the
-    dashboard's port, any HTTP server) kept the run waiting for good."""
-    import asyncio
-
-    from distributed.comm import connect
-
-    async def identity() -> Any:
-        comm = await connect(address, timeout=timeout_s)
-        try:
-            await comm.write({"op": "identity", "reply": True})
-            return await comm.read()
-        finally:
-            comm.abort()
-
-    try:
-        reply = asyncio.run(asyncio.wait_for(identity(), timeout_s))
-    except OSError as exc:  # refused, unreachable, timed out (TimeoutError), closed on us
-        why = " ".join(str(exc).split())[:200] or f"no answer within {timeout_s:g} s"
-        raise SettingsError(
-            f"cannot reach the Dask scheduler at {address} ({why}); "
-            "check --scheduler and that the scheduler is running"
-        ) from None
-    except Exception as exc:  # it answered in another protocol
-        raise SettingsError(
-            f"--scheduler {address}: is not a Dask scheduler ({type(exc).__name__}); check the "
-            "address (the scheduler's port, 8786 by default, not the dashboard's)"
-        ) from None
-    if not isinstance(reply, dict) or reply.get("type") != "Scheduler":
-        raise SettingsError(
-            f"--scheduler {address}: is not a Dask scheduler; check the address (the "
-            "scheduler's port, 8786 by default, not the dashboard's)"
-        )
-    if not reply.get("workers"):
-        raise SettingsError(
-            f"--scheduler {address}: the scheduler has no workers; start some "
-            f"(dask worker {address}) and rerun"
-        )
 
 
 def _run_ranges(
@@ -347,7 +239,7 @@ def _process_session(
         raise SettingsError(f"backend {backend!r} unknown; use one of {', '.join(BACKENDS)}")
     if backend == "dask" and scheduler:
         check_scheduler_address(scheduler)
-        _check_scheduler(scheduler, DASK_CONNECT_TIMEOUT_S)
+        check_scheduler(scheduler, DASK_CONNECT_TIMEOUT_S)
     start, stop = _frame_span(session, frames)
     n_jobs = effective_jobs(jobs)
     if n_jobs < jobs and not (backend == "dask" and scheduler):
@@ -399,10 +291,10 @@ def _run_with(
     written: list[tuple[Path, int]] = []
     # Local workers tell the bar of each frame as they finish it (a range's results
     # come back whole): one byte each, appended to a file of this run's.
-    tally = _new_tally() if progress and backend != "dask" else None
+    tally = new_tally() if progress and backend != "dask" else None
     # Shown from here on, while the workers start and the model is built, not only from
     # the first results.
-    bar = _progress_bar(stop - start, progress, elapsed_s=time.perf_counter() - t0, tally=tally)
+    bar = progress_bar(stop - start, progress, elapsed_s=time.perf_counter() - t0, tally=tally)
     try:
         with bar:
             if backend == "loky":
@@ -423,7 +315,7 @@ def _run_with(
                 tip = choice.describe() if choice is not None else ""
             else:
                 model = session  # a replacement frame function gets the session as its model
-            with _backend(backend, scheduler, n_jobs, model) as (n_workers, shared):
+            with parallel_backend(backend, scheduler, n_jobs, model) as (n_workers, shared):
 
                 def call(span: tuple[int, int]) -> Any:
                     # The model is a positional argument of its own: the local workers map
@@ -458,7 +350,7 @@ def _run_with(
                     for out in outputs:
                         writer.write(out)
                         done += 1
-                        _advance(bar, done)
+                        advance(bar, done)
         assert writer is not None
         writer.finish()
         if frame_fn is None:
@@ -502,25 +394,6 @@ def _run_with(
     )
 
 
-# The URL schemes of Dask's transports (distributed.comm); an address without one is tcp.
-_SCHEDULER_SCHEMES = ("tcp", "tls", "ucx", "ws", "wss")
-
-
-def check_scheduler_address(address: str) -> None:
-    """Refuse, before any work, a ``--scheduler`` that cannot be a scheduler's address."""
-    scheme, sep, rest = address.partition("://")
-    if not sep:
-        scheme, rest = "tcp", address
-    host, colon, port = rest.rpartition(":")
-    if scheme in _SCHEDULER_SCHEMES and colon and host and port.isdigit() and 0 < int(port) < 65536:
-        return
-    hint = " (http serves the dashboard, not the scheduler)" if scheme in ("http", "https") else ""
-    raise SettingsError(
-        f"--scheduler {address!r}: not a Dask scheduler address{hint}; give tcp://HOST:PORT "
-        "(the scheduler's port, 8786 by default)"
-    )
-
-
 def _frame_span(session: Session, frames: tuple[int, int | None] | None) -> tuple[int, int]:
     n = session.frame_count
     if frames is None:
@@ -533,47 +406,3 @@ def _frame_span(session: Session, frames: tuple[int, int | None] | None) -> tupl
             f"(the session has {n} frames, 0-{n - 1})"
         )
     return start, stop
-
-
-def _progress_bar(total: int, enabled: bool, *, elapsed_s: float = 0.0, tally: Path | None = None) -> Any:
-    """A tqdm bar of ``total`` frames on stderr (frames/s and time left), its clock started
-    ``elapsed_s`` ago, redrawn every PROGRESS_REDRAW_S until it is closed; moved on by
-    the bytes the workers append to ``tally`` (one per frame done) as well as by the
-    frames written."""
-    from tqdm import tqdm
-
-    bar = tqdm(
-        total=total, unit="frame", file=sys.stderr, disable=not enabled, dynamic_ncols=True, smoothing=0.1
-    )
-    if enabled:
-        bar.start_t -= elapsed_s  # tqdm's own clock (time.time) counts from its creation
-        bar.refresh()
-        # Frames arrive a range at a time: without redraws the clock would stand still
-        # while the workers start and reconstruct their first ranges.
-        threading.Thread(target=_redraw, args=(bar, tally), daemon=True, name="progress-redraw").start()
-    return bar
-
-
-def _new_tally() -> Path:
-    handle, name = tempfile.mkstemp(prefix="pipeline-progress-")
-    os.close(handle)
-    return Path(name)
-
-
-def _advance(bar: Any, done: int) -> None:
-    """Move ``bar`` on to ``done`` frames (never back: the workers' tally may be ahead)."""
-    with bar.get_lock():
-        if done > bar.n and not bar.disable:
-            bar.update(min(done, bar.total) - bar.n)
-
-
-def _redraw(bar: Any, tally: Path | None) -> None:
-    while True:
-        time.sleep(PROGRESS_REDRAW_S)
-        if tally is not None:
-            with contextlib.suppress(OSError):
-                _advance(bar, tally.stat().st_size)
-        with bar.get_lock():  # the lock close() takes to draw the last line: no redraw after it
-            if bar.disable:  # closed
-                return
-            bar.refresh(nolock=True)

@@ -588,7 +588,7 @@ def test_a_camera_that_stalls_is_reported_and_picked_up_again_while_the_others_g
 
 
 def test_the_summary_gives_latency_drops_rates_and_outages() -> None:
-    from pipeline.run.outputs import RunSummary
+    from pipeline.run.summary import RunSummary
 
     run = RunSummary(frames_ok=4, frames_empty=0, frames_failed=[], wall_s=2.0, fps=2.0)
     summary = LiveSummary(

@@ -29,7 +29,6 @@ from pipeline.measure.bench.report import (
     LiveRun,
     ScalingRow,
     ShapeRun,
-    format_table,
     speedup_2_over_1,
     targets,
     write_json,
@@ -43,6 +42,7 @@ from pipeline.measure.bench.stages import (
     time_stages,
     upsample_masks,
 )
+from pipeline.measure.bench.table import format_table
 from pipeline.measure.bench.timing import StageStats, StageTimer
 from pipeline.session.folder import load_session
 

@@ -11,8 +11,8 @@ from scipy.spatial import cKDTree
 
 from pipeline.geometry.polyline import cut_polyline, polyline_arclength, resample_polyline
 from pipeline.measure.evaluate import centerline_distances
-from pipeline.reconstruct.centerline import smooth_curve
 from pipeline.reconstruct.ordering import infer_base, march_hull
+from pipeline.reconstruct.spline import smooth_curve
 
 BASE = np.array([128.0, 128.0, 0.0])
 RADIUS = 6.0
@@ -240,7 +240,7 @@ def test_trim_cuts_a_tail_that_explains_no_silhouette_pixel(rendered_arc: tuple)
 
 
 def test_centre_across_moves_a_point_onto_the_axis(rendered_arc: tuple) -> None:
-    from pipeline.reconstruct.tube_fit import centre_across
+    from pipeline.reconstruct.side_readings import centre_across
 
     curve, cams, _, contrasts = rendered_arc
     on_axis = curve[200]
@@ -282,8 +282,8 @@ def test_coasting_march_keeps_its_course_through_a_false_bridge() -> None:
 
 
 def test_silhouette_score_prefers_the_whole_tube(rendered_arc: tuple) -> None:
-    from pipeline.reconstruct.centerline import silhouette_score
     from pipeline.reconstruct.tube_fit import TubeFit
+    from pipeline.reconstruct.tube_scores import silhouette_score
 
     curve, cams, masks, _ = rendered_arc
     whole = TubeFit(curve, RADIUS, 0.1, 100)
@@ -331,7 +331,7 @@ def test_end_by_pixels_finds_the_end_from_the_silhouette(rendered_arc: tuple) ->
 
 
 def test_self_intersects_only_where_the_axis_comes_back_onto_itself() -> None:
-    from pipeline.reconstruct.centerline import self_intersects
+    from pipeline.geometry.polyline import self_intersects
 
     assert not self_intersects(_straight(), RADIUS)
     # The analytic loop's tip passes 16 mm (> a radius) beside where it began.
@@ -394,7 +394,7 @@ def rendered_loop() -> tuple[FloatArray, list, list, list]:
 def test_tip_meets_tube_only_where_the_tip_comes_back_to_the_tube() -> None:
     from conftest import rig_cameras
 
-    from pipeline.reconstruct.tube_tip import tip_meets_tube
+    from pipeline.reconstruct.tip_bend import tip_meets_tube
 
     cams = rig_cameras()
     # The loop's tip passes 16 mm (axis to axis) beside the circle's start: its
@@ -410,7 +410,7 @@ def test_tip_meets_tube_only_where_the_tip_comes_back_to_the_tube() -> None:
 def test_tip_meets_tube_needs_two_views_unless_the_tip_lies_against_the_tube() -> None:
     from conftest import rig_cameras
 
-    from pipeline.reconstruct.tube_tip import tip_meets_tube
+    from pipeline.reconstruct.tip_bend import tip_meets_tube
 
     cams = rig_cameras()
     # The loop drifting 50 mm sideways per turn: its tip passes ~7 radii from
@@ -428,13 +428,14 @@ def test_tip_meets_tube_needs_two_views_unless_the_tip_lies_against_the_tube() -
 def test_bend_tip_to_pixels_brings_a_displaced_tip_back(
     rendered_loop: tuple, across: tuple[float, float], longer: float
 ) -> None:
-    from pipeline.reconstruct.tube_tip import _BEND_SPANS_RADII, _bend_end, _end_frame, bend_tip_to_pixels
+    from pipeline.reconstruct.tip_bend import _BEND_SPANS_RADII, _bend_end, bend_tip_to_pixels
+    from pipeline.reconstruct.tube_tip import end_frame
 
     curve, cams, masks, contrasts = rendered_loop
     truth = resample_polyline(curve, 64)
     arc = polyline_arclength(truth)
     start = arc[-1] - _BEND_SPANS_RADII[0] * RADIUS
-    ahead = _end_frame(truth, arc, at_mm=float(arc[-1]), span_mm=24.0)
+    ahead = end_frame(truth, arc, at_mm=float(arc[-1]), span_mm=24.0)
     wrong = _bend_end(truth, arc, start, np.array(across), longer, ahead)
     assert np.linalg.norm(wrong[-1] - truth[-1]) > 5.0
     bent = bend_tip_to_pixels(wrong, cams, masks, contrasts, RADIUS)
@@ -445,7 +446,7 @@ def test_bend_tip_to_pixels_brings_a_displaced_tip_back(
 
 
 def test_bend_tip_to_pixels_leaves_the_true_tip_nearly_alone(rendered_loop: tuple) -> None:
-    from pipeline.reconstruct.tube_tip import bend_tip_to_pixels
+    from pipeline.reconstruct.tip_bend import bend_tip_to_pixels
 
     curve, cams, masks, contrasts = rendered_loop
     truth = resample_polyline(curve, 64)
@@ -458,8 +459,8 @@ def test_bend_tip_to_pixels_leaves_the_true_tip_nearly_alone(rendered_loop: tupl
 
 
 def test_a_curve_whose_parts_come_too_close_ranks_lower(rendered_loop: tuple) -> None:
-    from pipeline.reconstruct.centerline import _IMPLAUSIBLE, _standing, silhouette_score
     from pipeline.reconstruct.tube_fit import TubeFit
+    from pipeline.reconstruct.tube_scores import _IMPLAUSIBLE, ranked_score, silhouette_score
 
     curve, cams, masks, _ = rendered_loop
     truth = resample_polyline(curve, 64)
@@ -471,9 +472,11 @@ def test_a_curve_whose_parts_come_too_close_ranks_lower(rendered_loop: tuple) ->
     pull = np.clip((arc - (arc[-1] - 30.0)) / 30.0, 0.0, None) ** 2
     curled = truth - pull[:, None] * np.array([0.0, 9.0, 0.0])
     right, wrong = TubeFit(truth, RADIUS, 0.1, 100), TubeFit(curled, RADIUS, 0.1, 100)
-    assert _standing(right, cams, masks) == silhouette_score(right, cams, masks)
-    assert _standing(wrong, cams, masks) == pytest.approx(silhouette_score(wrong, cams, masks) - _IMPLAUSIBLE)
-    assert _standing(wrong, cams, masks) < _standing(right, cams, masks)
+    assert ranked_score(right, cams, masks) == silhouette_score(right, cams, masks)
+    assert ranked_score(wrong, cams, masks) == pytest.approx(
+        silhouette_score(wrong, cams, masks) - _IMPLAUSIBLE
+    )
+    assert ranked_score(wrong, cams, masks) < ranked_score(right, cams, masks)
 
 
 def _smooth_loop() -> FloatArray:
@@ -488,11 +491,11 @@ def _smooth_loop() -> FloatArray:
 
 
 def test_bridge_under_tip_takes_out_a_bulge_towards_the_tip() -> None:
-    from pipeline.reconstruct.centerline import _HELD_TIP_RADII, _bridge_under_tip
+    from pipeline.reconstruct.loop_tip import HELD_TIP_RADII, bridge_under_tip
 
     truth = resample_polyline(_smooth_loop(), 70)
     arc = polyline_arclength(truth)
-    hold = float(arc[-1]) - _HELD_TIP_RADII * RADIUS
+    hold = float(arc[-1]) - HELD_TIP_RADII * RADIUS
     tip = truth[arc >= hold]
     stem = arc < hold - 4.0 * RADIUS
     # The part of the stem nearest the tip pulled 5 mm towards it (a Gaussian
@@ -503,7 +506,7 @@ def test_bridge_under_tip_takes_out_a_bulge_towards_the_tip() -> None:
     toward = tip[np.argmin(np.linalg.norm(tip - truth[near], axis=1))] - truth[near]
     bump = 5.0 * np.exp(-0.5 * ((arc - arc[near]) / 8.0) ** 2) * stem
     bulged = truth + bump[:, None] * toward / np.linalg.norm(toward)
-    bridged = _bridge_under_tip(bulged, RADIUS, hold_from_mm=hold)
+    bridged = bridge_under_tip(bulged, RADIUS, hold_from_mm=hold)
     # Measured 1.24 mm from the truth: one cubic piece over ~50 mm of a stem
     # whose curvature changes there (bridging the unbulged curve errs 1.14 mm;
     # fit_centerline keeps a bridged stem only if its tube explains the
@@ -515,18 +518,14 @@ def test_bridge_under_tip_takes_out_a_bulge_towards_the_tip() -> None:
     # A tip far from the rest of the curve (a gentle C) leaves it as it is.
     c_shape = resample_polyline(_arc(length=200.0, bend_radius=110.0), 50)
     length = float(polyline_arclength(c_shape)[-1])
-    assert _bridge_under_tip(c_shape, RADIUS, hold_from_mm=length - _HELD_TIP_RADII * RADIUS) is c_shape
+    assert bridge_under_tip(c_shape, RADIUS, hold_from_mm=length - HELD_TIP_RADII * RADIUS) is c_shape
 
 
 def test_continue_tip_brings_back_a_tip_the_bend_cannot(rendered_loop: tuple) -> None:
-    from pipeline.reconstruct.centerline import _continue_tip
-    from pipeline.reconstruct.tube_tip import (
-        _bend_end,
-        _end_frame,
-        bend_tip_to_pixels,
-        coverage_mismatch,
-        pixel_coverages,
-    )
+    from pipeline.reconstruct.loop_tip import continue_tip
+    from pipeline.reconstruct.tip_bend import _bend_end, bend_tip_to_pixels
+    from pipeline.reconstruct.tube_drawing import coverage_mismatch, pixel_coverages
+    from pipeline.reconstruct.tube_tip import end_frame
 
     curve, cams, masks, contrasts = rendered_loop
     truth = resample_polyline(curve, 64)
@@ -535,7 +534,7 @@ def test_continue_tip_brings_back_a_tip_the_bend_cannot(rendered_loop: tuple) ->
     # short (the tip 18 mm off): the bend, which moves the tip at most 1.5
     # radii from where it starts, stops 4.9 mm off.
     start = arc[-1] - 8.0 * RADIUS
-    ahead = _end_frame(truth, arc, at_mm=float(arc[-1]), span_mm=24.0)
+    ahead = end_frame(truth, arc, at_mm=float(arc[-1]), span_mm=24.0)
     wrong = _bend_end(truth, arc, start, np.array([0.0, 4.0 * RADIUS]), -1.5 * RADIUS, ahead)
     coverages = pixel_coverages(contrasts, masks)
 
@@ -549,10 +548,10 @@ def test_continue_tip_brings_back_a_tip_the_bend_cannot(rendered_loop: tuple) ->
     # The loop is a circle drifting sideways: its continuation lands near the
     # true tip and the bend finishes it. Measured 0.39 mm; bound: the bends'
     # noise on rendered loops (0.25-1 mm at r 6 and below).
-    fixed = _continue_tip([wrong], bend, mismatch, RADIUS)
+    fixed = continue_tip([wrong], bend, mismatch, RADIUS)
     assert np.linalg.norm(fixed[-1] - truth[-1]) < 1.0
     # The true curve itself is kept (or only nudged by the bend's last step).
-    kept = _continue_tip([truth], bend, mismatch, RADIUS)
+    kept = continue_tip([truth], bend, mismatch, RADIUS)
     assert np.linalg.norm(kept[-1] - truth[-1]) < 0.5
 
 
@@ -570,15 +569,17 @@ def _loop_back() -> FloatArray:
 @pytest.fixture(scope="module")
 def free_tip() -> tuple[FloatArray, Callable[[FloatArray], FloatArray]]:
     """The loop coming back beside its stem (:func:`_loop_back`), rendered: its
-    true axis (80 samples), and pipeline.reconstruct.centerline._free_tip_from_stem, with
+    true axis (80 samples), and pipeline.reconstruct.loop_tip.free_tip_from_stem, with
     a tube fit for its refit and the tip bend for its bend, as a function of
     an axis."""
     from conftest import rig_cameras
 
     from pipeline.carve.silhouette import extract_silhouette
-    from pipeline.reconstruct.centerline import _free_tip_from_stem, self_intersects
+    from pipeline.geometry.polyline import self_intersects
+    from pipeline.reconstruct.loop_tip import free_tip_from_stem
+    from pipeline.reconstruct.tip_bend import bend_tip_to_pixels
+    from pipeline.reconstruct.tube_drawing import coverage_mismatch, pixel_coverages
     from pipeline.reconstruct.tube_fit import fit_tube, foreground_contrast
-    from pipeline.reconstruct.tube_tip import bend_tip_to_pixels, coverage_mismatch, pixel_coverages
     from pipeline.session.settings import SilhouetteSettings
     from pipeline.synth.images import THRESHOLD_DARK, background_texture, render_frame
     from pipeline.synth.rig import make_rig
@@ -604,7 +605,7 @@ def free_tip() -> tuple[FloatArray, Callable[[FloatArray], FloatArray]]:
         return coverage_mismatch(axes, cams, masks, contrasts, RADIUS, coverages=coverages)
 
     def free(axis: FloatArray) -> FloatArray:
-        return _free_tip_from_stem(axis, refit, bend, mismatch, RADIUS)
+        return free_tip_from_stem(axis, refit, bend, mismatch, RADIUS)
 
     return truth, free
 

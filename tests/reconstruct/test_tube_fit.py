@@ -11,13 +11,8 @@ from numpy.typing import NDArray
 
 from pipeline.geometry.polyline import polyline_arclength, resample_polyline
 from pipeline.measure.evaluate import centerline_distances
-from pipeline.reconstruct.tube_fit import (
-    SideReadings,
-    _crowded,
-    _solve_corrections,
-    consistent_readings,
-    refit_body,
-)
+from pipeline.reconstruct.side_readings import SideReadings, _crowded, consistent_readings
+from pipeline.reconstruct.tube_fit import _solve_corrections, refit_body
 
 FloatArray = NDArray[np.float64]
 RADIUS = 6.0
@@ -142,7 +137,7 @@ def test_consistent_drops_the_reading_the_solution_disagrees_with() -> None:
 
 
 def test_the_radius_profile_follows_a_step_and_ignores_disks() -> None:
-    from pipeline.reconstruct.tube_fit import _radius_profile
+    from pipeline.reconstruct.side_readings import _radius_profile
 
     k = 50
     arc = np.arange(k) * 4.0

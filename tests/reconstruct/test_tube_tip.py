@@ -17,18 +17,17 @@ from numpy.typing import NDArray
 
 from pipeline.geometry.camera import Camera
 from pipeline.geometry.polyline import cut_polyline, polyline_arclength
-from pipeline.reconstruct.tube_tip import (
-    _SUPERSAMPLE,
+from pipeline.reconstruct.tip_bend import bend_tip_to_pixels, continue_on_circle
+from pipeline.reconstruct.tube_drawing import (
+    SUPERSAMPLE,
     _coverage,
-    _draw_tube,
     _end_tangents,
-    _levels,
-    _normals,
     _shrink_convex,
-    _tube_points,
-    bend_tip_to_pixels,
-    continue_on_circle,
+    canvas_levels,
     coverage_mismatch,
+    draw_tube,
+    normals,
+    tube_points,
 )
 
 FloatArray = NDArray[np.float64]
@@ -38,9 +37,9 @@ CENTRE = np.array([128.0, 128.0, 80.0])
 def _drawn(cam: Camera, axis_mm: FloatArray, radius_mm: float) -> FloatArray:
     """(H, W) coverage of the flat-ended tube as the bend draws it."""
     w, h = cam.size_px
-    canvas = np.zeros((h * _SUPERSAMPLE, w * _SUPERSAMPLE), np.uint8)
-    discs, outline = _tube_points(axis_mm, radius_mm, flat_end=True)
-    _draw_tube(canvas, cam, discs, outline, radius_mm, (0, 0))
+    canvas = np.zeros((h * SUPERSAMPLE, w * SUPERSAMPLE), np.uint8)
+    discs, outline = tube_points(axis_mm, radius_mm, flat_end=True)
+    draw_tube(canvas, cam, discs, outline, radius_mm, (0, 0))
     return cv2.resize(canvas, (w, h), interpolation=cv2.INTER_AREA).astype(np.float64) / 255.0
 
 
@@ -272,22 +271,22 @@ def test_bend_search_that_stops_early_finds_the_same_bend(monkeypatch: pytest.Mo
     # radius sideways, so the search has a way to go.
     from conftest import rig_cameras
 
-    import pipeline.reconstruct.tube_tip as tube_tip
+    import pipeline.reconstruct.tip_bend as tip_bend
 
     radius, curve, _, moved, masks, contrasts = _tip_moved_aside()
     drawn = {"views": 0}
-    level_difference = tube_tip._level_difference
+    level_difference = tip_bend.level_difference
 
     def counted(levels: NDArray[np.uint8], seen: NDArray[np.float32]) -> float:
         drawn["views"] += 1
         return level_difference(levels, seen)
 
-    monkeypatch.setattr(tube_tip, "_level_difference", counted)
+    monkeypatch.setattr(tip_bend, "level_difference", counted)
     cameras = rig_cameras("ninety")
     early = bend_tip_to_pixels(moved, cameras, masks, contrasts, radius)
     views_early = drawn["views"]
     drawn["views"] = 0
-    monkeypatch.setattr(tube_tip, "_PARTIAL_MARGIN", np.inf)
+    monkeypatch.setattr(tip_bend, "_PARTIAL_MARGIN", np.inf)
     every = bend_tip_to_pixels(moved, cameras, masks, contrasts, radius)
     assert np.array_equal(early, every)
     assert views_early < drawn["views"]
@@ -299,17 +298,17 @@ def test_levels_of_a_part_of_the_canvas_are_those_of_the_whole() -> None:
     # Each pixel's level averages its own s x s block only: the levels of any
     # block-aligned part (what a bend redraws) equal that part of the whole's.
     rng = np.random.default_rng(3)
-    canvas = np.zeros((120 * _SUPERSAMPLE, 160 * _SUPERSAMPLE), np.uint8)
+    canvas = np.zeros((120 * SUPERSAMPLE, 160 * SUPERSAMPLE), np.uint8)
     for _ in range(30):
-        centre = tuple(int(v) for v in rng.integers(0, 160 * _SUPERSAMPLE * 16, 2))
+        centre = tuple(int(v) for v in rng.integers(0, 160 * SUPERSAMPLE * 16, 2))
         cv2.circle(canvas, centre, int(rng.integers(16, 40 * 16)), 255, -1, cv2.LINE_8, 4)
-    whole = _levels(canvas)
+    whole = canvas_levels(canvas)
     assert whole.shape == (120, 160) and 0 < whole.mean() < 255
     for _ in range(20):
         x0, y0 = rng.integers(0, 150), rng.integers(0, 110)
         x1, y1 = x0 + rng.integers(1, 160 - x0 + 1), y0 + rng.integers(1, 120 - y0 + 1)
-        s = _SUPERSAMPLE
-        part = _levels(canvas[y0 * s : y1 * s, x0 * s : x1 * s])
+        s = SUPERSAMPLE
+        part = canvas_levels(canvas[y0 * s : y1 * s, x0 * s : x1 * s])
         assert np.array_equal(part, whole[y0:y1, x0:x1])
 
 
@@ -320,8 +319,8 @@ def test_draw_tube_box_holds_every_pixel_it_draws(seed: int) -> None:
     cam = _pinhole(300.0)
     rng = np.random.default_rng(seed)
     axis = _arc(40.0 + 20.0 * seed, _plane(seed), length_mm=30.0) - CENTRE + rng.normal(0.0, 5.0, 3)
-    canvas = np.zeros((120 * _SUPERSAMPLE, 160 * _SUPERSAMPLE), np.uint8)
-    x0, y0, x1, y1 = _draw_tube(canvas, cam, *_tube_points(axis, 4.0, flat_end=True), 4.0, (0, 0))
+    canvas = np.zeros((120 * SUPERSAMPLE, 160 * SUPERSAMPLE), np.uint8)
+    x0, y0, x1, y1 = draw_tube(canvas, cam, *tube_points(axis, 4.0, flat_end=True), 4.0, (0, 0))
     inside = np.zeros_like(canvas, dtype=bool)
     inside[y0:y1, x0:x1] = True
     assert canvas[inside].any() and not canvas[~inside].any()
@@ -332,7 +331,7 @@ def test_normals_are_orthonormal_to_the_direction() -> None:
     # Random directions and the axes themselves (where two components are 0).
     rng = np.random.default_rng(5)
     for direction in [*rng.standard_normal((20, 3)), *np.eye(3), -np.eye(3)[1]]:
-        n1, n2 = _normals(direction)
+        n1, n2 = normals(direction)
         t = direction / np.linalg.norm(direction)
         frame = np.stack([t, n1, n2])
         # Unit vectors built from unit vectors: a few ulps of rounding.

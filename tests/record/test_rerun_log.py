@@ -24,17 +24,8 @@ from rerun.chunk import RrdReader
 
 from pipeline.geometry.camera import Camera
 from pipeline.reconstruct.frame_result import FrameResult
-from pipeline.record.rerun_log import (
-    CENTERLINE_RGB,
-    HULL_PATH,
-    LEGEND_3D,
-    SMOOTHED_RGB,
-    TIP_RGB,
-    RerunRecorder,
-    default_blueprint,
-    framing_eye,
-    series_colors,
-)
+from pipeline.record.rerun_layout import HULL_PATH, LEGEND_3D, default_blueprint, framing_eye, series_colors
+from pipeline.record.rerun_log import CENTERLINE_RGB, SMOOTHED_RGB, TIP_RGB, RerunRecorder
 from pipeline.session.settings import Workspace
 
 T0_NS = 1_700_000_000_000_000_000

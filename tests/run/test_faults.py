@@ -36,7 +36,7 @@ from pipeline.errors import Interrupted, OutputError, RecordingError, SettingsEr
 from pipeline.reconstruct.frame_result import FrameResult
 from pipeline.record.load import load_recording
 from pipeline.record.mcap_log import METRICS_TOPIC
-from pipeline.run import outputs, runner, workers
+from pipeline.run import output_target, outputs, runner, workers
 from pipeline.session.folder import load_session
 from pipeline.session.settings import Settings
 
@@ -534,7 +534,7 @@ def test_dask_run_keeps_stderr_to_the_projects_own_lines(tmp_path: Path) -> None
 def test_a_second_run_into_the_same_folder_is_refused_while_one_writes(tmp_path: Path) -> None:
     session = build_session(tmp_path / "take", frames=2)
     out = tmp_path / "out"
-    writing = outputs.prepare_outputs(out, "take", False)  # a run under way holds the lock
+    writing = output_target.prepare_outputs(out, "take", False)  # a run under way holds the lock
     try:
         with pytest.raises(OutputError, match=r"^another run is writing take in .*out; wait for it"):
             _run(session, out)

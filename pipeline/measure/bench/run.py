@@ -43,7 +43,8 @@ from .chart import plot_report
 from .e2e import decode_floor, ensure_session, median_run, run_process, voxel_session
 from .live import run_live
 from .per_shape import DEMO_SHAPE, FLOOR_REPEATS, SHAPES, BenchShape, measure_shapes, shape_run
-from .report import STAGE_ORDER, BenchReport, EndToEndRun, LiveRun, format_table, write_json
+from .report import STAGE_ORDER, BenchReport, EndToEndRun, LiveRun, write_json
+from .table import format_table
 from .timing import StageStats
 
 log = logging.getLogger("pipeline.measure.bench")

@@ -1,49 +1,25 @@
-"""Command line: a thin layer over the library.
-
-Each subcommand parses its arguments and calls one library function. A
-:class:`PipelineError` becomes one line on stderr and exit status 2; anything
-else is a bug: one line and exit status 3, its traceback only with ``--debug``.
-Global options (``--debug``) are accepted before or after the subcommand.
-"""
+"""The command line's options: one argparse parser with a subparser per command."""
 
 from __future__ import annotations
 
 import argparse
-import json
-import logging
-import os
-import sys
-import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import NoReturn
 
-from .errors import Interrupted, OutputError, PipelineError
-from .run.interrupts import signals_interrupt
+from .commands import (
+    EXIT_BAD_INPUT,
+    _cmd_calibrate,
+    _cmd_evaluate,
+    _cmd_live,
+    _cmd_process,
+    _cmd_synth,
+    _cmd_synth_calib,
+)
 
-log = logging.getLogger("pipeline")
-
-EXIT_OK, EXIT_FRAMES_FAILED, EXIT_BAD_INPUT, EXIT_INTERNAL_ERROR = 0, 1, 2, 3
 # How the program names itself in usage and error lines: the console script's name;
 # ``python -m pipeline`` passes its own (pipeline.__main__).
 PROG = "pipeline"
-# Where a run's wall time starts when the OS cannot tell when this process started.
-_IMPORTED_AT = time.perf_counter()
-
-
-def _process_started_at() -> float:
-    """The ``time.perf_counter()`` reading of this process's start, so that a run's wall
-    time includes the interpreter's start and the imports (~1 s of a 9 s run); the time
-    of this module's import where the OS does not say (not Linux)."""
-    try:
-        with open("/proc/self/stat", encoding="ascii") as f:
-            # Field 22, starttime, in clock ticks since boot; counted after the ")" that
-            # closes field 2 (the command name, which may hold spaces).
-            start_ticks = int(f.read().rsplit(")", 1)[1].split()[19])
-        age_s = time.clock_gettime(time.CLOCK_BOOTTIME) - start_ticks / os.sysconf("SC_CLK_TCK")
-    except (OSError, ValueError, IndexError, AttributeError):
-        return _IMPORTED_AT
-    return time.perf_counter() - max(0.0, age_s)
 
 
 def _frame_range(text: str) -> tuple[int, int | None]:
@@ -57,164 +33,6 @@ def _frame_range(text: str) -> tuple[int, int | None]:
     if not sep or lo < 0 or (hi is not None and hi <= lo):
         raise argparse.ArgumentTypeError(f"expected START:STOP with 0 <= START < STOP, got {text!r}")
     return lo, hi
-
-
-def _report(summary: Any, json_to: str | None) -> None:
-    """Print a run's summary: the failures and warnings to stderr, where scripts and logs look
-    for them, the rest to stdout unless stdout carries the JSON summary (``json_to`` "-");
-    the JSON summary to ``json_to`` if given."""
-    problems = set(summary.problem_lines())
-    for line in summary.lines():
-        print(line, file=sys.stderr if line in problems or json_to == "-" else sys.stdout)
-    if json_to == "-":
-        print(json.dumps(summary.to_dict(), indent=2))
-    elif json_to is not None:
-        try:
-            Path(json_to).write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
-        except OSError as exc:  # the recordings are written; only the summary file is lost
-            raise OutputError(f"{json_to}: cannot write the JSON summary ({exc.strerror or exc})") from None
-
-
-def _cmd_process(args: argparse.Namespace) -> int:
-    from .run.workers import started_early
-
-    started_at = _process_started_at()
-    if args.json not in (None, "-"):
-        _check_json_path(Path(args.json))
-    # --scheduler names a Dask scheduler: it implies --backend dask (checked in main).
-    backend = args.backend or ("dask" if args.scheduler else "loky")
-    # The workers spawn and import while this process loads the session and model.
-    with started_early(args.jobs, backend):
-        from .run.runner import process_session
-        from .session.folder import load_session
-
-        session = load_session(args.video_dir)
-        summary = process_session(
-            session,
-            out_dir=args.out,
-            jobs=args.jobs,
-            backend=backend,
-            scheduler=args.scheduler,
-            frames=args.frames,
-            images=not args.no_images,
-            force=args.force,
-            curve=args.curve,
-            progress=sys.stderr.isatty(),
-            started_at=started_at,
-        )
-    _report(summary, args.json)
-    return summary.exit_code
-
-
-def _cmd_live(args: argparse.Namespace) -> int:
-    from .live.run import run_live
-    from .live.sources import open_rig
-    from .live.stream import DEFAULT_FOXGLOVE, parse_host_port, viewer_from_choice
-
-    if args.json not in (None, "-"):
-        _check_json_path(Path(args.json))
-    if args.duration is not None and not args.duration > 0:
-        args.usage_error(f"--duration must be > 0 seconds, got {args.duration:g}")
-    _rig_dir_after_viewer(args)
-    replay = None if args.replay is None else Path(args.replay) if args.replay else args.rig_dir
-    if args.rig_dir is None and replay is None:
-        args.usage_error("give RIG_DIR, or --replay SESSION_DIR")
-    rig, sources = open_rig(args.rig_dir, replay)
-    foxglove = None if args.foxglove is None else parse_host_port(args.foxglove or DEFAULT_FOXGLOVE)
-    viewer_url = viewer_from_choice(args.viewer or [])
-    summary = run_live(
-        rig,
-        sources,
-        out_dir=args.out,
-        viewer_url=viewer_url,
-        foxglove=foxglove,
-        duration_s=args.duration,
-        images=not args.no_images,
-        force=args.force,
-    )
-    _report(summary, args.json)
-    return summary.exit_code
-
-
-def _rig_dir_after_viewer(args: argparse.Namespace) -> None:
-    """``--viewer connect 9876 rig/`` (or ``--viewer none rig/``): argparse gives the rig
-    directory to --viewer, whose words are ``spawn``, ``none`` or ``connect ADDRESS``."""
-    words = args.viewer or []
-    take = 2 if words[:1] == ["connect"] else 1
-    if len(words) == take + 1 and args.rig_dir is None:
-        args.rig_dir, args.viewer = Path(words[-1]), words[:take]
-
-
-def _check_json_path(path: Path) -> None:
-    """Before the run: the JSON summary can be written to ``path`` (its folder exists)."""
-    if path.is_dir():
-        raise OutputError(f"{path}: is a directory; give --json a file name (or - for stdout)")
-    if not path.parent.is_dir():
-        raise OutputError(
-            f"{path}: folder {path.parent} does not exist; give --json a file in an existing one"
-        )
-
-
-def _cmd_synth(args: argparse.Namespace) -> int:
-    from .synth import render_session
-    from .synth.session_render import SceneOptions
-
-    width, height = (int(v) for v in args.size.split("x"))
-    options = SceneOptions(
-        tip=args.tip,
-        profile=args.profile,
-        cameras=args.cameras,
-        size=(width, height),
-        distractor=args.distractor,
-        flicker=args.flicker,
-        calib_error_deg=args.calib_error,
-    )
-    render_session(
-        args.out_dir,
-        shape=args.shape,
-        frames=args.frames,
-        seed=args.seed,
-        polarity=args.polarity,
-        radius_mm=args.radius_mm,
-        arrangement=args.arrangement,
-        options=options,
-    )
-    return EXIT_OK
-
-
-def _cmd_synth_calib(args: argparse.Namespace) -> int:
-    from .synth import render_calibration_views
-
-    render_calibration_views(
-        args.out_dir, arrangement=args.arrangement, seed=args.seed, board_type=args.board
-    )
-    return EXIT_OK
-
-
-def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from .calibrate.report import format_table
-    from .calibrate.solve import calibrate_directory
-
-    result = calibrate_directory(
-        args.calib_dir,
-        args.output,
-        board=args.board,
-        square_mm=args.square_mm,
-        charuco=args.charuco,
-        shared_intrinsics=args.shared_intrinsics,
-        drop_outliers=args.drop_outliers,
-    )
-    print(format_table(result))
-    print(f"wrote {args.output}; pictures: {', '.join(str(p) for p in result.report_files)}")
-    return EXIT_OK
-
-
-def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from .measure.evaluate import evaluate_recording, format_report
-
-    report = evaluate_recording(args.recording, args.ground_truth)
-    print(report.to_json() if args.json else format_report(report))
-    return EXIT_OK
 
 
 def _board(text: str) -> tuple[int, int]:
@@ -379,7 +197,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace existing outputs (when the run stops)")
     p.set_defaults(func=_cmd_live, usage_error=p.error)
 
-    from .synth.names import IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
+    from ..synth.names import IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
 
     p = sub.add_parser(
         "synth",
@@ -499,82 +317,6 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
-    # SIGINT, SIGTERM and SIGHUP end the run the same way wherever they land: exit 130, one line.
-    with signals_interrupt():
-        try:
-            return _main(argv, prog)
-        except KeyboardInterrupt as exc:
-            message = str(exc) if isinstance(exc, Interrupted) else "interrupted; nothing written"
-            print(message, file=sys.stderr)
-            return 130
-
-
-def _main(argv: Sequence[str] | None, prog: str) -> int:
-    parser = build_parser(prog)
-    args = parser.parse_args(_with_negative_frames(sys.argv[1:] if argv is None else argv))
-    if getattr(args, "scheduler", None) and args.backend not in (None, "dask"):
-        args.usage_error(f"--scheduler runs on a Dask cluster: drop --backend {args.backend}, or use dask")
-    handler = logging.StreamHandler()
-    if not args.debug:
-        handler.addFilter(_own_records)
-    logging.basicConfig(
-        level=logging.DEBUG if args.debug else logging.INFO,
-        format="%(levelname)s: %(message)s",
-        handlers=[handler],
-    )
-    # Libraries' warnings and Rerun's own log lines (with colour codes even into a file) go
-    # to --debug only: stderr carries the run's own lines.
-    logging.captureWarnings(True)
-    logging.getLogger("py.warnings").setLevel(logging.DEBUG if args.debug else logging.CRITICAL)
-    if not args.debug:
-        os.environ.setdefault("RUST_LOG", "off")
-        _quiet_resource_trackers()
-    if args.debug:
-        # FFmpeg's own diagnostics (silenced in pipeline.session.video) help debug a damaged video.
-        from .session.video import show_ffmpeg_messages
-
-        show_ffmpeg_messages()
-    func: Callable[[argparse.Namespace], int] = args.func
-    try:
-        return func(args)
-    except PipelineError as exc:
-        if args.debug:
-            raise
-        print(f"error: {_one_line(exc)}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except Exception as exc:
-        # Not the user's mistake: a bug. One line by default, the traceback with --debug.
-        if args.debug:
-            raise
-        print(
-            f"internal error: {type(exc).__name__}: {_one_line(exc)} "
-            "(a bug: rerun with --debug for the traceback and report it)",
-            file=sys.stderr,
-        )
-        return EXIT_INTERNAL_ERROR
-
-
-# The resource trackers (processes that remove the workers' semaphores and folders if the
-# run cannot) warn on their own stderr, the run's, when they remove something at the end:
-# an interrupted run leaves that to them.
-_TRACKER_WARNINGS = "ignore:resource_tracker:UserWarning"
-
-
-def _quiet_resource_trackers() -> None:
-    """Keep the resource trackers' warnings off stderr: they read PYTHONWARNINGS as they
-    start, with the run's first workers."""
-    rules = os.environ.get("PYTHONWARNINGS", "")
-    if _TRACKER_WARNINGS not in rules.split(","):
-        os.environ["PYTHONWARNINGS"] = ",".join(r for r in (rules, _TRACKER_WARNINGS) if r)
-
-
-def _own_records(record: logging.LogRecord) -> bool:
-    """Whether a log record is the project's own: without --debug, libraries' records
-    (distributed's, asyncio's as a cluster stops, ...) stay off stderr."""
-    return record.name == "pipeline" or record.name.startswith("pipeline.")
-
-
 def _with_negative_frames(argv: Sequence[str]) -> list[str]:
     """``--frames -5:10`` as ``--frames=-5:10``: argparse takes a value that starts with "-"
     for an option and says "expected one argument"; joined, _frame_range names the mistake."""
@@ -584,12 +326,3 @@ def _with_negative_frames(argv: Sequence[str]) -> list[str]:
             out[i : i + 2] = [f"--frames={out[i + 1]}"]
             break
     return out
-
-
-def _one_line(exc: BaseException) -> str:
-    """The message on one line, so that scripts can grep stderr."""
-    return " ".join(str(exc).split())
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,0 +1,118 @@
+"""Command line: a thin layer over the library.
+
+Each subcommand parses its arguments and calls one library function. A
+:class:`PipelineError` becomes one line on stderr and exit status 2; anything
+else is a bug: one line and exit status 3, its traceback only with ``--debug``.
+Global options (``--debug``) are accepted before or after the subcommand. ``parser`` holds
+the options, ``commands`` what each subcommand does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from collections.abc import Callable, Sequence
+
+from ..errors import Interrupted, PipelineError
+from ..run.interrupts import signals_interrupt
+from .commands import EXIT_BAD_INPUT, EXIT_FRAMES_FAILED, EXIT_INTERNAL_ERROR, EXIT_OK
+from .parser import PROG, _with_negative_frames, build_parser
+
+__all__ = [
+    "EXIT_BAD_INPUT",
+    "EXIT_FRAMES_FAILED",
+    "EXIT_INTERNAL_ERROR",
+    "EXIT_OK",
+    "PROG",
+    "build_parser",
+    "main",
+]
+
+log = logging.getLogger("pipeline")
+
+
+def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
+    # SIGINT, SIGTERM and SIGHUP end the run the same way wherever they land: exit 130, one line.
+    with signals_interrupt():
+        try:
+            return _main(argv, prog)
+        except KeyboardInterrupt as exc:
+            message = str(exc) if isinstance(exc, Interrupted) else "interrupted; nothing written"
+            print(message, file=sys.stderr)
+            return 130
+
+
+def _main(argv: Sequence[str] | None, prog: str) -> int:
+    parser = build_parser(prog)
+    args = parser.parse_args(_with_negative_frames(sys.argv[1:] if argv is None else argv))
+    if getattr(args, "scheduler", None) and args.backend not in (None, "dask"):
+        args.usage_error(f"--scheduler runs on a Dask cluster: drop --backend {args.backend}, or use dask")
+    handler = logging.StreamHandler()
+    if not args.debug:
+        handler.addFilter(_own_records)
+    logging.basicConfig(
+        level=logging.DEBUG if args.debug else logging.INFO,
+        format="%(levelname)s: %(message)s",
+        handlers=[handler],
+    )
+    # Libraries' warnings and Rerun's own log lines (with colour codes even into a file) go
+    # to --debug only: stderr carries the run's own lines.
+    logging.captureWarnings(True)
+    logging.getLogger("py.warnings").setLevel(logging.DEBUG if args.debug else logging.CRITICAL)
+    if not args.debug:
+        os.environ.setdefault("RUST_LOG", "off")
+        _quiet_resource_trackers()
+    if args.debug:
+        # FFmpeg's own diagnostics (silenced in pipeline.session.video) help debug a damaged video.
+        from ..session.video import show_ffmpeg_messages
+
+        show_ffmpeg_messages()
+    func: Callable[[argparse.Namespace], int] = args.func
+    try:
+        return func(args)
+    except PipelineError as exc:
+        if args.debug:
+            raise
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except Exception as exc:
+        # Not the user's mistake: a bug. One line by default, the traceback with --debug.
+        if args.debug:
+            raise
+        print(
+            f"internal error: {type(exc).__name__}: {_one_line(exc)} "
+            "(a bug: rerun with --debug for the traceback and report it)",
+            file=sys.stderr,
+        )
+        return EXIT_INTERNAL_ERROR
+
+
+# The resource trackers (processes that remove the workers' semaphores and folders if the
+# run cannot) warn on their own stderr, the run's, when they remove something at the end:
+# an interrupted run leaves that to them.
+_TRACKER_WARNINGS = "ignore:resource_tracker:UserWarning"
+
+
+def _quiet_resource_trackers() -> None:
+    """Keep the resource trackers' warnings off stderr: they read PYTHONWARNINGS as they
+    start, with the run's first workers."""
+    rules = os.environ.get("PYTHONWARNINGS", "")
+    if _TRACKER_WARNINGS not in rules.split(","):
+        os.environ["PYTHONWARNINGS"] = ",".join(r for r in (rules, _TRACKER_WARNINGS) if r)
+
+
+def _own_records(record: logging.LogRecord) -> bool:
+    """Whether a log record is the project's own: without --debug, libraries' records
+    (distributed's, asyncio's as a cluster stops, ...) stay off stderr."""
+    return record.name == "pipeline" or record.name.startswith("pipeline.")
+
+
+def _one_line(exc: BaseException) -> str:
+    """The message on one line, so that scripts can grep stderr."""
+    return " ".join(str(exc).split())
+
+
+if __name__ == "__main__":
+    sys.exit(main())

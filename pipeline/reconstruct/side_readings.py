@@ -1,0 +1,380 @@
+"""Where each view sees the tube's sides: sub-pixel edge readings along the curve.
+
+At samples along a curve, each camera's grey image is read along the image normal of
+the projected curve (:mod:`pipeline.reconstruct.profiles`); the two places where it
+crosses half way between the tube's and the background's grey level are the
+silhouette's edges. :func:`read_sides` returns them per sample and camera, with the
+readings another part of the tube contaminates dropped (:func:`centre_across`,
+``crowded``); :func:`consistent_readings` drops those a solution disagrees with.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..geometry.camera import Camera
+from ..geometry.polyline import polyline_arclength, unit_tangents, vector_norms
+from .profiles import median_1d, project_with_jacobians, sample_lines_in, side_edges
+from .tube_tip import MIN_SIN_VIEW, tip_zone
+
+FloatArray = NDArray[np.float64]
+
+
+# Sampling step along the image profiles (px).
+_PROFILE_STEP_PX = 0.5
+
+
+# Two-edge readings a view needs for its own half-width (see read_sides).
+_OWN_WIDTH_READINGS = 5
+
+
+# Another part of the tube touches a sample's silhouette when the two
+# projected tubes come within this many pixels (their edges' blur).
+CROWD_MARGIN_PX = 2.0
+
+
+# A reading wider than this factor times the expected width (+1 px) is contaminated.
+_WIDTH_TOLERANCE = 1.3
+
+
+# The radius along the tube is the median over a sample's readings and those of
+# this many samples either side (4 mm apart): spacer disks (2 mm thick, a few
+# per 20 mm) and stray readings stay a minority of the window even where it is
+# cut short at the tube's ends; a step or taper is followed within ~16 mm.
+_PROFILE_HALF_SPAN = 4
+
+
+@dataclass(frozen=True, eq=False)
+class SideReadings:
+    """Side readings at K samples in C cameras; (K, C) arrays unless noted, mm.
+
+    ``left``/``right`` are the silhouette's edges along the image normal (negative
+    and positive side), converted to mm at the sample; ``use`` (K, C, 2) says which
+    edges are trusted; ``apparent`` (K, C) is each view's own reading of the
+    half-width at each sample, which a single trusted edge is moved in by;
+    ``radii_mm`` (K,) the radius along the tube (:func:`_radius_profile`). ``rows`` (K, C, 3)
+    maps a 3-D motion of the sample (mm) to the motion of its projection along
+    the normal (mm); ``across`` (K, C, 2) maps a motion of its projection (px) to
+    that motion along the normal (mm), or is None.
+    """
+
+    rows: FloatArray
+    left: FloatArray
+    right: FloatArray
+    use: NDArray[np.bool_]
+    radius_mm: float
+    apparent: FloatArray
+    radii_mm: FloatArray
+    across: FloatArray | None = None
+
+    @property
+    def readings(self) -> int:
+        return int(self.use.sum())
+
+    def centres(self) -> tuple[FloatArray, FloatArray]:
+        """Where each view puts the axis along its normal (mm), and the reading's weight:
+        the mid-point of two trusted edges (weight 1), or one trusted edge moved in by
+        the view's apparent half-width (weight 1/2: it also carries that one's error)."""
+        both = self.use[..., 0] & self.use[..., 1]
+        centre = np.where(
+            both,
+            0.5 * (self.left + self.right),
+            np.where(self.use[..., 0], self.left + self.apparent, self.right - self.apparent),
+        )
+        weight = np.where(both, 1.0, np.where(self.use.any(axis=-1), 0.5, 0.0))
+        return centre, weight
+
+    def residual_mm(self) -> float:
+        """RMS distance of the trusted edges from the tube's edges at +-radius, mm."""
+        gaps = np.concatenate(
+            [
+                (self.left + self.radii_mm[:, None])[self.use[..., 0]],
+                (self.right - self.radii_mm[:, None])[self.use[..., 1]],
+            ]
+        )
+        return float(np.sqrt(np.mean(gaps**2))) if gaps.size else float("nan")
+
+
+@dataclass(frozen=True, eq=False)
+class _CameraEdges:
+    """Side readings at K points in C cameras; (C, K) arrays unless noted, lengths in mm
+    at each point."""
+
+    px: FloatArray  # (C, K, 2) projected points
+    t_hat: FloatArray  # (C, K, 2) unit image tangents
+    r_px: FloatArray  # the radius' image size
+    rows: FloatArray  # (C, K, 3) d(motion along the normal, mm) / d(point, mm)
+    across: FloatArray  # (C, K, 2) d(motion along the normal, mm) / d(projection, px)
+    lo: FloatArray  # negative-side edge, mm along the normal
+    hi: FloatArray  # positive-side edge
+    ok: NDArray[np.bool_]  # both edges found in a usable view
+    limit: FloatArray  # farthest an edge may sit from the axis, mm
+    floor: FloatArray  # least half-width of a reading of the tube alone, mm
+
+
+def _camera_edges(
+    pts: FloatArray,
+    tangents: FloatArray,
+    cameras: Sequence[Camera],
+    contrasts: Sequence[NDArray[np.float32]],
+    radius_mm: float | FloatArray,
+    *,
+    core: float = 0.6,
+) -> _CameraEdges:
+    """Read the silhouette's two edges across the tube at each point, in each view.
+
+    All views are handled as one (C, K) batch and share one set of profile
+    offsets, so that the edge search runs once over all of them (it is a dozen
+    numpy calls: per call, not per element, is what costs).
+    """
+    px, jac = project_with_jacobians(cameras, pts)  # (C, K, 2), (C, K, 2, 3)
+    ok = np.isfinite(px).all(axis=-1)
+    t_img = np.einsum("ckij,kj->cki", jac, tangents)
+    t_len = vector_norms(t_img)
+    t_hat = t_img / np.maximum(t_len, 1e-12)[..., None]
+    normal = np.stack([-t_hat[..., 1], t_hat[..., 0]], axis=-1)
+    row = np.einsum("cki,ckij->ckj", normal, jac)  # px per mm of motion, along the normal
+    scale = vector_norms(row)  # px per mm across the tube
+    ok &= (scale > 0) & (t_len > MIN_SIN_VIEW * scale)
+    r_px = radius_mm * scale
+    lo: FloatArray = np.zeros(scale.shape)
+    hi: FloatArray = np.zeros(scale.shape)
+    found: NDArray[np.bool_] = np.zeros(scale.shape, dtype=bool)
+    if ok.any():
+        reach = float(np.max(2.5 * r_px[ok] + 3.0))
+        steps = np.arange(-reach, reach + 1e-9, _PROFILE_STEP_PX)
+        profiles = sample_lines_in(contrasts, px, normal, steps).reshape(-1, len(steps))
+        left, right, both = side_edges(profiles, steps, r_px.ravel(), core=core)
+        lo, hi, found = left.reshape(scale.shape), right.reshape(scale.shape), both.reshape(scale.shape)
+    safe = np.where(scale > 0, scale, 1.0)
+    # An edge may sit no farther from the axis than the radius allows (by 30 %,
+    # +0.5 px of edge blur).
+    limit = (_WIDTH_TOLERANCE * r_px + 0.5) / safe
+    floor = np.maximum(r_px / _WIDTH_TOLERANCE - 0.5, 0.0) / safe
+    return _CameraEdges(
+        px,
+        t_hat,
+        r_px,
+        row / safe[..., None],
+        normal / safe[..., None],
+        lo / safe,
+        hi / safe,
+        ok & found,
+        limit,
+        floor,
+    )
+
+
+def read_sides(
+    pts: FloatArray,
+    cameras: Sequence[Camera],
+    contrasts: Sequence[NDArray[np.float32]],
+    radius_mm: float | FloatArray,
+    spacing_mm: float,
+    *,
+    core: float = 0.6,
+    crowd_margin_px: float = CROWD_MARGIN_PX,
+) -> SideReadings:
+    """Side readings at the K samples ``pts`` (mm) where the tube's radius is
+    ``radius_mm`` (one for all, or (K,) along the tube)."""
+    c = len(cameras)
+    tangents = unit_tangents(pts)
+    arc = polyline_arclength(pts)
+    expected = np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), arc.shape)
+    # Samples within a radius of either end see the cap, not the sides: no radius
+    # from them; and no reading at all in the tip zone, whose tangent (so its
+    # profile's direction) is the least certain: see refit_tip.
+    interior = (arc > expected) & (arc < arc[-1] - expected)
+    sides_seen = arc < arc[-1] - tip_zone(float(expected[-1]))
+    e = _camera_edges(pts, tangents, cameras, contrasts, expected, core=core)
+    ok = e.ok & sides_seen  # (C, K)
+    apart_mm = 2.5 * float(expected.max()) + spacing_mm
+    crowd = _crowded(e.px, e.t_hat, e.r_px, arc, apart_mm, margin_px=crowd_margin_px)
+    # A trusted edge is uncrowded on its side and within the limit of the axis
+    # (the axis being where the other edge says, if that one is further out).
+    use_lo = ok & ~crowd[..., 0] & (-e.lo < e.limit + np.maximum(0.0, e.hi))
+    use_hi = ok & ~crowd[..., 1] & (e.hi < e.limit + np.maximum(0.0, -e.lo))
+    # A reading narrower than the tube (by the same tolerance) found an edge
+    # inside the silhouette: the outline of another part lying over this one.
+    keep = ~(ok & (e.hi - e.lo < 2.0 * e.floor))
+    use_lo &= keep
+    use_hi &= keep
+    keep = ~(use_lo & use_hi & (e.hi - e.lo > 2.0 * e.limit))
+    use = np.stack([use_lo & keep, use_hi & keep], axis=-1).transpose(1, 0, 2)  # (K, C, 2)
+    rows, left, right = e.rows.transpose(1, 0, 2), e.lo.T, e.hi.T
+    both = use[..., 0] & use[..., 1] & interior[:, None]
+    half = 0.5 * (right - left)[both]
+    radius = median_1d(half) if half.size >= 3 else float(np.median(expected))
+    # The radius along the tube from every two-edge reading no other part crowds,
+    # whatever its width: the width tests above judge widths by the radius
+    # expected, so they would keep a tapered or stepped tube's thinner part from
+    # ever being read.
+    uncrowded = (ok & ~crowd[..., 0] & ~crowd[..., 1]).T & interior[:, None]
+    radii = _radius_profile(arc, 0.5 * (right - left), uncrowded, expected)
+    # One edge places the axis a half-width in from it: the half-width as this
+    # view reads it (its blur and grey levels bias both edges alike, by up to
+    # half a pixel, which the mid-point of two edges cancels and one edge does
+    # not), where it has enough two-edge readings to say; along the tube, in
+    # proportion to the radius there.
+    ratio = np.ones(c)
+    for j in range(c):
+        own = 0.5 * (right[:, j] - left[:, j])[both[:, j]]
+        if own.size >= _OWN_WIDTH_READINGS and radius > 0:
+            ratio[j] = median_1d(own) / radius
+    return SideReadings(
+        rows, left, right, use, radius, radii[:, None] * ratio[None, :], radii, e.across.transpose(1, 0, 2)
+    )
+
+
+def _radius_profile(
+    arc_mm: FloatArray, half_mm: FloatArray, both: NDArray[np.bool_], expected_mm: FloatArray
+) -> FloatArray:
+    """(K,) the tube's radius along it (mm), from the half-widths ``half_mm`` (K, C) of
+    the two-edge readings ``both`` (K, C) at arc lengths ``arc_mm`` (K,).
+
+    The median of the readings of each sample and its neighbours within
+    ``_PROFILE_HALF_SPAN`` samples, in every view (a disk or a stray reading is
+    one sample, a taper or a step many); samples without readings take the
+    profile interpolated along the arc, ``expected_mm`` where there is none.
+    """
+    readings = np.where(both, half_mm, np.nan)
+    seen = np.flatnonzero(both.any(axis=1))
+    if len(seen) < 3:
+        return np.array(expected_mm, dtype=np.float64)
+    # NaN-padded windows of the per-view readings: the median of a window is that of
+    # all its samples' views (a sample read in more views weighs more).
+    span = 2 * _PROFILE_HALF_SPAN + 1
+    padded = np.pad(readings, ((_PROFILE_HALF_SPAN, _PROFILE_HALF_SPAN), (0, 0)), constant_values=np.nan)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, span, axis=0)  # (K, C, span)
+    smoothed = np.nanmedian(windows[seen].reshape(len(seen), -1), axis=1)
+    return np.interp(arc_mm, arc_mm[seen], smoothed)
+
+
+def centre_across(
+    point_mm: FloatArray,
+    direction: FloatArray,
+    cameras: Sequence[Camera],
+    contrasts: Sequence[NDArray[np.float32]],
+    *,
+    radius_mm: float,
+) -> FloatArray | None:
+    """Move one point across the tube (perpendicular to ``direction``) to the axis.
+
+    For tracking through a crowded stretch of hull: each view whose silhouette
+    across the tube at the point has the tube's width (within 30 %) says where the
+    axis is along its image normal; the views' least-squares correction, limited
+    to the plane perpendicular to ``direction``, moves the point. None when no
+    view gives a clean reading.
+
+    Parameters
+    ----------
+    point_mm, direction : (3,) float64 point and unit tangent, world frame.
+    cameras, contrasts : as for :func:`fit_tube`.
+    radius_mm : tube radius, mm.
+    """
+    p = np.asarray(point_mm, dtype=np.float64)[None]
+    d = np.asarray(direction, dtype=np.float64)[None]
+    a_rows, b_vals = [], []
+    e = _camera_edges(p, d, cameras, contrasts, radius_mm)
+    for j in range(len(cameras)):
+        width = float(e.hi[j, 0] - e.lo[j, 0])
+        offset = 0.5 * float(e.lo[j, 0] + e.hi[j, 0])
+        # The point is meant to be near the axis already: a reading that puts the
+        # axis more than a radius away is of some other part of the tube.
+        if (
+            e.ok[j, 0]
+            and 2.0 * radius_mm / _WIDTH_TOLERANCE < width < 2.0 * e.limit[j, 0]
+            and abs(offset) < radius_mm
+        ):
+            a_rows.append(e.rows[j, 0])
+            b_vals.append(offset)
+    if not a_rows:
+        return None
+    # Basis of the plane across the tube: corrections along the tangent are not
+    # observed by side readings.
+    across = np.linalg.svd(d)[2][1:]  # (2, 3) orthonormal, perpendicular to d
+    a = np.asarray(a_rows) @ across.T
+    step, *_ = np.linalg.lstsq(a, np.asarray(b_vals), rcond=None)
+    move = step @ across
+    if not np.linalg.norm(move) <= radius_mm:
+        return None
+    return np.asarray(p[0] + move)
+
+
+def _crowded(
+    px: FloatArray,
+    t_hat: FloatArray,
+    r_px: FloatArray,
+    arc: FloatArray,
+    apart_mm: float,
+    *,
+    margin_px: float = CROWD_MARGIN_PX,
+) -> NDArray[np.bool_]:
+    """(C, K, 2) whether another part of the tube (more than ``apart_mm`` away along
+    the curve) touches sample k's silhouette on its negative / positive side in view c.
+
+    ``px``, ``t_hat`` (C, K, 2) and ``r_px`` (C, K) per view; ``arc`` (K,) mm. Another
+    part at image offset ``delta`` from sample k lies on k's profile line when
+    |delta . t_hat_k| is within its own radius (+1.5 px: samples are ~2 px apart
+    along it), and touches k's silhouette on one side when delta . n_k is within
+    the two radii (+2 px) on that side; a part over k's axis (within 1 px) spoils
+    both sides. Parts farther along the profile only affect the background level,
+    which the lower quartile ignores.
+    """
+    # delta . t_k = px_k' . t_k - px_k . t_k: (C, K, K') as one matrix product,
+    # without the (C, K, K', 2) offsets.
+    along = np.abs(_dot_rows(t_hat, px))
+    near = (np.abs(arc[:, None] - arc[None, :]) > apart_mm) & (along < r_px[:, None, :] + 1.5)
+    out = np.zeros((*r_px.shape, 2), dtype=bool)
+    # Few (c, k, k') pairs are near (none on most frames): the rest only there.
+    c, k, other = np.nonzero(near)
+    if len(c) == 0:
+        return out
+    normal = np.stack([-t_hat[..., 1], t_hat[..., 0]], axis=-1)
+    across = _dot_rows(normal, px)[c, k, other]
+    touch = r_px[c, k] + r_px[c, other] + margin_px
+    negative = (across < 1.0) & (across > -touch)
+    positive = (across > -1.0) & (across < touch)
+    out[c[negative], k[negative], 0] = True
+    out[c[positive], k[positive], 1] = True
+    return out
+
+
+def _dot_rows(axes: FloatArray, px: FloatArray) -> FloatArray:
+    """(C, K, K') ``(px[c, k'] - px[c, k]) . axes[c, k]`` for (C, K, 2) ``axes`` and ``px``."""
+    return np.asarray(axes @ px.transpose(0, 2, 1) - np.einsum("cki,cki->ck", axes, px)[..., None])
+
+
+def consistent_readings(obs: SideReadings, step: FloatArray) -> SideReadings:
+    """``obs`` without the readings the solution ``step`` (K, 3) disagrees with.
+
+    A reading contaminated by another part of the tube that the curve does not
+    know of (a part it lacks or has in the wrong place) puts the axis where the
+    other views and the neighbouring samples do not: after a first solve its
+    residual stands out. Readings off by more than ``OUTLIER_RADII`` radii (or
+    ``OUTLIER_SPREAD`` robust standard deviations, if larger) are dropped;
+    ``obs`` itself is returned when none is.
+    """
+    centre, weight = obs.centres()
+    residual = np.abs(centre - np.einsum("kci,ki->kc", obs.rows, step))
+    used = weight > 0
+    if not used.any():
+        return obs
+    spread = 1.4826 * median_1d(residual[used])
+    bad = used & (residual > max(OUTLIER_RADII * obs.radius_mm, OUTLIER_SPREAD * spread))
+    if not bad.any():
+        return obs
+    use = obs.use & ~bad[..., None]
+    return replace(obs, use=use)
+
+
+# A reading whose residual after a first solve exceeds this many radii (or this
+# many robust standard deviations of all residuals, if larger) is an outlier.
+OUTLIER_RADII = 0.25
+
+
+OUTLIER_SPREAD = 4.0

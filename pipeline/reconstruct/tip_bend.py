@@ -1,0 +1,398 @@
+"""The tip bent to the grey levels where it lies against another part of the tube.
+
+Where the tip lies against another part of the tube (a thick loop's tip on its
+stem), its side readings are pulled off it by the other part's edges, in every
+view that does not separate them. :func:`bend_tip_to_pixels` then bends and
+lengthens the curve's last few radii until the tube it describes, drawn with
+sub-pixel coverage, matches each view's grey levels near the tip; it starts
+where the fit left the tip, or where the curve's own course takes it
+(:func:`continue_on_circle`), and whole tubes are compared by the same measure
+(:func:`pipeline.reconstruct.tube_drawing.coverage_mismatch`).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..geometry.camera import Camera, project_in_views
+from ..geometry.polyline import cut_polyline, polyline_arclength
+from .tube_drawing import (
+    SUPERSAMPLE,
+    canvas_levels,
+    draw_tube,
+    level_difference,
+    normals,
+    pixel_coverages,
+    tube_points,
+    view_window,
+)
+from .tube_tip import END_SPAN_MM, end_frame, min_distance
+
+FloatArray = NDArray[np.float64]
+_log = logging.getLogger(__name__)
+
+
+# Bending the tip to the pixels (bend_tip_to_pixels): the curve's last 4
+# radii are bent, then its last 2, then its last 1, each by a pattern search
+# with these steps (mm); the tube is drawn SUPERSAMPLE times finer than the
+# image (coverage to 1/16 of a pixel), with _RING_POINTS points on each circle
+# of its flat end, in a window reaching _WINDOW_PX past the drawn tube (room for
+# the largest bend allowed, 1.5 radii: ~8 px for r = 9 mm at the rigs' ~0.6
+# px/mm). Measured on rendered loops (r 4, 6, 7.5, 9 mm, both rigs, 12-16
+# frames each), median tip on the r 9 loops: one span of 3, 4 or 6 radii
+# 1.6-2.5, 1.7-2.6, 2.4-3.8 mm; 4 then 2 radii 1.4-2.3 mm; 4, 2, 1 radii
+# 1.1-2.0 mm (6, 4, 2: 1.3-2.3 mm). Started from the true curve, the searches
+# moved the tip by 1.1 mm (median, r 9 ninety loop), mostly shorter, and
+# by as much against the renderer's exact coverage: the drawn tube was biased
+# (cv2's fill, the end face square to the chord; see _CIRCLE_BIAS and
+# _end_tangents), not the grey levels. Unbiased, 0.3 mm against exact coverage,
+# 0.5 mm against the grey levels read with local levels (0.8 mm with global
+# ones). The first step of 8 mm (bounded by _MAX_BEND_RADII) lets a search
+# from a tip far off leave a local minimum: r 7 oblique loop mean / p95 /
+# length 0.34 / 0.68 mm / 0.66 % -> 0.24 / 0.64 / 0.22, others unchanged
+# (a radius limit of 2 instead of 1.5 changed nothing but for the worse).
+_BEND_SPANS_RADII = (4.0, 2.0, 1.0)
+
+
+_BEND_STEPS_MM = (8.0, 4.0, 2.0, 1.0, 0.5, 0.25)
+
+
+# The tip is moved at most this many radii across or along: farther, it is
+# another hypothesis of where the tube goes, not a correction of the fit.
+_MAX_BEND_RADII = 1.5
+
+
+# The bend search stops drawing a bend's views once those drawn sum to this
+# factor times the best bend's cost: the views are drawn in another order than
+# the total sums them in, and the two sums of the same parts may differ in their
+# last bits (~1e-16 relative), so a bend is dropped only where its full total
+# could not have come out below the best either.
+_PARTIAL_MARGIN = 1.0 + 1e-9
+
+
+# Parts of the tube fewer than this many radii (along the curve) before the
+# bent part are its own neighbours, not another part that it can lie on.
+_APART_RADII = 4.0
+
+
+# The tip is bent to the pixels only where it meets another part of the tube in
+# at least this many views. Where one view alone sees it on another part, the
+# others see it apart and their side readings place it (two views fix a point),
+# and the robust fit outweighs the one misled view: on the bend_rotate demo
+# (tip crossing the stem in one view of three, 14 of 100 frames) the bend left
+# the tip error where it was (mean 0.56 against 0.53 mm unbent) at ~50 ms a
+# frame. A loop's tip lying on its stem meets it in 2-3 views of 3.
+_MIN_MEETING_VIEWS = 2
+
+
+# ... unless the tip lies against the other part in space: axes within this many
+# radii, surfaces within a diameter. Then the views that see them apart see them
+# barely apart (the gap in an image is at most the gap in space), the edges
+# of the one part blurred into the other's, and their side readings are as
+# doubtful. (Measured: the r 6 loops' single-view frames, axes 3.4-3.6 radii
+# apart, keep their bends (loop p95 1.03 -> 0.94 mm); the demo's, 4.5-4.6
+# radii apart, stay unbent.)
+_TOUCH_RADII = 4.0
+
+
+def bend_tip_to_pixels(
+    points_mm: FloatArray,
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    contrasts: Sequence[NDArray[np.float32]],
+    radius_mm: float,
+    *,
+    spans_radii: Sequence[float] = _BEND_SPANS_RADII,
+    steps_mm: Sequence[float] = _BEND_STEPS_MM,
+    rejects: Callable[[FloatArray], bool] | None = None,
+    coverages: Sequence[NDArray[np.float32]] | None = None,
+    cap: str = "flat",
+) -> FloatArray:
+    """The curve with its last few radii bent and lengthened to match the views' pixels.
+
+    For each span L in ``spans_radii`` in turn (in radii, at most half the
+    curve), the end part (past arc length ``s0``, L before the end) is moved by
+    ``a ((s - s0) / L)^2`` across the end tangent (``a``: two components, mm;
+    the curve before ``s0`` is kept and the join is smooth), then lengthened
+    along its own continuation or cut, by ``dl`` mm. (a, dl) minimise, summed
+    over the views in a window around the end part, the squared difference
+    between the tube's drawn coverage (sub-pixel, flat end: :func:`draw_tube`)
+    and the coverage read from the grey levels (:func:`_coverage`), by a
+    pattern search. Unlike the side readings, this holds where the tip touches
+    another part of the tube: that part is drawn too, so its edges are not
+    taken for the tip's. A longer span sets the tip's course, the shorter ones
+    then its last few mm.
+
+    Parameters
+    ----------
+    points_mm : (M, 3) float64 axis, base -> tip, world frame, mm.
+    cameras, masks, contrasts : per camera: the camera, its (H, W) bool
+        silhouette and (H, W) float32 foreground contrast.
+    radius_mm : tube radius, mm.
+    spans_radii : lengths of the bent part, in radii, one search each.
+    steps_mm : the pattern search's steps, largest first: how far from
+        ``points_mm`` the tip is sought.
+    rejects : a bent axis (K, 3) this returns True for is not taken (a tube
+        that passes through itself, say).
+    coverages : the views' :func:`pixel_coverages`, if already read.
+    cap : the tube's end, "flat" or "round" (a hemisphere around the axis' end).
+
+    Returns
+    -------
+    (M', 3) float64, the bent axis; ``points_mm`` when no bend matches better.
+    """
+    pts = np.asarray(points_mm, dtype=np.float64)
+    # The grey levels read as coverage once for all the spans.
+    seen = pixel_coverages(contrasts, masks) if coverages is None else coverages
+    for span in spans_radii:
+        pts = _bend_once(pts, cameras, seen, radius_mm, span * radius_mm, rejects, steps_mm, cap == "flat")
+    return pts
+
+
+def _bend_once(
+    pts: FloatArray,
+    cameras: Sequence[Camera],
+    coverages: Sequence[NDArray[np.float32]],
+    radius_mm: float,
+    span_mm: float,
+    rejects: Callable[[FloatArray], bool] | None,
+    steps_mm: Sequence[float],
+    flat_end: bool,
+) -> FloatArray:
+    """One search of :func:`bend_tip_to_pixels`, bending the last ``span_mm``;
+    ``coverages``: per camera, (H, W) float32 from :func:`_coverage`."""
+    arc = polyline_arclength(pts)
+    start = max(float(arc[-1]) - span_mm, 0.5 * float(arc[-1]))
+    # The part before the bend (to a radius before it, so that the drawn
+    # pieces overlap) is drawn once per view.
+    keep = max(start - radius_mm, 0.0)
+    first = max(int(np.searchsorted(arc, keep)) - 1, 0)
+    body = cut_polyline(pts, keep)
+    bender = _end_bender(pts, arc, start, end_frame(pts, arc, at_mm=float(arc[-1]), span_mm=END_SPAN_MM))
+    windows = []
+    for cam, coverage in zip(cameras, coverages, strict=True):
+        window = view_window(cam, pts[first:], radius_mm)
+        if window is None:
+            continue
+        (x0, y0), (x1, y1) = window
+        fixed = np.zeros(((y1 - y0) * SUPERSAMPLE, (x1 - x0) * SUPERSAMPLE), np.uint8)
+        draw_tube(fixed, cam, *tube_points(body, radius_mm, flat_end=False), radius_mm, (x0, y0))
+        windows.append((cam, coverage[y0:y1, x0:x1], fixed, (x0, y0)))
+    if not windows:
+        return pts
+
+    # The pattern search comes back to points it has tried (a step back after
+    # a step forth): each bend's cost is kept. Its steps are sums of powers of
+    # two, so the keys are exact.
+    tried: dict[tuple[float, ...], float] = {}
+
+    def cost(p: FloatArray, below: float) -> float:
+        """Mismatch of the bend ``p`` (across (2,), longer, mm); inf out of
+        bounds, or if it would beat ``below`` but ``rejects`` it (checked only
+        then: most bends tried do not beat the best, and the check is dear)."""
+        key = tuple(p.tolist())
+        if key not in tried:
+            tried[key] = mismatch(p, below)
+        return tried[key]
+
+    view_cameras = [window[0] for window in windows]
+
+    # The body's levels, once per view: a bend's drawing changes only the
+    # blocks it touches, which alone are averaged again (see canvas_levels).
+    fixed_levels = [canvas_levels(window[2]) for window in windows]
+
+    def view_cost(view: int, discs: FloatArray, outline: FloatArray, pixels: FloatArray) -> float:
+        cam, seen, fixed, origin = windows[view]
+        canvas = fixed.copy()
+        x0, y0, x1, y1 = draw_tube(canvas, cam, discs, outline, radius_mm, origin, pixels=pixels)
+        levels = fixed_levels[view].copy()
+        x0, y0 = x0 // SUPERSAMPLE, y0 // SUPERSAMPLE
+        x1, y1 = -(-x1 // SUPERSAMPLE), -(-y1 // SUPERSAMPLE)
+        if x1 > x0 and y1 > y0:
+            s = SUPERSAMPLE
+            levels[y0:y1, x0:x1] = canvas_levels(canvas[y0 * s : y1 * s, x0 * s : x1 * s])
+        return level_difference(levels, seen)
+
+    # Views are drawn in the order of their share of the best bend's cost, the
+    # largest first: a bend that cannot win is then found out in fewer views.
+    order = list(range(len(windows)))
+
+    def mismatch(p: FloatArray, below: float) -> float:
+        """The bend's cost, summed over the views in their own order; or, once
+        the views drawn so far reach ``below``, their partial sum (the others
+        can only add: the bend cannot win, and the search compares a kept
+        cost only with a lower best)."""
+        if np.hypot(p[0], p[1]) > _MAX_BEND_RADII * radius_mm or abs(p[2]) > _MAX_BEND_RADII * radius_mm:
+            return np.inf
+        bent = bender(p[:2], float(p[2]))
+        discs, outline = tube_points(bent[first:], radius_mm, flat_end=flat_end)
+        # Projected in all views in one go (the same pixels as view by view).
+        pixels = project_in_views(view_cameras, np.vstack([discs, outline]))
+        parts = [0.0] * len(windows)
+        partial = 0.0
+        for view in order[:-1]:
+            parts[view] = view_cost(view, discs, outline, pixels[view])
+            partial += parts[view]
+            # Summed in another order than the total, the partial sum may
+            # differ from a sum of the same parts in its last bits: the margin.
+            if partial >= below * _PARTIAL_MARGIN:
+                return partial
+        parts[order[-1]] = view_cost(order[-1], discs, outline, pixels[order[-1]])
+        total = 0.0
+        for part in parts:
+            total += part
+        if total < below:
+            if rejects is not None and rejects(bent):
+                return np.inf
+            order[:] = sorted(order, key=lambda view: -parts[view])
+        return total
+
+    p, best = np.zeros(3), cost(np.zeros(3), np.inf)
+    for step in steps_mm:
+        improved = True
+        while improved:
+            improved = False
+            for i in range(3):
+                for sign in (1.0, -1.0):
+                    q = p.copy()
+                    q[i] += sign * step
+                    c = cost(q, best)
+                    if c < best:
+                        best, p, improved = c, q, True
+    _log.debug("tip bent by %s mm across, %+.2f mm longer (cost %.1f)", p[:2], p[2], best)
+    return bender(p[:2], float(p[2])) if p.any() else pts
+
+
+def continue_on_circle(points_mm: FloatArray, *, redo_mm: float, fit_mm: float) -> FloatArray:
+    """(M', 3) axis whose last ``redo_mm`` are replaced by the circle the part before follows.
+
+    The circle (centre, radius, plane) is fitted, least squares, to the axis
+    over the ``fit_mm`` before the cut, and followed from the cut, in the
+    axis' direction of travel, for ``redo_mm``, in 2 mm steps. A loop's tip
+    that lies on its stem has no readings of its own that a fit could follow:
+    this is where its course takes it (the tip bend then corrects it to the
+    pixels). A part too straight for a circle is continued straight.
+
+    Parameters
+    ----------
+    points_mm : (M, 3) float64 axis, base -> tip, world frame, mm.
+    redo_mm, fit_mm : lengths along the axis, mm.
+    """
+    pts = np.asarray(points_mm, dtype=np.float64)
+    arc = polyline_arclength(pts)
+    cut = cut_polyline(pts, float(arc[-1]) - redo_mm)
+    cut_arc = polyline_arclength(cut)
+    part = cut[cut_arc >= cut_arc[-1] - fit_mm]
+    ahead = np.append(np.arange(2.0, redo_mm, 2.0), redo_mm)
+    centre = part.mean(axis=0)
+    _, spread, vt = np.linalg.svd(part - centre)
+    xy = (part - centre) @ vt[:2].T
+    # Kasa's algebraic circle: |p|^2 = 2 c . p + (R^2 - |c|^2), linear in c and R^2 - |c|^2.
+    design = np.column_stack([2.0 * xy, np.ones(len(xy))])
+    (cx, cy, k), *_ = np.linalg.lstsq(design, (xy**2).sum(axis=1), rcond=None)
+    radius = float(np.sqrt(max(k + cx**2 + cy**2, 0.0)))
+    # Sagitta below a thousandth of the chord (spread across / along): straight.
+    if len(part) < 3 or spread[1] < 1e-3 * spread[0] or not 0.0 < radius < np.inf:
+        along = vt[0] if (part[-1] - part[0]) @ vt[0] >= 0 else -vt[0]
+        return np.vstack([cut, cut[-1] + np.outer(ahead, along)])
+    rel = xy - (cx, cy)
+    # The way round the part goes: the sign of the angle it sweeps, step by step
+    # (its last step alone can be a sliver, where the cut fell by a sample).
+    sweep = float(np.sum(rel[:-1, 0] * rel[1:, 1] - rel[:-1, 1] * rel[1:, 0]))
+    angles = np.arctan2(rel[-1, 1], rel[-1, 0]) + np.sign(sweep or 1.0) * ahead / radius
+    on_circle = radius * np.column_stack([np.cos(angles), np.sin(angles)])
+    # Shifted to start at the cut (the circle passes within the fit's residual of it).
+    from_cut = on_circle - radius * rel[-1] / np.linalg.norm(rel[-1])
+    return np.vstack([cut, cut[-1] + from_cut @ vt[:2]])
+
+
+def tip_meets_tube(
+    points_mm: FloatArray,
+    cameras: Sequence[Camera],
+    radius_mm: float,
+    *,
+    span_radii: float = _BEND_SPANS_RADII[0],
+    min_views: int = _MIN_MEETING_VIEWS,
+) -> bool:
+    """Whether, in at least ``min_views`` views, the tube's last ``span_radii``
+    radii touch or cross the image of a part of the tube at least
+    ``_APART_RADII`` radii before them along the curve (projected tubes within a
+    pixel): where the tip's side readings can be another part's edges.
+
+    One such view is not enough (see ``_MIN_MEETING_VIEWS``): the others,
+    which see the tip apart, place it; unless the tip lies against that part
+    in space (axes within ``_TOUCH_RADII`` radii).
+
+    ``points_mm`` : (M, 3) float64 axis, base -> tip, world frame, mm.
+    """
+    pts = np.asarray(points_mm, dtype=np.float64)
+    arc = polyline_arclength(pts)
+    start = float(arc[-1]) - span_radii * radius_mm
+    tip, others = pts[arc >= start], pts[arc < start - _APART_RADII * radius_mm]
+    if len(tip) == 0 or len(others) == 0:
+        return False
+    # Against another part, not near its own neighbours across a tight bend
+    # (a 24 mm arc's chord on a 30 mm bend is 23 mm): parts twice as far back.
+    far = pts[arc < start - 2.0 * _APART_RADII * radius_mm]
+    if len(far) and min_distance(tip, far) < _TOUCH_RADII * radius_mm:
+        min_views = 1
+    meeting = 0
+    for cam in cameras:
+        focal = cam.focal_px
+        reach = focal * radius_mm / np.concatenate([cam.to_camera(tip)[:, 2], cam.to_camera(others)[:, 2]])
+        if not (reach > 0).all():
+            continue
+        # Both tubes' projected radii (the largest: the nearest) and a pixel.
+        touch = reach[: len(tip)].max() + reach[len(tip) :].max() + 1.0
+        if min_distance(cam.project(tip), cam.project(others)) < touch:
+            meeting += 1
+            if meeting >= min_views:
+                return True
+    return False
+
+
+def _bend_end(
+    pts: FloatArray,
+    arc: FloatArray,
+    start: float,
+    across: FloatArray,
+    longer: float,
+    ahead: Callable[[FloatArray], FloatArray],
+) -> FloatArray:
+    """(M, 3) axis bent past arc length ``start`` by ``across`` (2,) mm at its end
+    (across the end tangent, growing as the square of the arc length past
+    ``start``), then lengthened by ``longer`` mm along its own continuation
+    ``ahead`` (u mm past the end -> points, see :func:`end_frame`), bent alike,
+    or cut if ``longer`` is negative."""
+    return _end_bender(pts, arc, start, ahead)(across, longer)
+
+
+def _end_bender(
+    pts: FloatArray, arc: FloatArray, start: float, ahead: Callable[[FloatArray], FloatArray]
+) -> Callable[[FloatArray, float], FloatArray]:
+    """:func:`_bend_end` of one axis as a function of (``across``, ``longer``):
+    what does not depend on the bend (the end's normals, the weights along the
+    axis, the continuation's origin) is worked out once, for the many bends a
+    search tries."""
+    n1, n2 = normals(pts[-1] - pts[-2])
+    span = float(arc[-1]) - start
+    w = (np.clip((arc - start) / span, 0.0, None) ** 2)[:, None]
+    origin = ahead(np.zeros(1))
+
+    def bent(across: FloatArray, longer: float) -> FloatArray:
+        offset = across[0] * n1 + across[1] * n2
+        out = pts + w * offset[None, :]
+        if longer < 0:
+            return cut_polyline(out, float(arc[-1]) + longer)
+        if longer > 0:
+            u = np.append(np.arange(2.0, longer, 2.0), longer)
+            # The continuation is a least-squares fit: shifted to start at the end.
+            more = ahead(u) - origin + pts[-1]
+            return np.vstack([out, more + (((arc[-1] + u - start) / span) ** 2)[:, None] * offset[None, :]])
+        return out
+
+    return bent

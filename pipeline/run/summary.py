@@ -1,0 +1,158 @@
+"""What a run reports: frames processed and failed, doubtful spans, timings, the files written.
+
+:class:`RunSummary` is printed by ``pipeline process`` and ``pipeline live`` and returned
+by :func:`pipeline.process_session`; ``as_dict`` is its ``--json`` form.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..reconstruct.quality import DOUBTFUL_IOU
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """How a run went.
+
+    frames_failed : (frame index, reason) for every failed frame, in order.
+    outputs : (path, size in bytes) of each file written.
+    frames_doubtful : indices of "ok" frames whose tube re-projects poorly onto some
+        camera's silhouette (``quality.is_doubtful``), in order.
+    frames_at_walls : indices of "ok" frames whose hull lies against a wall of the
+        workspace box other than the base's (``quality.reaches_walls``), in order.
+    frames_suspect : (frame index, reason) of "ok" frames whose curve may be wrong
+        (``FrameResult.suspect_reason``), in order.
+    tip : the tube end the fit assumed, and how it was chosen ("" when not told).
+    cameras : the cameras reconstructed with, given or refined, and why ("" when not told).
+    camera_warnings : a line per camera that seems to have moved since its calibration.
+    exit_code : 0 when every frame is ok or empty, 1 when some failed or none holds a tube.
+    """
+
+    frames_ok: int
+    frames_empty: int
+    frames_failed: list[tuple[int, str]]
+    wall_s: float
+    fps: float
+    outputs: list[tuple[Path, int]] = field(default_factory=list)
+    frames_doubtful: list[int] = field(default_factory=list)
+    frames_at_walls: list[int] = field(default_factory=list)
+    frames_suspect: list[tuple[int, str]] = field(default_factory=list)
+    tip: str = ""
+    cameras: str = ""
+    camera_warnings: list[str] = field(default_factory=list)
+
+    @property
+    def frames_total(self) -> int:
+        return self.frames_ok + self.frames_empty + len(self.frames_failed)
+
+    @property
+    def exit_code(self) -> int:
+        # A run that found no tube anywhere produced nothing to analyse: not a success.
+        return 1 if self.frames_failed or self.frames_ok == 0 else 0
+
+    def lines(self) -> list[str]:
+        """The closing summary, one line per fact; :meth:`problem_lines` among them."""
+        total = self.frames_total
+        out = [
+            f"frames: {total} processed, {self.frames_ok} ok, {self.frames_empty} empty, "
+            f"{len(self.frames_failed)} failed",
+        ]
+        if self.tip:
+            out.append(f"  tube end: {self.tip}")
+        if self.cameras:
+            out.append(f"  cameras: {self.cameras}")
+        out += self.problem_lines()
+        out.append(f"time: {self.wall_s:.1f} s wall, {self.fps:.1f} frames/s")
+        out += [f"wrote {path} ({_human_size(size)})" for path, size in self.outputs]
+        return out
+
+    def problem_lines(self) -> list[str]:
+        """The summary's failure and warning lines: failed frames, suspect frames, doubtful
+        frames, frames at the walls, no tube found."""
+        out = [f"  failed {span}: {reason}" for span, reason in compress_failures(self.frames_failed)]
+        out += [f"  {line}" for line in self.camera_warnings]
+        if self.frames_suspect:
+            first, why = self.frames_suspect[0]
+            frames = [i for i, _ in self.frames_suspect]
+            out.append(
+                f"  suspect: {len(frames)} of the ok frames ({_spans(frames)}) may be wrong "
+                f"(frame {first}: {why}); each frame's metrics say why (suspect_reason)"
+            )
+        if self.frames_doubtful:
+            out.append(
+                f"  doubtful: {len(self.frames_doubtful)} of the ok frames ({_spans(self.frames_doubtful)}) "
+                f"re-project poorly onto a camera's silhouette (IoU < {DOUBTFUL_IOU:g}): check "
+                "[silhouette] method, threshold and polarity in session.toml"
+            )
+        if self.frames_at_walls:
+            out.append(
+                f"  at the walls: in {len(self.frames_at_walls)} of the ok frames "
+                f"({_spans(self.frames_at_walls)}) the hull reaches a wall of the workspace box, "
+                "where the tube may go on out of sight and its curve end short: enlarge [workspace] "
+                "size_mm, or move origin_mm"
+            )
+        if self.frames_ok == 0 and self.frames_empty:
+            out.append(
+                "  no tube in any frame: check [silhouette] polarity (dark or bright tube) and "
+                "threshold in session.toml"
+            )
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        """The summary as JSON-ready data (``process --json``): the counts, the failed frames
+        with their reasons, the suspect frames with theirs, the doubtful frames and those at
+        the walls, the tube end assumed, the problem lines,
+        wall time (s), frames per second, the outputs (path, bytes) and the exit status."""
+        return {
+            "frames": {
+                "processed": self.frames_total,
+                "ok": self.frames_ok,
+                "empty": self.frames_empty,
+                "failed": len(self.frames_failed),
+            },
+            "failed": [{"frame": index, "reason": reason} for index, reason in self.frames_failed],
+            "suspect": [{"frame": index, "reason": reason} for index, reason in self.frames_suspect],
+            "doubtful": list(self.frames_doubtful),
+            "at_walls": list(self.frames_at_walls),
+            "tip": self.tip,
+            "cameras": self.cameras,
+            "problems": [line.strip() for line in self.problem_lines()],
+            "wall_s": self.wall_s,
+            "fps": self.fps,
+            "outputs": [{"path": str(path), "bytes": size} for path, size in self.outputs],
+            "exit_code": self.exit_code,
+        }
+
+
+# Frame spans a summary line (doubtful frames, frames at the walls) lists before "...".
+_SPANS_SHOWN = 6
+
+
+def _spans(frames: Sequence[int]) -> str:
+    """ "2-4, 9, ..." for frames [2, 3, 4, 9, ...]: the first _SPANS_SHOWN spans."""
+    spans = [span for span, _ in compress_failures([(i, "") for i in frames])]
+    return ", ".join(spans[:_SPANS_SHOWN]) + (", ..." if len(spans) > _SPANS_SHOWN else "")
+
+
+def compress_failures(failed: Sequence[tuple[int, str]]) -> list[tuple[str, str]]:
+    """[(3, "x"), (4, "x"), (5, "x"), (9, "y")] -> [("3-5", "x"), ("9", "y")]."""
+    spans: list[tuple[int, int, str]] = []
+    for index, reason in sorted(failed):
+        if spans and spans[-1][1] == index - 1 and spans[-1][2] == reason:
+            spans[-1] = (spans[-1][0], index, reason)
+        else:
+            spans.append((index, index, reason))
+    return [(f"{a}" if a == b else f"{a}-{b}", reason) for a, b, reason in spans]
+
+
+def _human_size(size: int) -> str:
+    value = float(size)
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if value < 1024 or unit == "GiB":
+            return f"{value:.0f} {unit}" if unit == "B" else f"{value:.1f} {unit}"
+        value /= 1024
+    return f"{size} B"
