@@ -143,7 +143,7 @@ def rotation_angle_deg(R_a: NDArray[np.float64], R_b: NDArray[np.float64]) -> fl
 def assert_meets_calibration_targets(
     cameras: Sequence[Camera], mean_px: dict[str, float], truth: Path
 ) -> None:
-    """Issue 7's targets for every calibrated camera against truth_calibration.toml:
+    """The calibration targets for every calibrated camera against truth_calibration.toml:
     0.2 px mean re-projection error (the original's figure), focal length within
     0.5 %, optical centre within 2 mm, orientation within 0.2 degrees."""
     true_cams = {c.name: c for c in read_calibration(truth)}

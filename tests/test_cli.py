@@ -16,7 +16,6 @@ from typing import Any
 
 import pytest
 
-from pipeline import cli
 from pipeline.cli import EXIT_BAD_INPUT, EXIT_FRAMES_FAILED, EXIT_INTERNAL_ERROR, main
 from pipeline.cli import parser as cli_parser
 from pipeline.errors import CalibrationError
@@ -63,7 +62,9 @@ def _raising(exc: BaseException) -> object:
 def test_pipeline_error_is_one_line_and_exit_2(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    monkeypatch.setattr(cli_parser, "_cmd_evaluate", _raising(CalibrationError("cal.toml: bad\n  camera 'c0'")))
+    monkeypatch.setattr(
+        cli_parser, "_cmd_evaluate", _raising(CalibrationError("cal.toml: bad\n  camera 'c0'"))
+    )
     assert main(["evaluate", "r.mcap", "gt.npz"]) == EXIT_BAD_INPUT
     assert capsys.readouterr().err == "error: cal.toml: bad camera 'c0'\n"
 

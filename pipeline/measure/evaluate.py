@@ -1,6 +1,6 @@
 """Accuracy of reconstructed centrelines against ground truth.
 
-The figures are the ones issue 4 sets targets for: the symmetric distance between
+The figures are the ones the accuracy targets are set for: the symmetric distance between
 the reconstructed and true centrelines (mean and 95th percentile, every point of
 both curves pooled over every ok frame), the tip and base errors, the length
 error in percent, the failed frames, and the tip jitter (RMS of the second time

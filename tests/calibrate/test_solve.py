@@ -168,7 +168,7 @@ def test_real_stereo_pairs_agree_with_opencv_stereo(tmp_path) -> None:
     views = detect_directory(root, board)
     result = calibrate_views(views, board)
     means = result.camera_mean_px()
-    assert means["left"] <= 0.3 and means["right"] <= 0.3  # issue 7 target for real images
+    assert means["left"] <= 0.3 and means["right"] <= 0.3  # the target for real images
     left, right = result.cameras
     R_rel = right.camera_from_world @ left.camera_from_world.T
     t_rel = right.translation_mm - R_rel @ left.translation_mm
@@ -226,5 +226,5 @@ def test_reconstruction_with_calibrated_cameras(synth, tmp_path) -> None:
         process_session(load_session(session_dir), out_dir=out, jobs=1, images=False, progress=False)
         report = evaluate_recording(out / f"{session_dir.name}.mcap", session_dir / "ground_truth.npz")
         errors[session_dir.name] = report.mean_mm
-    # Issue 7 target: at most 0.2 mm worse in mean centreline error.
+    # The target: at most 0.2 mm worse in mean centreline error.
     assert errors["calibrated"] <= errors["true"] + 0.2, errors

@@ -1,4 +1,4 @@
-"""End to end accuracy on rendered sessions: issue 4's targets, per shape.
+"""End to end accuracy on rendered sessions: the accuracy targets, per shape.
 
 Each session is rendered by the synthetic renderer (the independent oracle), read
 back through load_session / read_frames (so video compression is included), and
@@ -25,7 +25,7 @@ from pipeline.synth.variety import Case, draw_cases, render_case
 
 FRAMES = 12
 
-# Issue 4's targets: mean and p95 of the symmetric centreline distance (mm),
+# The accuracy targets: mean and p95 of the symmetric centreline distance (mm),
 # median tip error (mm), mean length error (%), failed frames.
 MEAN_MM, P95_MM, TIP_MM, LENGTH_PCT = 0.4, 1.0, 1.0, 1.0
 

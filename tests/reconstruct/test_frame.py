@@ -59,7 +59,7 @@ def test_a_rendered_tube_is_reconstructed(model: SessionModel, tube: tuple) -> N
     dist = np.concatenate(
         [centerline_distances(result.centerline_mm, curve), centerline_distances(curve, result.centerline_mm)]
     )
-    # Issue 4's targets (mean 0.4, p95 1.0, tip 1.0 mm, length 1 %); measured on
+    # The accuracy targets (mean 0.4, p95 1.0, tip 1.0 mm, length 1 %); measured on
     # this frame: mean ~0.15, tip ~0.4 mm.
     assert dist.mean() < 0.4
     assert np.percentile(dist, 95) < 1.0

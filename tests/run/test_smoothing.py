@@ -49,7 +49,7 @@ def test_noise_and_jitter_drop_on_slow_motion() -> None:
 
 
 def test_slow_noisy_motion_gets_the_jitter_of_the_truth() -> None:
-    # Issue 4: tip jitter within 1.5x the truth's. A 10 s bending cycle (the demo's
+    # The target: tip jitter within 1.5x the truth's. A 10 s bending cycle (the demo's
     # pace) seen with 0.3 mm of per-frame noise, as the reconstruction's tip has.
     t = times(600)
     truth = bending_arcs(1.0 * np.sin(2 * np.pi * 0.1 * t))
@@ -101,7 +101,7 @@ def test_fast_motion_is_not_blurred(
     truth = motion(t)
     assert np.ptp(truth[:, -1, 0]) > min_tip_travel_mm  # the motion really is fast
     smoothed = smooth_centerlines(truth, t)
-    # Issue 4: smoothing must not blur real motion; 0.1 mm is 1/20 of a voxel.
+    # Smoothing must not blur real motion; 0.1 mm is 1/20 of a voxel.
     assert np.abs(smoothed - truth).max() < 0.1
 
 

@@ -1,4 +1,4 @@
-"""The live rows of ``make bench`` (issue 16): a session replayed through ``pipeline live``.
+"""The live rows of ``make bench``: a session replayed through ``pipeline live``.
 
 Each run is the real command line in a fresh process, replaying a session's videos
 at their frame rate as if they were cameras, with no viewer; its JSON summary gives

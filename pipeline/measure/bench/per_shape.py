@@ -1,4 +1,4 @@
-"""The per-shape rows of ``make bench``: issue 14's speed targets beyond the demo.
+"""The per-shape rows of ``make bench``: the speed targets beyond the demo.
 
 Each shape is a session rendered once by ``pipeline synth`` into
 ``recordings/bench-<name>`` (like the demo) and reused. Per shape: ``process`` end to
@@ -21,7 +21,7 @@ from .timing import StageStats
 
 log = logging.getLogger(__name__)
 
-SHAPE_JOBS = 2  # issue 14's end-to-end target is for 2 workers
+SHAPE_JOBS = 2  # the end-to-end target is for 2 workers
 # Decode-only passes per floor (median): see decode_floor.
 FLOOR_REPEATS = 3
 
@@ -50,7 +50,7 @@ DEMO_SHAPE = BenchShape("bend_rotate (demo)", "demo")
 # A loop, whose tip lies against its stem (the costliest frames the cascade fits), and a
 # random shape with a round end from the synthetic variety (random_shapes: curvature and
 # twist drawn from the seed, sometimes a loop). Both 320x240, three cameras, 6 mm tube:
-# the conditions issue 14's speed targets are set for.
+# the conditions the speed targets are set for.
 SHAPES = (
     BenchShape("loop", "bench-loop", ("--shape", "loop")),
     BenchShape(

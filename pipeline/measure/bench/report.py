@@ -18,7 +18,7 @@ REALTIME_FPS = 30.0
 # The end-to-end wall-time targets are for this many frames (the demo session).
 TARGET_FRAMES = 900
 
-# Issue 14's per-frame figure: silhouettes + carving + centreline + quality of one frame,
+# The per-frame figure: silhouettes + carving + centreline + quality of one frame,
 # wall time and the thread's CPU time (one process, OpenCV on one thread).
 RECONSTRUCT = "silhouettes to quality"
 RECONSTRUCT_CPU = "silhouettes to quality, CPU"
@@ -36,11 +36,11 @@ STAGE_ORDER = (
     RECONSTRUCT,
     RECONSTRUCT_CPU,
 )
-# Issue 14's speed targets, for every shape: end to end with 2 workers over decoding
+# The speed targets for every shape: end to end with 2 workers over decoding
 # the three videos alone, and the 99th percentile of RECONSTRUCT (a live camera's 30 fps).
 SHAPE_DECODE_RATIO_LIMIT = 20.0
 RECONSTRUCT_P99_LIMIT_MS = 33.0
-# Issue 16's live targets, replaying a 320x240 session at 30 fps on this machine.
+# The live targets, replaying a 320x240 session at 30 fps on this machine.
 LIVE_P50_LIMIT_MS = 20.0
 LIVE_P99_LIMIT_MS = 50.0
 LIVE_GAP_LIMIT_MM = 0.05
@@ -113,7 +113,7 @@ class ScalingRow:
 
 @dataclass(frozen=True)
 class ShapeRun:
-    """One shape's session against issue 14's speed targets.
+    """One shape's session against the per-shape speed targets.
 
     Attributes
     ----------
@@ -149,7 +149,7 @@ class ShapeRun:
 
 @dataclass(frozen=True)
 class LiveRun:
-    """One ``python -m pipeline live --replay`` subprocess (issue 16).
+    """One ``python -m pipeline live --replay`` subprocess .
 
     Attributes
     ----------
@@ -186,7 +186,7 @@ class LiveRun:
 
 @dataclass(frozen=True)
 class Target:
-    """One target of issue 8 or 14; ``passed`` is None when it was not measured in this run."""
+    """One speed target; ``passed`` is None when it was not measured in this run."""
 
     name: str
     measured: float
@@ -226,8 +226,8 @@ class BenchReport:
     decode_floor_s : wall time to only decode the three videos of the whole session.
     decode_frames : frames per video decoded for the floor.
     scaling : carving set-up and per-frame cost by resolution.
-    shapes : the demo and further shapes against issue 14's speed targets.
-    live : ``live --replay`` of the demo and further shapes (issue 16).
+    shapes : the demo and further shapes against the per-shape speed targets.
+    live : ``live --replay`` of the demo and further shapes .
     """
 
     meta: dict[str, Any] = field(default_factory=dict)
@@ -268,7 +268,7 @@ def speedup_2_over_1(report: BenchReport) -> float:
 
 
 def targets(report: BenchReport) -> list[Target]:
-    """Issue 8's targets, then issue 14's per shape, against what ``report`` measured."""
+    """The run's speed targets, then those per shape, against what ``report`` measured."""
     two = report.run(jobs=2, voxel_mm=2.0)
     # The wall-time targets are for the whole 900-frame demo; a shorter run (--quick)
     # would pass them without saying anything.
@@ -299,7 +299,7 @@ def targets(report: BenchReport) -> list[Target]:
 
 
 def live_targets(run: LiveRun) -> list[Target]:
-    """Issue 16's targets for one live replay."""
+    """The live targets for one replay."""
     return [
         Target(f"live {run.label}: frame-sets dropped", float(run.dropped), 0.0, "frames"),
         Target(f"live {run.label}: latency p50", run.latency_p50_ms, LIVE_P50_LIMIT_MS, "ms"),
@@ -314,7 +314,7 @@ def live_targets(run: LiveRun) -> list[Target]:
 
 
 def shape_targets(shape: ShapeRun) -> list[Target]:
-    """Issue 14's speed targets for one shape.
+    """The speed targets for one shape.
 
     The ratio target is for 900 frames: a shorter run (--quick) spreads the fixed
     start-up over fewer frames and would miss it without saying anything about the

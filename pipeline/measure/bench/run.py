@@ -1,4 +1,4 @@
-"""``make bench``: speed, side by side with the original algorithm (issue 8).
+"""``make bench``: speed, side by side with the original algorithm.
 
 ``python -m pipeline.measure.bench [--frames 900] [--quick]`` makes (or reuses) the demo
 session, then measures on this machine:
@@ -10,10 +10,10 @@ session, then measures on this machine:
 - carving set-up and per-frame cost at 1 mm voxels and 640x480 masks;
 - ``python -m pipeline process`` end to end (subprocess, start to files closed) with
   1 and 2 workers, and at 1 mm; decode-only as the floor; peak memory of each run;
-- per shape (issue 14: the demo, a loop, a random shape with a round end, each rendered
+- per shape (the demo, a loop, a random shape with a round end, each rendered
   once beside the demo and reused): ``process`` with 2 workers over its decode floor,
   and the 99th percentile of the per-frame silhouettes-to-quality time on one core;
-- live (issue 16): the demo and the loop replayed through ``python -m pipeline live`` at
+- live: the demo and the loop replayed through ``python -m pipeline live`` at
   30 fps: latency p50/p99, frame-sets dropped, camera rates, memory, and the centrelines
   against what ``process`` recorded of the same frames.
 
@@ -103,12 +103,12 @@ def run_bench(
     fine_end_to_end : also time ``process`` end to end at 1 mm voxels.
     repeats : runs of each end-to-end configuration; the median is reported (the
         peak memory is the largest of them).
-    shapes : sessions beyond the demo for issue 14's per-shape rows, rendered (once)
+    shapes : sessions beyond the demo for the per-shape rows, rendered (once)
         beside ``demo_dir``; the demo's row reuses the demo's own measurements.
     shape_stage_frames : frames of each further shape timed one by one.
     shape_repeats : end-to-end runs of each further shape (a 900-frame loop takes minutes).
     live : replay the demo (and the loop, among ``shapes``) through ``pipeline live``
-        (issue 16), ``frames`` of each at 30 fps.
+        ``frames`` of each at 30 fps.
     work_dir : scratch directory for outputs (a temporary one by default).
     """
     from .stages import carving_scaling, compare_methods, time_stages
@@ -223,7 +223,7 @@ def _live_runs(
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m pipeline.measure.bench",
-        description="Speed of the pipeline, side by side with the original algorithm (issue 8).",
+        description="Speed of the pipeline, side by side with the original algorithm.",
     )
     parser.add_argument("--frames", type=int, default=DEMO_FRAMES, help="frames processed end to end")
     parser.add_argument(
@@ -238,9 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="end-to-end runs of each shape beyond the demo, the median reported (default 1)",
     )
     parser.add_argument("--no-shapes", action="store_true", help="only the demo's row of the per-shape table")
-    parser.add_argument(
-        "--no-live", action="store_true", help="leave out the live replays (pipeline live, issue 16)"
-    )
+    parser.add_argument("--no-live", action="store_true", help="leave out the live replays (pipeline live)")
     parser.add_argument(
         "--original-frames",
         type=int,

@@ -47,7 +47,7 @@ _STAGE_NAMES = {
     "quality": "quality",
     "encode": "encode",
 }
-# The runner's keys that make up "silhouettes to quality", issue 14's per-frame figure.
+# The runner's keys that make up "silhouettes to quality", the per-frame figure.
 _RECONSTRUCT_KEYS = ("silhouette", "carve", "centerline", "quality")
 
 
@@ -92,7 +92,7 @@ def time_stages(session: Session, out_dir: Path, *, frames: int) -> StageRun:
     writes in a background thread, so its per-frame figure is the logging call and
     the rest shows in ``close_s`` (footers, flushes).
 
-    Issue 14's per-frame figure is recorded twice per frame: RECONSTRUCT, the wall
+    The per-frame figure is recorded twice per frame: RECONSTRUCT, the wall
     time of silhouettes + carving + centreline + quality, and RECONSTRUCT_CPU, the
     thread CPU time of the same call, which leaves out the time other processes on a
     loaded machine hold the core. OpenCV is held to one thread meanwhile, since the target is for one

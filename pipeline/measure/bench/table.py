@@ -134,7 +134,7 @@ def _scaling_rows(report: BenchReport) -> list[str]:
 
 def _shape_rows(report: BenchReport) -> list[str]:
     rows = [
-        "| shape (issue 14) | frames | end to end s, 2 workers | runs s | decode only s | / decode only "
+        "| shape | frames | end to end s, 2 workers | runs s | decode only s | / decode only "
         "| frames timed (from the hull) | silhouettes to quality median ms | p95 ms | p99 ms | p99 CPU ms |",
         "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
