@@ -20,7 +20,7 @@ from pipeline.synth.boards import render_calibration_views
 
 STEREO = Path("/work/shared/data/stereo-chessboard")
 if not STEREO.is_dir():
-    STEREO = Path(__file__).resolve().parents[2] / "shared" / "data" / "stereo-chessboard"
+    STEREO = Path(__file__).resolve().parents[3] / "shared" / "data" / "stereo-chessboard"
 
 
 @pytest.fixture(scope="module", params=["oblique", "ninety"])

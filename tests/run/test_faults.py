@@ -385,7 +385,7 @@ def _hook_path(hook: Path) -> str:
     """PYTHONPATH for a run with ``hook``/sitecustomize.py: the hook, then this source tree,
     which sitecustomize imports from before ``-m`` puts the current folder on the path (an
     installed pipeline elsewhere, such as another work tree's, would be tested instead)."""
-    return os.pathsep.join([str(hook), str(Path(__file__).resolve().parents[1])])
+    return os.pathsep.join([str(hook), str(Path(__file__).resolve().parents[2])])
 
 
 # Installed as sitecustomize in every Python process of the run (the CLI and its loky workers):
@@ -586,7 +586,7 @@ _KILLED_BETWEEN_RENAMES = """
 import os, signal, sys
 from pathlib import Path
 
-sys.path.insert(0, "tests")
+sys.path[:0] = ["tests", "tests/run"]
 from pipeline.run import runner
 from pipeline.session.folder import load_session
 from test_faults import straight_rod
@@ -615,7 +615,7 @@ def test_a_pair_split_by_a_kill_between_the_renames_is_told_and_put_together(
     old_rrd = (out / "take.rrd").read_bytes()
     killed = subprocess.run(
         [sys.executable, "-c", _KILLED_BETWEEN_RENAMES, str(session), str(out)],
-        cwd=Path(__file__).resolve().parents[1],
+        cwd=Path(__file__).resolve().parents[2],
         capture_output=True,
         text=True,
         timeout=300,
