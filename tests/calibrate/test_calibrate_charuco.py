@@ -71,7 +71,7 @@ def test_no_board_in_the_image_gives_none() -> None:
     assert detect_charuco(np.full((240, 320), 120, np.uint8), BOARD) is None
 
 
-def test_synth_charuco_meets_issue_targets(synth) -> None:
+def test_synth_charuco_meets_the_targets(synth) -> None:
     root, result = synth
     # Measured: <= 0.024 px, 0.074 %, 0.39 mm, 0.083 deg (targets: the helper's docstring).
     assert_meets_calibration_targets(result.cameras, result.camera_mean_px(), root / "truth_calibration.toml")

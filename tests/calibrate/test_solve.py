@@ -31,7 +31,7 @@ def synth(request, tmp_path_factory) -> tuple[Path, CalibrationResult]:
     return root, result
 
 
-def test_synth_calibration_meets_issue_targets(synth) -> None:
+def test_synth_calibration_meets_the_targets(synth) -> None:
     root, result = synth
     # Measured: <= 0.030 px, 0.072 %, 1.06 mm, 0.112 deg (targets: the helper's docstring).
     assert_meets_calibration_targets(result.cameras, result.camera_mean_px(), root / "truth_calibration.toml")
@@ -183,7 +183,7 @@ def test_real_stereo_pairs_agree_with_opencv_stereo(tmp_path) -> None:
     K1 = cv2.calibrateCamera(obj, pts_l, size, None, None)[1]
     K2 = cv2.calibrateCamera(obj, pts_r, size, None, None)[1]
     # Independent intrinsics (k3 free, no corner cleaning): focal lengths within 0.5 %,
-    # the issue's own intrinsics tolerance.
+    # the calibration targets' intrinsics tolerance.
     assert abs(left.matrix[0, 0] / K1[0, 0] - 1) < 0.005
     assert abs(right.matrix[0, 0] / K2[0, 0] - 1) < 0.005
     # Extrinsics with our intrinsics held fixed: the same problem solved by

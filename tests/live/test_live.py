@@ -214,7 +214,7 @@ def test_a_replay_records_what_process_records(
     live = pipeline.load_recording(tmp_path / "take.mcap")
     assert live.complete and live.frame_indices.tolist() == list(range(FRAMES))
     assert all(m["latency_ms"] > 0 for m in live.metrics)
-    # The same core on the same frames: the bar is 0.05 mm mean; within one
+    # The same core on the same frames: the bar is 0.05 mm mean; within one
     # tracking segment (20 frames) the two runs fit the same frames from the same track.
     assert mean_gap_mm(live, processed) < 0.05
     assert live.smoothed_centerlines_m is not None

@@ -98,7 +98,7 @@ def _fake_report() -> BenchReport:
     )
 
 
-def test_targets_pass_and_miss_against_issue_8() -> None:
+def test_run_targets_pass_and_miss() -> None:
     report = _fake_report()
     verdicts = {t.name.split(" (")[0]: t.verdict for t in targets(report)}
     assert verdicts["carve median at 128^3"] == "PASS"  # 0.8 <= 1 ms
@@ -147,7 +147,7 @@ def _shape(name: str, *, frames: int, wall_s: float, p99_ms: float) -> ShapeRun:
     )
 
 
-def test_shape_targets_against_issue_14() -> None:
+def test_shape_targets_pass_and_miss() -> None:
     report = _fake_report()
     report.shapes = [
         _shape("loop", frames=900, wall_s=50.0, p99_ms=40.0),  # 25x, 40 ms
@@ -360,7 +360,7 @@ def test_the_command_line_takes_the_per_shape_options() -> None:
     assert not defaults.no_shapes and defaults.shape_repeats == 1
 
 
-def test_live_rows_and_targets_against_issue_16(tmp_path: Path) -> None:
+def test_live_rows_and_targets(tmp_path: Path) -> None:
     report = _fake_report()
     report.live = [
         LiveRun("demo", 900, 900, 0, 0, 14.0, 31.5, (30.0, 30.0, 29.9), 31.0, 420.0, 0.4, 0.012, 0),

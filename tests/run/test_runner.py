@@ -243,7 +243,7 @@ def test_the_progress_bar_starts_with_the_run_and_advances_frame_by_frame(
     events: list[Any] = []
     monkeypatch.setattr(
         runner,
-        "_progress_bar",
+        "progress_bar",
         lambda total, enabled, *, elapsed_s, tally: _RecordedBar(events, total, elapsed_s),
     )
     started_at = time.perf_counter() - 100.0  # as if the process had started 100 s ago
@@ -386,7 +386,7 @@ def test_end_to_end_centrelines_match_the_ground_truth(e2e: tuple[Path, Path, st
     for row, frame in enumerate(rec.frame_indices):
         curve_mm = rec.centerlines_m[row] * 1000.0
         # Nearest distance from each reconstructed point to the true curve's samples.
-        # A frame more than 2 mm off anywhere is a wrong frame (the tracking issue's
+        # A frame more than 2 mm off anywhere is a wrong frame (the tracking targets'
         # definition); a unit or frame mix-up would be tens of mm. These 8 frames
         # sweep a whole motion cycle, so no frame is tracked: each is fitted from its
         # hull, whose tips on this session are 0.1-1.5 mm off.
