@@ -62,15 +62,11 @@ SESSIONS = {
 # in the views) meet the targets, the thick one too: its tip lies against the
 # stem in every view and the hull merges them; the tip is bent to the grey
 # levels, the stem under it bridged, and the tip where the curve's own course
-# takes it tried (pipeline.reconstruct.tube_tip, pipeline.reconstruct.centerline). Measured on these
-# 12-frame sessions (mean / p95 / median tip / length), with the figures
-# before the tip was continued on its circle and the hypotheses under it
-# compared by their match to the grey levels, and before the tip's drawn
-# model lost cv2's fill bias, its end face was squared to the tangent, its
-# grey levels were read locally and the stem under it was bridged, in brackets:
-#   loop (oblique, r 6):  0.22 / 0.55 / 0.32 / 0.27  (0.22 / 0.58 / 0.42 / 0.28; 0.22 / 0.58 / 0.68 / 0.33)
-#   unseen_loop_ninety_r9: 0.26 / 0.83 / 0.62 / 0.25  (0.32 / 1.05 / 0.65 / 0.41; 0.40 / 1.30 / 1.92 / 0.86)
-#   unseen_loop_r4:        0.18 / 0.42 / 0.66 / 0.23  (0.21 / 0.43 / 0.66 / 0.33; 0.20 / 0.46 / 0.89 / 0.28)
+# takes it tried (pipeline.reconstruct.tip_bend, pipeline.reconstruct.loop_tip). Measured on these
+# 12-frame sessions (mean / p95 / median tip mm / length %):
+#   loop (oblique, r 6):   0.22 / 0.55 / 0.32 / 0.27
+#   unseen_loop_ninety_r9: 0.26 / 0.83 / 0.62 / 0.25
+#   unseen_loop_r4:        0.18 / 0.42 / 0.66 / 0.23
 
 
 @pytest.fixture(scope="module")
