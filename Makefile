@@ -45,8 +45,9 @@ vulkan:
 			--no-install-recommends mesa-vulkan-drivers libvulkan1 >/dev/null; \
 	fi
 
+# Two pytest workers, each taking whole test files (module fixtures render once).
 test: lint vulkan
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 bench: $(STAMP)
 	$(PY) -m pipeline.measure.bench $(ARGS)
