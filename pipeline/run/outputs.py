@@ -67,7 +67,14 @@ def _within(seconds: float, call: Callable[[], object]) -> bool:
             done.set()
 
     threading.Thread(target=run, name="rerun-wait", daemon=True).start()
-    if not done.wait(seconds):
+    try:
+        finished = done.wait(seconds)
+    except BaseException:
+        # Interrupted (Ctrl-C, SIGTERM): the call finishes first, within the same bound, so
+        # that nothing it starts (the file a Rerun stream opens) outlives the clean-up.
+        done.wait(seconds)
+        raise
+    if not finished:
         return False
     if raised:
         raise raised[0]

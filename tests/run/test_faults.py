@@ -459,6 +459,26 @@ def test_a_signal_stops_the_run_and_keeps_previous_outputs(tmp_path: Path, sig: 
     )
 
 
+def test_an_interrupted_wait_lets_the_call_finish_before_the_clean_up() -> None:
+    # A signal while a Rerun stream opens its file (in _within's thread): the clean-up that
+    # follows must not run before the file is open, or the file appears after it, complete.
+    finished = threading.Event()
+
+    def opening() -> None:
+        time.sleep(0.5)
+        finished.set()
+
+    # A real SIGINT, which wakes the waiting main thread (SIGINT may be inherited ignored).
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        threading.Timer(0.1, os.kill, (os.getpid(), signal.SIGINT)).start()
+        with pytest.raises(KeyboardInterrupt):
+            outputs._within(5.0, opening)
+        assert finished.is_set()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def _start_slow_run(tmp_path: Path, backend: str, frame_s: float) -> tuple[subprocess.Popen[str], Path]:
     """The CLI in a group of its own on 60 frames of ``frame_s`` each (_SLOW_RUN_HOOK), two
     workers of ``backend``; returns once the run is under way (its temporary MCAP exists)."""
