@@ -3,10 +3,21 @@
 A flat end and a hemispherical one cover different pixels around the tip: seen
 side-on, the flat end's outline is square where the round one's is a half
 disc, and the round end reaches a radius past its centre (the backbone's end).
-On frames spread over the session, each frame's curve has its tip placed by
-the grey levels under either end (:func:`pipeline.reconstruct.tip_bend.bend_tip_to_pixels`);
-the end whose tubes match the grey levels better, summed over the frames
-(:func:`pipeline.reconstruct.tube_drawing.coverage_mismatch`), is the session's.
+At the rigs' ~0.6 px/mm that difference is a few pixels a view, about what a
+radius 10 % off or a misplaced tip also changes; so the choice is made as a
+comparison of the two ends and nothing else:
+
+- the end's radius is read once for the session, from the few radii of tube
+  just behind each frame's tip (:func:`end_radius`; the fit's own radius there
+  can carry a spacer disk or the taper before it, and a radius too large favours
+  the round end, too small the flat one);
+- in each frame, the tip is placed by the grey levels under either end
+  (:func:`pipeline.reconstruct.tip_bend.bend_tip_to_pixels`) and the two are compared on the
+  pixels around the tip only (:func:`frame_evidence`); a frame whose two tips
+  went to different places compares places, not ends, and is left out;
+- each frame then has one bounded vote (:attr:`FrameEvidence.vote`), so that no
+  one frame decides: summed raw costs let one frame whose tip was misplaced
+  outweigh the others.
 """
 
 from __future__ import annotations
@@ -19,18 +30,76 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from ..geometry.camera import Camera
+from ..geometry.polyline import polyline_arclength
 from .frame import frame_contrasts, reconstruct_with_silhouettes
 from .frame_task import decode_frames
 from .model import SessionModel
 from .tip_bend import bend_tip_to_pixels
-from .tube_drawing import coverage_mismatch, pixel_coverages
+from .tube_drawing import drawn_coverage, pixel_coverages
 
-# Frames sampled over the session: enough that one frame whose tip is hidden
-# (end-on in most views, or against another part) does not decide.
-SAMPLE_FRAMES = 6
+FloatArray = NDArray[np.float64]
+Window = tuple[tuple[int, int], tuple[int, int]]
+
+# Frames sampled over the session. Each frame's vote is worth a few pixels of
+# evidence at most, and a frame can miss its tip. On 40 drawn sessions (seeds 1,
+# 2 of pipeline.synth.variety, 40 frames each) the summed costs of 6 frames chose
+# wrong on 11, of 12 frames on 9; the votes below on 10 frames, on 1. Ten frames
+# cost ~1.8 times the six of the summed costs (the radius is read on top).
+SAMPLE_FRAMES = 10
+CAPS = ("flat", "round")
 # The bend under each end: its last radius, sought within a few mm of the fit.
 _SPANS_RADII = (2.0, 1.0)
 _STEPS_MM = (2.0, 1.0, 0.5, 0.25)
+# The end's radius is sought among these multiples of the fit's radius there
+# (the fit's was 0.99-1.24 times the truth on the drawn sessions: too large
+# where a spacer disk or the taper's wider part is near the tip) ...
+_RADIUS_SCALES = np.round(np.arange(0.7, 1.1001, 0.05), 2)
+# ... matching the pixels nearest to the axis between these many radii before
+# its end, within _BAND_REACH_RADII of it: past the fitted end's uncertainty
+# (it was fitted as flat, up to half a radius long on a round end), short of the
+# nearest spacer disk (on the drawn tubes at least 1.25 radii from the end, and
+# seen obliquely a disk's ellipse reaches back along the axis).
+_BAND_RADII = (0.25, 1.0)
+_BAND_REACH_RADII = 1.6
+# The ends are compared on a window around the last _REGION_RADII of either's
+# axis, grown by _REGION_MARGIN_RADII (projected) and a pixel or two.
+_REGION_RADII = 2.0
+_REGION_MARGIN_RADII = 1.5
+_REGION_MARGIN_PX = 2.0
+# Seen side-on, a flat end covers (2 - pi / 2) r^2 more than a round one (its two
+# square corners). Where the two ends' tubes differ by more than that in a view,
+# their bends took the tip to different places, and the frame compares places,
+# not ends: it does not vote. On the drawn sessions (seeds 1, 2) 90 % of views
+# stay under half of it, frames whose bends parted (a fit that missed the tip, a
+# flat bend gone astray on a spacer disk) reach 1.5-30 times it; the latter had
+# a session decided wrongly. Bounds from 0.75 to 3 times it changed no choice.
+_MAX_SEPARATION = 2.0 - np.pi / 2.0
+
+
+@dataclass(frozen=True)
+class FrameEvidence:
+    """How well each end explains one frame's pixels around its tip.
+
+    flat_cost, round_cost : squared coverage difference (px) between the grey
+        levels and the tube drawn with that end, summed over the compared views.
+    separation : squared coverage difference (px) between the two ends' tubes:
+        what the costs could differ by if one of them were exact.
+    views : how many views were compared.
+    """
+
+    flat_cost: float
+    round_cost: float
+    separation: float
+    views: int
+
+    @property
+    def vote(self) -> float:
+        """In [-1, 1]: -1 when the pixels are the flat end's, +1 the round one's;
+        in between, where they lie between the two."""
+        if self.separation <= 0:
+            return 0.0
+        return float(np.clip((self.flat_cost - self.round_cost) / self.separation, -1.0, 1.0))
 
 
 @dataclass(frozen=True)
@@ -39,23 +108,41 @@ class TipChoice:
 
     tip : "flat" or "round".
     frames : frames whose tips were compared.
-    flat_cost, round_cost : the grey-level mismatch of the tips under each end,
-        summed over those frames (lower is better).
+    flat_cost, round_cost : the grey-level mismatch near the tips under each
+        end, summed over those frames (lower is better).
+    score : the frames' mean vote (:attr:`FrameEvidence.vote`), in [-1, 1]:
+        below 0 flat, above round.
+    favouring : how many of the frames voted for ``tip``.
+    radius_mm : the end's radius the ends were compared with, mm.
     """
 
     tip: str
     frames: int
     flat_cost: float
     round_cost: float
+    score: float = 0.0
+    favouring: int = 0
+    radius_mm: float = float("nan")
 
     def describe(self) -> str:
         if not self.frames:
             return f"{self.tip} (no frame showed a tip to choose by; set [manipulator] tip in session.toml)"
-        ratio = max(self.flat_cost, self.round_cost) / max(min(self.flat_cost, self.round_cost), 1e-12)
         return (
-            f"{self.tip} (chosen from {self.frames} frames, {ratio:.2f}x the other's grey-level mismatch; "
+            f"{self.tip} (chosen from {self.frames} frames, {self.favouring} of them for it, "
+            f"mean vote {self.score:+.2f} of +-1, end radius {self.radius_mm:.1f} mm; "
             "[manipulator] tip in session.toml fixes it)"
         )
+
+
+@dataclass(frozen=True)
+class _FrameTip:
+    """A frame's fitted tube and its views, kept for the comparison."""
+
+    axis_mm: FloatArray
+    masks: list[NDArray[np.bool_]]
+    contrasts: list[NDArray[np.float32]]
+    coverages: list[NDArray[np.float32]]
+    radius_mm: float
 
 
 def sample_frames(start: int, stop: int, count: int = SAMPLE_FRAMES) -> list[int]:
@@ -68,40 +155,161 @@ def choose_tip(model: SessionModel, frames: Sequence[tuple[int, Sequence[NDArray
     """The end ("flat" or "round") that explains the tips of ``frames`` best.
 
     ``frames``: (index, per camera (H, W) uint8 grey image). Each is
-    reconstructed from its hull; frames without a curve are skipped.
+    reconstructed from its hull; frames without a curve, or whose tip no view
+    shows to either end's satisfaction, are skipped.
     """
-    flat = round_ = 0.0
-    used = 0
-    for index, images in frames:
-        result, masks = reconstruct_with_silhouettes(index, images, model)
-        if result.status != "ok" or result.centerline_mm is None or not np.isfinite(result.radius_mm):
+    tips = [tip for tip in (_frame_tip(index, images, model) for index, images in frames) if tip is not None]
+    if not tips:
+        return TipChoice("flat", 0, 0.0, 0.0)
+    # One radius for the session: the tube's end does not change, and each
+    # frame's reading can be spoilt (a missed tip, another part behind it).
+    radius = float(np.median([tip.radius_mm for tip in tips]))
+    evidence = [e for e in (frame_evidence(tip, model.cameras, radius) for tip in tips) if e.views]
+    if not evidence:
+        return TipChoice("flat", 0, 0.0, 0.0, radius_mm=radius)
+    votes = np.array([e.vote for e in evidence])
+    score = float(votes.mean())
+    tip = "round" if score > 0 else "flat"
+    return TipChoice(
+        tip,
+        len(evidence),
+        float(sum(e.flat_cost for e in evidence)),
+        float(sum(e.round_cost for e in evidence)),
+        score=score,
+        favouring=int(np.count_nonzero(votes > 0 if tip == "round" else votes < 0)),
+        radius_mm=radius,
+    )
+
+
+def _frame_tip(index: int, images: Sequence[NDArray[np.uint8]], model: SessionModel) -> _FrameTip | None:
+    """The frame's fitted tube and its end's radius read from its pixels; None without a curve."""
+    result, masks = reconstruct_with_silhouettes(index, images, model)
+    if result.status != "ok" or result.centerline_mm is None or not np.isfinite(result.radius_mm):
+        return None
+    contrasts = frame_contrasts(images, model)
+    coverages = pixel_coverages(contrasts, masks)
+    fitted = float(result.radii_mm[-1]) if result.radii_mm is not None else result.radius_mm
+    radius = end_radius(result.centerline_mm, model.cameras, coverages, fitted)
+    return _FrameTip(result.centerline_mm, masks, contrasts, coverages, radius)
+
+
+def end_radius(
+    axis_mm: FloatArray,
+    cameras: Sequence[Camera],
+    coverages: Sequence[NDArray[np.float32]],
+    radius_mm: float,
+) -> float:
+    """The tube's radius just behind its end, read from the views' pixels (mm).
+
+    Of ``radius_mm`` times each of ``_RADIUS_SCALES``, the one whose tube, drawn
+    around ``axis_mm`` ((K, 3) world frame, mm), best matches ``coverages``
+    (per view (H, W), :func:`pipeline.reconstruct.tube_drawing.pixel_coverages`) on the pixels
+    nearest to the axis between ``_BAND_RADII`` radii before its end: where the
+    end's shape, flat or round, does not show. ``radius_mm`` itself when no view
+    sees that part.
+    """
+    costs = np.zeros(len(_RADIUS_SCALES))
+    seen = False
+    for cam, coverage in zip(cameras, coverages, strict=True):
+        widest = radius_mm * float(_RADIUS_SCALES[-1])
+        window = _window(cam, [axis_mm], widest, cam.size_px)
+        if window is None:
             continue
-        contrasts = frame_contrasts(images, model)
-        coverages = pixel_coverages(contrasts, masks)
-        # The end's own radius: a tapered or stepped tube is thinner there.
-        radius = float(result.radii_mm[-1]) if result.radii_mm is not None else result.radius_mm
-        bent = [
-            bend_tip_to_pixels(
-                result.centerline_mm,
-                model.cameras,
-                masks,
-                contrasts,
-                radius,
-                spans_radii=_SPANS_RADII,
-                steps_mm=_STEPS_MM,
-                coverages=coverages,
-                cap=cap,
-            )
-            for cap in ("flat", "round")
-        ]
-        costs = coverage_mismatch(
-            bent, model.cameras, masks, contrasts, radius, coverages=coverages, cap=("flat", "round")
+        band = _band(cam, axis_mm, radius_mm, window)
+        if not band.any():
+            continue
+        (x0, y0), (x1, y1) = window
+        pixels = coverage[y0:y1, x0:x1][band]
+        for i, scale in enumerate(_RADIUS_SCALES):
+            drawn = drawn_coverage(cam, axis_mm, radius_mm * float(scale), window, cap="round")[band]
+            costs[i] += float(np.square(drawn - pixels).sum())
+        seen = True
+    return radius_mm * float(_RADIUS_SCALES[int(np.argmin(costs))]) if seen else radius_mm
+
+
+def frame_evidence(tip: _FrameTip, cameras: Sequence[Camera], radius_mm: float) -> FrameEvidence:
+    """Each end's mismatch with one frame's pixels around its tip, the tip placed
+    under each by :func:`pipeline.reconstruct.tip_bend.bend_tip_to_pixels` with the end's
+    radius ``radius_mm``; no view at all (``views`` 0) where the two tips went
+    to different places (see ``_MAX_SEPARATION``)."""
+    axes = [
+        bend_tip_to_pixels(
+            tip.axis_mm,
+            cameras,
+            tip.masks,
+            tip.contrasts,
+            radius_mm,
+            spans_radii=_SPANS_RADII,
+            steps_mm=_STEPS_MM,
+            coverages=tip.coverages,
+            cap=cap,
         )
-        flat += costs[0]
-        round_ += costs[1]
-        used += 1
-    tip = "round" if used and round_ < flat else "flat"
-    return TipChoice(tip, used, flat, round_)
+        for cap in CAPS
+    ]
+    flat = round_ = separation = 0.0
+    views = 0
+    for cam, coverage in zip(cameras, tip.coverages, strict=True):
+        window = _window(cam, axes, radius_mm, cam.size_px)
+        if window is None:
+            continue
+        (x0, y0), (x1, y1) = window
+        pixels = coverage[y0:y1, x0:x1]
+        drawn = [
+            drawn_coverage(cam, axis, radius_mm, window, cap=cap)
+            for axis, cap in zip(axes, CAPS, strict=True)
+        ]
+        apart = float(np.square(drawn[0] - drawn[1]).sum())
+        radius_px = cam.focal_px * radius_mm / float(cam.to_camera(axes[0][-1:])[0, 2])
+        if apart > _MAX_SEPARATION * radius_px**2:
+            return FrameEvidence(0.0, 0.0, 0.0, 0)
+        flat += float(np.square(drawn[0] - pixels).sum())
+        round_ += float(np.square(drawn[1] - pixels).sum())
+        separation += apart
+        views += 1
+    return FrameEvidence(flat, round_, separation, views)
+
+
+def _window(
+    cam: Camera, axes_mm: Sequence[FloatArray], radius_mm: float, size: tuple[int, int]
+) -> Window | None:
+    """Pixel window ((x0, y0), (x1, y1)) around the last ``_REGION_RADII`` radii of
+    each (K, 3) axis in ``axes_mm``, grown by ``_REGION_MARGIN_RADII`` projected radii
+    and ``_REGION_MARGIN_PX``; None where the camera does not see them all."""
+    ends = np.vstack([_last(axis, _REGION_RADII * radius_mm) for axis in axes_mm])
+    px = cam.project(ends)
+    depth = cam.to_camera(ends)[:, 2]
+    if not (np.isfinite(px).all() and (depth > radius_mm).all()):
+        return None
+    margin = _REGION_MARGIN_RADII * cam.focal_px * radius_mm / float(depth.min()) + _REGION_MARGIN_PX
+    w, h = size
+    x0, y0 = (max(int(np.floor(v)), 0) for v in px.min(axis=0) - margin)
+    x1, y1 = (min(int(np.ceil(v)), n) for v, n in zip(px.max(axis=0) + margin, (w, h), strict=True))
+    return ((x0, y0), (x1, y1)) if x1 > x0 and y1 > y0 else None
+
+
+def _last(axis_mm: FloatArray, length_mm: float, step_mm: float = 0.25) -> FloatArray:
+    """(S, 3) points every ``step_mm`` over the last ``length_mm`` of (K, 3) ``axis_mm``, end included."""
+    arc = polyline_arclength(axis_mm)
+    s = np.arange(arc[-1], max(arc[-1] - length_mm, 0.0) - 1e-9, -step_mm)[::-1]
+    return np.column_stack([np.interp(s, arc, axis_mm[:, i]) for i in range(3)])
+
+
+def _band(cam: Camera, axis_mm: FloatArray, radius_mm: float, window: Window) -> NDArray[np.bool_]:
+    """(h, w) bool over ``window``: the pixels whose nearest point of the axis' last
+    few radii lies ``_BAND_RADII`` radii before its end, within ``_BAND_REACH_RADII``
+    projected radii (+ a pixel) of it."""
+    length = _BAND_RADII[1] + _BAND_REACH_RADII + 1.0
+    points = _last(axis_mm, length * radius_mm)
+    before = np.arange(len(points))[::-1] * 0.25  # mm before the end
+    px = cam.project(points)
+    reach = _BAND_REACH_RADII * cam.focal_px * radius_mm / cam.to_camera(points)[:, 2] + 1.0
+    (x0, y0), (x1, y1) = window
+    ys, xs = np.mgrid[y0:y1, x0:x1]
+    d2 = (xs[..., None] - px[:, 0]) ** 2 + (ys[..., None] - px[:, 1]) ** 2
+    nearest = d2.argmin(axis=-1)
+    near = np.sqrt(np.take_along_axis(d2, nearest[..., None], axis=-1)[..., 0]) < reach[nearest]
+    lo, hi = (b * radius_mm for b in _BAND_RADII)
+    return near & (before[nearest] >= lo) & (before[nearest] <= hi)
 
 
 def with_session_tip(

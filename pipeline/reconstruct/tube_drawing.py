@@ -127,11 +127,39 @@ def coverage_mismatch(
         x1, y1 = (max(w[1][i] for w in windows) for i in (0, 1))
         seen = coverage[y0:y1, x0:x1]
         for n, axis in enumerate(axes_mm):
-            canvas = np.zeros(((y1 - y0) * SUPERSAMPLE, (x1 - x0) * SUPERSAMPLE), np.uint8)
-            points = tube_points(axis, radius_mm, flat_end=caps[n] == "flat")
-            draw_tube(canvas, cam, *points, radius_mm, (x0, y0))
-            costs[n] += _squared_difference(canvas, seen)
+            levels = _drawn_levels(cam, axis, radius_mm, ((x0, y0), (x1, y1)), flat_end=caps[n] == "flat")
+            costs[n] += level_difference(levels, seen)
     return costs
+
+
+def drawn_coverage(
+    camera: Camera,
+    axis_mm: FloatArray,
+    radius_mm: float,
+    window: tuple[tuple[int, int], tuple[int, int]],
+    *,
+    cap: str,
+) -> NDArray[np.float32]:
+    """(y1 - y0, x1 - x0) float32 in [0, 1]: how much of each pixel of the image
+    window ((x0, y0), (x1, y1)) the tube of radius ``radius_mm`` around (K, 3)
+    ``axis_mm`` (world frame, mm) with end ``cap`` covers, drawn as
+    :func:`coverage_mismatch` draws it: comparable with :func:`pixel_coverages`."""
+    return _LEVELS[_drawn_levels(camera, axis_mm, radius_mm, window, flat_end=cap == "flat")]
+
+
+def _drawn_levels(
+    cam: Camera,
+    axis_mm: FloatArray,
+    radius_mm: float,
+    window: tuple[tuple[int, int], tuple[int, int]],
+    *,
+    flat_end: bool,
+) -> NDArray[np.uint8]:
+    """(h, w) uint8 levels (:func:`canvas_levels`) of the tube drawn in the image window."""
+    (x0, y0), (x1, y1) = window
+    canvas = np.zeros(((y1 - y0) * SUPERSAMPLE, (x1 - x0) * SUPERSAMPLE), np.uint8)
+    draw_tube(canvas, cam, *tube_points(axis_mm, radius_mm, flat_end=flat_end), radius_mm, (x0, y0))
+    return canvas_levels(canvas)
 
 
 def view_window(
@@ -321,13 +349,6 @@ def draw_tube(
         min((box[2] >> DRAW_SHIFT) + 3, width),
         min((box[3] >> DRAW_SHIFT) + 3, height),
     )
-
-
-def _squared_difference(canvas: NDArray[np.uint8], seen: NDArray[np.float32]) -> float:
-    """Sum over the image's pixels of (drawn coverage - ``seen``)^2: the
-    ``SUPERSAMPLE``-times finer (h s, w s) uint8 ``canvas`` (0 / 255) averaged
-    to (h, w) ``seen``'s pixels, float32."""
-    return level_difference(canvas_levels(canvas), seen)
 
 
 def canvas_levels(canvas: NDArray[np.uint8]) -> NDArray[np.uint8]:
