@@ -63,7 +63,7 @@ def test_pipeline_error_is_one_line_and_exit_2(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     monkeypatch.setattr(
-        cli_parser, "_cmd_evaluate", _raising(CalibrationError("cal.toml: bad\n  camera 'c0'"))
+        cli_parser, "cmd_evaluate", _raising(CalibrationError("cal.toml: bad\n  camera 'c0'"))
     )
     assert main(["evaluate", "r.mcap", "gt.npz"]) == EXIT_BAD_INPUT
     assert capsys.readouterr().err == "error: cal.toml: bad camera 'c0'\n"
@@ -72,7 +72,7 @@ def test_pipeline_error_is_one_line_and_exit_2(
 def test_a_bug_is_one_line_and_exit_3_without_debug(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    monkeypatch.setattr(cli_parser, "_cmd_evaluate", _raising(ZeroDivisionError("division by zero")))
+    monkeypatch.setattr(cli_parser, "cmd_evaluate", _raising(ZeroDivisionError("division by zero")))
     assert main(["evaluate", "r.mcap", "gt.npz"]) == EXIT_INTERNAL_ERROR
     err = capsys.readouterr().err
     assert err.startswith("internal error: ZeroDivisionError: division by zero")
@@ -80,13 +80,13 @@ def test_a_bug_is_one_line_and_exit_3_without_debug(
 
 
 def test_debug_lets_a_bug_through(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(cli_parser, "_cmd_evaluate", _raising(ZeroDivisionError("division by zero")))
+    monkeypatch.setattr(cli_parser, "cmd_evaluate", _raising(ZeroDivisionError("division by zero")))
     with pytest.raises(ZeroDivisionError):
         main(["--debug", "evaluate", "r.mcap", "gt.npz"])
 
 
 def test_debug_may_follow_the_subcommand(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(cli_parser, "_cmd_evaluate", _raising(ZeroDivisionError("division by zero")))
+    monkeypatch.setattr(cli_parser, "cmd_evaluate", _raising(ZeroDivisionError("division by zero")))
     with pytest.raises(ZeroDivisionError):
         main(["evaluate", "r.mcap", "gt.npz", "--debug"])
 
@@ -235,7 +235,7 @@ def test_json_to_a_missing_folder_fails_before_the_run(
 
 
 def test_interrupt_exits_130(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
-    monkeypatch.setattr(cli_parser, "_cmd_evaluate", _raising(KeyboardInterrupt()))
+    monkeypatch.setattr(cli_parser, "cmd_evaluate", _raising(KeyboardInterrupt()))
     assert main(["evaluate", "r.mcap", "gt.npz"]) == 130
     assert "interrupted" in capsys.readouterr().err
 

@@ -50,7 +50,7 @@ def _report(summary: Any, json_to: str | None) -> None:
             raise OutputError(f"{json_to}: cannot write the JSON summary ({exc.strerror or exc})") from None
 
 
-def _cmd_process(args: argparse.Namespace) -> int:
+def cmd_process(args: argparse.Namespace) -> int:
     from ..run.workers import started_early
 
     started_at = _process_started_at()
@@ -81,7 +81,7 @@ def _cmd_process(args: argparse.Namespace) -> int:
     return summary.exit_code
 
 
-def _cmd_live(args: argparse.Namespace) -> int:
+def cmd_live(args: argparse.Namespace) -> int:
     from ..live.run import run_live
     from ..live.sources import open_rig
     from ..live.stream import DEFAULT_FOXGLOVE, parse_host_port, viewer_from_choice
@@ -130,7 +130,7 @@ def _check_json_path(path: Path) -> None:
         )
 
 
-def _cmd_synth(args: argparse.Namespace) -> int:
+def cmd_synth(args: argparse.Namespace) -> int:
     from ..synth import render_session
     from ..synth.session_render import SceneOptions
 
@@ -157,7 +157,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _cmd_synth_calib(args: argparse.Namespace) -> int:
+def cmd_synth_calib(args: argparse.Namespace) -> int:
     from ..synth import render_calibration_views
 
     render_calibration_views(
@@ -166,7 +166,7 @@ def _cmd_synth_calib(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _cmd_calibrate(args: argparse.Namespace) -> int:
+def cmd_calibrate(args: argparse.Namespace) -> int:
     from ..calibrate.report import format_table
     from ..calibrate.solve import calibrate_directory
 
@@ -184,7 +184,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _cmd_evaluate(args: argparse.Namespace) -> int:
+def cmd_evaluate(args: argparse.Namespace) -> int:
     from ..measure.evaluate import evaluate_recording, format_report
 
     report = evaluate_recording(args.recording, args.ground_truth)

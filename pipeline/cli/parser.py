@@ -9,12 +9,12 @@ from typing import NoReturn
 
 from .commands import (
     EXIT_BAD_INPUT,
-    _cmd_calibrate,
-    _cmd_evaluate,
-    _cmd_live,
-    _cmd_process,
-    _cmd_synth,
-    _cmd_synth_calib,
+    cmd_calibrate,
+    cmd_evaluate,
+    cmd_live,
+    cmd_process,
+    cmd_synth,
+    cmd_synth_calib,
 )
 
 # How the program names itself in usage and error lines: the console script's name;
@@ -141,7 +141,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         default=None,
         help="centreline method: fit (ours, default) or polyfit (the original method, a baseline)",
     )
-    p.set_defaults(func=_cmd_process, usage_error=p.error)
+    p.set_defaults(func=cmd_process, usage_error=p.error)
 
     p = sub.add_parser(
         "live",
@@ -195,7 +195,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     )
     p.add_argument("--no-images", action="store_true", help="do not store or stream the camera images")
     p.add_argument("--force", action="store_true", help="replace existing outputs (when the run stops)")
-    p.set_defaults(func=_cmd_live, usage_error=p.error)
+    p.set_defaults(func=cmd_live, usage_error=p.error)
 
     from ..synth.names import IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
 
@@ -252,7 +252,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     )
     p.add_argument("--radius-mm", type=float, default=6.0, help="tube radius in mm (default 6)")
     p.add_argument("--arrangement", choices=("oblique", "ninety"), default="oblique", help="camera placement")
-    p.set_defaults(func=_cmd_synth)
+    p.set_defaults(func=cmd_synth)
 
     p = sub.add_parser(
         "synth-calib",
@@ -271,7 +271,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         help="chessboard (9x6 inner corners, 20 mm) or ChArUco (7x5 squares, 50 mm, DICT_4X4_50; "
         "views may show it in part)",
     )
-    p.set_defaults(func=_cmd_synth_calib)
+    p.set_defaults(func=cmd_synth_calib)
 
     p = sub.add_parser(
         "calibrate",
@@ -301,7 +301,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     p.add_argument(
         "--drop-outliers", action="store_true", help="drop views whose error stands out, and recalibrate"
     )
-    p.set_defaults(func=_cmd_calibrate)
+    p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser(
         "evaluate",
@@ -313,11 +313,11 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     p.add_argument("recording", type=Path)
     p.add_argument("ground_truth", type=Path)
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    p.set_defaults(func=_cmd_evaluate)
+    p.set_defaults(func=cmd_evaluate)
     return parser
 
 
-def _with_negative_frames(argv: Sequence[str]) -> list[str]:
+def with_negative_frames(argv: Sequence[str]) -> list[str]:
     """``--frames -5:10`` as ``--frames=-5:10``: argparse takes a value that starts with "-"
     for an option and says "expected one argument"; joined, _frame_range names the mistake."""
     out = list(argv)

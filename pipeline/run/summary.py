@@ -1,7 +1,7 @@
 """What a run reports: frames processed and failed, doubtful spans, timings, the files written.
 
 :class:`RunSummary` is printed by ``pipeline process`` and ``pipeline live`` and returned
-by :func:`pipeline.process_session`; ``as_dict`` is its ``--json`` form.
+by :func:`pipeline.process_session`; ``to_dict`` is its ``--json`` form.
 """
 
 from __future__ import annotations
