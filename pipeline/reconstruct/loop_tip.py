@@ -22,26 +22,17 @@ from .tube_scores import CLOSEST_RADII
 
 FloatArray = NDArray[np.float64]
 
-
 # The tip's last this many radii, as the bend placed them (its longest span,
 # see pipeline.reconstruct.tip_bend.bend_tip_to_pixels), are held when the stem is refitted.
 HELD_TIP_RADII = 4.0
-
-
 # The stem under a bent tip is bridged (see bridge_under_tip) where it comes
 # within this many radii of the tip's last HELD_TIP_RADII radii, at least
 # _BRIDGE_APART_RADII radii before them along the curve.
 _BRIDGE_REACH_RADII = 3.0
-
-
 _BRIDGE_APART_RADII = 4.0
-
-
 # Measured bulges of the stem under a loop's tip: up to 1.2 radii (r 9 ninety
 # loop); a bridge that moves the stem farther is not correcting such a pull.
 _BRIDGE_MOVE_RADII = 1.5
-
-
 # Under a bent tip, the curve's last this many radii (one hypothesis each) are
 # redone along the circle its _CIRCLE_FIT_RADII radii before follow, and the
 # best matches to the grey levels bent (see continue_tip). Measured on the
@@ -50,11 +41,7 @@ _BRIDGE_MOVE_RADII = 1.5
 # and 8 radii back each won on some frames); bending every continuation
 # instead of the best ones cost ~170 ms more a frame.
 _CONTINUE_RADII = (3.0, 5.0, 8.0)
-
-
 _CIRCLE_FIT_RADII = 6.0
-
-
 # A loop run the wrong way round (see free_tip_from_stem): its tip ends inside a
 # part at least this many radii before it along the curve (a tight loop of a
 # tube cannot bring its tip back to itself in fewer), and the true tip is
@@ -65,19 +52,13 @@ _CIRCLE_FIT_RADII = 6.0
 # to 25-30 % below the reversed curve's; from 1 or 2 radii, the wrong course
 # is kept, from 8 the loop's start is cut.
 _LOOP_APART_RADII = 8.0
-
-
 _REVERSE_RADII = (3.0, 4.5, 6.0)
-
-
 # The loop run the other way is another course for the whole loop, not a
 # correction of its end: it must match the grey levels clearly better. Measured
 # (r 7 ninety loop above; 13 other loop sessions, r 4-9, both rigs): the
 # reversals that set a tip right matched them 15-37 % better; one that won
 # only by a better-fitted stem (tip 0.3 -> 21 mm, an r 9 loop) 2.7 %.
 _REVERSE_MARGIN = 0.10
-
-
 # A tip inside its stem that left the loop for it (see free_tip_from_stem):
 # the last this many radii redone on the circle this many radii before follow.
 # Measured on the r 7 ninety loop's frame 149 (tip 28.6 mm off, left the loop
@@ -85,8 +66,6 @@ _REVERSE_MARGIN = 0.10
 # refitted and bent, the tip comes to 0.5 mm (coverage mismatch 28 against
 # 150; the truth's 26); 5 or 11 radii, or a circle of 6, stay 13-47 mm off.
 _REDO_RADII = 8.0
-
-
 _REDO_FIT_RADII = 10.0
 
 

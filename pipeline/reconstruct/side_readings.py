@@ -23,24 +23,15 @@ from .tube_tip import MIN_SIN_VIEW, tip_zone
 
 FloatArray = NDArray[np.float64]
 
-
 # Sampling step along the image profiles (px).
 _PROFILE_STEP_PX = 0.5
-
-
 # Two-edge readings a view needs for its own half-width (see read_sides).
 _OWN_WIDTH_READINGS = 5
-
-
 # Another part of the tube touches a sample's silhouette when the two
 # projected tubes come within this many pixels (their edges' blur).
 CROWD_MARGIN_PX = 2.0
-
-
 # A reading wider than this factor times the expected width (+1 px) is contaminated.
 _WIDTH_TOLERANCE = 1.3
-
-
 # The radius along the tube is the median over a sample's readings and those of
 # this many samples either side (4 mm apart): spacer disks (2 mm thick, a few
 # per 20 mm) and stray readings stay a minority of the window even where it is

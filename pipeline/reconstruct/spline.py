@@ -17,13 +17,10 @@ from ..geometry.polyline import polyline_arclength
 
 FloatArray = NDArray[np.float64]
 
-
 # Spline knots every this many mm: fine enough for a loop of ~30 mm radius (the
 # cubic's error on such a circle is < 0.01 mm), coarse enough to average the
 # per-sample noise of the fit (samples are ~4 mm apart, so ~3 per knot span).
 KNOT_SPACING_MM = 20.0
-
-
 # Dense evaluation factor used to invert arc length.
 _DENSE = 16
 

@@ -33,8 +33,8 @@ from .tube_drawing import (
 from .tube_tip import END_SPAN_MM, end_frame, min_distance
 
 FloatArray = NDArray[np.float64]
-_log = logging.getLogger(__name__)
 
+_log = logging.getLogger(__name__)
 
 # Bending the tip to the pixels (bend_tip_to_pixels): the curve's last 4
 # radii are bent, then its last 2, then its last 1, each by a pattern search
@@ -56,29 +56,19 @@ _log = logging.getLogger(__name__)
 # length 0.34 / 0.68 mm / 0.66 % -> 0.24 / 0.64 / 0.22, others unchanged
 # (a radius limit of 2 instead of 1.5 changed nothing but for the worse).
 _BEND_SPANS_RADII = (4.0, 2.0, 1.0)
-
-
 _BEND_STEPS_MM = (8.0, 4.0, 2.0, 1.0, 0.5, 0.25)
-
-
 # The tip is moved at most this many radii across or along: farther, it is
 # another hypothesis of where the tube goes, not a correction of the fit.
 _MAX_BEND_RADII = 1.5
-
-
 # The bend search stops drawing a bend's views once those drawn sum to this
 # factor times the best bend's cost: the views are drawn in another order than
 # the total sums them in, and the two sums of the same parts may differ in their
 # last bits (~1e-16 relative), so a bend is dropped only where its full total
 # could not have come out below the best either.
 _PARTIAL_MARGIN = 1.0 + 1e-9
-
-
 # Parts of the tube fewer than this many radii (along the curve) before the
 # bent part are its own neighbours, not another part that it can lie on.
 _APART_RADII = 4.0
-
-
 # The tip is bent to the pixels only where it meets another part of the tube in
 # at least this many views. Where one view alone sees it on another part, the
 # others see it apart and their side readings place it (two views fix a point),
@@ -87,8 +77,6 @@ _APART_RADII = 4.0
 # the tip error where it was (mean 0.56 against 0.53 mm unbent) at ~50 ms a
 # frame. A loop's tip lying on its stem meets it in 2-3 views of 3.
 _MIN_MEETING_VIEWS = 2
-
-
 # ... unless the tip lies against the other part in space: axes within this many
 # radii, surfaces within a diameter. Then the views that see them apart see them
 # barely apart (the gap in an image is at most the gap in space), the edges

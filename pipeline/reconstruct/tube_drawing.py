@@ -22,20 +22,13 @@ from .profiles import MIN_CONTRAST
 
 FloatArray = NDArray[np.float64]
 
-
 # (x, y) -> (-y, x) applied to (y, x): a quarter turn left.
 _QUARTER_LEFT = np.array([-1.0, 1.0])
-
-
 # A drawn uint8 level (0-255, averaged over the finer canvas) as float32
 # coverage: the table of its float32 quotients by 255.
 _LEVELS = np.arange(256, dtype=np.float32) / 255.0
-
-
 # cv2 drawing takes fixed-point coordinates with this many fractional bits.
 DRAW_SHIFT = 4
-
-
 # cv2's filled circles and polygons take in every pixel their outline touches:
 # a circle comes out 0.42 (fine) pixel wider in radius than the pixel centres
 # it should hold (mean over 200 random circles, r 4-30 px; spread 0.08), a
@@ -44,41 +37,21 @@ DRAW_SHIFT = 4
 # edge, and made the drawn tip 0.25-0.5 mm long against exact coverage: the
 # shapes are drawn smaller by these amounts.
 _CIRCLE_BIAS = 0.42
-
-
 _POLYGON_BIAS = 0.5
-
-
 SUPERSAMPLE = 4
-
-
 _RING_POINTS = 24
-
-
 # The rings' unit circle, (_RING_POINTS, 1) each.
 _RING_COS = np.cos(np.linspace(0.0, 2.0 * np.pi, _RING_POINTS, endpoint=False))[:, None]
-
-
 _RING_SIN = np.sin(np.linspace(0.0, 2.0 * np.pi, _RING_POINTS, endpoint=False))[:, None]
-
-
 _WINDOW_PX = 20.0
-
-
 # Erosion / dilation (px) of the silhouette that picks the pixels certainly on
 # the tube / on the background, to scale the grey levels to coverage.
 _CORE_PX = 5
-
-
 # ... and the local levels: Gaussian averages over those pixels, with these
 # widths (px); fewer than _NEAR_WEIGHT of such pixels in the kernel's weight
 # leave the global median.
 _TUBE_SIGMA_PX = 3.0
-
-
 _BACKGROUND_SIGMA_PX = 4.0
-
-
 _NEAR_WEIGHT = 1e-3
 
 

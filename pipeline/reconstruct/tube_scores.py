@@ -20,14 +20,11 @@ from .tube_fit import TubeFit
 
 FloatArray = NDArray[np.float64]
 
-
 # A fitted tube whose worst view's misfit fraction (pipeline.reconstruct.quality) exceeds
 # this leaves part of a silhouette unexplained: other hypotheses are tried.
 # Measured on rendered sessions (radii 4-9 mm, both rigs): 0 on smooth shapes,
 # <= 0.8 % where a loop's fit follows the tube, 2.8-12 % where it went astray.
 MISFIT = 0.01
-
-
 # Two parts of a tube of radius r touch when their axes are 2 r apart; a fitted
 # axis may stray from the true one by up to a quarter radius (the fit's outlier
 # limit, pipeline.reconstruct.side_readings.OUTLIER_RADII) on each part: a curve whose parts
@@ -36,8 +33,6 @@ MISFIT = 0.01
 # 2.1-4.2 r; the wrong hypotheses (a tip curled into the stem, a march run
 # back along it) come to 0.5-1.4 r.
 CLOSEST_RADII = 1.5
-
-
 # ... yet where the stem hides a tip in most views, a curve whose tip curled
 # into the stem can still be the tube but for its end (the bend then moves the
 # tip): it is not dropped, it ranks this much lower in mean re-projection IoU.

@@ -42,23 +42,12 @@ _CAMERA_RGB = (
     (0, 130, 130),
 )
 
-
 HULL_PATH = "world/hull"
-
-
 CENTERLINE_PATH = "world/centerline"
-
-
 SMOOTHED_PATH = "world/centerline_smoothed"
-
-
 TIP_PATH = "world/tip"
-
-
 # The 3-D views' titles are their legends.
 LEGEND_3D = "3-D: orange per frame, blue smoothed (dots), red tip"
-
-
 LEGEND_3D_HULL = "+ hull (grey)"
 
 

@@ -448,15 +448,8 @@ def test_a_signal_stops_the_run_and_keeps_previous_outputs(tmp_path: Path, sig: 
         _, err = proc.communicate(timeout=60)
     finally:
         proc.kill()
-    assert proc.returncode == 130, err
     assert {p.name: p.read_bytes() for p in out.iterdir()} == previous
-    # One line: what was done, and that nothing is left behind.
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, err
-    (line,) = lines
-    assert re.fullmatch(
-        r"interrupted after \d+ of 60 frames; temporary files removed, existing outputs untouched", line
-    )
+    _assert_interrupted_in_one_line(proc, err)
 
 
 def test_an_interrupted_wait_lets_the_call_finish_before_the_clean_up() -> None:
@@ -513,12 +506,8 @@ def test_a_terminals_signal_to_every_process_ends_the_run_in_one_line(
         _, err = proc.communicate(timeout=60)
     finally:
         proc.kill()
-    assert proc.returncode == 130, err
     # Not the workers' tracebacks, the resource tracker's KeyErrors nor distributed's logs.
-    (line,) = err.strip().splitlines()
-    assert re.fullmatch(
-        r"interrupted after \d+ of 60 frames; temporary files removed, existing outputs untouched", line
-    )
+    _assert_interrupted_in_one_line(proc, err)
     assert not out.exists()
     _assert_no_process_left(proc.pid, children)
 
@@ -925,6 +914,16 @@ def _start_dying_run(tmp_path: Path, frames: int, **env: str) -> tuple[subproces
     return proc, out, mark
 
 
+def _assert_interrupted_in_one_line(proc: subprocess.Popen[str], err: str) -> None:
+    """Exit status 130 and one line on stderr: what was done, and that nothing is left behind."""
+    assert proc.returncode == 130, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert re.fullmatch(
+        r"interrupted after \d+ of 60 frames; temporary files removed, existing outputs untouched", lines[0]
+    )
+
+
 def _assert_no_process_left(pid: int, children: list[psutil.Process]) -> None:
     # Generous: the workers are killed as the run ends; this only guards against them staying.
     _, alive = psutil.wait_procs(children, timeout=30)
@@ -978,10 +977,6 @@ def test_a_signal_while_the_pool_waits_on_a_dead_worker_ends_the_run(tmp_path: P
         _, err = proc.communicate(timeout=60)
     finally:
         proc.kill()
-    assert proc.returncode == 130, err
-    (line,) = err.strip().splitlines()
-    assert re.fullmatch(
-        r"interrupted after \d+ of 60 frames; temporary files removed, existing outputs untouched", line
-    )
+    _assert_interrupted_in_one_line(proc, err)
     assert not out.exists()
     _assert_no_process_left(proc.pid, children)
