@@ -75,6 +75,8 @@ _REGION_MARGIN_PX = 2.0
 # flat bend gone astray on a spacer disk) reach 1.5-30 times it; the latter had
 # a session decided wrongly. Bounds from 0.75 to 3 times it changed no choice.
 _MAX_SEPARATION = 2.0 - np.pi / 2.0
+# The axis' last radii are sampled every this many mm (_last).
+_LAST_STEP_MM = 0.25
 
 
 @dataclass(frozen=True)
@@ -108,8 +110,6 @@ class TipChoice:
 
     tip : "flat" or "round".
     frames : frames whose tips were compared.
-    flat_cost, round_cost : the grey-level mismatch near the tips under each
-        end, summed over those frames (lower is better).
     score : the frames' mean vote (:attr:`FrameEvidence.vote`), in [-1, 1]:
         below 0 flat, above round.
     favouring : how many of the frames voted for ``tip``.
@@ -118,8 +118,6 @@ class TipChoice:
 
     tip: str
     frames: int
-    flat_cost: float
-    round_cost: float
     score: float = 0.0
     favouring: int = 0
     radius_mm: float = float("nan")
@@ -160,21 +158,19 @@ def choose_tip(model: SessionModel, frames: Sequence[tuple[int, Sequence[NDArray
     """
     tips = [tip for tip in (_frame_tip(index, images, model) for index, images in frames) if tip is not None]
     if not tips:
-        return TipChoice("flat", 0, 0.0, 0.0)
+        return TipChoice("flat", 0)
     # One radius for the session: the tube's end does not change, and each
     # frame's reading can be spoilt (a missed tip, another part behind it).
     radius = float(np.median([tip.radius_mm for tip in tips]))
     evidence = [e for e in (frame_evidence(tip, model.cameras, radius) for tip in tips) if e.views]
     if not evidence:
-        return TipChoice("flat", 0, 0.0, 0.0, radius_mm=radius)
+        return TipChoice("flat", 0, radius_mm=radius)
     votes = np.array([e.vote for e in evidence])
     score = float(votes.mean())
     tip = "round" if score > 0 else "flat"
     return TipChoice(
         tip,
         len(evidence),
-        float(sum(e.flat_cost for e in evidence)),
-        float(sum(e.round_cost for e in evidence)),
         score=score,
         favouring=int(np.count_nonzero(votes > 0 if tip == "round" else votes < 0)),
         radius_mm=radius,
@@ -287,7 +283,7 @@ def _window(
     return ((x0, y0), (x1, y1)) if x1 > x0 and y1 > y0 else None
 
 
-def _last(axis_mm: FloatArray, length_mm: float, step_mm: float = 0.25) -> FloatArray:
+def _last(axis_mm: FloatArray, length_mm: float, step_mm: float = _LAST_STEP_MM) -> FloatArray:
     """(S, 3) points every ``step_mm`` over the last ``length_mm`` of (K, 3) ``axis_mm``, end included."""
     arc = polyline_arclength(axis_mm)
     s = np.arange(arc[-1], max(arc[-1] - length_mm, 0.0) - 1e-9, -step_mm)[::-1]
@@ -300,7 +296,7 @@ def _band(cam: Camera, axis_mm: FloatArray, radius_mm: float, window: Window) ->
     projected radii (+ a pixel) of it."""
     length = _BAND_RADII[1] + _BAND_REACH_RADII + 1.0
     points = _last(axis_mm, length * radius_mm)
-    before = np.arange(len(points))[::-1] * 0.25  # mm before the end
+    before = np.arange(len(points))[::-1] * _LAST_STEP_MM  # mm before the end
     px = cam.project(points)
     reach = _BAND_REACH_RADII * cam.focal_px * radius_mm / cam.to_camera(points)[:, 2] + 1.0
     (x0, y0), (x1, y1) = window
