@@ -30,6 +30,10 @@ ROD_MM = np.array([[128.0, 128.0, 0.0], [128.0, 128.0, 160.0]])
 ROD_WIDTH_PX = 7
 GREY, DARK = 150, 30
 
+# The accuracy targets: mean and p95 of the symmetric centreline distance (mm),
+# median tip error (mm), mean length error (%), failed frames.
+MEAN_MM, P95_MM, TIP_MM, LENGTH_PCT = 0.4, 1.0, 1.0, 1.0
+
 
 def rig_cameras(arrangement: str = "oblique") -> list[Camera]:
     """The synthetic rig's true cameras as :class:`Camera` (Rodrigues rotation)."""

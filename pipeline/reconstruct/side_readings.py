@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from ..geometry.camera import Camera
 from ..geometry.polyline import polyline_arclength, unit_tangents, vector_norms
-from .profiles import median_1d, project_with_jacobians, sample_lines_in, side_edges
+from .profiles import median_1d, nanmedian_rows, project_with_jacobians, sample_lines_in, side_edges
 from .tube_tip import MIN_SIN_VIEW, tip_zone
 
 FloatArray = NDArray[np.float64]
@@ -241,7 +241,7 @@ def _radius_profile(
     span = 2 * _PROFILE_HALF_SPAN + 1
     padded = np.pad(readings, ((_PROFILE_HALF_SPAN, _PROFILE_HALF_SPAN), (0, 0)), constant_values=np.nan)
     windows = np.lib.stride_tricks.sliding_window_view(padded, span, axis=0)  # (K, C, span)
-    smoothed = np.nanmedian(windows[seen].reshape(len(seen), -1), axis=1)
+    smoothed = nanmedian_rows(windows[seen].reshape(len(seen), -1))
     return np.interp(arc_mm, arc_mm[seen], smoothed)
 
 

@@ -1,10 +1,10 @@
-"""Tests of pipeline.reconstruct.profiles: the run-wise lower quartile against the masked one."""
+"""Tests of pipeline.reconstruct.profiles: its fast order statistics against NumPy's own."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from pipeline.reconstruct.profiles import _run_lower_quartile, lower_quartile
+from pipeline.reconstruct.profiles import _run_lower_quartile, lower_quartile, nanmedian_rows
 
 
 def test_run_lower_quartile_equals_the_masked_lower_quartile() -> None:
@@ -22,3 +22,13 @@ def test_run_lower_quartile_equals_the_masked_lower_quartile() -> None:
 def test_run_lower_quartile_of_no_runs_is_inf() -> None:
     out = _run_lower_quartile(np.ones((4, 5)), np.zeros(4, dtype=np.intp), np.zeros(4, dtype=np.intp))
     assert np.isinf(out).all()
+
+
+def test_nanmedian_rows_equals_numpys_nanmedian() -> None:
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        rows, cols = rng.integers(1, 30, size=2)
+        values = rng.normal(size=(rows, cols))
+        values[rng.random((rows, cols)) < rng.random()] = np.nan
+        values[:, rng.integers(cols)] = rng.normal(size=rows)  # every row has a value
+        np.testing.assert_array_equal(nanmedian_rows(values), np.nanmedian(values, axis=1))
