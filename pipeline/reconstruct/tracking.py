@@ -80,18 +80,19 @@ def predict_axis(previous: Sequence[FrameResult], index: int | None = None) -> F
 
     ``previous``: the track's results so far, oldest first; ``index``: the frame
     predicted (default: the one after the last). The last ok curve, moved on at the
-    velocity it had from the one before when both are ok (the curves are uniform
-    in arc length with the same sample count, so sample k of one matches sample k
-    of the other): constant velocity, over any gap between the frames (a live run
-    drops frames when it falls behind); None when the last frame has no curve
-    (the track is lost).
+    velocity it had from the one before when both are ok and neither is suspect
+    (the curves are uniform in arc length with the same sample count, so sample k
+    of one matches sample k of the other; a suspect curve, cut short say, would
+    send the prediction's samples off by its error each frame): constant
+    velocity, over any gap between the frames (a live run drops frames when it
+    falls behind); None when the last frame has no curve (the track is lost).
     """
     if not previous or previous[-1].centerline_mm is None:
         return None
     last = previous[-1]
     axis = np.asarray(last.centerline_mm, dtype=np.float64)
     ahead = 1 if index is None else index - last.index
-    if len(previous) >= 2:
+    if len(previous) >= 2 and not (previous[-2].suspect or last.suspect):
         before = previous[-2]
         apart = last.index - before.index
         if before.centerline_mm is not None and apart > 0 and before.centerline_mm.shape == axis.shape:

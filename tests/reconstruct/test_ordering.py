@@ -67,3 +67,20 @@ def test_a_base_amid_the_hull_gives_no_direction() -> None:
     # its mean is the base itself, and no way is the way in.
     middle = np.array([128.0, 128.0, 40.0])
     assert _initial_direction(index, middle, RADIUS + VOXEL) is None
+
+
+@pytest.mark.parametrize("gap_mm", [6.0, 16.0, 22.0])
+def test_the_march_crosses_a_gap_in_the_hull_straight_ahead(gap_mm: float) -> None:
+    # A part of the tube lost from one view's silhouette for a few pixels cuts its
+    # hull: the march goes on across the gap, straight ahead, to the tube's end.
+    pts = _column((128.0, 128.0), height_mm=200.0)
+    pts = pts[(pts[:, 2] < 90.0) | (pts[:, 2] > 90.0 + gap_mm)]
+    track = march_hull(pts, np.array([128.0, 128.0, 0.0]), radius_mm=RADIUS, voxel_mm=VOXEL).points_mm
+    assert track[-1, 2] > 190.0
+
+
+def test_the_march_stops_at_a_gap_longer_than_it_looks_across() -> None:
+    pts = _column((128.0, 128.0), height_mm=200.0)
+    pts = pts[(pts[:, 2] < 90.0) | (pts[:, 2] > 140.0)]
+    track = march_hull(pts, np.array([128.0, 128.0, 0.0]), radius_mm=RADIUS, voxel_mm=VOXEL).points_mm
+    assert 80.0 < track[-1, 2] < 92.0

@@ -3,6 +3,7 @@ on how a run splits its frames."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +44,16 @@ def test_the_prediction_moves_the_last_curve_on_by_its_velocity() -> None:
     # Across gaps (a live run drops frames): the same velocity per frame, over the gap.
     np.testing.assert_allclose(predict_axis([_ok(3, axis), _ok(5, axis + step)]), axis + 1.5 * step)  # type: ignore[arg-type]
     np.testing.assert_allclose(predict_axis([_ok(4, axis), _ok(5, axis + step)], 8), axis + 4 * step)  # type: ignore[arg-type]
+
+
+def test_a_suspect_frame_lends_the_prediction_no_velocity() -> None:
+    axis = np.column_stack([np.zeros(8), np.zeros(8), np.linspace(0.0, 70.0, 8)])
+    short = axis * np.array([1.0, 1.0, 0.5])  # a curve cut short: its samples bunch up
+    suspect = replace(_ok(4, short), suspect_reason="length changed by -35.0 mm in one frame")
+    # From a suspect frame on: the last curve as it is, not moved on by a made-up velocity.
+    np.testing.assert_allclose(predict_axis([suspect, _ok(5, axis)]), axis)  # type: ignore[arg-type]
+    last = replace(_ok(5, short), suspect_reason="length changed by -35.0 mm in one frame")
+    np.testing.assert_allclose(predict_axis([_ok(4, axis), last]), short)  # type: ignore[arg-type]
 
 
 def test_a_track_whose_last_frame_has_no_curve_is_lost() -> None:
