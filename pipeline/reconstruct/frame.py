@@ -20,15 +20,14 @@ from numpy.typing import NDArray
 from ..carve.hull import carve, voxel_centers_mm
 from ..carve.silhouette import extract_silhouette
 from ..geometry.camera import project_in_views
-from ..geometry.polyline import by_fraction
 from .centerline import fit_centerline
 from .frame_result import FrameResult
 from .model import SessionModel
 from .model import build_model as build_model  # re-exported: build the model, then reconstruct frames
 from .ordering import infer_base
-from .quality import misfit_fractions, suspect_reason, tube_figures
+from .quality import suspect_reason, tube_figures
 from .spline import smooth_curve
-from .tracking import TrackedFit, drawn_radius, predict_axis, track_tube
+from .tracking import TrackedFit, judge_fit, predict_axis, track_tube
 from .tube_fit import foreground_contrast
 from .tube_scores import radius_from_silhouettes
 
@@ -206,10 +205,10 @@ def _curve_and_quality(
     n_points = settings.centerline.points
     predicted: NDArray[np.float64] | None = None
     tracked = False
-    radii: NDArray[np.float64] | None = None
     if settings.centerline.method == "polyfit":
         curve = smooth_curve(_polyfit()(pts, base if known else None, n_points=n_points), n_points=n_points)
-        radius, residual = radius_guess, float("nan")
+        radius, residual, radii = radius_guess, float("nan"), None
+        figures = None
     else:
         contrasts = frame_contrasts(images, model)
         predicted = predict_axis(previous, index)
@@ -226,13 +225,14 @@ def _curve_and_quality(
                 base_known=known,
                 cap=model.tip,
                 radii_mm=radii_mm,
+                n_points=n_points,
             )
 
         held = None
         if predicted is not None:
             held = track(predicted, previous[-1].radius_mm, previous[-1].radii_mm)
-        if held is not None and held.fit is not None and not held.lost:
-            fit, tracked = held.fit, True
+        if held is not None and held.curve is not None and not held.lost:
+            best, tracked = held, True
         else:
             # A track starts here, or was lost: the tube from the hull, fitted
             # again as a tracked frame would be; of that, the hull's own fit
@@ -254,21 +254,23 @@ def _curve_and_quality(
             if held is not None:
                 options.append(held)
             if np.isfinite(init.radius_mm) and init.radius_mm > 0:
-                misfit = max(misfit_fractions(cameras, masks, init.points_mm, drawn_radius(init)))
-                options.append(TrackedFit(init, misfit, ""))
+                options.append(judge_fit(init, cameras, masks, n_points=n_points))
             best = min(options, key=lambda o: o.misfit)
-            fit = best.fit if best.fit is not None else init
-        curve = smooth_curve(fit.points_mm, n_points=n_points)
-        radius, residual = fit.radius_mm, fit.residual_mm
-        # The fit's samples and the curve's are both uniform in arc length, end to end.
-        radii = None if fit.radii_mm is None else by_fraction(fit.radii_mm, n_points)
+            if best.curve is None:  # no fit read a tube: the hull's, drawn at the radius guessed
+                best = judge_fit(init, cameras, masks, n_points=n_points, radius_mm=radius_guess)
+        if best.fit is None or best.curve is None:
+            raise ValueError("the fit gave no curve")
+        curve, radii = best.curve, best.radii_mm
+        radius, residual = best.fit.radius_mm, best.fit.residual_mm
+        # The curve's figures, found as it was judged (its tube drawn once).
+        figures = best.iou, best.misfits
     timings["centerline"] = time.perf_counter() - start
     start = time.perf_counter()
     if not np.all(np.isfinite(curve.points_mm)):
         raise ValueError("the curve has non-finite points")
+    iou, misfits = figures if figures is not None else tube_figures(cameras, masks, curve.points_mm, radius)
     draw_radius = radius if np.isfinite(radius) else radius_guess
     drawn = radii if radii is not None and np.isfinite(radii).all() else draw_radius
-    iou, misfits = tube_figures(cameras, masks, curve.points_mm, drawn)
     reason = suspect_reason(
         cameras,
         masks,

@@ -261,4 +261,3 @@ def nanmedian_rows(values: FloatArray) -> FloatArray:
     count = np.isfinite(ordered).sum(axis=1)
     rows = np.arange(len(ordered))
     return 0.5 * (ordered[rows, (count - 1) // 2] + ordered[rows, count // 2])
-

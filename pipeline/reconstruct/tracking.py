@@ -27,7 +27,8 @@ from numpy.typing import NDArray
 from ..geometry.camera import Camera
 from ..geometry.polyline import axis_gap_mm, by_fraction, self_intersects
 from .frame_result import FrameResult
-from .quality import misfit_fractions
+from .quality import tube_figures
+from .spline import Centerline, smooth_curve
 from .tip_bend import bend_tip_to_pixels, tip_meets_tube
 from .tube_fit import TubeFit, fit_tube
 
@@ -103,19 +104,55 @@ def predict_axis(previous: Sequence[FrameResult], index: int | None = None) -> F
     return axis
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TrackedFit:
-    """A tube fitted from a prediction.
+    """A fitted tube, the curve it gives and how that curve re-projects.
 
     fit : the fitted tube; None where the fit found no radius.
-    misfit : the worst view's share of its silhouette the tube leaves
-        unexplained (:func:`pipeline.reconstruct.quality.misfit_fractions`); inf without a fit.
+    curve : the fit's samples as the smooth curve a frame writes
+        (:func:`pipeline.reconstruct.spline.smooth_curve`); None without a fit.
+    radii_mm : (N,) the radius along ``curve``, mm; None where the fit read no
+        radius profile.
+    iou, misfits : per camera, the curve's tube re-projected onto the silhouettes
+        (:func:`pipeline.reconstruct.quality.tube_figures`); empty without a curve.
     lost : why the track is lost here ("" where it holds).
     """
 
     fit: TubeFit | None
-    misfit: float
-    lost: str
+    curve: Centerline | None = None
+    radii_mm: FloatArray | None = None
+    iou: tuple[float, ...] = ()
+    misfits: tuple[float, ...] = ()
+    lost: str = ""
+
+    @property
+    def misfit(self) -> float:
+        """The worst view's share of its silhouette the curve's tube leaves
+        unexplained (:func:`pipeline.reconstruct.quality.misfit_fractions`); inf without a curve."""
+        return max(self.misfits) if self.misfits else np.inf
+
+
+def judge_fit(
+    fit: TubeFit,
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    *,
+    n_points: int,
+    radius_mm: float = np.nan,
+    lost: str = "",
+) -> TrackedFit:
+    """``fit`` as the curve of ``n_points`` a frame writes, its tube drawn once in every
+    view against the silhouettes; ``radius_mm`` draws it where the fit read no radius.
+    A curve with non-finite points is never the best (misfit inf)."""
+    curve = smooth_curve(fit.points_mm, n_points=n_points)
+    # The fit's samples and the curve's are both uniform in arc length, end to end.
+    radii = None if fit.radii_mm is None else by_fraction(fit.radii_mm, n_points)
+    radius = fit.radius_mm if np.isfinite(fit.radius_mm) else radius_mm
+    drawn = radii if radii is not None and np.isfinite(radii).all() else radius
+    if not np.isfinite(curve.points_mm).all():
+        return TrackedFit(fit, curve, radii, lost=lost)
+    iou, misfits = tube_figures(cameras, masks, curve.points_mm, drawn)
+    return TrackedFit(fit, curve, radii, iou, misfits, lost)
 
 
 def track_tube(
@@ -128,6 +165,7 @@ def track_tube(
     base_known: bool,
     cap: str = "flat",
     radii_mm: FloatArray | None = None,
+    n_points: int = 64,
 ) -> TrackedFit:
     """The tube fitted from its prediction (N, 3) mm, and whether the track holds.
 
@@ -139,10 +177,11 @@ def track_tube(
     fit leaves part of a silhouette unexplained, passes through itself, or
     jumped from the prediction (``LOST_*``). ``cap``: the tube's end, "flat"
     or "round"; ``radii_mm``: (N,) the radius at each point of the prediction, mm
-    (default ``radius_mm`` everywhere).
+    (default ``radius_mm`` everywhere); ``n_points``: samples of the curve judged
+    (:func:`judge_fit`).
     """
     if not (np.isfinite(radius_mm) and radius_mm > 0):
-        return TrackedFit(None, np.inf, "no radius to track")
+        return TrackedFit(None, lost="no radius to track")
 
     def rounds(start_mm: FloatArray, radius: float, radii: FloatArray | None) -> TubeFit:
         return fit_tube(
@@ -168,7 +207,7 @@ def track_tube(
         fit = rounds(fit.points_mm, fit.radius_mm, fit.radii_mm)
     radius = fit.radius_mm
     if not (np.isfinite(radius) and radius > 0) or len(fit.points_mm) < 3:
-        return TrackedFit(None, np.inf, "the fit read no tube")
+        return TrackedFit(None, lost="the fit read no tube")
     if tip_meets_tube(fit.points_mm, cameras, radius):
         bent = bend_tip_to_pixels(
             fit.points_mm,
@@ -186,19 +225,12 @@ def track_tube(
             points_mm=bent,
             radii_mm=None if fit.radii_mm is None else by_fraction(fit.radii_mm, len(bent)),
         )
-    misfit = max(misfit_fractions(cameras, masks, fit.points_mm, drawn_radius(fit)))
+    judged = judge_fit(fit, cameras, masks, n_points=n_points)
     lost = ""
-    if misfit > LOST_MISFIT:
+    if judged.misfit > LOST_MISFIT:
         lost = "leaves part of a silhouette unexplained"
     elif self_intersects(fit.points_mm, radius, closest_radii=LOST_CLOSEST_RADII):
         lost = "passes through itself"
     elif axis_gap_mm(fit.points_mm, predicted_mm) > LOST_JUMP_RADII * radius:
         lost = "jumped from its prediction"
-    return TrackedFit(fit, misfit, lost)
-
-
-def drawn_radius(fit: TubeFit) -> float | FloatArray:
-    """The radius to draw ``fit``'s tube with: (K,) along it where known, else the one radius."""
-    if fit.radii_mm is not None and len(fit.radii_mm) == len(fit.points_mm):
-        return fit.radii_mm
-    return fit.radius_mm
+    return replace(judged, lost=lost)

@@ -239,7 +239,7 @@ def test_a_rerun_grpc_server_receives_the_stream(session: Path, tmp_path: Path) 
     # The Rerun CLI as a gRPC server that saves what it receives, in a process group of its own.
     server = subprocess.Popen(
         [str(RERUN), "--serve-grpc", "--port", str(port), "--save", str(received)],
-        env=RERUN_ENV,
+        env=RERUN_ENV | {"TMPDIR": str(tmp_path)},  # its scratch folder, not /tmp's
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
         start_new_session=True,
