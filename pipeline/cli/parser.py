@@ -197,7 +197,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace existing outputs (when the run stops)")
     p.set_defaults(func=cmd_live, usage_error=p.error)
 
-    from ..synth.names import IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
+    from ..synth.names import ARRANGEMENT_NAMES, IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
 
     p = sub.add_parser(
         "synth",
@@ -251,7 +251,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         help="tube darker or brighter than the scene",
     )
     p.add_argument("--radius-mm", type=float, default=6.0, help="tube radius in mm (default 6)")
-    p.add_argument("--arrangement", choices=("oblique", "ninety"), default="oblique", help="camera placement")
+    p.add_argument("--arrangement", choices=ARRANGEMENT_NAMES, default="oblique", help="camera placement")
     p.set_defaults(func=cmd_synth)
 
     p = sub.add_parser(
@@ -262,7 +262,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         "OUT_DIR/board.toml and the true cameras as OUT_DIR/truth_calibration.toml.",
     )
     p.add_argument("out_dir", type=Path)
-    p.add_argument("--arrangement", choices=("oblique", "ninety"), default="oblique", help="camera placement")
+    p.add_argument("--arrangement", choices=ARRANGEMENT_NAMES, default="oblique", help="camera placement")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
         "--board",

@@ -6,3 +6,5 @@ RANDOM_SHAPE = "random"
 TIPS = ("flat", "round")
 PROFILES = ("uniform", "tapered", "disks", "step")
 IMAGE_SIZES = ((320, 240), (1280, 960))
+# The camera placements (pipeline.synth.rig.ARRANGEMENTS holds each camera's pose).
+ARRANGEMENT_NAMES = ("oblique", "ninety")

@@ -24,7 +24,7 @@ from pipeline.synth.images import (
     threshold_for,
     tube_mask,
 )
-from pipeline.synth.names import PROFILES, SHAPES, TIPS
+from pipeline.synth.names import ARRANGEMENT_NAMES, PROFILES, SHAPES, TIPS
 from pipeline.synth.radius_profiles import RadiusProfile, disks_of, max_radius, radius_along
 from pipeline.synth.random_shapes import (
     LENGTH_RANGE_MM,
@@ -34,7 +34,7 @@ from pipeline.synth.random_shapes import (
     shape_at,
 )
 from pipeline.synth.raycast import distort_normalized, ray_directions, undistort_pixels
-from pipeline.synth.rig import SynthCamera, make_rig
+from pipeline.synth.rig import ARRANGEMENTS, SynthCamera, make_rig
 from pipeline.synth.session_render import (
     BASE_MM,
     SceneOptions,
@@ -833,3 +833,7 @@ def test_bad_variety_options_raise_pipeline_errors(tmp_path: Path) -> None:
         render_session(tmp_path, frames=2, options=SceneOptions(cameras=4), progress=False)
     with pytest.raises(PipelineError, match="image size must be one of 320x240, 1280x960, got 640x480"):
         render_session(tmp_path, frames=2, options=SceneOptions(size=(640, 480)), progress=False)
+
+
+def test_the_arrangements_the_command_line_offers_are_the_rigs_placements() -> None:
+    assert ARRANGEMENT_NAMES == tuple(ARRANGEMENTS)
