@@ -199,7 +199,7 @@ def end_edge(profile: FloatArray, t: FloatArray, radius_mm: float, mm_per_px: fl
         return None
     start = int(np.argmax(row[inside]))
     peak = float(row[start])
-    bg = _percentile(row, 0.10)
+    bg = percentile_1d(row, 0.10)
     if peak - bg < MIN_CONTRAST:
         return None
     pos = _first_below(row, start, 0.5 * (peak + bg))
@@ -208,7 +208,7 @@ def end_edge(profile: FloatArray, t: FloatArray, radius_mm: float, mm_per_px: fl
     px_steps = mm_per_px / step  # one pixel, in samples
     beyond = row[int(np.ceil(pos + px_steps)) :]
     if len(beyond):
-        bg = _percentile(beyond, 0.25)
+        bg = percentile_1d(beyond, 0.25)
     at = max(pos - px_steps, float(start))
     lo = min(max(int(np.floor(at)), 0), len(row) - 2)
     frac = min(max(at - lo, 0.0), 1.0)
@@ -231,7 +231,7 @@ def _first_below(row: FloatArray, start: int, level: float) -> float | None:
     return (j - 1) + min(max((a - level) / max(a - b, 1e-9), 0.0), 1.0)
 
 
-def _percentile(values: FloatArray, q: float) -> float:
+def percentile_1d(values: FloatArray, q: float) -> float:
     """``np.percentile(values, 100 q)`` (linear interpolation) of a 1-D array, without
     its per-call overhead."""
     ordered = np.sort(values)

@@ -18,7 +18,14 @@ from numpy.typing import NDArray
 
 from ..geometry.camera import Camera
 from ..geometry.polyline import polyline_arclength, unit_tangents, vector_norms
-from .profiles import median_1d, nanmedian_rows, project_with_jacobians, sample_lines_in, side_edges
+from .profiles import (
+    median_1d,
+    nanmedian_rows,
+    percentile_1d,
+    project_with_jacobians,
+    sample_lines_in,
+    side_edges,
+)
 from .tube_tip import MIN_SIN_VIEW, tip_zone
 
 FloatArray = NDArray[np.float64]
@@ -47,7 +54,8 @@ class SideReadings:
     and positive side), converted to mm at the sample; ``use`` (K, C, 2) says which
     edges are trusted; ``apparent`` (K, C) is each view's own reading of the
     half-width at each sample, which a single trusted edge is moved in by;
-    ``radii_mm`` (K,) the radius along the tube (:func:`_radius_profile`). ``rows`` (K, C, 3)
+    ``radii_mm`` (K,) the radius along the tube (:func:`_radius_profile`);
+    ``end_radius_mm`` the tube's own radius at its end (:func:`_end_radius`). ``rows`` (K, C, 3)
     maps a 3-D motion of the sample (mm) to the motion of its projection along
     the normal (mm); ``across`` (K, C, 2) maps a motion of its projection (px) to
     that motion along the normal (mm), or is None.
@@ -61,6 +69,7 @@ class SideReadings:
     apparent: FloatArray
     radii_mm: FloatArray
     across: FloatArray | None = None
+    end_radius_mm: float = float("nan")
 
     @property
     def readings(self) -> int:
@@ -206,6 +215,7 @@ def read_sides(
     # ever being read.
     uncrowded = (ok & ~crowd[..., 0] & ~crowd[..., 1]).T & interior[:, None]
     radii = _radius_profile(arc, 0.5 * (right - left), uncrowded, expected)
+    end_radius = _end_radius(0.5 * (right - left), uncrowded)
     # One edge places the axis a half-width in from it: the half-width as this
     # view reads it (its blur and grey levels bias both edges alike, by up to
     # half a pixel, which the mid-point of two edges cancels and one edge does
@@ -217,7 +227,15 @@ def read_sides(
         if own.size >= _OWN_WIDTH_READINGS and radius > 0:
             ratio[j] = median_1d(own) / radius
     return SideReadings(
-        rows, left, right, use, radius, radii[:, None] * ratio[None, :], radii, e.across.transpose(1, 0, 2)
+        rows,
+        left,
+        right,
+        use,
+        radius,
+        radii[:, None] * ratio[None, :],
+        radii,
+        e.across.transpose(1, 0, 2),
+        end_radius,
     )
 
 
@@ -243,6 +261,24 @@ def _radius_profile(
     windows = np.lib.stride_tricks.sliding_window_view(padded, span, axis=0)  # (K, C, span)
     smoothed = nanmedian_rows(windows[seen].reshape(len(seen), -1))
     return np.interp(arc_mm, arc_mm[seen], smoothed)
+
+
+def _end_radius(half_mm: FloatArray, both: NDArray[np.bool_]) -> float:
+    """The tube's own radius at its end (mm): the lower quartile of the two-edge
+    readings ``both`` (K, C) of ``half_mm`` (K, C) over the last window of samples read
+    (``2 _PROFILE_HALF_SPAN + 1``); NaN where fewer than three samples were read.
+
+    Not the profile's last value: a window median there leans to the inside of a
+    taper (the end is its narrowest part), and spacer disks seen at an angle widen
+    most of the silhouette (a disk's ellipse reaches along the tube as far as the
+    disk is wide), so that the median half-width is the disks' more than the
+    tube's. A round end's cap, which sets where the tip is placed, is the tube's.
+    """
+    seen = np.flatnonzero(both.any(axis=1))
+    if len(seen) < 3:
+        return float("nan")
+    last = seen[-(2 * _PROFILE_HALF_SPAN + 1) :]
+    return percentile_1d(half_mm[last][both[last]], 0.25)
 
 
 def centre_across(

@@ -19,7 +19,9 @@ uneven, and overshoots its end. The fit corrects all three from the grey images
   the curve does not know of) are dropped and the problem solved again. The
   other views, and the smoothness, carry the sample.
 - The tip: after each round the curve is extended or trimmed to where the views
-  see the tube end (:mod:`pipeline.reconstruct.tube_tip`).
+  see the tube end (:mod:`pipeline.reconstruct.tube_tip`), its cap the tube's own
+  radius at the end (the narrowest readings there, not the disks' or the taper's
+  wider ones before it).
 - The radius is the median half-width of the clean readings, in mm.
 """
 
@@ -182,13 +184,16 @@ def fit_tube(
             core=seek_radii if i == 0 else _CORE,
             crowd_margin_px=crowd_margin_px,
         )
+        end_radius = float(local[-1])
         if obs.readings >= 6:
             radius = obs.radius_mm
             local = obs.radii_mm
+            if np.isfinite(obs.end_radius_mm):
+                end_radius = obs.end_radius_mm
             pts = pts + _step(pts, obs, base_fixed=base_fixed, smoothness=smoothness, robust=robust)
         along, radii = polyline_arclength(pts), local
         pts = refit_tip(
-            pts, cameras, contrasts, float(local[-1]), cap=cap, masks=masks, max_length_mm=max_length_mm
+            pts, cameras, contrasts, end_radius, cap=cap, masks=masks, max_length_mm=max_length_mm
         )
     pts = _resampled(pts, spacing_mm)
     obs = read_sides(pts, cameras, contrasts, np.interp(polyline_arclength(pts), along, radii), spacing_mm)

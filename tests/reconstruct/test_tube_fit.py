@@ -154,3 +154,22 @@ def test_the_radius_profile_follows_a_step_and_ignores_disks() -> None:
     assert radii[-1] == 4.0  # the tip takes the thin end's radius
     # Without readings, the expected radius stands.
     np.testing.assert_array_equal(_radius_profile(arc, half, np.zeros((k, 2), bool), np.full(k, 6.0)), 6.0)
+
+
+def test_the_end_radius_is_the_tubes_where_disks_widen_most_readings() -> None:
+    from pipeline.reconstruct.side_readings import _end_radius, _radius_profile
+
+    rng = np.random.default_rng(7)
+    k, views = 30, 3
+    arc = np.arange(k) * 4.0
+    half = 8.0 + rng.normal(0.0, 0.05, size=(k, views))
+    # Disks seen at an angle: their ellipses widen four samples of every five in two views.
+    disk = (np.arange(k) % 5 < 4)[:, None] & (np.arange(views) < 2)[None, :]
+    half[disk] = 11.0 + rng.normal(0.0, 0.2, size=int(disk.sum()))
+    both = np.ones((k, views), dtype=bool)
+    both[-3:] = False  # the tip zone has no reading
+    assert abs(_end_radius(half, both) - 8.0) < 0.15
+    # The profile there is the disks' (its median), the cap would be 2-3 mm too wide.
+    assert _radius_profile(arc, half, both, np.full(k, 8.0))[-1] > 10.0
+    # Fewer than three samples read: no end radius.
+    assert np.isnan(_end_radius(half, np.zeros((k, views), dtype=bool)))
