@@ -145,9 +145,13 @@ def reconstruct_from_silhouettes(
     masks = hull_supported(masks, points, model)
     try:
         return _curve_and_quality(index, images, masks, points, model, timings, previous)
-    except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
-        # Numerical trouble with this frame's data is a failed frame, not a crash.
-        return FrameResult.failed(index, f"centreline fit failed: {exc}", points_mm=points, timings_s=timings)
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError, cv2.error) as exc:
+        # Numerical trouble with this frame's data (OpenCV's included: a drawing
+        # asked for an impossible disc) is a failed frame, not a crash; on one line.
+        reason = " ".join(str(exc).split())
+        return FrameResult.failed(
+            index, f"centreline fit failed: {reason}", points_mm=points, timings_s=timings
+        )
 
 
 def hull_supported(

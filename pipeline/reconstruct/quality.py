@@ -143,7 +143,9 @@ def _draw_tube(
     centres = np.round((px[ok] + (supersample - 1) / (2 * supersample)) * scale).astype(np.int64)
     # cv2 fills a disc of radius R out to about R + 0.5 canvas pixels (measured:
     # 35 px for R = 3 against pi R^2 = 28): draw half a canvas pixel smaller.
+    # (A disc under half a canvas pixel is drawn as one: cv2 takes no negative radius.)
     radii = np.round((focal * radii_mm[ok] / depth[ok] * supersample - 0.5) * (1 << _SHIFT)).astype(np.int64)
+    radii = np.maximum(radii, 0)
     # Drawn in 1 at full resolution, so that the canvas is the mask (no threshold
     # pass over the image); in 255 when it is averaged down.
     colour = 255 if supersample > 1 else 1

@@ -200,7 +200,8 @@ def read_sides(
     use_hi = ok & ~crowd[..., 1] & (e.hi < e.limit + np.maximum(0.0, -e.lo))
     # A reading narrower than the tube (by the same tolerance) found an edge
     # inside the silhouette: the outline of another part lying over this one.
-    keep = ~(ok & (e.hi - e.lo < 2.0 * e.floor))
+    narrow = ok & (e.hi - e.lo < 2.0 * e.floor)
+    keep = ~narrow
     use_lo &= keep
     use_hi &= keep
     keep = ~(use_lo & use_hi & (e.hi - e.lo > 2.0 * e.limit))
@@ -215,7 +216,9 @@ def read_sides(
     # ever being read.
     uncrowded = (ok & ~crowd[..., 0] & ~crowd[..., 1]).T & interior[:, None]
     radii = _radius_profile(arc, 0.5 * (right - left), uncrowded, expected)
-    end_radius = _end_radius(0.5 * (right - left), uncrowded)
+    # The end's radius from the uncrowded readings no narrower than the tube (a
+    # taper's end is), whatever their width above it (see _end_radius).
+    end_radius = _end_radius(0.5 * (right - left), uncrowded & ~narrow.T)
     # One edge places the axis a half-width in from it: the half-width as this
     # view reads it (its blur and grey levels bias both edges alike, by up to
     # half a pixel, which the mid-point of two edges cancels and one edge does
@@ -265,8 +268,10 @@ def _radius_profile(
 
 def _end_radius(half_mm: FloatArray, both: NDArray[np.bool_]) -> float:
     """The tube's own radius at its end (mm): the lower quartile of the two-edge
-    readings ``both`` (K, C) of ``half_mm`` (K, C) over the last window of samples read
-    (``2 _PROFILE_HALF_SPAN + 1``); NaN where fewer than three samples were read.
+    readings ``both`` (K, C) of ``half_mm`` (K, C) over the last window of samples
+    read (``2 _PROFILE_HALF_SPAN + 1``); NaN where fewer than three samples were read.
+    ``both`` leaves out readings narrower than the tube can be (another part's
+    outline over it), which a lower quartile would take.
 
     Not the profile's last value: a window median there leans to the inside of a
     taper (the end is its narrowest part), and spacer disks seen at an angle widen

@@ -139,7 +139,6 @@ def judge_fit(
     *,
     n_points: int,
     radius_mm: float = np.nan,
-    lost: str = "",
 ) -> TrackedFit:
     """``fit`` as the curve of ``n_points`` a frame writes, its tube drawn once in every
     view against the silhouettes; ``radius_mm`` draws it where the fit read no radius.
@@ -150,9 +149,9 @@ def judge_fit(
     radius = fit.radius_mm if np.isfinite(fit.radius_mm) else radius_mm
     drawn = radii if radii is not None and np.isfinite(radii).all() else radius
     if not np.isfinite(curve.points_mm).all():
-        return TrackedFit(fit, curve, radii, lost=lost)
+        return TrackedFit(fit, curve, radii)
     iou, misfits = tube_figures(cameras, masks, curve.points_mm, drawn)
-    return TrackedFit(fit, curve, radii, iou, misfits, lost)
+    return TrackedFit(fit, curve, radii, iou, misfits)
 
 
 def track_tube(

@@ -156,7 +156,7 @@ def _end_by_pixels(
     owner = np.zeros((h, w), np.int32)
     one = 1 << DRAW_SHIFT
     centres = np.round(px * one).astype(np.int64)
-    radii = np.round((focal * radius_mm / depth - 0.5) * one).astype(np.int64)
+    radii = np.maximum(np.round((focal * radius_mm / depth - 0.5) * one).astype(np.int64), 0)
     # Drawn from the far end back, so the disc nearest the anchor wins each pixel.
     for k in range(len(u) - 1, -1, -1):
         cv2.circle(

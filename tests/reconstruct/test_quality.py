@@ -58,6 +58,15 @@ def test_tube_mask_area_matches_the_projected_tube() -> None:
     assert tube_mask(cam, rod, 6.0, supersample=4).sum() == pytest.approx(expected, rel=0.04)
 
 
+def test_a_tube_thinner_than_a_pixel_draws_at_most_a_line() -> None:
+    cam = rig_cameras()[0]
+    rod = np.array([[128.0, 128.0, 60.0], [128.0, 128.0, 200.0]])
+    # A radius far under half a pixel (a reading of nothing): no error, a thin mask.
+    for supersample in (1, 4):
+        mask = tube_mask(cam, rod, 0.01, supersample=supersample)
+        assert mask.sum() < tube_mask(cam, rod, 3.0, supersample=supersample).sum() / 2
+
+
 def test_true_curve_reprojects_onto_rendered_silhouettes() -> None:
     cams = rig_cameras()
     curve = shape_centerlines("bend_rotate", 12, base_mm=BASE)[3]
