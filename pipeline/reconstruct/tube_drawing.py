@@ -100,8 +100,8 @@ def coverage_mismatch(
         x1, y1 = (max(w[1][i] for w in windows) for i in (0, 1))
         seen = coverage[y0:y1, x0:x1]
         for n, axis in enumerate(axes_mm):
-            levels = _drawn_levels(cam, axis, radius_mm, ((x0, y0), (x1, y1)), flat_end=caps[n] == "flat")
-            costs[n] += level_difference(levels, seen)
+            difference = drawn_coverage(cam, axis, radius_mm, ((x0, y0), (x1, y1)), cap=caps[n]) - seen
+            costs[n] += float(np.add.reduce(difference * difference, axis=None))
     return costs
 
 
@@ -115,24 +115,12 @@ def drawn_coverage(
 ) -> NDArray[np.float32]:
     """(y1 - y0, x1 - x0) float32 in [0, 1]: how much of each pixel of the image
     window ((x0, y0), (x1, y1)) the tube of radius ``radius_mm`` around (K, 3)
-    ``axis_mm`` (world frame, mm) with end ``cap`` covers, drawn as
-    :func:`coverage_mismatch` draws it: comparable with :func:`pixel_coverages`."""
-    return _LEVELS[_drawn_levels(camera, axis_mm, radius_mm, window, flat_end=cap == "flat")]
-
-
-def _drawn_levels(
-    cam: Camera,
-    axis_mm: FloatArray,
-    radius_mm: float,
-    window: tuple[tuple[int, int], tuple[int, int]],
-    *,
-    flat_end: bool,
-) -> NDArray[np.uint8]:
-    """(h, w) uint8 levels (:func:`canvas_levels`) of the tube drawn in the image window."""
+    ``axis_mm`` (world frame, mm) with end ``cap`` covers (:func:`draw_tube`, averaged by
+    :func:`canvas_levels`): comparable with :func:`pixel_coverages`."""
     (x0, y0), (x1, y1) = window
     canvas = np.zeros(((y1 - y0) * SUPERSAMPLE, (x1 - x0) * SUPERSAMPLE), np.uint8)
-    draw_tube(canvas, cam, *tube_points(axis_mm, radius_mm, flat_end=flat_end), radius_mm, (x0, y0))
-    return canvas_levels(canvas)
+    draw_tube(canvas, camera, *tube_points(axis_mm, radius_mm, flat_end=cap == "flat"), radius_mm, (x0, y0))
+    return _LEVELS[canvas_levels(canvas)]
 
 
 def view_window(
