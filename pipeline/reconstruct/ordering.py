@@ -43,8 +43,8 @@ _TURN_STEPS = 3
 # many steps beyond the next and this far (mm) before it stops. A thin or dim
 # part of the tube drops out of one view's silhouette for a few pixels (a step
 # to a thinner tube, flicker): at 320x240 and the rigs' ~0.4 px/mm, 6 px of
-# silhouette lost cut a 250 mm straight tube's hull for 15 mm, and the march
-# stopped there, 120 mm short of the tip.
+# silhouette lost cut a 250 mm straight tube's hull for 15 mm, 120 mm before
+# its tip.
 _LOOK_AHEAD_STEPS = 2
 _GAP_MM = 24.0
 
