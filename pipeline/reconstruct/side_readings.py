@@ -141,6 +141,9 @@ def _camera_edges(
     scale = vector_norms(row)  # px per mm across the tube
     ok &= (scale > 0) & (t_len > MIN_SIN_VIEW * scale)
     r_px = radius_mm * scale
+    # A tube wider than the image (a point of a diverging fit near a camera's
+    # centre) has no edges in it to read.
+    ok &= r_px < np.array([max(cam.size_px) for cam in cameras], dtype=np.float64)[:, None]
     lo: FloatArray = np.zeros(scale.shape)
     hi: FloatArray = np.zeros(scale.shape)
     found: NDArray[np.bool_] = np.zeros(scale.shape, dtype=bool)

@@ -101,8 +101,31 @@ def _lsq_spline(pts: FloatArray, s: FloatArray, weights: FloatArray, knot_spacin
     # At least k + 1 data points per knot span (Schoenberg-Whitney, with room).
     n_inner = int(min(total / knot_spacing_mm, (np.count_nonzero(weights) - k - 1) / 2.0))
     inner = np.linspace(0.0, total, n_inner + 2)[1:-1] if n_inner > 0 else np.zeros(0)
+    inner = _spans_with_data(inner, s[weights > 0], 2)
     knots = np.concatenate([np.zeros(k + 1), inner, np.full(k + 1, total)])
     return make_lsq_spline(s, pts, knots, k=k, w=weights)
+
+
+def _spans_with_data(inner: FloatArray, s_kept: FloatArray, least: int) -> FloatArray:
+    """The inner knots (I,) less those that leave a span between knots (the ends
+    included) with fewer than ``least`` of the weighed points ``s_kept``.
+
+    A span without data leaves the spline free there: a track with a gap (the
+    march across a break in the hull, its points beside the break dropped as
+    outliers) came out kilometres long. Two points a span are enough for the
+    tracks' smooth courses, and leave every track with data all along as it was.
+    """
+    knots = list(inner)
+    while knots:
+        edges = np.concatenate([[-np.inf], knots, [np.inf]])
+        counts = np.diff(np.searchsorted(s_kept, edges))
+        short = np.flatnonzero(counts < least)
+        if not len(short):
+            break
+        # The span's right knot, or its left one for the last span.
+        span = int(short[0])
+        del knots[min(span, len(knots) - 1)]
+    return np.asarray(knots, dtype=np.float64)
 
 
 def robust_track(

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 from pipeline.geometry.polyline import cut_polyline, polyline_arclength, resample_polyline
 from pipeline.measure.evaluate import centerline_distances
 from pipeline.reconstruct.ordering import infer_base, march_hull
-from pipeline.reconstruct.spline import smooth_curve
+from pipeline.reconstruct.spline import robust_track, smooth_curve
 
 BASE = np.array([128.0, 128.0, 0.0])
 RADIUS = 6.0
@@ -169,6 +169,25 @@ def test_smooth_curve_of_a_straight_line_has_zero_curvature() -> None:
     np.testing.assert_allclose(geom.tangents, np.tile([0.0, 0.0, 1.0], (16, 1)), atol=1e-12)
     assert geom.length_mm == pytest.approx(100.0, rel=1e-9)
     np.testing.assert_allclose(geom.tip_mm, BASE + np.array([0.0, 0.0, 100.0]), atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_track_with_a_gap_and_outliers_stays_on_its_course(seed: int) -> None:
+    """A march across a break in the hull leaves no samples for up to 24 mm, and
+    points dropped as outliers can empty a knot span: the spline stays on the track."""
+    rng = np.random.default_rng(seed)
+    turn = np.cumsum(rng.normal(0.0, 0.08, 60))
+    step = np.column_stack([np.cos(turn), np.sin(turn), np.full(60, 0.6)])
+    axis = np.cumsum(2.0 * step / np.linalg.norm(step, axis=1)[:, None], axis=0)
+    gap_at = int(rng.integers(15, 40))
+    track = np.vstack([axis[:gap_at], axis[gap_at + 11 :]])  # 22 mm without samples
+    # The march's last steps before the gap wander a few mm off (the outlier rounds drop some).
+    track[gap_at - 3 : gap_at] += rng.normal(0.0, 3.0, (3, 3))
+    out = robust_track(track)
+    # Near the track, not where a knot span without data lets the spline run off.
+    assert np.isfinite(out).all()
+    assert np.max(centerline_distances(out, axis)) < 8.0
+    assert polyline_arclength(out)[-1] < 1.1 * polyline_arclength(axis)[-1]
 
 
 def test_smooth_curve_rejects_a_single_point() -> None:

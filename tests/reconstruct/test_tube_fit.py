@@ -173,3 +173,20 @@ def test_the_end_radius_is_the_tubes_where_disks_widen_most_readings() -> None:
     assert _radius_profile(arc, half, both, np.full(k, 8.0))[-1] > 10.0
     # Fewer than three samples read: no end radius.
     assert np.isnan(_end_radius(half, np.zeros((k, views), dtype=bool)))
+
+
+@pytest.mark.parametrize(
+    "far_mm", [(-15000.0, 300.0, -15000.0), (15000.0, -300.0, 15000.0), (-3000.0, 128.0, 2000.0)]
+)
+def test_a_diverged_curve_is_read_without_an_error(far_mm: tuple[float, float, float]) -> None:
+    """A curve run off kilometres away passes by the cameras, where a sample projects to a
+    tube wider than any image: that view has nothing to read there, and the rest is read."""
+    from conftest import rig_cameras
+
+    from pipeline.reconstruct.side_readings import read_sides
+
+    cameras = rig_cameras("ninety")
+    pts = np.linspace(np.array([128.0, 128.0, 60.0]), np.array(far_mm), 400)
+    contrasts = [np.zeros((c.size_px[1], c.size_px[0]), np.float32) for c in cameras]
+    obs = read_sides(pts, cameras, contrasts, np.full(len(pts), 6.0), 4.0)
+    assert obs.rows.shape[:2] == (len(pts), len(cameras))
