@@ -130,8 +130,7 @@ class Adjustment:
 
     cameras : the adjusted cameras, in the given order.
     params : (C, 9) each camera's change from the given one (see the module).
-    tubes : the frames' tubes as adjusted with them (in the adjusted rig's world frame,
-        before :func:`nearest_to_given` holds it to the given one's).
+    tubes : the frames' tubes as adjusted with them, in the adjusted cameras' world.
     before_px, after_px : RMS distance (px) between where the silhouettes put the
         tubes' axes and where the tubes fitted to them project, with the given and
         with the adjusted cameras: the views' (in)consistency.
@@ -243,8 +242,9 @@ def adjust_cameras(
                 moved = tubes[i].points_mm + s.tube_step(step)
                 tubes[i] = replace(tubes[i], points_mm=moved, radii_mm=s.obs.radii_mm)
     adjusted = [moved_camera(cam, p) for cam, p in zip(cameras, params, strict=True)]
-    anchored = nearest_to_given(adjusted, cameras, prior_sigma)
-    return Adjustment(tuple(anchored), params, tuple(tubes), before, after, readings)
+    held = nearest_to_given(adjusted, cameras, prior_sigma)
+    tubes = [replace(t, points_mm=held.points(t.points_mm)) for t in tubes]
+    return Adjustment(tuple(held.cameras(adjusted)), params, tuple(tubes), before, after, readings)
 
 
 def similar_camera(camera: Camera, rotation: FloatArray, scale: float, shift_mm: FloatArray) -> Camera:
@@ -258,11 +258,29 @@ def similar_camera(camera: Camera, rotation: FloatArray, scale: float, shift_mm:
     )
 
 
+@dataclass(frozen=True)
+class Similarity:
+    """The world seen through X -> scale R X + shift: ``rotation`` (3, 3) R, ``scale``,
+    ``shift_mm`` (3,)."""
+
+    rotation: FloatArray
+    scale: float
+    shift_mm: FloatArray
+
+    def cameras(self, cameras: Sequence[Camera]) -> list[Camera]:
+        """The cameras whose image of X is that of ``cameras`` of scale R X + shift."""
+        return [similar_camera(cam, self.rotation, self.scale, self.shift_mm) for cam in cameras]
+
+    def points(self, points_mm: FloatArray) -> FloatArray:
+        """(N, 3) points of the cameras' world, in the world of :meth:`cameras`."""
+        return np.asarray((points_mm - self.shift_mm) @ self.rotation / self.scale, dtype=np.float64)
+
+
 def nearest_to_given(
     adjusted: Sequence[Camera], given: Sequence[Camera], prior_sigma: FloatArray = PRIOR_SIGMA
-) -> list[Camera]:
-    """The ``adjusted`` cameras moved, as a rig, by the similarity (rotation, scale and
-    shift of the world) that brings their poses nearest the ``given`` cameras': the
+) -> Similarity:
+    """The similarity (rotation, scale and shift of the world) that brings the poses of
+    the ``adjusted`` cameras, moved by it as a rig, nearest the ``given`` cameras': the
     turns and centre shifts between them, weighed by the prior's spreads (the first six
     of ``prior_sigma``), least squares.
 
@@ -296,5 +314,4 @@ def nearest_to_given(
         return np.concatenate(out)
 
     solution = least_squares(residual, np.zeros(7))
-    rotation, scale, shift = similarity(solution.x)
-    return [similar_camera(cam, rotation, scale, shift) for cam in adjusted]
+    return Similarity(*similarity(solution.x))

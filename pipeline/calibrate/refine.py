@@ -30,6 +30,7 @@ from ..reconstruct.tip_shape import sample_frames
 from ..session.calibration_io import write_calibration
 from ..session.toml_file import load_toml
 from .adjust import Tube, adjust_cameras, resampled_tube
+from .mount import CHECK_BASE, mount_shift, moved_to_mount
 
 FloatArray = NDArray[np.float64]
 
@@ -75,8 +76,11 @@ class Refinement:
     frames : frames the cameras were adjusted on.
     before_px, after_px : the silhouettes' inconsistency (RMS, px) with the given cameras
         and with the adjusted ones (:class:`pipeline.calibrate.adjust.Adjustment`).
-    changes : each camera's correction.
+    changes : each camera's correction, the rig held by the given cameras' poses.
     seconds : the refinement's wall time, the frames' first reconstruction included.
+    mount_shift_mm : how far the refined rig was then moved to see the tube's base at
+        the mount (:mod:`pipeline.calibrate.mount`); None when it was not, and
+        ``mount_note`` says why.
     """
 
     applied: bool
@@ -86,6 +90,8 @@ class Refinement:
     changes: tuple[CameraChange, ...]
     reason: str = ""
     seconds: float = float("nan")
+    mount_shift_mm: tuple[float, float, float] | None = None
+    mount_note: str = ""
 
     def describe(self) -> str:
         """One line for the summary."""
@@ -97,16 +103,28 @@ class Refinement:
         )
         if not self.applied:
             return f"given ({self.reason}; {figures})"
-        return f"refined ({figures}): " + "; ".join(c.describe() for c in self.changes)
+        if self.mount_shift_mm is None:
+            frame = f"the world frame held by the given cameras' poses ({self.mount_note})"
+        else:
+            x, y, z = self.mount_shift_mm
+            frame = (
+                f"the world frame moved {np.linalg.norm(self.mount_shift_mm):.2f} mm "
+                f"({x:+.2f}, {y:+.2f}, {z:+.2f}) to the mount"
+            )
+        return f"refined ({figures}): " + "; ".join(c.describe() for c in self.changes) + f"; {frame}"
 
     def warnings(self) -> list[str]:
-        """A line per camera that seems to have moved since it was calibrated."""
-        return [
+        """A line per camera that seems to have moved since it was calibrated, and one if
+        the tube's base is seen far from the mount's place in the settings."""
+        lines = [
             f"camera {c.name} seems to have moved since it was calibrated: its image of the tube is "
             f"{c.image_px:.1f} px off; recalibrate it, or keep [calibration] refine on"
             for c in self.changes
             if c.image_px > MOVED_PX
         ]
+        if self.mount_note.endswith(CHECK_BASE):
+            lines.append(f"{self.mount_note} (its frames are fitted to start there)")
+        return lines
 
 
 def camera_change(given: Camera, refined: Camera, points_mm: FloatArray) -> CameraChange:
@@ -128,10 +146,16 @@ def sample_tubes(
     model: SessionModel, frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]]
 ) -> list[Tube]:
     """The tubes of ``frames`` (index, per camera grey image), each reconstructed alone
-    with ``model``'s cameras; frames without a curve are left out."""
+    with ``model``'s cameras and its base free; frames without a curve are left out.
+
+    Held at the mount, which is known in the given rig's world only, each tube would
+    bend near its base by the calibration's error; free, its base is where the views
+    see it, which is what holds the refined rig to the mount (:mod:`.mount`)."""
+    manipulator = dataclasses.replace(model.settings.manipulator, base_mm=None)
+    free = dataclasses.replace(model, settings=dataclasses.replace(model.settings, manipulator=manipulator))
     tubes = []
     for index, images in frames:
-        result, _ = reconstruct_with_silhouettes(index, images, model)
+        result, _ = reconstruct_with_silhouettes(index, images, free)
         if result.status != "ok" or result.centerline_mm is None or not np.isfinite(result.radius_mm):
             continue
         tubes.append(
@@ -148,9 +172,6 @@ def refine(
     """The cameras to reconstruct with, given the refinement ``mode`` ("auto", True or
     False), and the refinement's report."""
     given = model.cameras
-    # The tubes' bases are left free: the mount is known in the given rig's frame only,
-    # and held there it bends each tube by the calibration's error (on ten renders
-    # 0.05-0.15 deg off, held: mean 0.16-2.22 mm, free: 0.27-1.76 mm, no better).
     adjustment = adjust_cameras(given, tubes, base_mm=None, rounds=ROUNDS)
     points = np.concatenate([t.points_mm for t in adjustment.tubes])
     changes = tuple(camera_change(g, r, points) for g, r in zip(given, adjustment.cameras, strict=True))
@@ -162,8 +183,25 @@ def refine(
     elif mode == "auto" and moved <= _AUTO_MOVE_PX:
         reason = f"refining moves no camera's image by more than {moved:.2f} px"
     applied = not reason
-    report = Refinement(applied, len(tubes), adjustment.before_px, adjustment.after_px, changes, reason)
-    return (adjustment.cameras if applied else given), report
+    cameras = list(adjustment.cameras)
+    shift, held_by = None, "no [manipulator] base_mm"
+    if applied and model.settings.manipulator.base_mm is not None:
+        shift, held_by = mount_shift(
+            cameras, adjustment.tubes, np.asarray(model.settings.manipulator.base_mm)
+        )
+        if shift is not None:
+            cameras = moved_to_mount(cameras, shift)
+    report = Refinement(
+        applied,
+        len(tubes),
+        adjustment.before_px,
+        adjustment.after_px,
+        changes,
+        reason,
+        mount_shift_mm=None if shift is None else (float(shift[0]), float(shift[1]), float(shift[2])),
+        mount_note=held_by,
+    )
+    return (tuple(cameras) if applied else given), report
 
 
 def refined_cameras(
