@@ -258,6 +258,30 @@ def similar_camera(camera: Camera, rotation: FloatArray, scale: float, shift_mm:
     )
 
 
+def aligned_by_images(
+    cameras: Sequence[Camera], reference: Sequence[Camera], points_mm: FloatArray
+) -> list[Camera]:
+    """``cameras`` moved, as a rig, by the similarity (rotation, scale and shift of the
+    world) that best maps their images of ``points_mm`` (N, 3) onto the ``reference``
+    cameras' images, least squares: what is left between the two rigs is what the
+    silhouettes can tell (each camera's own correction), not where the world is."""
+    target = np.concatenate([cam.project(points_mm).ravel() for cam in reference])
+    centre = points_mm.mean(axis=0)
+
+    def rig_through(q: FloatArray) -> list[Camera]:
+        # X -> s R (X - centre) + centre + shift: about the points' centre.
+        rotation = np.asarray(cv2.Rodrigues(q[:3])[0], dtype=np.float64)
+        scale = float(np.exp(q[3]))
+        shift = centre - scale * rotation @ centre + q[4:7]
+        return [similar_camera(cam, rotation, scale, shift) for cam in cameras]
+
+    def residual(q: FloatArray) -> FloatArray:
+        return np.concatenate([cam.project(points_mm).ravel() for cam in rig_through(q)]) - target
+
+    solution = least_squares(residual, np.zeros(7), x_scale=np.array([1e-3] * 4 + [0.1] * 3))
+    return rig_through(solution.x)
+
+
 @dataclass(frozen=True)
 class Similarity:
     """The world seen through X -> scale R X + shift: ``rotation`` (3, 3) R, ``scale``,

@@ -29,7 +29,7 @@ from ..reconstruct.model import SessionModel
 from ..reconstruct.tip_shape import sample_frames
 from ..session.calibration_io import write_calibration
 from ..session.toml_file import load_toml
-from .adjust import Tube, adjust_cameras, resampled_tube
+from .adjust import Tube, adjust_cameras, aligned_by_images, resampled_tube
 from .mount import CHECK_BASE, mount_shift, moved_to_mount
 
 FloatArray = NDArray[np.float64]
@@ -76,7 +76,7 @@ class Refinement:
     frames : frames the cameras were adjusted on.
     before_px, after_px : the silhouettes' inconsistency (RMS, px) with the given cameras
         and with the adjusted ones (:class:`pipeline.calibrate.adjust.Adjustment`).
-    changes : each camera's correction, the rig held by the given cameras' poses.
+    changes : each camera's correction, apart from a turn, scale and shift of the whole rig.
     seconds : the refinement's wall time, the frames' first reconstruction included.
     mount_shift_mm : how far the refined rig was then moved to see the tube's base at
         the mount (:mod:`pipeline.calibrate.mount`); None when it was not, and
@@ -172,9 +172,12 @@ def refine(
     """The cameras to reconstruct with, given the refinement ``mode`` ("auto", True or
     False), and the refinement's report."""
     given = model.cameras
+    # The tubes' bases free, as they were reconstructed (see sample_tubes).
     adjustment = adjust_cameras(given, tubes, base_mm=None, rounds=ROUNDS)
     points = np.concatenate([t.points_mm for t in adjustment.tubes])
-    changes = tuple(camera_change(g, r, points) for g, r in zip(given, adjustment.cameras, strict=True))
+    # Each camera's own correction, apart from where the rig as a whole is put (below).
+    aligned = aligned_by_images(adjustment.cameras, given, points)
+    changes = tuple(camera_change(g, r, points) for g, r in zip(given, aligned, strict=True))
     gain = adjustment.before_px / max(adjustment.after_px, 1e-9)
     moved = max(c.image_px for c in changes)
     reason = ""

@@ -10,9 +10,8 @@ import cv2
 import numpy as np
 import pytest
 from conftest import rig_cameras
-from scipy.optimize import least_squares
 
-from pipeline.calibrate.adjust import moved_camera, nearest_to_given, similar_camera
+from pipeline.calibrate.adjust import aligned_by_images, moved_camera, nearest_to_given, similar_camera
 from pipeline.calibrate.mount import mount_shift, moved_to_mount
 from pipeline.calibrate.refine import Refinement, refine, sample_tubes
 from pipeline.errors import SettingsError
@@ -53,23 +52,6 @@ def _image_error_px(
             for c, t in zip(cameras, truth, strict=True)
         ]
     )
-
-
-def _as_seen_by(
-    cameras: list[Camera] | tuple[Camera, ...], truth: list[Camera], points_mm: np.ndarray
-) -> list[Camera]:
-    """``cameras`` moved as a rig by the similarity that best matches their images of the
-    points to the true cameras' (least squares): the rig up to what the silhouettes cannot tell."""
-    target = np.concatenate([t.project(points_mm).ravel() for t in truth])
-
-    def moved(q: np.ndarray) -> list[Camera]:
-        rotation = cv2.Rodrigues(q[:3])[0]
-        return [similar_camera(c, rotation, float(np.exp(q[3])), q[4:]) for c in cameras]
-
-    def residual(q: np.ndarray) -> np.ndarray:
-        return np.concatenate([c.project(points_mm).ravel() for c in moved(q)]) - target
-
-    return moved(least_squares(residual, np.zeros(7), x_scale=np.array([1e-3] * 4 + [0.1] * 3)).x)
 
 
 @pytest.fixture(scope="module")
@@ -123,7 +105,7 @@ def test_a_calibration_that_is_off_comes_closer_to_the_true_rig(sessions: dict[f
     # Up to a turn, scale and shift of the whole rig (which the silhouettes cannot
     # tell, and the given calibration anchors), the refined rig is the true one.
     rms = [
-        np.sqrt(np.mean(_image_error_px(_as_seen_by(c, truth, points), truth, points) ** 2))
+        np.sqrt(np.mean(_image_error_px(aligned_by_images(c, truth, points), truth, points) ** 2))
         for c in (model.cameras, cameras)
     ]
     assert rms[1] < 0.5 * rms[0]
@@ -169,7 +151,7 @@ def test_the_given_cameras_errors_average_out_in_the_world_frame() -> None:
         by_poses.append(
             np.mean(_image_error_px(nearest_to_given(adjusted, given).cameras(adjusted), truth, points))
         )
-        by_images.append(np.mean(_image_error_px(_as_seen_by(adjusted, given, points), truth, points)))
+        by_images.append(np.mean(_image_error_px(aligned_by_images(adjusted, given, points), truth, points)))
     assert np.mean(by_poses) < 0.85 * np.mean(by_images)
 
 
