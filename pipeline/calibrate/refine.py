@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from ..errors import OutputError
 from ..geometry.camera import Camera
+from ..geometry.polyline import resample_polyline
 from ..reconstruct.frame import frame_contrasts, reconstruct_with_silhouettes
 from ..reconstruct.frame_task import decode_frames
 from ..reconstruct.model import SessionModel
@@ -37,6 +38,16 @@ FloatArray = NDArray[np.float64]
 # Frames adjusted with the cameras, spread over the session, and the adjustment's rounds.
 SAMPLE_FRAMES = 16
 ROUNDS = 4
+# "auto" refines only on frames where the tube took at least this many poses, each
+# _POSE_APART_MM from the others: frames of a tube that stands still repeat one view
+# of it, on which the cameras' 9 parameters each fit the readings' noise (an exact rig
+# of three cameras, six frames of one straight pose: 0.16 px apart before, 0.01 px
+# after, and cameras 1.4-2.4 px off). A few poses are enough where the tube is curved:
+# 12 frames of a random shape's first second (3 poses) refine a rig 0.15 deg off to
+# within 0.1-0.3 px of the true one.
+_MIN_POSES = 2
+_POSE_APART_MM = 5.0
+_POSE_POINTS = 16
 # "auto" uses the adjusted cameras when the silhouettes' inconsistency (px) falls by
 # this factor and some camera's image of the tubes moves by more than _AUTO_MOVE_PX.
 # With exact cameras (renders of five shapes, both rigs) the adjustment moves each
@@ -76,7 +87,7 @@ class Refinement:
     frames : frames the cameras were adjusted on.
     before_px, after_px : the silhouettes' inconsistency (RMS, px) with the given cameras
         and with the adjusted ones (:class:`pipeline.calibrate.adjust.Adjustment`).
-    changes : each camera's correction, apart from a turn, scale and shift of the whole rig.
+    changes : each camera's correction, the refined camera against the given one.
     seconds : the refinement's wall time, the frames' first reconstruction included.
     mount_shift_mm : how far the refined rig was then moved to see the tube's base at
         the mount (:mod:`pipeline.calibrate.mount`); None when it was not, and
@@ -95,7 +106,7 @@ class Refinement:
 
     def describe(self) -> str:
         """One line for the summary."""
-        if not self.frames:
+        if not self.frames or not np.isfinite(self.before_px):
             return f"given ({self.reason})"
         figures = (
             f"silhouettes {self.before_px:.3f} px apart with the given cameras, "
@@ -120,7 +131,7 @@ class Refinement:
             f"camera {c.name} seems to have moved since it was calibrated: its image of the tube is "
             f"{c.image_px:.1f} px off; recalibrate it, or keep [calibration] refine on"
             for c in self.changes
-            if c.image_px > MOVED_PX
+            if self.applied and c.image_px > MOVED_PX
         ]
         if self.mount_note.endswith(CHECK_BASE):
             lines.append(f"{self.mount_note} (its frames are fitted to start there)")
@@ -166,20 +177,38 @@ def sample_tubes(
     return tubes
 
 
+def distinct_poses(tubes: Sequence[Tube], *, apart_mm: float = _POSE_APART_MM) -> int:
+    """How many of ``tubes`` differ from each other by more than ``apart_mm`` (mean
+    distance between points at the same fractions of their lengths), counted greedily."""
+    shapes = [resample_polyline(t.points_mm, _POSE_POINTS) for t in tubes]
+    kept: list[FloatArray] = []
+    for shape in shapes:
+        if all(np.mean(np.linalg.norm(shape - other, axis=1)) > apart_mm for other in kept):
+            kept.append(shape)
+    return len(kept)
+
+
 def refine(
     model: SessionModel, tubes: Sequence[Tube], mode: str | bool
 ) -> tuple[tuple[Camera, ...], Refinement]:
     """The cameras to reconstruct with, given the refinement ``mode`` ("auto", True or
     False), and the refinement's report."""
     given = model.cameras
+    poses = distinct_poses(tubes)
+    if mode == "auto" and poses < _MIN_POSES:
+        reason = (
+            f"the tube took {poses} distinct pose{'s' if poses != 1 else ''} in the {len(tubes)} frames "
+            f"sampled; refining needs it to move (at least {_MIN_POSES})"
+        )
+        return given, Refinement(False, len(tubes), float("nan"), float("nan"), (), reason)
     # The tubes' bases free, as they were reconstructed (see sample_tubes).
     adjustment = adjust_cameras(given, tubes, base_mm=None, rounds=ROUNDS)
     points = np.concatenate([t.points_mm for t in adjustment.tubes])
-    # Each camera's own correction, apart from where the rig as a whole is put (below).
-    aligned = aligned_by_images(adjustment.cameras, given, points)
-    changes = tuple(camera_change(g, r, points) for g, r in zip(given, aligned, strict=True))
     gain = adjustment.before_px / max(adjustment.after_px, 1e-9)
-    moved = max(c.image_px for c in changes)
+    # What the silhouettes tell of the cameras, apart from where the rig as a whole is
+    # put: an exact calibration refined moves by the readings' noise alone.
+    aligned = aligned_by_images(adjustment.cameras, given, points)
+    moved = max(camera_change(g, r, points).image_px for g, r in zip(given, aligned, strict=True))
     reason = ""
     if mode == "auto" and gain < _AUTO_GAIN:
         reason = f"they agree with the silhouettes to within {gain:.2f}x of the refined ones"
@@ -188,12 +217,13 @@ def refine(
     applied = not reason
     cameras = list(adjustment.cameras)
     shift, held_by = None, "no [manipulator] base_mm"
-    if applied and model.settings.manipulator.base_mm is not None:
-        shift, held_by = mount_shift(
-            cameras, adjustment.tubes, np.asarray(model.settings.manipulator.base_mm)
-        )
+    base = model.settings.manipulator.base_mm
+    if applied and base is not None:
+        shift, held_by = mount_shift(cameras, adjustment.tubes, np.asarray(base))
         if shift is not None:
             cameras = moved_to_mount(cameras, shift)
+            points = points - shift
+    changes = tuple(camera_change(g, r, points) for g, r in zip(given, cameras, strict=True))
     report = Refinement(
         applied,
         len(tubes),

@@ -13,7 +13,7 @@ from conftest import rig_cameras
 
 from pipeline.calibrate.adjust import aligned_by_images, moved_camera, nearest_to_given, similar_camera
 from pipeline.calibrate.mount import mount_shift, moved_to_mount
-from pipeline.calibrate.refine import Refinement, refine, sample_tubes
+from pipeline.calibrate.refine import Refinement, distinct_poses, refine, sample_tubes
 from pipeline.errors import SettingsError
 from pipeline.geometry.camera import Camera
 from pipeline.reconstruct.frame_task import decode_frames
@@ -119,6 +119,17 @@ def test_an_exact_calibration_is_kept(sessions: dict[float, Path]) -> None:
     assert not report.applied and report.reason
     assert cameras is model.cameras
     assert report.warnings() == []
+
+
+def test_a_tube_that_stands_still_is_not_refined_on(sessions: dict[float, Path]) -> None:
+    """Frames of one pose repeat one view of the tube: "auto" keeps the given cameras."""
+    session = load_session(sessions[0.15])
+    model = build_model(session)
+    tubes = sample_tubes(model, decode_frames(session.video_paths, sample_frames(0, FRAMES, 12)))
+    assert distinct_poses(tubes) >= 2
+    cameras, report = refine(model, [tubes[0]] * 6, "auto")
+    assert cameras is model.cameras and not report.applied
+    assert "1 distinct pose in the 6 frames" in report.describe()
 
 
 def test_the_world_frame_is_the_given_rigs() -> None:
