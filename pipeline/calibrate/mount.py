@@ -35,6 +35,8 @@ _MAX_SPREAD_MM = 1.5
 # (0.15 deg on three cameras: 1-3.5 mm) but a mount placed elsewhere.
 _MAX_SHIFT_MM = 6.0
 _MIN_FRAMES = 3
+# The base's radius: the median over the tube's first samples (~4 mm apart).
+_BASE_SAMPLES = 3
 # What the note ends with when base_mm itself seems wrong.
 CHECK_BASE = "check base_mm"
 
@@ -45,7 +47,8 @@ def base_ends(cameras: Sequence[Camera], tubes: Sequence[Tube]) -> FloatArray:
     ends = []
     for tube in tubes:
         backwards = tube.points_mm[::-1]
-        radius = float(np.median(tube.radii_mm))
+        # The tube's radius at its base (a tapered tube's is its widest).
+        radius = float(np.median(tube.radii_mm[:_BASE_SAMPLES]))
         ends.append(refit_tip(backwards, cameras, tube.contrasts, radius, cap="flat")[-1])
     return np.array(ends, dtype=np.float64).reshape(-1, 3)
 

@@ -42,11 +42,11 @@ ROUNDS = 4
 # _POSE_APART_MM from the others: frames of a tube that stands still repeat one view
 # of it, on which the cameras' 9 parameters each fit the readings' noise (an exact rig
 # of three cameras, six frames of one straight pose: 0.16 px apart before, 0.01 px
-# after, and cameras 1.4-2.4 px off). A few poses are enough where the tube is curved:
-# 12 frames of a random shape's first second (3 poses) refine a rig 0.15 deg off to
-# within 0.1-0.3 px of the true one.
+# after, and cameras 1.4-2.4 px off). Little motion is enough: the straight case of
+# the accuracy table sways by at most 3.4 mm (6 poses 1 mm apart in 16 frames), and
+# refining it takes a rig 0.05 deg off from 0.66 to 0.17 mm (mean).
 _MIN_POSES = 2
-_POSE_APART_MM = 5.0
+_POSE_APART_MM = 1.0
 _POSE_POINTS = 16
 # "auto" uses the adjusted cameras when the silhouettes' inconsistency (px) falls by
 # this factor and some camera's image of the tubes moves by more than _AUTO_MOVE_PX.
