@@ -198,7 +198,7 @@ def refine(
     if mode == "auto" and poses < _MIN_POSES:
         reason = (
             f"the tube took {poses} distinct pose{'s' if poses != 1 else ''} in the {len(tubes)} frames "
-            f"sampled; refining needs it to move (at least {_MIN_POSES})"
+            f"sampled; refining needs {_MIN_POSES} or more, {_POSE_APART_MM:g} mm apart"
         )
         return given, Refinement(False, len(tubes), float("nan"), float("nan"), (), reason)
     # The tubes' bases free, as they were reconstructed (see sample_tubes).
