@@ -311,11 +311,10 @@ def nearest_to_given(
     The silhouettes cannot tell a rig from the same rig turned, moved or scaled with
     the tubes it sees: that is for the calibration to say, and it says it through
     its cameras' poses, each off by its own error. Matched pose by pose, those
-    errors average out over the cameras. (Matched by the images instead, the rig's
-    seven degrees of freedom took up most of the given cameras' errors, whose
-    leading part is a shift of each image: 2 numbers a camera, 6 for three. On ten
-    renders with a calibration 0.05-0.15 deg off, the centreline's mean error
-    was 0.27-1.76 mm held by the poses, 0.39-2.47 mm by the images.)
+    errors average out over the cameras. Matched by the images instead
+    (:func:`aligned_by_images`), the rig's seven degrees of freedom take up most of
+    them: their leading part is a shift of each image, 2 numbers a camera, 6 for
+    three (tests/calibrate/test_refine.py holds the difference on seeded rigs).
     """
     origin = np.mean([cam.center_mm for cam in given], axis=0)
     turn_sigma, shift_sigma = float(prior_sigma[0]), float(prior_sigma[3])

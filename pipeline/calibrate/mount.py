@@ -2,8 +2,8 @@
 
 The silhouettes cannot tell a rig from the same rig moved with what it sees, and
 the given cameras' poses hold it (:func:`pipeline.calibrate.adjust.nearest_to_given`)
-only as well as their errors average out: with three cameras 0.1-0.15 deg off,
-the refined rig was still 1-3.5 mm from the true one, most of it a shift. The
+only as well as three cameras' errors average out, which leaves it millimetres
+from the true one (docs/calibration.md: 0.5-2.9 mm), most of it a shift. The
 tube's base is mounted at ``[manipulator] base_mm``: where the refined cameras
 see the base end, in each frame refined on, says how far the rig is off, and
 the rig is moved by that (the median over the frames). The end is read as the
@@ -24,15 +24,15 @@ from numpy.typing import NDArray
 
 from ..geometry.camera import Camera
 from ..reconstruct.tube_tip import refit_tip
-from .adjust import Tube, similar_camera
+from .adjust import Similarity, Tube
 
 FloatArray = NDArray[np.float64]
 
 # The base ends of the frames refined on may lie this far (mm, median) from their
-# median (on twelve renders of six shapes, 0.04-0.55 mm per axis, standard deviation).
+# median: a few tenths of a mm where the end is seen (the sessions of docs/calibration.md).
 _MAX_SPREAD_MM = 1.5
 # A base seen farther than this (mm) from base_mm is not the calibration's error
-# (0.15 deg on three cameras: 1-3.5 mm) but a mount placed elsewhere.
+# (0.15 deg on three cameras: up to 4 mm) but a mount placed elsewhere.
 _MAX_SHIFT_MM = 6.0
 _MIN_FRAMES = 3
 # The base's radius: the median over the tube's first samples (~4 mm apart).
@@ -78,4 +78,4 @@ def mount_shift(
 def moved_to_mount(cameras: Sequence[Camera], shift_mm: FloatArray) -> list[Camera]:
     """``cameras`` in a world moved by ``shift_mm`` (3,): what they saw at base_mm +
     shift is at base_mm."""
-    return [similar_camera(cam, np.eye(3), 1.0, np.asarray(shift_mm, dtype=np.float64)) for cam in cameras]
+    return Similarity(np.eye(3), 1.0, np.asarray(shift_mm, dtype=np.float64)).cameras(cameras)

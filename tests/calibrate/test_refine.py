@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 from conftest import rig_cameras
 
-from pipeline.calibrate.adjust import aligned_by_images, moved_camera, nearest_to_given, similar_camera
+from pipeline.calibrate.adjust import Tube, aligned_by_images, moved_camera, nearest_to_given, similar_camera
 from pipeline.calibrate.mount import mount_shift, moved_to_mount
 from pipeline.calibrate.refine import Refinement, distinct_poses, refine, sample_tubes
 from pipeline.errors import SettingsError
 from pipeline.geometry.camera import Camera
 from pipeline.reconstruct.frame_task import decode_frames
-from pipeline.reconstruct.model import build_model
+from pipeline.reconstruct.model import SessionModel, build_model
 from pipeline.reconstruct.tip_shape import sample_frames
 from pipeline.session.folder import load_session
 from pipeline.session.settings import settings_from_dict
@@ -25,6 +25,8 @@ from pipeline.synth import render_session
 from pipeline.synth.session_render import SceneOptions
 
 FRAMES = 30
+# Per calibration error: the session's model and the tubes of some of its frames.
+Sampled = dict[float, tuple[SessionModel, list[Tube]]]
 
 
 def _true_cameras(session_dir: Path) -> list[Camera]:
@@ -74,10 +76,22 @@ def sessions(tmp_path_factory: pytest.TempPathFactory) -> dict[float, Path]:
     return out
 
 
-def _refined(session_dir: Path, mode: str | bool = "auto"):  # type: ignore[no-untyped-def]
-    session = load_session(session_dir)
-    model = build_model(session)
-    tubes = sample_tubes(model, decode_frames(session.video_paths, sample_frames(0, FRAMES, 12)))
+@pytest.fixture(scope="module")
+def sampled(sessions: dict[float, Path]) -> Sampled:
+    """Per calibration error, the session's model and the tubes of 12 of its frames."""
+    out = {}
+    for error_deg, session_dir in sessions.items():
+        session = load_session(session_dir)
+        model = build_model(session)
+        frames = decode_frames(session.video_paths, sample_frames(0, FRAMES, 12))
+        out[error_deg] = (model, sample_tubes(model, frames))
+    return out
+
+
+def _refined(
+    sampled: Sampled, error_deg: float, mode: str | bool = "auto"
+) -> tuple[SessionModel, tuple[tuple[Camera, ...], Refinement]]:
+    model, tubes = sampled[error_deg]
     return model, refine(model, tubes, mode)
 
 
@@ -91,8 +105,10 @@ def test_synth_writes_a_calibration_off_by_the_error_asked_for(sessions: dict[fl
     assert np.all(exact < 1e-6)
 
 
-def test_a_calibration_that_is_off_comes_closer_to_the_true_rig(sessions: dict[float, Path]) -> None:
-    model, (cameras, report) = _refined(sessions[0.15])
+def test_a_calibration_that_is_off_comes_closer_to_the_true_rig(
+    sessions: dict[float, Path], sampled: Sampled
+) -> None:
+    model, (cameras, report) = _refined(sampled, 0.15)
     truth = _true_cameras(sessions[0.15])
     points = np.load(sessions[0.15] / "ground_truth.npz")["centerlines"].reshape(-1, 3)
     before = _image_error_px(model.cameras, truth, points)
@@ -114,18 +130,16 @@ def test_a_calibration_that_is_off_comes_closer_to_the_true_rig(sessions: dict[f
     assert named and named <= {c.name for c, e in zip(model.cameras, before, strict=True) if e > 0.5}
 
 
-def test_an_exact_calibration_is_kept(sessions: dict[float, Path]) -> None:
-    model, (cameras, report) = _refined(sessions[0.0])
+def test_an_exact_calibration_is_kept(sampled: Sampled) -> None:
+    model, (cameras, report) = _refined(sampled, 0.0)
     assert not report.applied and report.reason
     assert cameras is model.cameras
     assert report.warnings() == []
 
 
-def test_a_tube_that_stands_still_is_not_refined_on(sessions: dict[float, Path]) -> None:
+def test_a_tube_that_stands_still_is_not_refined_on(sampled: Sampled) -> None:
     """Frames of one pose repeat one view of the tube: "auto" keeps the given cameras."""
-    session = load_session(sessions[0.15])
-    model = build_model(session)
-    tubes = sample_tubes(model, decode_frames(session.video_paths, sample_frames(0, FRAMES, 12)))
+    model, tubes = sampled[0.15]
     assert distinct_poses(tubes) >= 2
     cameras, report = refine(model, [tubes[0]] * 6, "auto")
     assert cameras is model.cameras and not report.applied
@@ -166,12 +180,10 @@ def test_the_given_cameras_errors_average_out_in_the_world_frame() -> None:
     assert np.mean(by_poses) < 0.85 * np.mean(by_images)
 
 
-def test_the_base_end_is_seen_where_the_rig_puts_it(sessions: dict[float, Path]) -> None:
+def test_the_base_end_is_seen_where_the_rig_puts_it(sampled: Sampled) -> None:
     """With the true cameras the tubes' base ends are at the mount; a rig moved by a known
     shift sees them moved by it; a mount set far from where the tube is, is not followed."""
-    model, _ = _refined(sessions[0.0])
-    session = load_session(sessions[0.0])
-    tubes = sample_tubes(model, decode_frames(session.video_paths, sample_frames(0, FRAMES, 12)))
+    model, tubes = sampled[0.0]
     base = np.asarray(model.settings.manipulator.base_mm, dtype=np.float64)
     shift, note = mount_shift(model.cameras, tubes, base)
     assert shift is not None and not note
