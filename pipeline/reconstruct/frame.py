@@ -27,7 +27,7 @@ from .model import build_model as build_model  # re-exported: build the model, t
 from .ordering import infer_base
 from .quality import suspect_reason, tube_figures
 from .spline import smooth_curve
-from .tracking import TrackedFit, judge_fit, predict_axis, track_tube
+from .tracking import TrackedFit, judge_fit, predict_axis, predict_length, track_tube
 from .tube_fit import foreground_contrast
 from .tube_scores import radius_from_silhouettes
 
@@ -284,7 +284,7 @@ def _curve_and_quality(
         misfit=misfits,
         # A prediction from a suspect frame says nothing of this one's.
         predicted_mm=predicted if previous and not previous[-1].suspect else None,
-        previous_length_mm=previous[-1].length_mm if previous else float("nan"),
+        expected_length_mm=predict_length(previous, index),
     )
     timings["quality"] = time.perf_counter() - start
     return FrameResult(

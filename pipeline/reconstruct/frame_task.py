@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from ..session.video import read_frames
 from .frame_result import FrameResult
-from .tracking import WARMUP_FRAMES, segment_start, track_start
+from .tracking import LENGTH_FRAMES, WARMUP_FRAMES, segment_start, track_start
 
 JPEG_QUALITY = 85
 # Silhouettes are drawn over the camera image in Rerun: a translucent tint (RGBA).
@@ -165,10 +165,10 @@ class Tracker:
         """Frame ``index`` from its per camera (H, W) uint8 grey images."""
 
         def fit(i: int, grey: Sequence[Image]) -> tuple[FrameResult, Sequence[Mask] | None]:
-            return self._compute(i, grey, self._model, self._track[-2:])
+            return self._compute(i, grey, self._model, self._track)
 
         result, masks = one_frame(index, list(images), self._model, self._names, fit, self._problems)
-        self._track = [*self._track[-1:], result]
+        self._track = [*self._track, result][-LENGTH_FRAMES:]
         return frame_output(result, masks, list(images), self._images, None)
 
 
@@ -214,7 +214,7 @@ def process_range(
     recent: deque[tuple[int, list[Image | None]]] = deque(maxlen=WARMUP_FRAMES)
 
     def fit(index: int, grey: Sequence[Image]) -> tuple[FrameResult, Sequence[Mask] | None]:
-        return compute(index, grey, model, track[-2:]) if tracked else compute(index, grey, model)
+        return compute(index, grey, model, track) if tracked else compute(index, grey, model)
 
     def step(index: int, images_: list[Image | None]) -> tuple[FrameResult, Sequence[Mask] | None]:
         result, masks = one_frame(index, images_, model, camera_names, fit, problems)
@@ -243,7 +243,7 @@ def process_range(
                             step(before, grey)
                 segment = segment_start(max(index, start))
             result, masks = step(index, images_)
-            del track[:-2]
+            del track[:-LENGTH_FRAMES]  # what the next frame looks back at (see predict_length)
             recent.append((index, images_))
             if index >= start:
                 outputs.append(frame_output(result, masks, images_, images, decode_s))

@@ -18,6 +18,7 @@ backend the run uses.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
@@ -64,6 +65,9 @@ LOST_MISFIT = 0.01
 LOST_CLOSEST_RADII = 1.5
 # ... or moved farther than this many radii from its prediction in one frame.
 LOST_JUMP_RADII = 1.5
+# The track's last this many frames predict a frame's length (predict_length): a
+# second at 30 fps, as many as a segment's track holds.
+LENGTH_FRAMES = SEGMENT_FRAMES
 
 
 def segment_start(index: int) -> int:
@@ -102,6 +106,29 @@ def predict_axis(previous: Sequence[FrameResult], index: int | None = None) -> F
             velocity = (axis - np.asarray(before.centerline_mm, dtype=np.float64)) / apart
             return axis + ahead * velocity
     return axis
+
+
+def predict_length(previous: Sequence[FrameResult], index: int) -> float:
+    """Frame ``index``'s length (mm) from the lengths of the track's last
+    ``LENGTH_FRAMES`` ok frames (``previous``, oldest first), or NaN without any.
+
+    The Theil-Sen line through them (the median of the slopes between every two
+    frames, the median intercept), extrapolated to ``index``: a backbone keeps
+    its length, or changes it as smoothly as an extending robot does, while a
+    frame or a few with a tip cut short or run on lie off the line and do not
+    move it. With fewer than three frames, their median.
+    """
+    known = [(r.index, r.length_mm) for r in previous[-LENGTH_FRAMES:] if math.isfinite(r.length_mm)]
+    if not known:
+        return math.nan
+    frames, lengths = (np.array(column, dtype=np.float64) for column in zip(*known, strict=True))
+    if len(known) < 3:
+        return float(np.median(lengths))
+    # Written out: scipy.stats.theilslopes also works out a confidence interval,
+    # and took 0.46 ms for 30 frames, a few % of a tracked frame.
+    i, j = np.triu_indices(len(known), 1)
+    slope = float(np.median((lengths[j] - lengths[i]) / (frames[j] - frames[i])))
+    return float(np.median(lengths - slope * frames)) + slope * index
 
 
 @dataclass(frozen=True, eq=False)

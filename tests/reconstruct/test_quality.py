@@ -148,7 +148,7 @@ def test_a_tube_that_matches_its_silhouettes_and_its_track_is_not_suspect() -> N
     iou, misfit = quality.tube_figures(cams, masks, axis, 6.0)
     length = float(np.linalg.norm(np.diff(axis, axis=0), axis=1).sum())
     reason = quality.suspect_reason(
-        cams, masks, axis, 6.0, iou=iou, misfit=misfit, predicted_mm=axis + 0.5, previous_length_mm=length
+        cams, masks, axis, 6.0, iou=iou, misfit=misfit, predicted_mm=axis + 0.5, expected_length_mm=length + 2
     )
     assert reason == ""
 
@@ -158,7 +158,7 @@ def test_a_tube_that_matches_its_silhouettes_and_its_track_is_not_suspect() -> N
     [
         ("silhouette", "unexplained"),
         ("prediction", "from its track's prediction"),
-        ("length", "length changed"),
+        ("length", "length"),
         ("crossing", "passes through itself"),
     ],
 )
@@ -167,7 +167,7 @@ def test_each_sign_of_a_wrong_curve_makes_it_suspect(change: str, expected: str)
     axis = _arc_mm()
     length = float(np.linalg.norm(np.diff(axis, axis=0), axis=1).sum())
     masks = quality.tube_masks(cams, axis, 6.0)
-    predicted, previous_length = axis, length
+    predicted, expected_length = axis, length
     if change == "silhouette":  # another part of the tube the curve does not explain
         masks = [
             m | o
@@ -177,8 +177,8 @@ def test_each_sign_of_a_wrong_curve_makes_it_suspect(change: str, expected: str)
         ]
     elif change == "prediction":  # 3 radii from where the track said
         predicted = axis + np.array([0.0, 18.0, 0.0])
-    elif change == "length":  # 10 % longer a frame before
-        previous_length = 1.1 * length
+    elif change == "length":  # 5 mm longer than its track has it
+        expected_length = length - 5.0
     else:  # the curve comes back through its own start
         axis = np.vstack([axis, axis[::-1][1:20] + np.array([0.0, 2.0, 0.0])])
     iou, misfit = quality.tube_figures(cams, masks, axis, 6.0)
@@ -190,6 +190,6 @@ def test_each_sign_of_a_wrong_curve_makes_it_suspect(change: str, expected: str)
         iou=iou,
         misfit=misfit,
         predicted_mm=predicted,
-        previous_length_mm=previous_length,
+        expected_length_mm=expected_length,
     )
     assert expected in reason

@@ -13,9 +13,11 @@ from pipeline.reconstruct.frame_result import FrameResult
 from pipeline.reconstruct.frame_task import process_range
 from pipeline.reconstruct.model import build_model
 from pipeline.reconstruct.tracking import (
+    LENGTH_FRAMES,
     SEGMENT_FRAMES,
     WARMUP_FRAMES,
     predict_axis,
+    predict_length,
     segment_start,
     track_start,
 )
@@ -49,11 +51,40 @@ def test_the_prediction_moves_the_last_curve_on_by_its_velocity() -> None:
 def test_a_suspect_frame_lends_the_prediction_no_velocity() -> None:
     axis = np.column_stack([np.zeros(8), np.zeros(8), np.linspace(0.0, 70.0, 8)])
     short = axis * np.array([1.0, 1.0, 0.5])  # a curve cut short: its samples bunch up
-    suspect = replace(_ok(4, short), suspect_reason="length changed by -35.0 mm in one frame")
+    suspect = replace(_ok(4, short), suspect_reason="length 35.0 mm, -35.0 mm from its track's")
     # From a suspect frame on: the last curve as it is, not moved on by a made-up velocity.
     np.testing.assert_allclose(predict_axis([suspect, _ok(5, axis)]), axis)  # type: ignore[arg-type]
-    last = replace(_ok(5, short), suspect_reason="length changed by -35.0 mm in one frame")
+    last = replace(_ok(5, short), suspect_reason="length 35.0 mm, -35.0 mm from its track's")
     np.testing.assert_allclose(predict_axis([_ok(4, axis), last]), short)  # type: ignore[arg-type]
+
+
+def _lengths(indices: np.ndarray, lengths_mm: np.ndarray) -> list[FrameResult]:
+    pairs = zip(indices, lengths_mm, strict=True)
+    return [FrameResult(index=int(i), status="ok", length_mm=float(n)) for i, n in pairs]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_length_predicted_follows_the_track_and_not_its_outliers(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    # A backbone of 150-350 mm, kept or extended at up to 0.5 mm a frame, read to
+    # 0.3 mm, over a track with gaps (dropped frames), a few of whose frames have their
+    # tip cut short or run on by 3-40 mm.
+    frames = np.sort(rng.choice(np.arange(60), size=LENGTH_FRAMES + 5, replace=False))
+    start, rate = rng.uniform(150.0, 350.0), rng.choice([0.0, rng.uniform(-0.5, 0.5)])
+    lengths = start + rate * frames + rng.normal(0.0, 0.3, len(frames))
+    wrong = rng.choice(len(frames), size=4, replace=False)
+    lengths[wrong] += rng.choice([-1.0, 1.0], 4) * rng.uniform(3.0, 40.0, 4)
+    track = _lengths(frames, lengths)
+    ahead = int(frames[-1]) + int(rng.integers(1, 4))
+    assert abs(predict_length(track, ahead) - (start + rate * ahead)) < 1.0
+    # A failed frame (no length) says nothing, but takes its place among the last frames;
+    # a track with no length at all predicts none.
+    failed = FrameResult.failed(ahead - 1, "lost")
+    assert predict_length([*track, failed], ahead) == predict_length(track[1 - LENGTH_FRAMES :], ahead)
+    assert np.isnan(predict_length([FrameResult.failed(3, "lost")], 4))
+    assert np.isnan(predict_length([], 4))
+    # Fewer than three frames: their median.
+    assert predict_length(track[:2], ahead) == pytest.approx(np.median(lengths[:2]))
 
 
 def test_a_track_whose_last_frame_has_no_curve_is_lost() -> None:
