@@ -30,7 +30,7 @@ from ..geometry.polyline import axis_gap_mm, by_fraction, self_intersects
 from .frame_result import FrameResult
 from .quality import tube_figures
 from .spline import Centerline, smooth_curve
-from .tip_bend import bend_tip_to_pixels, tip_meets_tube
+from .tip_bend import refine_tip_to_pixels, tip_meets_tube
 from .tube_fit import TubeFit, fit_tube
 
 FloatArray = NDArray[np.float64]
@@ -54,9 +54,6 @@ TRACK_SETTLED_RADII = 0.5
 # another part's blurred edges reach a sample's: two edges' worth, not one
 # (the margin pipeline.reconstruct.tube_fit.refit_body uses once a loop's tip is placed).
 TRACK_CROWD_MARGIN_PX = 4.0
-# Where the tip lies against another part, the grey levels place it
-# (pipeline.reconstruct.tip_bend.bend_tip_to_pixels), sought within a few mm of the fit.
-TRACK_BEND_STEPS_MM = (2.0, 1.0, 0.5, 0.25)
 # The track is lost where the fitted tube leaves more than this fraction of a
 # silhouette unexplained (pipeline.reconstruct.quality.misfit_fractions; the same bar as
 # the initialisation's, pipeline.reconstruct.tube_scores.MISFIT) ...
@@ -198,7 +195,8 @@ def track_tube(
     A few rounds of :func:`pipeline.reconstruct.tube_fit.fit_tube` from the prediction,
     seeking the tube's sides near it; where the tip then lies against another
     part in some view, whose edges pull its side readings, the tip is placed by
-    the grey levels instead (:func:`pipeline.reconstruct.tip_bend.bend_tip_to_pixels`).
+    the grey levels instead, fitted from where the fit left it
+    (:func:`pipeline.reconstruct.tip_bend.refine_tip_to_pixels`).
     The track is lost (the caller initialises again from the hull) where the
     fit leaves part of a silhouette unexplained, passes through itself, or
     jumped from the prediction (``LOST_*``). ``cap``: the tube's end, "flat"
@@ -235,14 +233,13 @@ def track_tube(
     if not (np.isfinite(radius) and radius > 0) or len(fit.points_mm) < 3:
         return TrackedFit(None, lost="the fit read no tube")
     if tip_meets_tube(fit.points_mm, cameras, radius):
-        bent = bend_tip_to_pixels(
+        bent = refine_tip_to_pixels(
             fit.points_mm,
             cameras,
             masks,
             contrasts,
             fit.end_radius_mm,
             rejects=lambda axis: self_intersects(axis, radius),
-            steps_mm=TRACK_BEND_STEPS_MM,
             cap=cap,
         )
         # The radii follow the bent tip by sample fraction.

@@ -53,6 +53,10 @@ _CORE_PX = 5
 _TUBE_SIGMA_PX = 3.0
 _BACKGROUND_SIGMA_PX = 4.0
 _NEAR_WEIGHT = 1e-3
+# A pixel's coverage depends on the pixels this far around it: the Gaussians' reach
+# (OpenCV's float kernels span 4 sigmas each way: 16 px at 4 px) and the core's
+# erosion (half of _CORE_PX), with a margin.
+_COVERAGE_REACH_PX = 24
 
 
 def coverage_mismatch(
@@ -139,11 +143,33 @@ def view_window(
 
 
 def pixel_coverages(
-    contrasts: Sequence[NDArray[np.float32]], masks: Sequence[NDArray[np.bool_]]
+    contrasts: Sequence[NDArray[np.float32]],
+    masks: Sequence[NDArray[np.bool_]],
+    windows: Sequence[tuple[tuple[int, int], tuple[int, int]] | None] | None = None,
 ) -> list[NDArray[np.float32]]:
     """Per view, (H, W) float32 in [0, 1]: how much of each pixel the tube covers
-    (:func:`_coverage` of its (H, W) contrast and bool silhouette)."""
-    return [_coverage(contrast, mask) for contrast, mask in zip(contrasts, masks, strict=True)]
+    (:func:`_coverage` of its (H, W) contrast and bool silhouette).
+
+    ``windows``: per view, the pixel window ((x0, y0), (x1, y1)) wanted, or None for
+    none of it; the other pixels come out 0. Each is read from a crop reaching
+    ``_COVERAGE_REACH_PX`` beyond it, which gives its pixels the whole image's
+    coverage, but for the levels assumed where no certain pixel is near (the medians
+    of the crop's, not of the image's).
+    """
+    if windows is None:
+        return [_coverage(contrast, mask) for contrast, mask in zip(contrasts, masks, strict=True)]
+    out = []
+    for contrast, mask, window in zip(contrasts, masks, windows, strict=True):
+        coverage = np.zeros(contrast.shape, np.float32)
+        if window is not None:
+            (x0, y0), (x1, y1) = window
+            h, w = contrast.shape
+            cx0, cy0 = max(x0 - _COVERAGE_REACH_PX, 0), max(y0 - _COVERAGE_REACH_PX, 0)
+            cx1, cy1 = min(x1 + _COVERAGE_REACH_PX, w), min(y1 + _COVERAGE_REACH_PX, h)
+            crop = _coverage(contrast[cy0:cy1, cx0:cx1], mask[cy0:cy1, cx0:cx1])
+            coverage[y0:y1, x0:x1] = crop[y0 - cy0 : y1 - cy0, x0 - cx0 : x1 - cx0]
+        out.append(coverage)
+    return out
 
 
 def _coverage(contrast: NDArray[np.float32], mask: NDArray[np.bool_]) -> NDArray[np.float32]:
@@ -327,6 +353,12 @@ def level_difference(levels: NDArray[np.uint8], seen: NDArray[np.float32]) -> fl
     # NumPy's, in half the time); the sum stays NumPy's pairwise one.
     difference = np.asarray(cv2.subtract(cv2.LUT(levels, _LEVELS), seen))
     return float(np.add.reduce(difference * difference, axis=None))
+
+
+def level_residuals(levels: NDArray[np.uint8], seen: NDArray[np.float32]) -> NDArray[np.float32]:
+    """(h w,) float32: each pixel's (h, w) uint8 ``levels`` as coverage less its (h, w)
+    float32 ``seen`` coverage (the terms :func:`level_difference` squares and sums)."""
+    return np.asarray(cv2.subtract(cv2.LUT(levels, _LEVELS), seen), dtype=np.float32).ravel()
 
 
 def _shrink_convex(polygon: FloatArray, by: float) -> FloatArray:
