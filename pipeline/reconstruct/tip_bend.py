@@ -102,9 +102,9 @@ _TOUCH_RADII = 4.0
 # bench's r 9 loop, a tapered r 7 loop, a round-ended r 5 loop; 90 tracked frames
 # each), against the search (steps of 2, 1, 0.5 and 0.25 mm over the three spans):
 # 17-25 drawings a frame instead of ~128, the bench loop's frames 42 ms instead of 89
-# (median), the mean error the same within 0.005 mm, and the tips' median 0.51 and
-# 0.49 mm against 0.53 and 0.50 (3.07 against 1.27 on the tapered loop, whose tip
-# lies on its stem: bistable, see docs/accuracy.md).
+# (median), the mean error the same within 0.005 mm, and tip medians of 0.53, 1.27
+# and 0.50 mm against the search's 0.51, 3.07 and 0.49 (the tapered loop's tip lies
+# on its stem, where its place is bistable: see docs/accuracy.md).
 _REFINE_SPANS_RADII = (4.0, 1.0)
 _DIFFERENCE_MM = 0.5
 _REFINE_STEPS = 6
