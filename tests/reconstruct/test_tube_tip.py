@@ -336,3 +336,34 @@ def test_normals_are_orthonormal_to_the_direction() -> None:
         frame = np.stack([t, n1, n2])
         # Unit vectors built from unit vectors: a few ulps of rounding.
         np.testing.assert_allclose(frame @ frame.T, np.eye(3), atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_coverage_read_in_windows_is_the_whole_images_there(seed: int) -> None:
+    from pipeline.reconstruct.tube_drawing import pixel_coverages
+
+    rng = np.random.default_rng(seed)
+    # Squares of 8-12 px in a checkerboard over noise, in 320x240 views: every pixel has
+    # certain tube and background pixels near it, as along a tube's edges.
+    contrasts, masks = [], []
+    ys, xs = np.mgrid[0:240, 0:320]
+    for _ in range(3):
+        size, (dx, dy) = int(rng.integers(8, 13)), rng.integers(0, 8, 2)
+        mask = ((xs + dx) // size + (ys + dy) // size) % 2 == 0
+        contrasts.append((mask * 80.0 + rng.normal(10.0, 5.0, mask.shape)).astype(np.float32))
+        masks.append(mask)
+    windows = []
+    for _ in range(3):
+        x0, y0 = int(rng.integers(-20, 280)), int(rng.integers(-20, 200))
+        w, h = (int(v) for v in rng.integers(20, 120, 2))
+        windows.append(((max(x0, 0), max(y0, 0)), (min(x0 + w, 320), min(y0 + h, 240))))
+    windows[int(rng.integers(3))] = None  # a view that does not see the tip
+    whole = pixel_coverages(contrasts, masks)
+    read = pixel_coverages(contrasts, masks, windows)
+    for full, part, window in zip(whole, read, windows, strict=True):
+        inside = np.zeros(full.shape, bool)
+        if window is not None:
+            (x0, y0), (x1, y1) = window
+            inside[y0:y1, x0:x1] = True
+        np.testing.assert_array_equal(part[inside], full[inside])
+        assert not part[~inside].any()
