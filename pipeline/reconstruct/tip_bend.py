@@ -100,14 +100,16 @@ _TOUCH_RADII = 4.0
 # each step taken (Broyden's rank-one update), for at most _REFINE_STEPS steps or
 # until one is shorter than _SETTLED_MM. Measured on three rendered loops (the
 # bench's r 9 loop, a tapered r 7 loop, a round-ended r 5 loop; 90 tracked frames
-# each), against the search (steps of 2, 1, 0.5 and 0.25 mm over the three spans):
-# 17-25 drawings a frame instead of ~128, the bench loop's frames 42 ms instead of 89
-# (median), the mean error the same within 0.005 mm, and tip medians of 0.53, 1.27
-# and 0.50 mm against the search's 0.51, 3.07 and 0.49 (the tapered loop's tip lies
-# on its stem, where its place is bistable: see docs/accuracy.md).
+# each, 2026-12-02), against the search (steps of 2, 1, 0.5 and 0.25 mm over three
+# spans, ~128 drawings a frame): the bench loop's frames 33 ms instead of 89
+# (median), mean errors 0.236, 0.510 and 0.190 mm against 0.248, 0.509 and 0.190,
+# tip medians 0.49, 1.34 and 0.49 mm against 0.51, 3.07 and 0.49 (the tapered loop's
+# tip lies on its stem, where its place is bistable: see docs/accuracy.md). One span
+# (4 radii) was faster still (24-31 ms) but put the round end's tip 0.64 mm off;
+# 6 steps instead of 3 changed nothing but the time (34-40 ms).
 _REFINE_SPANS_RADII = (4.0, 1.0)
 _DIFFERENCE_MM = 0.5
-_REFINE_STEPS = 6
+_REFINE_STEPS = 3
 _SETTLED_MM = 0.05
 _DAMPING = 1e-2
 _DAMPING_GROWTH = 4.0
