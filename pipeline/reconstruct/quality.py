@@ -46,10 +46,10 @@ SUSPECT_JUMP_RADII = 1.0
 # (pipeline.reconstruct.tracking.predict_length): a tip cut short or run on along its own
 # course changes the length by as much as it puts the tip off. On two seeded draws
 # (`accuracy_table --draw 2 --cases 10 --frames 150` and `--draw 7 --cases 8 --frames
-# 120`, 2026-12-02) the flag names 46 and 42 % of the frames more than 2 mm off, and
-# 13.8 and 15.0 % of the others; a 2.5 mm bar names more of both (52 and 16 % on the
+# 120`, 2026-12-02) the flag names 46 and 44 % of the frames more than 2 mm off, and
+# 14.1 and 15.4 % of the others; a 2.5 mm bar names more of both (52 and 16 % on the
 # first draw), and a length change of 3 % since the frame before far fewer of the
-# frames off (28-29 %).
+# frames off (28-29 %; 7.2 and 14.5 % of the others).
 SUSPECT_LENGTH_MM = 3.0
 
 # cv2 drawing takes fixed-point coordinates with this many fractional bits.
