@@ -248,10 +248,11 @@ def refine_tip_to_pixels(
     rejects: Callable[[FloatArray], bool] | None = None,
     cap: str = "flat",
 ) -> FloatArray:
-    """The bends of :func:`bend_tip_to_pixels` (same arguments), fitted from the
-    curve's own tip by damped Gauss-Newton on each view's pixel differences instead
-    of searched for: a few drawings a span where the search takes tens, for a tip
-    already near its place (a tracked frame's), not for one that may be far from it.
+    """The bends of :func:`bend_tip_to_pixels` (its arguments but the search's
+    steps), fitted from the curve's own tip by damped Gauss-Newton on each view's
+    pixel differences instead of searched for: a few drawings a span where the search
+    takes tens, for a tip already near its place (a tracked frame's), not for one that
+    may be far from it.
 
     Returns (M', 3) float64, the bent axis; ``points_mm`` when no bend matches better.
     """
