@@ -443,19 +443,29 @@ def test_tip_meets_tube_needs_two_views_unless_the_tip_lies_against_the_tube() -
     assert tip_meets_tube(_loop(), cams[:1], RADIUS)
 
 
+def _displaced_tip(
+    curve_mm: FloatArray, across: tuple[float, float], longer: float
+) -> tuple[FloatArray, FloatArray]:
+    """(the true axis, the same with its tip bent ``across`` (2,) mm and ``longer`` mm as the
+    tip bends are), both (64, 3) mm."""
+    from pipeline.reconstruct.tip_bend import _BEND_SPANS_RADII, _bend_end
+    from pipeline.reconstruct.tube_tip import end_frame
+
+    truth = resample_polyline(curve_mm, 64)
+    arc = polyline_arclength(truth)
+    start = arc[-1] - _BEND_SPANS_RADII[0] * RADIUS
+    ahead = end_frame(truth, arc, at_mm=float(arc[-1]), span_mm=24.0)
+    return truth, _bend_end(truth, arc, start, np.array(across), longer, ahead)
+
+
 @pytest.mark.parametrize(("across", "longer"), [((4.0, -3.0), -5.0), ((-3.0, 2.0), 6.0)])
 def test_bend_tip_to_pixels_brings_a_displaced_tip_back(
     rendered_loop: tuple, across: tuple[float, float], longer: float
 ) -> None:
-    from pipeline.reconstruct.tip_bend import _BEND_SPANS_RADII, _bend_end, bend_tip_to_pixels
-    from pipeline.reconstruct.tube_tip import end_frame
+    from pipeline.reconstruct.tip_bend import bend_tip_to_pixels
 
     curve, cams, masks, contrasts = rendered_loop
-    truth = resample_polyline(curve, 64)
-    arc = polyline_arclength(truth)
-    start = arc[-1] - _BEND_SPANS_RADII[0] * RADIUS
-    ahead = end_frame(truth, arc, at_mm=float(arc[-1]), span_mm=24.0)
-    wrong = _bend_end(truth, arc, start, np.array(across), longer, ahead)
+    truth, wrong = _displaced_tip(curve, across, longer)
     assert np.linalg.norm(wrong[-1] - truth[-1]) > 5.0
     bent = bend_tip_to_pixels(wrong, cams, masks, contrasts, RADIUS)
     # Measured 0.41 and 0.17 mm from the two starts (6.5 and 9.1 mm off); the
@@ -481,15 +491,10 @@ def test_bend_tip_to_pixels_leaves_the_true_tip_nearly_alone(rendered_loop: tupl
 def test_refine_tip_to_pixels_fits_a_tip_near_its_place(
     rendered_loop: tuple, across: tuple[float, float], longer: float
 ) -> None:
-    from pipeline.reconstruct.tip_bend import _BEND_SPANS_RADII, _bend_end, refine_tip_to_pixels
-    from pipeline.reconstruct.tube_tip import end_frame
+    from pipeline.reconstruct.tip_bend import refine_tip_to_pixels
 
     curve, cams, masks, contrasts = rendered_loop
-    truth = resample_polyline(curve, 64)
-    arc = polyline_arclength(truth)
-    start = arc[-1] - _BEND_SPANS_RADII[0] * RADIUS
-    ahead = end_frame(truth, arc, at_mm=float(arc[-1]), span_mm=24.0)
-    start_mm = _bend_end(truth, arc, start, np.array(across), longer, ahead)
+    truth, start_mm = _displaced_tip(curve, across, longer)
     refined = refine_tip_to_pixels(start_mm, cams, masks, contrasts, RADIUS)
     # A tracked tip starts within a few mm of its place: 2.8 and 3.5 mm here, refined to
     # 0.49 and 0.59 mm (measured); from the true tip, no bend is taken.
