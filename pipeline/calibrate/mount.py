@@ -34,6 +34,7 @@ _MAX_SPREAD_MM = 1.5
 # A base seen farther than this (mm) from base_mm is not the calibration's error
 # (0.15 deg on three cameras: up to 4 mm) but a mount placed elsewhere.
 _MAX_SHIFT_MM = 6.0
+# Fewer frames than this give no median to trust.
 _MIN_FRAMES = 3
 # The base's radius: the median over the tube's first samples (~4 mm apart).
 _BASE_SAMPLES = 3

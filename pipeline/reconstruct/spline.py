@@ -110,10 +110,10 @@ def _spans_with_data(inner: FloatArray, s_kept: FloatArray, least: int) -> Float
     """The inner knots (I,) less those that leave a span between knots (the ends
     included) with fewer than ``least`` of the weighed points ``s_kept``.
 
-    A span without data leaves the spline free there: a track with a gap (the
+    A span without data leaves the spline free there: across a gap in a track (the
     march across a break in the hull, its points beside the break dropped as
-    outliers) came out kilometres long. Two points a span are enough for the
-    tracks' smooth courses, and leave every track with data all along as it was.
+    outliers) it can run off by kilometres. Two points a span are enough for the
+    tracks' smooth courses, and leave every track with data all along unchanged.
     """
     knots = list(inner)
     while knots:

@@ -304,6 +304,8 @@ def _refine_once(
         gradient, normal = jacobian.T @ r, jacobian.T @ jacobian
         taken = False
         for _ in range(_DAMPING_TRIES):
+            # Marquardt's damping, scaled by each parameter's own curvature (and kept above
+            # 0 for a parameter no pixel responds to).
             step = -np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-12), gradient)
             q = p + step
             if drawing.out_of_bounds(q):

@@ -349,15 +349,15 @@ def canvas_levels(canvas: NDArray[np.uint8]) -> NDArray[np.uint8]:
 
 def level_difference(levels: NDArray[np.uint8], seen: NDArray[np.float32]) -> float:
     """Sum over the pixels of ((h, w) uint8 ``levels`` as coverage - (h, w) float32 ``seen``)^2."""
-    # cv2's table look-up and float32 difference (the same IEEE results as
-    # NumPy's, in half the time); the sum stays NumPy's pairwise one.
-    difference = np.asarray(cv2.subtract(cv2.LUT(levels, _LEVELS), seen))
+    difference = level_residuals(levels, seen)
     return float(np.add.reduce(difference * difference, axis=None))
 
 
 def level_residuals(levels: NDArray[np.uint8], seen: NDArray[np.float32]) -> NDArray[np.float32]:
     """(h w,) float32: each pixel's (h, w) uint8 ``levels`` as coverage less its (h, w)
     float32 ``seen`` coverage (the terms :func:`level_difference` squares and sums)."""
+    # cv2's table look-up and float32 difference: the same IEEE results as NumPy's, in
+    # half the time.
     return np.asarray(cv2.subtract(cv2.LUT(levels, _LEVELS), seen), dtype=np.float32).ravel()
 
 
