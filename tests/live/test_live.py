@@ -583,8 +583,10 @@ def test_a_camera_that_stalls_is_reported_and_picked_up_again_while_the_others_g
     times_s = pipeline.load_recording(tmp_path / "out" / "rig.mcap").timestamps_ns * 1e-9
     stopped, restarted = stalled
     assert (times_s < stopped).any() and (times_s > restarted).any()
-    # (a frame in flight at the kill may be decoded, and stamped, a little later)
-    assert not ((times_s > stopped + 0.5) & (times_s < restarted)).any()
+    # (frames in flight at the kill, or queued behind a reader that a loaded machine slows,
+    # are decoded and stamped later: a frame-set 0.5-1 s after the kill was seen once when
+    # the whole suite ran on 2 cores)
+    assert not ((times_s > stopped + 1.0) & (times_s < restarted)).any()
 
 
 def test_the_summary_gives_latency_drops_rates_and_outages() -> None:
