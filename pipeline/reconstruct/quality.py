@@ -51,6 +51,15 @@ SUSPECT_JUMP_RADII = 1.0
 # first draw), and a length change of 3 % since the frame before far fewer of the
 # frames off (28-29 %; 7.2 and 14.5 % of the others).
 SUSPECT_LENGTH_MM = 3.0
+# After the last frame, a frame is also suspect where its curve lies farther than this
+# from the session's smoothed one (off_smoothed): the smoothed curve is the frame's
+# neighbours' account of it, and a curve that far from it is more than 2 mm off itself
+# or beside neighbours that are. On `accuracy_table --draw 2 --cases 10 --frames 150`
+# (2026-12-02), with the flags above it names 56 % of the three-camera cases' frames
+# more than 2 mm off (33 % without) and 11.2 % of their others (10.3 %); 1.5 mm names
+# 63 and 13.8 %, 1 mm 79 and 20.5 %. With the two-camera cases, whose good frames often
+# lie in stretches of wrong ones: 76 % (50 %) and 22.4 % (12.7 %).
+SUSPECT_SMOOTHED_MM = 2.0
 
 # cv2 drawing takes fixed-point coordinates with this many fractional bits.
 _SHIFT = 4
@@ -287,3 +296,13 @@ def suspect_reason(
     if abs(length - expected_length_mm) > SUSPECT_LENGTH_MM:
         reasons.append(f"length {length:.1f} mm, {length - expected_length_mm:+.1f} mm from its track's")
     return "; ".join(reasons)
+
+
+def off_smoothed(curves_mm: FloatArray, smoothed_mm: FloatArray) -> FloatArray:
+    """(F,) mm: how far each frame's curve of (F, N, 3) ``curves_mm`` lies from its
+    smoothed one in (F, N, 3) ``smoothed_mm`` (:func:`pipeline.run.smoothing.smooth_centerlines`):
+    the largest distance between samples at the same fraction of their lengths (so a
+    curve cut short or run on is as far off as its tip); 0 where either has no curve
+    (NaN rows)."""
+    gaps = np.linalg.norm(np.asarray(curves_mm) - np.asarray(smoothed_mm), axis=2).max(axis=1)
+    return np.where(np.isfinite(gaps), gaps, 0.0)

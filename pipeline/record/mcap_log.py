@@ -14,7 +14,9 @@ Topics (log_time = publish_time = the frame's timestamp, ns since the Unix epoch
   first; no points where a frame has no curve. Tools that convert PointCloud but not SceneUpdate
   (Rerun's MCAP importer) keep the result this way.
 - ``/reconstruction/metrics``      JSON (jsonschema :data:`METRICS_SCHEMA`), one message per frame,
-  written last for its frame so a frame whose metrics survive a truncation has all its messages
+  written last for its frame so a frame whose metrics survive a truncation has all its messages;
+  a frame found suspect after the last frame (beside the smoothed curves) has them again at the
+  end, suspect: a reader takes a frame's last metrics
 - ``/tf``                          foxglove.FrameTransforms, world -> each camera (static, first frame)
 - ``/cameras/<name>/calibration``  foxglove.CameraCalibration (static, first frame)
 - ``/cameras/<name>/image``        foxglove.CompressedImage, JPEG (unless images are disabled)
@@ -401,9 +403,10 @@ class McapRecorder:
         *,
         jpegs: Sequence[bytes] | None = None,
         extra_metrics: dict[str, float] | None = None,
-    ) -> None:
+    ) -> dict[str, Any]:
         """All messages of one frame; the metrics message comes last (see the module docstring).
-        ``extra_metrics``: figures the frame's metrics gain (a live run's ``latency_ms``)."""
+        ``extra_metrics``: figures the frame's metrics gain (a live run's ``latency_ms``).
+        Returns the metrics written."""
         if not self._statics_written:
             self.write_statics(time_ns)
         if self._images and jpegs is not None:
@@ -420,6 +423,11 @@ class McapRecorder:
         )
         self._write(CENTERLINE_POINTS_TOPIC, centerline_cloud(curve, time_ns, _CENTERLINE_COLOR), time_ns)
         figures = frame_metrics(result, self._names) | (extra_metrics or {})
+        self.write_metrics(figures, time_ns)
+        return figures
+
+    def write_metrics(self, figures: dict[str, Any], time_ns: int) -> None:
+        """One frame's metrics message (:func:`frame_metrics`), at its frame's time."""
         metrics = json.dumps(figures, allow_nan=False).encode()
         self._writer.add_message(
             channel_id=self._json_channel(METRICS_TOPIC), log_time=time_ns, publish_time=time_ns, data=metrics

@@ -72,6 +72,7 @@ _TIP_RADIUS_PT = 5.0
 # A live viewer's stream sends what it has this often: ten updates a second. A send is a
 # call per entity (~25); made for every frame, they cost the run more than its drawing is worth.
 LIVE_SEND_S = 0.1
+SUSPECT_PLOT = "plots/suspect"
 
 
 @dataclass
@@ -307,7 +308,7 @@ class RerunRecorder:
     def _scalars(self, result: FrameResult) -> dict[str, float]:
         values: dict[str, float] = {
             "plots/voxels": float(result.voxel_count),
-            "plots/suspect": float(result.suspect),
+            SUSPECT_PLOT: float(result.suspect),
         }
         tip = result.tip_mm if result.status == "ok" else None
         if tip is not None:
@@ -318,6 +319,17 @@ class RerunRecorder:
         for cam, iou in zip(self._cameras, result.iou, strict=False):
             values[iou_path(cam.name)] = float(iou)
         return values
+
+    def mark_suspect(self, frame: int, time_ns: int) -> None:
+        """Frame ``frame``'s suspect plot set to 1 after the fact (found beside the smoothed
+        curves): in place while the series is still held, else as a row of its own."""
+        held = self._series
+        if frame in held.frames:
+            held.values.setdefault(SUSPECT_PLOT, [float("nan")] * len(held.frames))[
+                held.frames.index(frame)
+            ] = 1.0
+        else:
+            held.add(frame, time_ns, {SUSPECT_PLOT: 1.0})
 
     def write_smoothed(
         self, centerlines_mm: NDArray[np.float64], frames: Sequence[int], times_ns: Sequence[int]

@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from ..errors import OutputError
 from ..reconstruct.frame_task import FrameOutput
-from ..reconstruct.quality import is_doubtful, reaches_walls
+from ..reconstruct.quality import SUSPECT_SMOOTHED_MM, is_doubtful, off_smoothed, reaches_walls
 from ..session.folder import Session
 from .interrupts import deferred_signals
 from .output_target import OutputTarget, output_error
@@ -158,6 +158,7 @@ class Writers:
         self.frames: list[int] = []
         self.times_ns: list[int] = []
         self.curves: list[NDArray[np.float64] | None] = []
+        self.metrics: list[dict[str, Any]] = []  # each frame's, as written to the MCAP
         self.counts = {"ok": 0, "empty": 0}
         self.failed: list[tuple[int, str]] = []
         self.doubtful: list[int] = []
@@ -218,7 +219,9 @@ class Writers:
         if time_ns is None:
             time_ns = self.session.timestamp_ns(result.index)
         try:
-            self.mcap.write_frame(result, time_ns, jpegs=out.jpegs, extra_metrics=extra_metrics)
+            self.metrics.append(
+                self.mcap.write_frame(result, time_ns, jpegs=out.jpegs, extra_metrics=extra_metrics)
+            )
         except OSError as exc:
             raise output_error(self.target.out_dir, exc) from None
         self.rerun.write_frame(result, time_ns, jpegs=out.jpegs, silhouettes_png=out.silhouettes_png)
@@ -240,7 +243,9 @@ class Writers:
             if reaches_walls(result.points_mm, self.session.settings.workspace, curve[0]):
                 self.at_walls.append(result.index)
 
-    def _smoothed(self) -> NDArray[np.float64] | None:
+    def _stacked(self) -> NDArray[np.float64] | None:
+        """(F, N, 3) mm: the frames' curves, NaN rows where a frame has none; None where
+        they differ in length (or there are none)."""
         lengths = {len(c) for c in self.curves if c is not None}
         if len(lengths) != 1:
             return None
@@ -249,9 +254,30 @@ class Writers:
         for row, curve in enumerate(self.curves):
             if curve is not None:
                 stacked[row] = curve
+        return stacked
+
+    def _smoothed(self, stacked: NDArray[np.float64]) -> NDArray[np.float64] | None:
         start_ns = self.times_ns[0]
         times_s = (np.asarray(self.times_ns, dtype=np.int64) - start_ns).astype(np.float64) * 1e-9
         return _smooth(stacked, times_s)
+
+    def _flag_off_smoothed(self, stacked: NDArray[np.float64], smoothed: NDArray[np.float64]) -> None:
+        """The frames whose curves lie far from the smoothed ones
+        (:data:`pipeline.reconstruct.quality.SUSPECT_SMOOTHED_MM`) and were not suspect yet:
+        their metrics written again, suspect, and their suspect plots set."""
+        gaps = off_smoothed(stacked, smoothed)
+        already = {frame for frame, _ in self.suspect}
+        for row in np.flatnonzero(gaps > SUSPECT_SMOOTHED_MM):
+            frame, time_ns = self.frames[row], self.times_ns[row]
+            if frame in already:
+                continue
+            reason = f"{gaps[row]:.1f} mm from the smoothed curve"
+            self.mcap.write_metrics(self.metrics[row] | {"suspect": True, "suspect_reason": reason}, time_ns)
+            self.rerun.mark_suspect(frame, time_ns)
+            if self.viewer is not None:
+                self.viewer.mark_suspect(frame, time_ns)
+            self.suspect.append((frame, reason))
+        self.suspect.sort()
 
     def finish(self) -> None:
         """Smoothing, footers, then the renames that make the outputs appear."""
@@ -262,8 +288,10 @@ class Writers:
 
     def _finish(self) -> None:
         wanted = self.frames and self.session.settings.centerline.smooth
-        smoothed = self._smoothed() if wanted else None
-        if smoothed is not None:
+        stacked = self._stacked() if wanted else None
+        smoothed = self._smoothed(stacked) if stacked is not None else None
+        if stacked is not None and smoothed is not None:
+            self._flag_off_smoothed(stacked, smoothed)
             self.mcap.write_smoothed(smoothed, self.times_ns)
             self.rerun.write_smoothed(smoothed, self.frames, self.times_ns)
             if self.viewer is not None:

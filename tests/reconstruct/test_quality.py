@@ -10,6 +10,7 @@ from pipeline.carve.silhouette import extract_silhouette
 from pipeline.reconstruct import quality
 from pipeline.reconstruct.quality import (
     misfit_fractions,
+    off_smoothed,
     reprojection_iou,
     silhouette_iou,
     tube_mask,
@@ -193,3 +194,21 @@ def test_each_sign_of_a_wrong_curve_makes_it_suspect(change: str, expected: str)
         expected_length_mm=expected_length,
     )
     assert expected in reason
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_curve_is_as_far_from_its_smoothed_one_as_its_farthest_sample(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    frames, n = 12, 64
+    smoothed = np.cumsum(rng.normal(0.0, 2.0, (frames, n, 3)), axis=1)
+    curves = smoothed.copy()
+    moved = rng.choice(frames, 3, replace=False)
+    shift = rng.uniform(0.5, 6.0, 3)
+    for frame, by in zip(moved, shift, strict=True):
+        direction = rng.normal(size=3)
+        curves[frame, rng.integers(n) :] += by * direction / np.linalg.norm(direction)
+    curves[moved[0], :, 0] = np.nan  # a frame without a curve is no distance off
+    gaps = off_smoothed(curves, smoothed)
+    expected = np.zeros(frames)
+    expected[moved[1:]] = shift[1:]
+    np.testing.assert_allclose(gaps, expected, atol=1e-9)

@@ -3,14 +3,20 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import build_session
 from numpy.typing import NDArray
 from scipy.interpolate import make_smoothing_spline
 
 from pipeline.measure.evaluate import tip_jitter
+from pipeline.reconstruct.frame_result import FrameResult
+from pipeline.record.load import load_recording
+from pipeline.run.runner import process_session
 from pipeline.run.smoothing import _spline_predictions, smooth_centerlines
+from pipeline.session.folder import load_session
 
 FPS = 30.0
 LENGTH_MM = 100.0
@@ -218,3 +224,31 @@ def test_bad_timestamps_are_refused() -> None:
         smooth_centerlines(np.zeros((3, 4, 3)), np.array([0.0, 0.0, 1.0]))
     with pytest.raises(ValueError, match="2 timestamps for 3 frames"):
         smooth_centerlines(np.zeros((3, 4, 3)), np.array([0.0, 1.0]))
+
+
+_WRONG_FRAME = 31
+
+
+def _swaying_rod(index: int, images: object, model: object) -> tuple[FrameResult, None]:
+    """A stand-in frame function: a rod swaying smoothly, frame _WRONG_FRAME's curve 5 mm off."""
+    z = np.linspace(0.0, 160.0, 64)
+    sway = 10.0 * np.sin(index / 9.0) * (z / 160.0) ** 2
+    curve = np.column_stack([128.0 + sway, np.full_like(z, 128.0), z])
+    if index == _WRONG_FRAME:
+        curve[:, 1] += 5.0 * z / 160.0
+    voxels = np.full((20, 3), 128.0, dtype=np.float32)
+    return FrameResult(index=index, status="ok", points_mm=voxels, centerline_mm=curve, length_mm=160.0), None
+
+
+def test_a_frame_far_from_its_smoothed_curve_is_flagged_suspect_in_the_recording(tmp_path: Path) -> None:
+    session = load_session(build_session(tmp_path / "session", frames=60))
+    summary = process_session(
+        session, out_dir=tmp_path / "out", jobs=1, images=False, progress=False, frame_fn=_swaying_rod
+    )
+    assert [frame for frame, _ in summary.frames_suspect] == [_WRONG_FRAME]
+    recording = load_recording(tmp_path / "out" / f"{session.name}.mcap")
+    flagged = {m["frame"]: m["suspect_reason"] for m in recording.metrics if m["suspect"]}
+    assert list(flagged) == [_WRONG_FRAME] and "from the smoothed curve" in flagged[_WRONG_FRAME]
+    assert len(recording.metrics) == 60  # one frame's metrics each, the last written
+    wrong = next(m for m in recording.metrics if m["frame"] == _WRONG_FRAME)
+    assert wrong["length_m"] == pytest.approx(0.16) and wrong["status"] == "ok"
