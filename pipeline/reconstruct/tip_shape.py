@@ -18,10 +18,8 @@ comparison of the two ends and nothing else:
 - each frame then has one bounded vote (:attr:`FrameEvidence.vote`), so that no
   one frame decides: summed raw costs let one frame whose tip was misplaced
   outweigh the others;
-- the votes decide only where their mean stands clear of 0 (``DECIDING_T``
-  standard errors); until then more frames are sampled, and a session whose
-  frames never tell (a loop whose tip lies on its stem in every view) is
-  fitted as flat, and its summary says so.
+- the mean vote's sign chooses; where it lies within ``CLEAR_T`` standard errors
+  of 0, the summary says that the frames barely tell the ends apart.
 """
 
 from __future__ import annotations
@@ -51,16 +49,14 @@ Window = tuple[tuple[int, int], tuple[int, int]]
 # wrong on 11, of 12 frames on 9; the votes below on 10 frames, on 1. Ten frames
 # cost ~1.8 times the six of the summed costs (the radius is read on top).
 SAMPLE_FRAMES = 10
-# Where their votes do not decide (below), half as many again are sampled, twice, up to
-# about this many in all (the frames of sample_frames(start, stop, 20) not yet taken).
-MAX_SAMPLE_FRAMES = 30
-# The votes decide where their mean lies this many standard errors from 0. On the 10
-# sessions of `accuracy_table --draw 2` (150 frames each), the first 10 votes lay 2.97-10.8
-# standard errors from 0 on 7 (all chosen rightly), 1.03-1.51 on 3, of which the plain
-# sign of the mean had a flat-ended tapered loop round (its tip 3.1 mm off). Sampled on,
-# two of those decided rightly (14 and 17 frames), and the loop stayed undecided (22
-# frames, +0.07 +- 0.10): fitted as flat, its median tip 1.45 mm.
-DECIDING_T = 2.0
+# Where the mean vote lies within this many standard errors of 0, the summary says the
+# choice is a close one. Measured on 28 drawn sessions (`accuracy_table --draw 2`, 150
+# frames; draws 3 and 7 of pipeline.synth.variety, 60 frames; 2026-12-02), on 30 frames
+# spread over each: the sign of the mean of 10 of them chose wrongly on 1 (a flat-ended
+# tapered loop, +1.6 standard errors), of all 30 on 2; letting only a mean beyond 2
+# standard errors choose, with flat where none did (or sampling on until one did), on 3:
+# round ends whose frames barely told went flat.
+CLEAR_T = 2.0
 CAPS = ("flat", "round")
 # The bend under each end: its last radius, sought within a few mm of the fit.
 _SPANS_RADII = (2.0, 1.0)
@@ -140,21 +136,20 @@ class TipChoice:
     @classmethod
     def from_votes(cls, votes: Sequence[float], radius_mm: float) -> TipChoice:
         """The choice the frames' votes (each in [-1, 1], see :attr:`FrameEvidence.vote`)
-        make: "round" where their mean lies ``DECIDING_T`` standard errors above 0, else
-        "flat" (decided where it lies as far below 0)."""
+        make: "round" where their mean is above 0, else "flat"."""
         v = np.asarray(votes, dtype=np.float64)
         if not len(v):
             return cls("flat", 0, radius_mm=radius_mm)
         score = float(v.mean())
         error = float(v.std(ddof=1) / np.sqrt(len(v))) if len(v) > 1 else float("inf")
-        tip = "round" if score > DECIDING_T * error else "flat"
+        tip = "round" if score > 0 else "flat"
         favouring = int(np.count_nonzero(v > 0 if tip == "round" else v < 0))
         return cls(tip, len(v), score=score, favouring=favouring, radius_mm=radius_mm, score_error=error)
 
     @property
-    def decided(self) -> bool:
-        """The votes' mean lies ``DECIDING_T`` standard errors or more from 0."""
-        return bool(abs(self.score) >= DECIDING_T * self.score_error)
+    def clear(self) -> bool:
+        """The votes' mean lies ``CLEAR_T`` standard errors or more from 0."""
+        return bool(abs(self.score) >= CLEAR_T * self.score_error)
 
     def describe(self) -> str:
         if not self.frames:
@@ -163,14 +158,10 @@ class TipChoice:
             f"mean vote {self.score:+.2f} +- {self.score_error:.2f} of +-1, "
             f"end radius {self.radius_mm:.1f} mm"
         )
-        if not self.decided:
-            return (
-                f"{self.tip}, assumed: {self.frames} frames did not tell flat from round ({votes}); "
-                "set [manipulator] tip in session.toml"
-            )
+        close = "; a close call: set [manipulator] tip in session.toml if you know the end"
         return (
             f"{self.tip} (chosen from {self.frames} frames, {self.favouring} of them for it, "
-            f"{votes}; [manipulator] tip in session.toml fixes it)"
+            f"{votes}{'' if self.clear else close}; [manipulator] tip in session.toml fixes it)"
         )
 
 
@@ -196,19 +187,9 @@ def choose_tip(model: SessionModel, frames: Sequence[tuple[int, Sequence[NDArray
 
     ``frames``: (index, per camera (H, W) uint8 grey image). Each is
     reconstructed from its hull; frames without a curve, or whose tip no view
-    shows to either end's satisfaction, are skipped. Where the votes do not
-    decide (:attr:`TipChoice.decided`), "flat".
+    shows to either end's satisfaction, are skipped.
     """
-    return _choose(model, _frame_tips(model, frames))
-
-
-def _frame_tips(
-    model: SessionModel, frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]]
-) -> list[_FrameTip]:
-    return [tip for tip in (_frame_tip(index, images, model) for index, images in frames) if tip is not None]
-
-
-def _choose(model: SessionModel, tips: Sequence[_FrameTip]) -> TipChoice:
+    tips = [tip for tip in (_frame_tip(index, images, model) for index, images in frames) if tip is not None]
     if not tips:
         return TipChoice("flat", 0)
     # One radius for the session: the tube's end does not change, and each
@@ -355,21 +336,10 @@ def with_session_tip(
     model: SessionModel, video_paths: Sequence[Path], start: int, stop: int
 ) -> tuple[SessionModel, TipChoice | None]:
     """``model`` with its tube end settled: the settings' "flat" or "round" as they are;
-    for "auto", the end :func:`choose_tip` finds on ``SAMPLE_FRAMES`` frames spread over
-    ``[start, stop)`` of the videos, as many more each time while their votes do not
-    decide (up to ``MAX_SAMPLE_FRAMES``); and that choice, for the summary."""
+    for "auto", the end :func:`choose_tip` finds on frames spread over ``[start, stop)``
+    of the videos (and that choice, for the summary)."""
     settings = model.settings
     if settings.manipulator.tip != "auto" or settings.centerline.method != "fit":
         return model, None
-    first = sample_frames(start, stop)
-    more = [i for i in sample_frames(start, stop, MAX_SAMPLE_FRAMES - SAMPLE_FRAMES) if i not in first]
-    tips: list[_FrameTip] = []
-    choice = TipChoice("flat", 0)
-    for frames in (first, more[::2], more[1::2]):
-        if not frames:
-            break
-        tips += _frame_tips(model, decode_frames(video_paths, frames))
-        choice = _choose(model, tips)
-        if choice.decided:
-            break
+    choice = choose_tip(model, decode_frames(video_paths, sample_frames(start, stop)))
     return dataclasses.replace(model, tip=choice.tip), choice

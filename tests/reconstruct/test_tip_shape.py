@@ -11,7 +11,7 @@ import pytest
 
 from pipeline.reconstruct.frame_task import decode_frames
 from pipeline.reconstruct.model import build_model
-from pipeline.reconstruct.tip_shape import DECIDING_T, FrameEvidence, TipChoice, choose_tip, sample_frames
+from pipeline.reconstruct.tip_shape import CLEAR_T, FrameEvidence, TipChoice, choose_tip, sample_frames
 from pipeline.session.folder import load_session
 from pipeline.synth import render_session
 from pipeline.synth.session_render import SceneOptions
@@ -78,23 +78,22 @@ def test_a_frame_votes_by_where_its_pixels_lie_between_the_ends() -> None:
 
 
 @pytest.mark.parametrize("seed", range(6))
-def test_votes_decide_only_where_their_mean_stands_clear_of_zero(seed: int) -> None:
+def test_the_mean_vote_chooses_and_a_close_call_is_said(seed: int) -> None:
     rng = np.random.default_rng(seed)
     noise = rng.normal(0.0, rng.uniform(0.2, 0.6), 10)
     noise -= noise.mean()
     error = noise.std(ddof=1) / np.sqrt(len(noise))  # the votes' standard error, whatever their mean
-    # Ten frames' votes whose mean lies 3 standard errors from 0, either way: decided.
-    for side, sign in (("round", 1.0), ("flat", -1.0)):
-        clear = TipChoice.from_votes(noise + sign * 3.0 * error, 4.0)
-        assert clear.decided and clear.tip == side, clear.describe()
-        assert side in clear.describe() and "chosen from 10 frames" in clear.describe()
-    # Within the bar (either way): undecided, and fitted as flat, which the summary says.
-    for offset in (0.5, -0.5, 0.95 * DECIDING_T):
-        vague = TipChoice.from_votes(noise + offset * error, 4.0)
-        assert not vague.decided and vague.tip == "flat", vague.describe()
-        assert "did not tell" in vague.describe()
-    # One vote decides nothing, however strong; no vote is no frame.
-    assert not TipChoice.from_votes([0.9], 4.0).decided
+    # Ten frames' votes whose mean lies 3 standard errors, or 0.5, or just under CLEAR_T,
+    # from 0, either way: the sign chooses; only the first are clear.
+    for offset in (3.0, 0.5, 0.95 * CLEAR_T):
+        for side, sign in (("round", 1.0), ("flat", -1.0)):
+            choice = TipChoice.from_votes(noise + sign * offset * error, 4.0)
+            assert choice.tip == side and choice.frames == 10, choice.describe()
+            assert choice.score_error == pytest.approx(error)
+            assert choice.clear == (offset > CLEAR_T), choice.describe()
+            assert ("a close call" in choice.describe()) == (offset < CLEAR_T)
+    # One vote is never clear, however strong; no vote is no frame.
+    assert not TipChoice.from_votes([0.9], 4.0).clear
     assert TipChoice.from_votes([], 4.0).frames == 0
 
 
