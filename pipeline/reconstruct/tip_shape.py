@@ -49,13 +49,14 @@ Window = tuple[tuple[int, int], tuple[int, int]]
 # wrong on 11, of 12 frames on 9; the votes below on 10 frames, on 1. Ten frames
 # cost ~1.8 times the six of the summed costs (the radius is read on top).
 SAMPLE_FRAMES = 10
-# Where the mean vote lies within this many standard errors of 0, the summary says the
-# choice is a close one. Measured on 28 drawn sessions (`accuracy_table --draw 2`, 150
-# frames; draws 3 and 7 of pipeline.synth.variety, 60 frames; 2026-12-02), on 30 frames
-# spread over each: the sign of the mean of 10 of them chose wrongly on 1 (a flat-ended
-# tapered loop, +1.6 standard errors), of all 30 on 2; letting only a mean beyond 2
-# standard errors choose, with flat where none did (or sampling on until one did), on 3:
-# round ends whose frames barely told went flat.
+# Where the mean vote lies within this many standard errors of 0, the summary calls the
+# choice a close one. On 28 drawn sessions (`accuracy_table --draw 2`, 150 frames; draws 3
+# and 7 of pipeline.synth.variety, 60 frames; 2026-12-02) the sign of the mean vote chose
+# wrongly on 2, both within one standard error of 0 (a flat-ended tapered loop, +0.14 +-
+# 0.13; a flat random shape, +0.01 +- 0.18). Choosing only beyond 2 standard errors, with
+# flat where the votes did not get there within 30 frames, was no better (2 wrong: round
+# ends went flat); on 30 frames spread over each session, the sign of the mean of every
+# third chose wrongly on 1, of all 30 on 2, the bar with flat by default on 3.
 CLEAR_T = 2.0
 CAPS = ("flat", "round")
 # The bend under each end: its last radius, sought within a few mm of the fit.
