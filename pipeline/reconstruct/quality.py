@@ -55,10 +55,10 @@ SUSPECT_LENGTH_MM = 3.0
 # from the session's smoothed one (off_smoothed): the smoothed curve is the frame's
 # neighbours' account of it, and a curve that far from it is more than 2 mm off itself
 # or beside neighbours that are. On `accuracy_table --draw 2 --cases 10 --frames 150`
-# (2026-12-02), with the flags above it names 56 % of the three-camera cases' frames
-# more than 2 mm off (33 % without) and 11.2 % of their others (10.3 %); 1.5 mm names
-# 63 and 13.8 %, 1 mm 79 and 20.5 %. With the two-camera cases, whose good frames often
-# lie in stretches of wrong ones: 76 % (50 %) and 22.4 % (12.7 %).
+# (2026-12-02), with the flags above it names 42 % of the three-camera cases' frames
+# more than 2 mm off (25 % without) and 13.1 % of their others (12.1 %); on all ten
+# cases, whose two-camera ones hold long stretches of wrong frames, 68 % (46 %) and
+# 24.2 % (13.9 %). 1.5 and 1 mm bars name more of both.
 SUSPECT_SMOOTHED_MM = 2.0
 
 # cv2 drawing takes fixed-point coordinates with this many fractional bits.
