@@ -403,10 +403,10 @@ class McapRecorder:
         *,
         jpegs: Sequence[bytes] | None = None,
         extra_metrics: dict[str, float] | None = None,
-    ) -> dict[str, Any]:
+    ) -> bytes:
         """All messages of one frame; the metrics message comes last (see the module docstring).
         ``extra_metrics``: figures the frame's metrics gain (a live run's ``latency_ms``).
-        Returns the metrics written."""
+        Returns the metrics message written (JSON)."""
         if not self._statics_written:
             self.write_statics(time_ns)
         if self._images and jpegs is not None:
@@ -423,12 +423,12 @@ class McapRecorder:
         )
         self._write(CENTERLINE_POINTS_TOPIC, centerline_cloud(curve, time_ns, _CENTERLINE_COLOR), time_ns)
         figures = frame_metrics(result, self._names) | (extra_metrics or {})
-        self.write_metrics(figures, time_ns)
-        return figures
-
-    def write_metrics(self, figures: dict[str, Any], time_ns: int) -> None:
-        """One frame's metrics message (:func:`frame_metrics`), at its frame's time."""
         metrics = json.dumps(figures, allow_nan=False).encode()
+        self.write_metrics(metrics, time_ns)
+        return metrics
+
+    def write_metrics(self, metrics: bytes, time_ns: int) -> None:
+        """One frame's metrics message (JSON of :func:`frame_metrics`), at its frame's time."""
         self._writer.add_message(
             channel_id=self._json_channel(METRICS_TOPIC), log_time=time_ns, publish_time=time_ns, data=metrics
         )

@@ -9,6 +9,7 @@ disk is an error, not a hang) and has the target rename them into place.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import threading
@@ -158,7 +159,7 @@ class Writers:
         self.frames: list[int] = []
         self.times_ns: list[int] = []
         self.curves: list[NDArray[np.float64] | None] = []
-        self.metrics: list[dict[str, Any]] = []  # each frame's, as written to the MCAP
+        self.metrics: list[bytes] = []  # each frame's metrics message, as written to the MCAP
         self.counts = {"ok": 0, "empty": 0}
         self.failed: list[tuple[int, str]] = []
         self.doubtful: list[int] = []
@@ -272,7 +273,8 @@ class Writers:
             if frame in already:
                 continue
             reason = f"{gaps[row]:.1f} mm from the smoothed curve"
-            self.mcap.write_metrics(self.metrics[row] | {"suspect": True, "suspect_reason": reason}, time_ns)
+            figures = json.loads(self.metrics[row]) | {"suspect": True, "suspect_reason": reason}
+            self.mcap.write_metrics(json.dumps(figures, allow_nan=False).encode(), time_ns)
             self.rerun.mark_suspect(frame, time_ns)
             if self.viewer is not None:
                 self.viewer.mark_suspect(frame, time_ns)
