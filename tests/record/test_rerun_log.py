@@ -32,6 +32,8 @@ T0_NS = 1_700_000_000_000_000_000
 DT_NS = 33_333_333
 N_FRAMES = 8
 FPS = 30.0
+# A frame found suspect after the last one (pipeline.run.outputs: far from its smoothed curve).
+FLAGGED_LATE = 2
 EMPTY = 3
 
 
@@ -70,6 +72,7 @@ def rrd(tmp_path_factory: pytest.TempPathFactory) -> Path:
     smoothed = np.stack([_curve(i) + 1.0 for i in range(N_FRAMES)])
     smoothed[EMPTY] = np.nan
     recorder.write_smoothed(smoothed, list(range(N_FRAMES)), [T0_NS + i * DT_NS for i in range(N_FRAMES)])
+    recorder.mark_suspect(FLAGGED_LATE, T0_NS + FLAGGED_LATE * DT_NS)  # as beside the smoothed curves
     recorder.finish()
     stream.flush()
     stream.disconnect()
@@ -146,6 +149,13 @@ def test_time_series_are_sent_as_columns(rrd: Path) -> None:
     assert [v[0] for v in _column(table, "Scalars:scalars")] == [
         0.0 if i == EMPTY else 1.0 for i in range(N_FRAMES)
     ]
+
+
+def test_a_frame_flagged_after_the_last_has_its_suspect_plot_set_once(rrd: Path) -> None:
+    table = _table(rrd, "/plots/suspect")
+    frames, values = _column(table, "frame"), _column(table, "Scalars:scalars")
+    assert frames == list(range(N_FRAMES))  # one value a frame, the flagged one's replaced
+    assert [v[0] for v in values] == [1.0 if i == FLAGGED_LATE else 0.0 for i in range(N_FRAMES)]
 
 
 def test_smoothed_centreline_has_its_own_entity(rrd: Path) -> None:
