@@ -583,10 +583,16 @@ def test_a_camera_that_stalls_is_reported_and_picked_up_again_while_the_others_g
     times_s = pipeline.load_recording(tmp_path / "out" / "rig.mcap").timestamps_ns * 1e-9
     stopped, restarted = stalled
     assert (times_s < stopped).any() and (times_s > restarted).any()
-    # (frames in flight at the kill, or queued behind a reader that a loaded machine slows,
-    # are decoded and stamped later: a frame-set more than 0.5 s after the kill was seen once when
-    # the whole suite ran on 2 cores)
-    assert not ((times_s > stopped + 1.0) & (times_s < restarted)).any()
+    # No frame-set for most of the 2 s cam2 was away: the longest gap between frame-sets, and
+    # after the kill. Where it lies to the second depends on the machine's load: frames in
+    # flight at the kill, or queued behind a reader that a loaded machine slows, are decoded
+    # and stamped later (frame-sets 0.5 and 1.0 s after the kill were seen when the suite
+    # ran on 2 cores beside other work).
+    order = np.sort(times_s)
+    gaps = np.diff(order)
+    longest = int(np.argmax(gaps))
+    resumed = order[longest + 1]
+    assert gaps[longest] >= 1.0 and resumed > stopped, (gaps[longest], resumed - stopped)
 
 
 def test_the_summary_gives_latency_drops_rates_and_outages() -> None:
