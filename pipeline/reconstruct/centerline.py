@@ -19,6 +19,10 @@ march coasting on its own course through the crowded hull; the fit without its
 outlier rejection; the march resumed from the fitted end, or from where the
 unexplained tube leaves the curve), and the one whose tube re-projects best
 onto the silhouettes (IoU) wins, those whose parts come too close handicapped.
+A tube that still leaves part of a silhouette unexplained may have stopped where one
+view loses it (in front of something of its own grey level, or behind something),
+where the hull, which needs every view, stops too: it is carried on the same way
+through the voxels that every view but one sees.
 Where the hull was crowded and the tip's tube meets another part's in some
 view (a loop's tip lying on its stem, whose edges the side readings can take
 for the tip's), the tip is then bent to the pixels
@@ -86,6 +90,7 @@ def fit_centerline(
     voxel_mm: float,
     n_points: int = 64,
     cap: str = "flat",
+    wider_hull: Callable[[], FloatArray] | None = None,
 ) -> tuple[Centerline, TubeFit]:
     """The whole centreline step: hull -> ordered polyline -> tube fit -> spline.
 
@@ -101,6 +106,9 @@ def fit_centerline(
     voxel_mm : voxel edge, mm.
     n_points : samples of the resulting curve.
     cap : the tube's end, "flat" or "round" (a hemisphere around the axis' end).
+    wider_hull : () -> (Q, 3) mm, the voxel centres that every view but one sees
+        (:func:`pipeline.reconstruct.frame.hull_but_one_view`), asked for only where the
+        fitted tube leaves part of a silhouette unexplained.
 
     Returns
     -------
@@ -156,6 +164,14 @@ def fit_centerline(
             for seed in seeds
         ]
         best = max(carried, key=standing)
+    if wider_hull is not None and worst_misfit(best, cameras, masks) > MISFIT:
+        # A part of the tube that one view does not show (passing in front of something
+        # of its own grey level, or behind something) is not in the hull, and the march
+        # stops where it starts, though the other views go on showing the tube: it is
+        # carried on through the voxels that every view but one sees.
+        best = _carry_on(
+            best, fit, standing, wider_hull(), base_mm, cameras, masks, radius_mm, voxel_mm, refine
+        )
     if (
         march.crowded.any()
         and np.isfinite(best.radius_mm)

@@ -154,6 +154,15 @@ def reconstruct_from_silhouettes(
         )
 
 
+def hull_but_one_view(model: SessionModel, masks: Sequence[NDArray[np.bool_]]) -> NDArray[np.float64]:
+    """(Q, 3) mm: the centres of the voxels that project onto the silhouettes (H, W)
+    bool ``masks`` of every camera but (at least) one: the hull each camera would
+    leave if it saw nothing, all together."""
+    everything = [np.ones_like(mask) for mask in masks]
+    indices = [carve(model.grid, [*masks[:c], everything[c], *masks[c + 1 :]]) for c in range(len(masks))]
+    return voxel_centers_mm(model.settings.workspace, np.unique(np.concatenate(indices))).astype(np.float64)
+
+
 def hull_supported(
     masks: Sequence[NDArray[np.bool_]], points_mm: NDArray[np.floating], model: SessionModel
 ) -> list[NDArray[np.bool_]]:
@@ -253,6 +262,7 @@ def _curve_and_quality(
                 voxel_mm=settings.workspace.voxel_mm,
                 n_points=n_points,
                 cap=model.tip,
+                wider_hull=(lambda: hull_but_one_view(model, masks)) if len(cameras) > 2 else None,
             )
             options = [track(init.points_mm, init.radius_mm, init.radii_mm)]
             if held is not None:
