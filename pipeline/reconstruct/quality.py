@@ -54,11 +54,13 @@ SUSPECT_LENGTH_MM = 3.0
 # After the last frame, a frame is also suspect where its curve lies farther than this
 # from the session's smoothed one (off_smoothed): the smoothed curve is the frame's
 # neighbours' account of it, and a curve that far from it is more than 2 mm off itself
-# or beside neighbours that are. On `accuracy_table --draw 2 --cases 10 --frames 150`
-# (2026-12-02), with the flags above it names 42 % of the three-camera cases' frames
-# more than 2 mm off (25 % without) and 13.1 % of their others (12.1 %); on all ten
-# cases, whose two-camera ones hold long stretches of wrong frames, 68 % (46 %) and
-# 24.2 % (13.9 %). 1.5 and 1 mm bars name more of both.
+# or beside neighbours that are. On two seeded draws (`accuracy_table --draw 2 --cases 10
+# --frames 150` and `--draw 7 --cases 8 --frames 120`, 2026-12-02) it takes the share of
+# the three-camera cases' frames more than 2 mm off that are flagged from 15 and 19 % (the
+# signs above alone) to 31 and 59 %, and of their other frames from 12.6 and 6.7 % to 14.6
+# and 7.0 %. On all the cases, whose two-camera ones hold long stretches of wrong frames,
+# beside which the smoothed curve is off too: 43 and 44 % to 65 and 60 %, 14.1 and 15.6 %
+# to 24.8 and 17.4 %. 1.5 and 1 mm bars name more of both.
 SUSPECT_SMOOTHED_MM = 2.0
 
 # cv2 drawing takes fixed-point coordinates with this many fractional bits.
