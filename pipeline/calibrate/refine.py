@@ -25,7 +25,7 @@ from ..errors import OutputError
 from ..geometry.camera import Camera
 from ..geometry.polyline import resample_polyline
 from ..reconstruct.frame import frame_contrasts, reconstruct_with_silhouettes
-from ..reconstruct.frame_task import decode_frames
+from ..reconstruct.frame_task import FrameMap, decode_frames, map_here
 from ..reconstruct.model import SessionModel
 from ..reconstruct.tip_shape import sample_frames
 from ..session.calibration_io import write_calibration
@@ -154,27 +154,29 @@ def camera_change(given: Camera, refined: Camera, points_mm: FloatArray) -> Came
 
 
 def sample_tubes(
-    model: SessionModel, frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]]
+    model: SessionModel,
+    frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
+    map_frames: FrameMap = map_here,
 ) -> list[Tube]:
     """The tubes of ``frames`` (index, per camera grey image), each reconstructed alone
     with ``model``'s cameras and its base free; frames without a curve are left out.
+    ``map_frames`` runs the frames (:data:`pipeline.reconstruct.frame_task.FrameMap`).
 
     Held at the mount, which is known in the given rig's world only, each tube would
     bend near its base by the calibration's error; free, its base is where the views
     see it, which is what holds the refined rig to the mount (:mod:`.mount`)."""
     manipulator = dataclasses.replace(model.settings.manipulator, base_mm=None)
     free = dataclasses.replace(model, settings=dataclasses.replace(model.settings, manipulator=manipulator))
-    tubes = []
-    for index, images in frames:
-        result, _ = reconstruct_with_silhouettes(index, images, free)
-        if result.status != "ok" or result.centerline_mm is None or not np.isfinite(result.radius_mm):
-            continue
-        tubes.append(
-            resampled_tube(
-                result.centerline_mm, result.radii_mm, result.radius_mm, frame_contrasts(images, model)
-            )
-        )
-    return tubes
+    return [tube for tube in map_frames(_sample_tube, frames, free) if tube is not None]
+
+
+def _sample_tube(index: int, images: Sequence[NDArray[np.uint8]], model: SessionModel) -> Tube | None:
+    """One frame's tube for :func:`sample_tubes` (``model``: its base free); None without a curve."""
+    result, _ = reconstruct_with_silhouettes(index, images, model)
+    if result.status != "ok" or result.centerline_mm is None or not np.isfinite(result.radius_mm):
+        return None
+    contrasts = frame_contrasts(images, model)
+    return resampled_tube(result.centerline_mm, result.radii_mm, result.radius_mm, contrasts)
 
 
 def distinct_poses(tubes: Sequence[Tube], *, apart_mm: float = _POSE_APART_MM) -> int:
@@ -238,11 +240,16 @@ def refine(
 
 
 def refined_cameras(
-    model: SessionModel, video_paths: Sequence[Path], start: int, stop: int
+    model: SessionModel,
+    video_paths: Sequence[Path],
+    start: int,
+    stop: int,
+    map_frames: FrameMap = map_here,
 ) -> tuple[tuple[Camera, ...], Refinement | None]:
     """The cameras to reconstruct frames ``[start, stop)`` with, under the settings'
     ``[calibration] refine``, and the refinement's report (None when not asked for, or
-    when too few frames show the tube to refine on)."""
+    when too few frames show the tube to refine on). ``map_frames`` runs the sample
+    frames' reconstructions."""
     mode = model.settings.calibration.refine
     if mode is False or model.settings.centerline.method != "fit":
         return model.cameras, None
@@ -252,7 +259,8 @@ def refined_cameras(
         reason = "two views of a tube's sides say nothing about the cameras; refining needs three or more"
         return model.cameras, Refinement(False, 0, float("nan"), float("nan"), (), reason)
     started = time.perf_counter()
-    tubes = sample_tubes(model, decode_frames(video_paths, sample_frames(start, stop, SAMPLE_FRAMES)))
+    frames = decode_frames(video_paths, sample_frames(start, stop, SAMPLE_FRAMES))
+    tubes = sample_tubes(model, frames, map_frames)
     if len(tubes) < 3:
         return model.cameras, None
     cameras, report = refine(model, tubes, mode)

@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from ..geometry.camera import Camera
 from ..geometry.polyline import polyline_arclength
 from .frame import frame_contrasts, reconstruct_with_silhouettes
-from .frame_task import decode_frames
+from .frame_task import FrameMap, decode_frames, map_here
 from .model import SessionModel
 from .tip_bend import bend_tip_to_pixels
 from .tube_drawing import drawn_coverage, pixel_coverages
@@ -183,14 +183,19 @@ def sample_frames(start: int, stop: int, count: int = SAMPLE_FRAMES) -> list[int
     return sorted({int(i) for i in np.linspace(start, stop - 1, n).round()}) if n > 0 else []
 
 
-def choose_tip(model: SessionModel, frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]]) -> TipChoice:
+def choose_tip(
+    model: SessionModel,
+    frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
+    map_frames: FrameMap = map_here,
+) -> TipChoice:
     """The end ("flat" or "round") that explains the tips of ``frames`` best.
 
     ``frames``: (index, per camera (H, W) uint8 grey image). Each is
-    reconstructed from its hull; frames without a curve, or whose tip no view
-    shows to either end's satisfaction, are skipped.
+    reconstructed from its hull (by ``map_frames``, see
+    :data:`pipeline.reconstruct.frame_task.FrameMap`); frames without a curve, or whose
+    tip no view shows to either end's satisfaction, are skipped.
     """
-    tips = [tip for tip in (_frame_tip(index, images, model) for index, images in frames) if tip is not None]
+    tips = [tip for tip in map_frames(_frame_tip, frames, model) if tip is not None]
     if not tips:
         return TipChoice("flat", 0)
     # One radius for the session: the tube's end does not change, and each
@@ -334,7 +339,7 @@ def _band(cam: Camera, axis_mm: FloatArray, radius_mm: float, window: Window) ->
 
 
 def with_session_tip(
-    model: SessionModel, video_paths: Sequence[Path], start: int, stop: int
+    model: SessionModel, video_paths: Sequence[Path], start: int, stop: int, map_frames: FrameMap = map_here
 ) -> tuple[SessionModel, TipChoice | None]:
     """``model`` with its tube end settled: the settings' "flat" or "round" as they are;
     for "auto", the end :func:`choose_tip` finds on frames spread over ``[start, stop)``
@@ -342,5 +347,5 @@ def with_session_tip(
     settings = model.settings
     if settings.manipulator.tip != "auto" or settings.centerline.method != "fit":
         return model, None
-    choice = choose_tip(model, decode_frames(video_paths, sample_frames(start, stop)))
+    choice = choose_tip(model, decode_frames(video_paths, sample_frames(start, stop)), map_frames)
     return dataclasses.replace(model, tip=choice.tip), choice

@@ -21,7 +21,7 @@ from typing import Any
 
 from ..errors import Interrupted, SessionError, SettingsError
 from ..reconstruct.frame_result import FrameResult
-from ..reconstruct.frame_task import FrameFunction, FrameOutput, encode_silhouette, process_range
+from ..reconstruct.frame_task import FrameFunction, FrameOutput, encode_silhouette, map_here, process_range
 from ..reconstruct.tracking import SEGMENT_FRAMES, segment_start
 from ..session.folder import Session
 from .backends import (
@@ -40,6 +40,7 @@ from .workers import (
     available_cores,
     describe_pool_failure,
     effective_jobs,
+    local_frame_map,
     release_local_workers,
     start_local_workers,
     wait_for_local_workers,
@@ -307,11 +308,14 @@ def _run_with(
                 from ..reconstruct.tip_shape import with_session_tip
 
                 model: Any = build_model(session)
-                cameras, refinement = refined_cameras(model, session.video_paths, start, stop)
+                # The sample frames that settle the cameras and the tube's end are
+                # reconstructed on the local workers, which would wait for them otherwise.
+                frame_map = local_frame_map(n_jobs) if backend == "loky" else map_here
+                cameras, refinement = refined_cameras(model, session.video_paths, start, stop, frame_map)
                 if cameras is not session.cameras:
                     session = dataclasses.replace(session, cameras=cameras)
                     model = build_model(session)
-                model, choice = with_session_tip(model, session.video_paths, start, stop)
+                model, choice = with_session_tip(model, session.video_paths, start, stop, frame_map)
                 tip = choice.describe() if choice is not None else ""
             else:
                 model = session  # a replacement frame function gets the session as its model

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from ..errors import SettingsError
+from ..reconstruct.frame_task import FrameMap, Frames, PerFrame, map_here
 from .interrupts import signals_blocked_in_children
 
 T = TypeVar("T")
@@ -283,6 +284,33 @@ def describe_pool_failure(exc: BaseException) -> str:
     text = str(exc).strip()
     first = textwrap.shorten(text.splitlines()[0], 200) if text else ""  # whole words
     return f"{type(exc).__name__}: {first}" if first else type(exc).__name__
+
+
+def local_frame_map(n_workers: int) -> FrameMap:
+    """A :data:`~pipeline.reconstruct.frame_task.FrameMap` on the run's local workers (the
+    pool :func:`start_local_workers` started): the frames dealt out in turn, one task per
+    worker, the model shared once (:func:`shared_with_local_workers`); the results in the
+    frames' order, the same as :func:`~pipeline.reconstruct.frame_task.map_here` gives.
+    With fewer than two workers or frames, here."""
+
+    def run(fn: PerFrame, frames: Frames, model: Any) -> list[Any]:
+        if n_workers < 2 or len(frames) < 2:
+            return map_here(fn, frames, model)
+        from joblib import Parallel, delayed, parallel_config
+
+        deals = [list(frames[k::n_workers]) for k in range(n_workers)]
+        with (
+            shared_with_local_workers(model) as shared,
+            parallel_config(backend="loky", **loky_options()),
+            signals_blocked_in_children(),
+        ):
+            parts = Parallel(n_jobs=n_workers)(delayed(map_here)(fn, deal, shared) for deal in deals)
+        out: list[Any] = [None] * len(frames)
+        for k, part in enumerate(parts):
+            out[k::n_workers] = part
+        return out
+
+    return run
 
 
 @contextlib.contextmanager

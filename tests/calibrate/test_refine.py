@@ -254,3 +254,21 @@ def test_two_cameras_are_kept_and_the_summary_says_why(tmp_path: Path) -> None:
     assert cameras is model.cameras
     assert report is not None and not report.applied
     assert "three or more" in report.describe()
+
+
+def test_the_sample_frames_on_two_workers_give_the_same_tubes(sessions: dict[float, Path]) -> None:
+    from pipeline.run.workers import local_frame_map, release_local_workers
+
+    session = load_session(sessions[0.15])
+    model = build_model(session)
+    frames = decode_frames(session.video_paths, sample_frames(0, FRAMES, 5))
+    here = sample_tubes(model, frames)
+    try:
+        there = sample_tubes(model, frames, local_frame_map(2))
+    finally:
+        release_local_workers()
+    # Every frame's tube, in the frames' order, bit for bit.
+    assert len(there) == len(here) == 5
+    for a, b in zip(here, there, strict=True):
+        np.testing.assert_array_equal(a.points_mm, b.points_mm)
+        np.testing.assert_array_equal(a.radii_mm, b.radii_mm)
