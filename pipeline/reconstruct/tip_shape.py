@@ -53,10 +53,9 @@ SAMPLE_FRAMES = 10
 # choice a close one. On 28 drawn sessions (`accuracy_table --draw 2`, 150 frames; draws 3
 # and 7 of pipeline.synth.variety, 60 frames; 2026-12-02) the sign of the mean vote chose
 # wrongly on 2, both within one standard error of 0 (a flat-ended tapered loop, +0.14 +-
-# 0.13; a flat random shape, +0.01 +- 0.18). Choosing only beyond 2 standard errors, with
-# flat where the votes did not get there within 30 frames, was no better (2 wrong: round
-# ends went flat); on 30 frames spread over each session, the sign of the mean of every
-# third chose wrongly on 1, of all 30 on 2, the bar with flat by default on 3.
+# 0.13; a flat random shape, +0.01 +- 0.18). Letting only a mean beyond the bar choose,
+# with flat otherwise (sampling up to 30 frames), chose wrongly on as many: round ends
+# whose frames barely show them went flat.
 CLEAR_T = 2.0
 CAPS = ("flat", "round")
 # The bend under each end: its last radius, sought within a few mm of the fit.
@@ -159,10 +158,14 @@ class TipChoice:
             f"mean vote {self.score:+.2f} +- {self.score_error:.2f} of +-1, "
             f"end radius {self.radius_mm:.1f} mm"
         )
-        close = "; a close call: set [manipulator] tip in session.toml if you know the end"
+        setting = (
+            "[manipulator] tip in session.toml fixes it"
+            if self.clear
+            else "a close call: set [manipulator] tip in session.toml if you know the end"
+        )
         return (
             f"{self.tip} (chosen from {self.frames} frames, {self.favouring} of them for it, "
-            f"{votes}{'' if self.clear else close}; [manipulator] tip in session.toml fixes it)"
+            f"{votes}; {setting})"
         )
 
 
