@@ -7,7 +7,9 @@ model removed, workers stopped, one line and exit status 130. A signal that arri
 while the outputs are being renamed into place (:func:`deferred_signals`) is held until
 the renames are done, so that the pair is never split; further signals once the run is
 ending are ignored, so that the clean-up it started completes (each step of it is
-bounded in time).
+bounded in time). Python drops an exception raised inside a garbage-collector callback
+or a ``__del__`` ("Exception ignored in ..."), where a signal can land too; a run's main
+loop therefore asks :func:`raise_if_interrupted` between its steps.
 """
 
 from __future__ import annotations
@@ -23,15 +25,22 @@ INTERRUPT_SIGNALS: tuple[signal.Signals, ...] = tuple(
 )
 
 _installed = False  # signals_interrupt is active
-_interrupted = False  # a signal has been turned into KeyboardInterrupt already
+_interrupted = ""  # the signal turned into KeyboardInterrupt already ("": none)
 _deferring = 0  # depth of deferred_signals blocks
 _pending: int | None = None  # a signal received while deferring
 
 
 def _interrupt(signum: int) -> None:
     global _interrupted
-    _interrupted = True
-    raise KeyboardInterrupt(signal.Signals(signum).name)
+    _interrupted = signal.Signals(signum).name
+    raise KeyboardInterrupt(_interrupted)
+
+
+def raise_if_interrupted() -> None:
+    """Raise KeyboardInterrupt again if a signal already raised one and the run goes on
+    (Python dropped it: see the module docstring); nothing otherwise."""
+    if _installed and _interrupted:
+        raise KeyboardInterrupt(_interrupted)
 
 
 def _handler(signum: int, frame: FrameType | None) -> None:
@@ -57,7 +66,7 @@ def signals_interrupt() -> Iterator[None]:
     for sig in INTERRUPT_SIGNALS:
         if signal.getsignal(sig) is not signal.SIG_IGN:
             previous[sig] = signal.signal(sig, _handler)
-    _installed, _interrupted, _pending = True, False, None
+    _installed, _interrupted, _pending = True, "", None
     try:
         yield
     finally:

@@ -31,7 +31,7 @@ from .backends import (
     check_scheduler_address,
     parallel_backend,
 )
-from .interrupts import signals_blocked_in_children, signals_interrupt
+from .interrupts import raise_if_interrupted, signals_blocked_in_children, signals_interrupt
 from .output_target import OutputTarget, prepare_outputs
 from .outputs import Writers
 from .progress import advance, new_tally, progress_bar
@@ -349,6 +349,7 @@ def _run_with(
                     cameras_used="" if refinement is None else refinement.describe(),
                 )
                 for span, outputs in results:
+                    raise_if_interrupted()
                     if isinstance(outputs, str):  # a range given up: its frames fail
                         outputs = _failed_range(span, outputs)
                     for out in outputs:
@@ -356,6 +357,7 @@ def _run_with(
                         done += 1
                         advance(bar, done)
         assert writer is not None
+        raise_if_interrupted()
         writer.finish()
         if frame_fn is None:
             from ..calibrate.refine import remove_refined_calibration, write_refined_calibration
