@@ -114,3 +114,33 @@ def test_a_round_end_fitted_as_round_ends_at_the_backbone(sessions: dict[str, Pa
     # Fitted as flat, the cap is taken for tube: the tip lands up to a radius (7 mm)
     # past the backbone's end; fitted as round, within the per-frame tip target.
     assert errors["round"] < 0.5 < errors["flat"]
+
+
+@pytest.mark.parametrize("tip", ["flat", "round"])
+def test_the_end_radius_is_read_whole_with_the_axis_off_to_one_side(
+    sessions: dict[str, Path], tip: str
+) -> None:
+    from pipeline.reconstruct.frame import frame_contrasts, frame_silhouettes
+    from pipeline.reconstruct.tip_shape import end_radius_readings
+    from pipeline.reconstruct.tube_drawing import normals, pixel_coverages
+
+    session = load_session(sessions[tip])
+    model = build_model(session)
+    truth = np.load(sessions[tip] / "ground_truth.npz")["centerlines"]
+    rng = np.random.default_rng(3)
+    readings: dict[float, list[float]] = {0.0: [], 0.5: []}
+    for index, images in decode_frames(session.video_paths, range(FRAMES)):
+        coverages = pixel_coverages(frame_contrasts(images, model), frame_silhouettes(images, model))
+        axis = truth[index]
+        n1, n2 = normals(axis[-1] - axis[-2])
+        angle = rng.uniform(0.0, 2.0 * np.pi)
+        for shift in readings:
+            # The whole axis moved sideways by a share of the 7 mm radius, in a random direction.
+            moved = axis + shift * 7.0 * (np.cos(angle) * n1 + np.sin(angle) * n2)
+            readings[shift] += end_radius_readings(moved, model.cameras, coverages, 7.5)
+    # Read from a 7.5 mm guess, within 2 % of the 7 mm tube (finer than the guess' scales,
+    # 5 % apart) on its axis, and as close with the axis 3.5 mm off: the band holds the
+    # tube's whole width either way.
+    for shift, values in readings.items():
+        assert len(values) >= FRAMES, shift
+        assert np.median(values) == pytest.approx(7.0, rel=0.02), (shift, np.round(values, 2))
