@@ -96,8 +96,8 @@ _TOUCH_RADII = 4.0
 # differences, damped (Levenberg-Marquardt, the damping grown _DAMPING_GROWTH-fold
 # until a step lowers the cost, at most _DAMPING_TRIES times for the first step and
 # once for the later ones: once a step has been taken, one that does not lower the
-# cost finds the fit at the drawing's resolution; 6.8 drawings a span instead of 8.4
-# on the demo and the bench loop, tips as close), the Jacobian by
+# cost finds the fit at the drawing's resolution; 6.8 drawings a span instead of 8.5
+# on the bench loop, its tips as close), the Jacobian by
 # forward differences of _DIFFERENCE_MM (a third of a pixel at the rigs' ~0.6 px/mm:
 # the drawn coverage moves in steps of a sixteenth of a pixel) and then updated from
 # each step taken (Broyden's rank-one update), for at most _REFINE_STEPS steps or

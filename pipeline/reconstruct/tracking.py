@@ -62,18 +62,18 @@ LOST_MISFIT = 0.01
 LOST_CLOSEST_RADII = 1.5
 # ... or moved farther than this many radii from its prediction in one frame.
 LOST_JUMP_RADII = 1.5
-# The tracked tip is refined to the grey levels wherever it meets another part of the
-# tube in at least this many views (pipeline.reconstruct.tip_bend.tip_meets_tube): in the
-# one view where it lies on another part, that part's edges pull its side readings,
-# and the other two, seeing it apart, fix it only across their own lines of sight, so
-# the misled view decides the third direction. Measured on 23 rendered sessions
-# (`accuracy_table --draw 2` and draw 7, the demo, four loops; 150 frames, 2026-12-02),
-# against 2 views: median tip 1.10 -> 0.79 mm on a random shape whose tip lies inside
-# its own loop in one view (frames > 2 mm off 25 -> 6), the demo 0.40 -> 0.30 mm, the
-# round-ended loops 0.46 -> 0.36 and 0.42 -> 0.32 mm; worse only where spacer disks sit
-# by the tip (1.82 -> 1.98, 1.02 -> 1.18 mm: the drawn tube has none), at a few ms more
-# on the frames refined.
-TRACK_MEETING_VIEWS = 1
+# The tracked tip is refined to the grey levels where it meets another part of the
+# tube in at least this many views (pipeline.reconstruct.tip_bend.tip_meets_tube), or
+# lies against it in space. Where it meets one only, the two views that see it apart
+# fix it across their own lines of sight, and the misled view's readings pull it in
+# the third direction: refined there too, on 23 rendered sessions (`accuracy_table
+# --draw 2` and draw 7, the demo, four loops; 150 frames, 2026-12-02) the median tip
+# went 1.10 -> 0.79 mm on a random shape whose tip lies inside its own loop in one view,
+# the demo's 0.40 -> 0.30 mm and the bench's round-ended random shape's 0.39 -> 0.26 mm,
+# but the demo's stretches of such frames took 20-27 ms each instead of 10-17, and a
+# live replay of the demo fell behind in them (latency p99 23-30 -> 60-93 ms, 1-5
+# frame-sets dropped; refining only the last radius there, 44-93 ms).
+TRACK_MEETING_VIEWS = 2
 # The track's last this many frames predict a frame's length (predict_length): a
 # second at 30 fps, as many as a segment's track holds.
 LENGTH_FRAMES = SEGMENT_FRAMES
@@ -206,7 +206,7 @@ def track_tube(
 
     A few rounds of :func:`pipeline.reconstruct.tube_fit.fit_tube` from the prediction,
     seeking the tube's sides near it; where the tip then lies against another
-    part in any view (``TRACK_MEETING_VIEWS``), whose edges pull its side readings,
+    part in some views (``TRACK_MEETING_VIEWS``), whose edges pull its side readings,
     the tip is placed by the grey levels instead, fitted from where the fit left it
     (:func:`pipeline.reconstruct.tip_bend.refine_tip_to_pixels`).
     The track is lost (the caller initialises again from the hull) where the
