@@ -69,7 +69,7 @@ _STEPS_MM = (2.0, 1.0, 0.5, 0.25)
 # the frames, against the best of them per frame and the median over frames: on
 # 24 rendered sessions (`accuracy_table --draw 2` and draw 7, the demo, the
 # bench's loop and random shape, three loops; 2026-12-02) the end chosen wrongly
-# on 1 instead of 2, the flat tapered loop whose tip lies by its stem read at
+# on 1 instead of 3, the flat tapered loop whose tip lies by its stem read at
 # 4.28 mm instead of 4.80 (truth 4.20) ...
 _RADIUS_SCALES = np.round(np.arange(0.7, 1.1001, 0.05), 2)
 # ... matching the pixels nearest to the axis between these many radii before
