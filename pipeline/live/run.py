@@ -207,7 +207,9 @@ def _run(
 
             server = FoxgloveServer(*foxglove, name=f"pipeline live {rig.name}")
             log.info("Foxglove: %s (in Foxglove: Open connection, Foxglove WebSocket)", server.address)
-        writer = Writers(rig, target, images=images, viewer_url=viewer_url, mirror=server)
+        writer = Writers(
+            rig, target, images=images, viewer_url=viewer_url, mirror=server, frame_doubt=model.tip_doubt
+        )
         queue = DroppingQueue(queue_sets)
         matcher = FrameMatcher(len(sources), half_period_ns(rig.fps))
         lock = threading.Lock()

@@ -59,6 +59,18 @@ SAMPLE_FRAMES = 10
 # whose frames barely show them went flat.
 CLEAR_T = 2.0
 CAPS = ("flat", "round")
+# Every written frame's suspect reason where the end was a close call (not ``clear``, or
+# chosen from no frame): the other end would put each tip up to a radius along the
+# tube from where this one does, more than 2 mm on most tubes, and no frame tells
+# which is right. The track does not see it (a frame's own suspect reason steers the
+# prediction); the writers add it (pipeline.run.outputs.Writers). On two seeded draws
+# (`accuracy_table --draw 2 --cases 10 --frames 150` and `--draw 7 --cases 8 --frames
+# 120`, 2026-12-02) the flag then names 88 and 87 % of the frames more than 2 mm off
+# (68 and 71 % without it) and 40 and 27 % of the others (25 and 15 %); on three
+# cameras 80 and 58 % (37 and 58 %) and 16.0 and 7.0 % (14.9 and 7.0 %). The close
+# calls were a flat tapered loop fitted as round, every tip 3-5 mm off along the
+# tube, and two-camera sessions, whose good frames are flagged with them.
+TIP_DOUBT = "the tube's end, flat or round, is a close call: its tip may be a radius off along the tube"
 # The bend under each end: its last radius, sought within a few mm of the fit.
 _SPANS_RADII = (2.0, 1.0)
 _STEPS_MM = (2.0, 1.0, 0.5, 0.25)
@@ -411,4 +423,5 @@ def with_session_tip(
     if settings.manipulator.tip != "auto" or settings.centerline.method != "fit":
         return model, None
     choice = choose_tip(model, decode_frames(video_paths, sample_frames(start, stop)), map_frames)
-    return dataclasses.replace(model, tip=choice.tip), choice
+    doubt = "" if choice.clear else TIP_DOUBT
+    return dataclasses.replace(model, tip=choice.tip, tip_doubt=doubt), choice

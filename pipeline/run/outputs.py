@@ -9,6 +9,7 @@ disk is an error, not a hang) and has the target rename them into place.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import logging
 import os
@@ -139,6 +140,7 @@ class Writers:
         viewer_url: str | None = None,
         mirror: MessageMirror | None = None,
         cameras_used: str = "",
+        frame_doubt: str = "",
     ) -> None:
         # Imported here, not with this module: a run's parent opens its writers once
         # the workers have their first frames, so Rerun's import no longer holds them up.
@@ -165,6 +167,9 @@ class Writers:
         self.doubtful: list[int] = []
         self.suspect: list[tuple[int, str]] = []
         self.at_walls: list[int] = []
+        # A reason every ok frame is suspect for, written with its own (the tube's end a
+        # close call: pipeline.reconstruct.tip_shape.TIP_DOUBT).
+        self.frame_doubt = frame_doubt
         try:
             self._mcap_file = _open_partial(target.partial(self.mcap_path))
             meta = {
@@ -217,6 +222,9 @@ class Writers:
         """One frame, at ``time_ns`` (ns since the Unix epoch; default: the session's time of
         its index); ``extra_metrics``: figures its metrics gain (a live run's latency)."""
         result = out.result
+        if self.frame_doubt and result.status == "ok":
+            why = "; ".join(part for part in (result.suspect_reason, self.frame_doubt) if part)
+            result = dataclasses.replace(result, suspect_reason=why)
         if time_ns is None:
             time_ns = self.session.timestamp_ns(result.index)
         try:

@@ -144,3 +144,23 @@ def test_the_end_radius_is_read_whole_with_the_axis_off_to_one_side(
     for shift, values in readings.items():
         assert len(values) >= FRAMES, shift
         assert np.median(values) == pytest.approx(7.0, rel=0.02), (shift, np.round(values, 2))
+
+
+def test_a_close_call_puts_every_frame_s_tip_in_doubt(
+    sessions: dict[str, Path], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pipeline.reconstruct import tip_shape
+
+    model = build_model(load_session(sessions["flat"]))
+    settings = dataclasses.replace(
+        model.settings, manipulator=dataclasses.replace(model.settings.manipulator, tip="auto")
+    )
+    model = dataclasses.replace(model, settings=settings)
+    for votes, doubt in (([0.5, 0.6, 0.4, 0.55], ""), ([0.3, -0.2, 0.1, -0.1], tip_shape.TIP_DOUBT)):
+        monkeypatch.setattr(tip_shape, "choose_tip", lambda *a, v=votes: TipChoice.from_votes(v, 5.0))
+        chosen, choice = tip_shape.with_session_tip(model, [], 0, FRAMES)
+        assert choice is not None and chosen.tip == "round" and chosen.tip_doubt == doubt
+    # An end set in session.toml is never in doubt.
+    flat = dataclasses.replace(settings.manipulator, tip="flat")
+    fixed = dataclasses.replace(model, settings=dataclasses.replace(settings, manipulator=flat))
+    assert tip_shape.with_session_tip(fixed, [], 0, FRAMES)[0].tip_doubt == ""

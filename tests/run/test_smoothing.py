@@ -252,3 +252,32 @@ def test_a_frame_far_from_its_smoothed_curve_is_flagged_suspect_in_the_recording
     assert len(recording.metrics) == 60  # one frame's metrics each, the last written
     wrong = next(m for m in recording.metrics if m["frame"] == _WRONG_FRAME)
     assert wrong["length_m"] == pytest.approx(0.16) and wrong["status"] == "ok"
+
+
+def test_a_doubt_over_the_tube_end_makes_every_written_frame_suspect(tmp_path: Path) -> None:
+    from pipeline.reconstruct.frame_task import FrameOutput
+    from pipeline.reconstruct.tip_shape import TIP_DOUBT
+    from pipeline.run.output_target import prepare_outputs
+    from pipeline.run.outputs import Writers
+
+    session = load_session(build_session(tmp_path / "session", frames=60))
+    target = prepare_outputs(tmp_path / "out", session.name, force=False)
+    try:
+        writer = Writers(session, target, images=False, frame_doubt=TIP_DOUBT)
+        for index in range(40):
+            result, _ = _swaying_rod(index, None, None)
+            if index == 7:
+                result = FrameResult.failed(index, "camera 'cam0' image could not be decoded")
+            writer.write(FrameOutput(result=result, jpegs=None, silhouettes_png=None))
+        writer.finish()
+        summary = writer.summary(0.0)
+    finally:
+        target.release(failed=False)
+    recording = load_recording(tmp_path / "out" / f"{session.name}.mcap")
+    reasons = {m["frame"]: m["suspect_reason"] for m in recording.metrics}
+    ok = [i for i in range(40) if i != 7]
+    # Every ok frame carries the doubt (the wrong frame too, already suspect, so not
+    # written again beside its smoothed curve); the failed frame is not suspect, only failed.
+    assert [frame for frame, _ in summary.frames_suspect] == ok
+    assert all(reasons[i] == TIP_DOUBT for i in ok) and reasons[7] == ""
+    assert len(recording.metrics) == 40
