@@ -27,7 +27,7 @@ from .model import build_model as build_model  # re-exported: build the model, t
 from .ordering import infer_base
 from .quality import suspect_reason, tube_figures
 from .spline import smooth_curve
-from .tracking import TrackedFit, judge_fit, predict_axis, predict_length, track_tube
+from .tracking import TrackedFit, judge_fit, predict_axis, predict_length, track_tube, usual_misfit
 from .tube_fit import foreground_contrast
 from .tube_scores import radius_from_silhouettes
 
@@ -295,6 +295,7 @@ def _curve_and_quality(
         # A prediction from a suspect frame says nothing of this one's.
         predicted_mm=predicted if previous and not previous[-1].suspect else None,
         expected_length_mm=predict_length(previous, index),
+        usual_misfit=usual_misfit(previous),
     )
     timings["quality"] = time.perf_counter() - start
     return FrameResult(
@@ -309,6 +310,7 @@ def _curve_and_quality(
         radii_mm=radii,
         fit_residual_mm=float(residual),
         iou=iou,
+        misfits=tuple(misfits),
         tracked=tracked,
         suspect_reason=reason,
         timings_s=timings,

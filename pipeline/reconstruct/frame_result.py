@@ -34,6 +34,8 @@ class FrameResult:
         tube), mm, or None.
     fit_residual_mm : RMS residual of the curve fit, NaN when unknown.
     iou : per-camera IoU of the re-projected tube with the silhouette (camera order).
+    misfits : per camera, the share of its silhouette the re-projected tube leaves
+        unexplained (:func:`pipeline.reconstruct.quality.misfit_fractions`).
     tracked : the curve was fitted from the previous frames' (:mod:`pipeline.reconstruct.tracking`),
         not initialised from the hull.
     suspect_reason : why the curve may be wrong, judged without ground truth
@@ -53,6 +55,7 @@ class FrameResult:
     radii_mm: NDArray[np.float64] | None = None
     fit_residual_mm: float = float("nan")
     iou: tuple[float, ...] = ()
+    misfits: tuple[float, ...] = ()
     tracked: bool = False
     suspect_reason: str = ""
     timings_s: dict[str, float] = field(default_factory=dict)

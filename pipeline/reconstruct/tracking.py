@@ -77,6 +77,9 @@ TRACK_MEETING_VIEWS = 2
 # The track's last this many frames predict a frame's length (predict_length): a
 # second at 30 fps, as many as a segment's track holds.
 LENGTH_FRAMES = SEGMENT_FRAMES
+# A frame's misfit is judged beyond what its track's frames usually leave (usual_misfit),
+# of which at most this counts: a track that leaves more at every frame is not on the tube.
+USUAL_MISFIT_MAX = 0.03
 
 
 def segment_start(index: int) -> int:
@@ -138,6 +141,15 @@ def predict_length(previous: Sequence[FrameResult], index: int) -> float:
     i, j = np.triu_indices(len(known), 1)
     slope = float(np.median((lengths[j] - lengths[i]) / (frames[j] - frames[i])))
     return float(np.median(lengths - slope * frames)) + slope * index
+
+
+def usual_misfit(previous: Sequence[FrameResult]) -> float:
+    """The share of a silhouette the track's last ``LENGTH_FRAMES`` frames (``previous``,
+    oldest first) usually leave unexplained: the median of their worst views', at most
+    ``USUAL_MISFIT_MAX``; 0 without any. Spacer disks, which the tube drawn does not
+    have, leave 1-2.5 % of every frame unexplained."""
+    worst = [max(r.misfits) for r in previous[-LENGTH_FRAMES:] if r.misfits]
+    return min(float(np.median(worst)), USUAL_MISFIT_MAX) if worst else 0.0
 
 
 @dataclass(frozen=True, eq=False)

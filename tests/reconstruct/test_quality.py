@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from conftest import rig_cameras
 
 from pipeline.carve.silhouette import extract_silhouette
 from pipeline.reconstruct import quality
+from pipeline.reconstruct.frame_result import FrameResult
 from pipeline.reconstruct.quality import (
     misfit_fractions,
     off_smoothed,
@@ -16,6 +19,7 @@ from pipeline.reconstruct.quality import (
     tube_mask,
     tube_masks,
 )
+from pipeline.reconstruct.tracking import USUAL_MISFIT_MAX, usual_misfit
 from pipeline.session.settings import SilhouetteSettings, Workspace
 from pipeline.synth.images import THRESHOLD_DARK, render_frame
 from pipeline.synth.rig import make_rig
@@ -194,6 +198,38 @@ def test_each_sign_of_a_wrong_curve_makes_it_suspect(change: str, expected: str)
         expected_length_mm=expected_length,
     )
     assert expected in reason
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_silhouette_left_unexplained_counts_beyond_what_the_track_usually_leaves(seed: int) -> None:
+    # Spacer disks (wider rings on the tube) that the drawn tube does not have: every
+    # frame leaves their pixels unexplained, and that alone is not a wrong curve.
+    rng = np.random.default_rng(seed)
+    cams = rig_cameras()
+    axis = _arc_mm()
+    masks = quality.tube_masks(cams, axis, 6.0)
+    for k in rng.choice(np.arange(8, len(axis) - 4), 4, replace=False):
+        disk = quality.tube_masks(cams, axis[k - 1 : k + 2], 9.0)
+        masks = [m | d for m, d in zip(masks, disk, strict=True)]
+    iou, misfit = quality.tube_figures(cams, masks, axis, 6.0)
+    share = max(misfit)
+    assert share > quality.SUSPECT_MISFIT, share
+    judged = [
+        quality.suspect_reason(cams, masks, axis, 6.0, iou=iou, misfit=misfit, usual_misfit=usual)
+        for usual in (0.0, share - 0.005, share - quality.SUSPECT_MISFIT - 0.005)
+    ]
+    assert ["unexplained" in reason for reason in judged] == [True, False, True]
+    # The track's usual share: the median of its last 30 frames' worst views, capped; a
+    # frame without figures (failed) says nothing.
+    frames = [
+        FrameResult(index=i, status="ok", misfits=(0.001, m, 0.002))
+        for i, m in enumerate(rng.uniform(0.01, 0.02, 40))
+    ]
+    frames.append(FrameResult.failed(40, "camera 'cam0' image could not be decoded"))
+    worst = [max(f.misfits) for f in frames[-30:] if f.misfits]
+    assert usual_misfit(frames) == pytest.approx(np.median(worst))
+    assert usual_misfit([replace(f, misfits=(0.2,)) for f in frames[:5]]) == USUAL_MISFIT_MAX
+    assert usual_misfit([]) == 0.0
 
 
 @pytest.mark.parametrize("seed", range(4))
