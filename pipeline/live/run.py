@@ -163,8 +163,10 @@ def run_live(
     return summary
 
 
-def _model(rig: Session, sources: Sequence[Source]) -> Any:
-    """The per-session model; a replay chooses its tube end from its videos, as ``process`` does."""
+def _model(rig: Session, sources: Sequence[Source]) -> tuple[Any, str]:
+    """The per-session model; a replay chooses its tube end from its videos, as ``process``
+    does. With it, why every frame's tip is in doubt ("" where it is not: see
+    :attr:`pipeline.reconstruct.tip_shape.TipChoice.doubt`)."""
     from ..reconstruct.model import build_model
     from ..reconstruct.tip_shape import with_session_tip
 
@@ -180,8 +182,9 @@ def _model(rig: Session, sources: Sequence[Source]) -> Any:
 
         paths = [Path(s.url) for s in sources]
         frames = min(probe_video(p).frame_count for p in paths)
-        model, _ = with_session_tip(model, paths, 0, frames)
-    return model
+        model, choice = with_session_tip(model, paths, 0, frames)
+        return model, choice.doubt if choice is not None else ""
+    return model, ""
 
 
 def _run(
@@ -196,7 +199,7 @@ def _run(
 ) -> LiveSummary:
     t0 = time.perf_counter()
     names = [c.name for c in rig.cameras]
-    model = _model(rig, sources)
+    model, doubt = _model(rig, sources)
     server = None
     writer: Writers | None = None
     stop = threading.Event()
@@ -207,9 +210,7 @@ def _run(
 
             server = FoxgloveServer(*foxglove, name=f"pipeline live {rig.name}")
             log.info("Foxglove: %s (in Foxglove: Open connection, Foxglove WebSocket)", server.address)
-        writer = Writers(
-            rig, target, images=images, viewer_url=viewer_url, mirror=server, frame_doubt=model.tip_doubt
-        )
+        writer = Writers(rig, target, images=images, viewer_url=viewer_url, mirror=server, frame_doubt=doubt)
         queue = DroppingQueue(queue_sets)
         matcher = FrameMatcher(len(sources), half_period_ns(rig.fps))
         lock = threading.Lock()

@@ -31,9 +31,6 @@ class SessionModel:
     # The tube's end the fit assumes, "flat" or "round": the settings' choice, or
     # what pipeline.reconstruct.tip_shape chose from the session's frames for "auto".
     tip: str = "flat"
-    # Why every frame's tip is in doubt, "" where it is not (the end set in session.toml,
-    # or chosen clearly): see pipeline.reconstruct.tip_shape.TIP_DOUBT.
-    tip_doubt: str = ""
 
 
 def build_model(session: Session) -> SessionModel:

@@ -50,17 +50,18 @@ Window = tuple[tuple[int, int], tuple[int, int]]
 # wrong on 11, of 12 frames on 9; the votes below on 10 frames, on 1. Ten frames
 # cost ~1.8 times the six of the summed costs (the radius is read on top).
 SAMPLE_FRAMES = 10
-# Where the mean vote lies within this many standard errors of 0, the summary calls the
-# choice a close one. On 28 drawn sessions (`accuracy_table --draw 2`, 150 frames; draws 3
-# and 7 of pipeline.synth.variety, 60 frames; 2026-12-02) the sign of the mean vote chose
-# wrongly on 2, both within one standard error of 0 (a flat-ended tapered loop, +0.14 +-
-# 0.13; a flat random shape, +0.01 +- 0.18). Letting only a mean beyond the bar choose,
-# with flat otherwise (sampling up to 30 frames), chose wrongly on as many: round ends
-# whose frames barely show them went flat.
+# Where the mean vote lies within this many standard errors of 0, the choice is a close
+# one: the summary says so, and every frame is suspect for it (TIP_DOUBT). On 24 rendered
+# sessions (`accuracy_table --draw 2` and draw 7, the demo, the bench's loop and random
+# shape, three loops; 2026-12-02) the sign of the mean vote chose wrongly on 1, a close
+# call (a flat-ended tapered loop, +0.02 +- 0.10), and 5 others were close calls chosen
+# rightly, all on two cameras. Letting only a mean beyond the bar choose, with flat
+# otherwise (sampling up to 30 frames), chose wrongly as often on 28 sessions of the same
+# day: round ends whose frames barely show them went flat.
 CLEAR_T = 2.0
 CAPS = ("flat", "round")
-# Every written frame's suspect reason where the end was a close call (not ``clear``, or
-# chosen from no frame): the other end would put each tip up to a radius along the
+# Every written frame's suspect reason where the end was a close call (TipChoice.doubt:
+# not ``clear``, or chosen from no frame): the other end would put each tip up to a radius along the
 # tube from where this one does, more than 2 mm on most tubes, and no frame tells
 # which is right. The track does not see it (a frame's own suspect reason steers the
 # prediction); the writers add it (pipeline.run.outputs.Writers). On two seeded draws
@@ -175,6 +176,12 @@ class TipChoice:
         """The votes' mean lies ``CLEAR_T`` standard errors or more from 0."""
         return bool(abs(self.score) >= CLEAR_T * self.score_error)
 
+    @property
+    def doubt(self) -> str:
+        """Why every frame's tip is in doubt under this choice: ``TIP_DOUBT`` where it is
+        not clear (or made from no frame), else ""."""
+        return "" if self.clear else TIP_DOUBT
+
     def describe(self) -> str:
         if not self.frames:
             return f"{self.tip} (no frame showed a tip to choose by; set [manipulator] tip in session.toml)"
@@ -245,8 +252,9 @@ def _frame_tip(index: int, images: Sequence[NDArray[np.uint8]], model: SessionMo
     contrasts = frame_contrasts(images, model)
     coverages = pixel_coverages(contrasts, masks)
     fitted = float(result.radii_mm[-1]) if result.radii_mm is not None else result.radius_mm
-    radii = result.radii_mm if result.radii_mm is not None else np.full(len(result.centerline_mm), fitted)
-    readings = end_radius_readings(result.centerline_mm, model.cameras, coverages, fitted, radii_mm=radii)
+    readings = end_radius_readings(
+        result.centerline_mm, model.cameras, coverages, fitted, radii_mm=result.radii_mm
+    )
     return _FrameTip(result.centerline_mm, masks, contrasts, coverages, tuple(readings))
 
 
@@ -423,5 +431,4 @@ def with_session_tip(
     if settings.manipulator.tip != "auto" or settings.centerline.method != "fit":
         return model, None
     choice = choose_tip(model, decode_frames(video_paths, sample_frames(start, stop)), map_frames)
-    doubt = "" if choice.clear else TIP_DOUBT
-    return dataclasses.replace(model, tip=choice.tip, tip_doubt=doubt), choice
+    return dataclasses.replace(model, tip=choice.tip), choice

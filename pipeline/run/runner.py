@@ -317,7 +317,7 @@ def _run_with(
                     model = build_model(session)
                 model, choice = with_session_tip(model, session.video_paths, start, stop, frame_map)
                 tip = choice.describe() if choice is not None else ""
-                doubt = model.tip_doubt
+                doubt = choice.doubt if choice is not None else ""
             else:
                 model = session  # a replacement frame function gets the session as its model
             with parallel_backend(backend, scheduler, n_jobs, model) as (n_workers, shared):

@@ -11,7 +11,14 @@ import pytest
 
 from pipeline.reconstruct.frame_task import decode_frames
 from pipeline.reconstruct.model import build_model
-from pipeline.reconstruct.tip_shape import CLEAR_T, FrameEvidence, TipChoice, choose_tip, sample_frames
+from pipeline.reconstruct.tip_shape import (
+    CLEAR_T,
+    TIP_DOUBT,
+    FrameEvidence,
+    TipChoice,
+    choose_tip,
+    sample_frames,
+)
 from pipeline.session.folder import load_session
 from pipeline.synth import render_session
 from pipeline.synth.session_render import SceneOptions
@@ -92,9 +99,12 @@ def test_the_mean_vote_chooses_and_a_close_call_is_said(seed: int) -> None:
             assert choice.score_error == pytest.approx(error)
             assert choice.clear == (offset > CLEAR_T), choice.describe()
             assert ("a close call" in choice.describe()) == (offset < CLEAR_T)
+            # A close call puts every frame's tip in doubt (its reason, written with each frame).
+            assert choice.doubt == ("" if offset > CLEAR_T else TIP_DOUBT)
     # One vote is never clear, however strong; no vote is no frame.
     assert not TipChoice.from_votes([0.9], 4.0).clear
     assert TipChoice.from_votes([], 4.0).frames == 0
+    assert TipChoice.from_votes([], 4.0).doubt == TIP_DOUBT
 
 
 def test_a_round_end_fitted_as_round_ends_at_the_backbone(sessions: dict[str, Path]) -> None:
@@ -144,23 +154,3 @@ def test_the_end_radius_is_read_whole_with_the_axis_off_to_one_side(
     for shift, values in readings.items():
         assert len(values) >= FRAMES, shift
         assert np.median(values) == pytest.approx(7.0, rel=0.02), (shift, np.round(values, 2))
-
-
-def test_a_close_call_puts_every_frame_s_tip_in_doubt(
-    sessions: dict[str, Path], monkeypatch: pytest.MonkeyPatch
-) -> None:
-    from pipeline.reconstruct import tip_shape
-
-    model = build_model(load_session(sessions["flat"]))
-    settings = dataclasses.replace(
-        model.settings, manipulator=dataclasses.replace(model.settings.manipulator, tip="auto")
-    )
-    model = dataclasses.replace(model, settings=settings)
-    for votes, doubt in (([0.5, 0.6, 0.4, 0.55], ""), ([0.3, -0.2, 0.1, -0.1], tip_shape.TIP_DOUBT)):
-        monkeypatch.setattr(tip_shape, "choose_tip", lambda *a, v=votes: TipChoice.from_votes(v, 5.0))
-        chosen, choice = tip_shape.with_session_tip(model, [], 0, FRAMES)
-        assert choice is not None and chosen.tip == "round" and chosen.tip_doubt == doubt
-    # An end set in session.toml is never in doubt.
-    flat = dataclasses.replace(settings.manipulator, tip="flat")
-    fixed = dataclasses.replace(model, settings=dataclasses.replace(settings, manipulator=flat))
-    assert tip_shape.with_session_tip(fixed, [], 0, FRAMES)[0].tip_doubt == ""
