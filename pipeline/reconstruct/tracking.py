@@ -35,10 +35,14 @@ from .tube_fit import TubeFit, fit_tube
 
 FloatArray = NDArray[np.float64]
 
-# Frames per segment (1 s at 30 fps): each starts one global initialisation, so
-# the march runs on ~4 % of the frames of a steady track, and a wrong start is
-# forgotten within a second.
-SEGMENT_FRAMES = 30
+# Frames per segment (3 s at 30 fps): each starts one global initialisation (and
+# its warm-up), so the march runs on ~1 % of a steady track's frames, and a wrong
+# start that no lost-track test catches is forgotten within 3 s. Against segments
+# of 30 frames, on 31 rendered sessions (`accuracy_table` draws 2, 7 and 11, the
+# demo, four loops; 150 frames, 2026-12-02): mean error averaged over the
+# sessions 0.667 -> 0.641 mm, frames > 2 mm off 1056 -> 1050; the bench's loop
+# processed in 40.7-43.2 s of CPU instead of 44.2-45.8 (two runs each, interleaved).
+SEGMENT_FRAMES = 90
 # A segment's track starts this many frames before it, so that its first frame is
 # the third tracked one, not the initialisation.
 WARMUP_FRAMES = 3
@@ -75,8 +79,8 @@ LOST_JUMP_RADII = 1.5
 # frame-sets dropped; refining only the last radius there, 44-93 ms).
 TRACK_MEETING_VIEWS = 2
 # The track's last this many frames predict a frame's length (predict_length): a
-# second at 30 fps, as many as a segment's track holds.
-LENGTH_FRAMES = SEGMENT_FRAMES
+# second at 30 fps.
+LENGTH_FRAMES = 30
 # A frame's misfit is judged beyond what its track's frames usually leave (usual_misfit),
 # of which at most this counts: a track that leaves more at every frame is not on the tube.
 USUAL_MISFIT_MAX = 0.03

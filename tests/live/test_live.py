@@ -36,7 +36,7 @@ from pipeline.session.settings import settings_from_dict
 
 RERUN = Path(sys.executable).parent / "rerun"  # the CLI installed with rerun-sdk
 RERUN_ENV = {**os.environ, "RERUN_ANALYTICS": "off"}
-FRAMES = 20  # a short session: two thirds of a tracking segment
+FRAMES = 20  # a short session, within one tracking segment
 PERIOD_NS = 33_333_333  # 30 fps
 TOLERANCE_NS = PERIOD_NS // 2
 
