@@ -66,6 +66,24 @@ def test_the_end_that_explains_the_tips_is_chosen(sessions: dict[str, Path], tip
     assert tip in choice.describe()
 
 
+def test_more_frames_are_read_only_where_the_first_leave_a_close_call(sessions: dict[str, Path]) -> None:
+    session = load_session(sessions["round"])
+    model = build_model(session)
+    asked: list[int] = []
+
+    def more() -> list:
+        asked.append(1)
+        return decode_frames(session.video_paths, range(1, FRAMES))
+
+    # One frame's vote is never clear: the rest are read, and the choice is theirs too.
+    choice = choose_tip(model, decode_frames(session.video_paths, [0]), more=more)
+    assert asked == [1] and choice.frames > 1 and choice.tip == "round"
+    # A clear choice from the first frames reads no more.
+    clear = choose_tip(model, decode_frames(session.video_paths, range(FRAMES)), more=more)
+    assert clear.clear, clear.describe()
+    assert asked == [1]
+
+
 @pytest.mark.parametrize("case", range(DRAW_CASES))
 def test_the_end_of_a_drawn_session_is_chosen(tmp_path: Path, case: int) -> None:
     drawn = draw_cases(DRAW_SEED, 4)[case]
