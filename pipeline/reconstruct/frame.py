@@ -268,10 +268,12 @@ def _curve_and_quality(
             if held is not None:
                 options.append(held)
             if np.isfinite(init.radius_mm) and init.radius_mm > 0:
-                options.append(judge_fit(init, cameras, masks, n_points=n_points))
+                options.append(judge_fit(init, cameras, masks, n_points=n_points, contrasts=contrasts))
             best = min(options, key=lambda o: o.misfit)
             if best.curve is None:  # no fit read a tube: the hull's, drawn at the radius guessed
-                best = judge_fit(init, cameras, masks, n_points=n_points, radius_mm=radius_guess)
+                best = judge_fit(
+                    init, cameras, masks, n_points=n_points, radius_mm=radius_guess, contrasts=contrasts
+                )
         if best.fit is None or best.curve is None:
             raise ValueError("the fit gave no curve")
         curve, radii = best.curve, best.radii_mm

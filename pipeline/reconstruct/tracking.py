@@ -191,9 +191,12 @@ def judge_fit(
     *,
     n_points: int,
     radius_mm: float = np.nan,
+    contrasts: Sequence[NDArray[np.float32]] | None = None,
 ) -> TrackedFit:
     """``fit`` as the curve of ``n_points`` a frame writes, its tube drawn once in every
-    view against the silhouettes; ``radius_mm`` draws it where the fit read no radius.
+    view against the silhouettes (and ``contrasts``, see
+    :func:`pipeline.reconstruct.quality.misfit_fractions`); ``radius_mm`` draws it where the
+    fit read no radius.
     A curve with non-finite points is never the best (misfit inf)."""
     curve = smooth_curve(fit.points_mm, n_points=n_points)
     # The fit's samples and the curve's are both uniform in arc length, end to end.
@@ -202,7 +205,7 @@ def judge_fit(
     drawn = radii if radii is not None and np.isfinite(radii).all() else radius
     if not np.isfinite(curve.points_mm).all():
         return TrackedFit(fit, curve, radii)
-    iou, misfits = tube_figures(cameras, masks, curve.points_mm, drawn)
+    iou, misfits = tube_figures(cameras, masks, curve.points_mm, drawn, contrasts)
     return TrackedFit(fit, curve, radii, iou, misfits)
 
 
@@ -276,7 +279,7 @@ def track_tube(
             points_mm=bent,
             radii_mm=None if fit.radii_mm is None else by_fraction(fit.radii_mm, len(bent)),
         )
-    judged = judge_fit(fit, cameras, masks, n_points=n_points)
+    judged = judge_fit(fit, cameras, masks, n_points=n_points, contrasts=contrasts)
     lost = ""
     if judged.misfit > LOST_MISFIT:
         lost = "leaves part of a silhouette unexplained"

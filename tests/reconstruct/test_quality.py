@@ -112,6 +112,30 @@ def test_misfit_is_zero_for_the_tube_itself_and_counts_what_a_short_curve_misses
     assert misfit_fractions(cams[:1], [np.zeros_like(masks[0])], curve, 6.0) == (0.0,)  # nothing seen
 
 
+def test_a_part_the_threshold_lost_but_the_grey_levels_show_is_no_misfit() -> None:
+    from pipeline.reconstruct.tube_fit import foreground_contrast
+
+    cams = rig_cameras()
+    curve = shape_centerlines("bend_rotate", 12, base_mm=BASE)[3]
+    backgrounds = [np.full((240, 320), 170.0) for _ in cams]
+    images = render_frame(make_rig(), curve, 6.0, backgrounds, noise_sigma=0.0)
+    masks = [extract_silhouette(im, SilhouetteSettings(threshold=THRESHOLD_DARK)) for im in images]
+    contrasts = [foreground_contrast(im, polarity="dark") for im in images]
+    # One view's silhouette loses a third of the tube (a faint part over a background as
+    # dark, say); its image still shows it.
+    rows = np.nonzero(masks[0].any(axis=1))[0]
+    gap = masks[0].copy()
+    gap[rows[0] : rows[0] + len(rows) // 3] = False
+    gapped = [gap, *masks[1:]]
+    assert misfit_fractions(cams, gapped, curve, 6.0)[0] > 0.1
+    assert max(misfit_fractions(cams, gapped, curve, 6.0, contrasts)) < 0.005
+    # Where the image shows background, the drawn tube strays as before.
+    shifted = curve + np.array([6.0, 0.0, 0.0])
+    plain = misfit_fractions(cams, masks, shifted, 6.0)
+    assert misfit_fractions(cams, masks, shifted, 6.0, contrasts) == pytest.approx(plain, abs=0.01)
+    assert min(plain) > 0.05
+
+
 def test_masks_in_all_views_equal_the_per_view_ones() -> None:
     cams = rig_cameras()
     curve = shape_centerlines("helix", 12, base_mm=BASE)[7]
