@@ -53,7 +53,9 @@ SUSPECT_MISFIT = 0.02
 # track), mean error averaged over the sessions 0.642 -> 0.610 mm, frames > 2 mm off 984 ->
 # 927, good frames flagged 203 -> 135 (a round-ended loop tapered to a 2.7 mm end: mean
 # 0.46 -> 0.27 mm; a thin stepped tube: 52 -> 5 flagged); a bar of 0.25 did less (162
-# flagged).
+# flagged). The initialiser's own tests between its hypotheses
+# (pipeline.reconstruct.tube_scores.worst_misfit) count every such pixel: reading the grey
+# levels there too changed one of the 31 sessions, by little.
 STRAY_COVERAGE = 0.1
 # ... where two of its parts come closer than this many radii (a tube cannot
 # pass through itself) ...
