@@ -55,26 +55,26 @@ Window = tuple[tuple[int, int], tuple[int, int]]
 # 11 -> 7 (three cameras 3 -> 2), wrong choices 2 -> 1; the clear sessions read no more.
 SAMPLE_FRAMES = 10
 # Where the mean vote lies within this many standard errors of 0, the choice is a close
-# one: the summary says so, and every frame is suspect for it (TIP_DOUBT). On 24 rendered
-# sessions (`accuracy_table --draw 2` and draw 7, the demo, the bench's loop and random
-# shape, three loops; 2026-12-02) the sign of the mean vote chose wrongly on 1, a close
-# call (a flat-ended tapered loop, +0.02 +- 0.10), and 5 others were close calls chosen
-# rightly, all on two cameras. Letting only a mean beyond the bar choose, with flat
-# otherwise (sampling up to 30 frames), chose wrongly as often on 28 sessions of the same
-# day: round ends whose frames barely show them went flat.
+# one: the summary says so, and every frame is suspect for it (TIP_DOUBT). On the 32
+# sessions above (with the second round of frames) the sign of the mean vote chose wrongly
+# on 1, a close call (a round-ended loop tapered to a 2.7 mm end, -0.19 +- 0.14), and 6
+# others were close calls chosen rightly, 5 of them on two cameras; on a fresh draw
+# (`accuracy_table --draw 13 --cases 8 --frames 90`, same day), wrongly on 1 of its 3 close
+# calls (a round-ended tube tapered to 2.7 mm, three cameras, -0.03 +- 0.10). Letting only
+# a mean beyond the bar choose, with flat otherwise (sampling up to 30 frames), chose
+# wrongly as often on 28 sessions: round ends whose frames barely show them went flat.
 CLEAR_T = 2.0
 CAPS = ("flat", "round")
 # Every written frame's suspect reason where the end was a close call (TipChoice.doubt:
-# not ``clear``, or chosen from no frame): the other end would put each tip up to a radius along the
-# tube from where this one does, more than 2 mm on most tubes, and no frame tells
+# not ``clear``, or chosen from no frame): the other end would put each tip up to a radius
+# along the tube from where this one does, more than 2 mm on most tubes, and no frame tells
 # which is right. The track does not see it (a frame's own suspect reason steers the
-# prediction); the writers add it (pipeline.run.outputs.Writers). On two seeded draws
-# (`accuracy_table --draw 2 --cases 10 --frames 150` and `--draw 7 --cases 8 --frames
-# 120`, 2026-12-02) the flag then names 88 and 87 % of the frames more than 2 mm off
-# (68 and 71 % without it) and 40 and 27 % of the others (25 and 15 %); on three
-# cameras 80 and 58 % (37 and 58 %) and 16.0 and 7.0 % (14.9 and 7.0 %). The close
-# calls were a flat tapered loop fitted as round, every tip 3-5 mm off along the
-# tube, and two-camera sessions, whose good frames are flagged with them.
+# prediction); the writers add it (pipeline.run.outputs.Writers). On three seeded draws
+# (`accuracy_table --draw 2 --cases 10 --frames 150`, `--draw 7 --cases 8 --frames 120`,
+# `--draw 13 --cases 8 --frames 90`; 2026-12-02) the flag names 70, 86 and 68 % of the
+# frames more than 2 mm off (60, 64 and 55 % without this reason) and 11.4, 24.2 and
+# 45.9 % of the others (4.1, 12.5 and 2.1 %): the close calls' good frames are flagged
+# with their wrong ones.
 TIP_DOUBT = "the tube's end, flat or round, is a close call: its tip may be a radius off along the tube"
 # The bend under each end: its last radius, sought within a few mm of the fit.
 _SPANS_RADII = (2.0, 1.0)
