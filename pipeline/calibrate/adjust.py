@@ -96,15 +96,17 @@ def parameter_jacobian(camera: Camera, points_mm: FloatArray) -> FloatArray:
 
 @dataclass(frozen=True, eq=False)
 class Tube:
-    """One frame's evidence: its tube and the views' contrast images.
+    """One frame's evidence: its tube and the views' images.
 
     points_mm : (K, 3) axis samples base -> tip, mm; radii_mm : (K,) radius along it, mm;
-    contrasts : per camera (H, W) float32 (:func:`pipeline.reconstruct.tube_fit.foreground_contrast`).
+    contrasts : per camera (H, W) float32 (:func:`pipeline.reconstruct.tube_fit.foreground_contrast`);
+    masks : per camera (H, W) bool, the silhouettes.
     """
 
     points_mm: FloatArray
     radii_mm: FloatArray
     contrasts: tuple[NDArray[np.float32], ...]
+    masks: tuple[NDArray[np.bool_], ...]
 
 
 def resampled_tube(
@@ -112,16 +114,17 @@ def resampled_tube(
     radii_mm: FloatArray | None,
     radius_mm: float,
     contrasts: Sequence[NDArray[np.float32]],
+    masks: Sequence[NDArray[np.bool_]],
 ) -> Tube:
-    """A frame's centreline (M, 3) with its radii (M,) (or one ``radius_mm``) as a
-    :class:`Tube` sampled every ~``SPACING_MM``."""
+    """A frame's centreline (M, 3) with its radii (M,) (or one ``radius_mm``) and its
+    views' ``contrasts`` and ``masks`` as a :class:`Tube` sampled every ~``SPACING_MM``."""
     arc = polyline_arclength(points_mm)
     k = max(round(float(arc[-1]) / SPACING_MM) + 1, 4)
     pts = resample_polyline(points_mm, k, arclength_mm=arc)
     radii = (
         np.full(k, radius_mm) if radii_mm is None else by_fraction(np.asarray(radii_mm, dtype=np.float64), k)
     )
-    return Tube(pts, radii, tuple(contrasts))
+    return Tube(pts, radii, tuple(contrasts), tuple(masks))
 
 
 @dataclass(frozen=True)

@@ -3,12 +3,21 @@
 The silhouettes cannot tell a rig from the same rig moved with what it sees, and
 the given cameras' poses hold it (:func:`pipeline.calibrate.adjust.nearest_to_given`)
 only as well as three cameras' errors average out, which leaves it millimetres
-from the true one (docs/calibration.md: 0.5-2.9 mm), most of it a shift. The
+from the true one (docs/calibration.md: 0.4-3.3 mm), most of it a shift. The
 tube's base is mounted at ``[manipulator] base_mm``: where the refined cameras
 see the base end, in each frame refined on, says how far the rig is off, and
-the rig is moved by that (the median over the frames). The end is read as the
-tip is (:func:`pipeline.reconstruct.tube_tip.refit_tip`, on the axis run
-backwards): where each view's grey image leaves the tube along its course.
+the rig is moved by that (the median over the frames). The end is read as a
+tracked tip is, on the axis run backwards: where each view's grey image leaves
+the tube along its course (:func:`pipeline.reconstruct.tube_tip.refit_tip`),
+then the end's last radius bent and lengthened until the tube drawn matches the
+grey levels around it (:func:`pipeline.reconstruct.tip_bend.refine_tip_to_pixels`).
+The outline is what places the end: a base standing up towards cameras that
+look down on it is seen nearly end-on (0.35-0.4 px per mm along its axis at
+320x240), where an edge read on one line 0.3 px off puts the end 0.8 mm off,
+and the whole outline averages such errors out (the helix of
+docs/calibration.md, true cameras and tubes, 16 frames, along the axis: from the
+edges a median of 0.19 mm and up to 0.84 mm in a frame, from the outline -0.01
+and 0.26 mm).
 
 A base end that the frames do not see alike (hidden in a mount, out of view) or
 that is farther from ``base_mm`` than a calibration's error can put it leaves
@@ -23,6 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..geometry.camera import Camera
+from ..reconstruct.tip_bend import refine_tip_to_pixels
 from ..reconstruct.tube_tip import refit_tip
 from .adjust import Similarity, Tube
 
@@ -38,19 +48,24 @@ _MAX_SHIFT_MM = 6.0
 _MIN_FRAMES = 3
 # The base's radius: the median over the tube's first samples (~4 mm apart).
 _BASE_SAMPLES = 3
+# The part of the axis (radii back from the end) bent to the grey levels.
+_BEND_RADII = (1.0,)
 # What the note ends with when base_mm itself seems wrong.
 CHECK_BASE = "check base_mm"
 
 
 def base_ends(cameras: Sequence[Camera], tubes: Sequence[Tube]) -> FloatArray:
-    """(F, 3) where ``cameras`` see each tube's base end, mm (its flat end, read along
-    the axis run backwards, as the tip is)."""
+    """(F, 3) where ``cameras`` see each tube's base end, mm (its flat end, read on the
+    axis run backwards, see the module)."""
     ends = []
     for tube in tubes:
-        backwards = tube.points_mm[::-1]
         # The tube's radius at its base (a tapered tube's is its widest).
         radius = float(np.median(tube.radii_mm[:_BASE_SAMPLES]))
-        ends.append(refit_tip(backwards, cameras, tube.contrasts, radius, cap="flat")[-1])
+        backwards = refit_tip(tube.points_mm[::-1], cameras, tube.contrasts, radius, cap="flat")
+        fitted = refine_tip_to_pixels(
+            backwards, cameras, tube.masks, tube.contrasts, radius, spans_radii=_BEND_RADII, cap="flat"
+        )
+        ends.append(fitted[-1])
     return np.array(ends, dtype=np.float64).reshape(-1, 3)
 
 

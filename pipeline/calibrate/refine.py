@@ -172,11 +172,11 @@ def sample_tubes(
 
 def _sample_tube(index: int, images: Sequence[NDArray[np.uint8]], model: SessionModel) -> Tube | None:
     """One frame's tube for :func:`sample_tubes` (``model``: its base free); None without a curve."""
-    result, _ = reconstruct_with_silhouettes(index, images, model)
+    result, masks = reconstruct_with_silhouettes(index, images, model)
     if result.status != "ok" or result.centerline_mm is None or not np.isfinite(result.radius_mm):
         return None
     contrasts = frame_contrasts(images, model)
-    return resampled_tube(result.centerline_mm, result.radii_mm, result.radius_mm, contrasts)
+    return resampled_tube(result.centerline_mm, result.radii_mm, result.radius_mm, contrasts, masks)
 
 
 def distinct_poses(tubes: Sequence[Tube], *, apart_mm: float = _POSE_APART_MM) -> int:

@@ -181,13 +181,15 @@ def test_the_given_cameras_errors_average_out_in_the_world_frame() -> None:
 
 
 def test_the_base_end_is_seen_where_the_rig_puts_it(sampled: Sampled) -> None:
-    """With the true cameras the tubes' base ends are at the mount; a rig moved by a known
-    shift sees them moved by it; a mount set far from where the tube is, is not followed."""
+    """With the true cameras the tubes' base ends are at the mount (within 0.3 mm; the
+    end's edge along the axis alone reads them 0.31 mm off here); a rig moved
+    by a known shift sees them moved by it; a mount set far from where the tube is, is
+    not followed."""
     model, tubes = sampled[0.0]
     base = np.asarray(model.settings.manipulator.base_mm, dtype=np.float64)
     shift, note = mount_shift(model.cameras, tubes, base)
     assert shift is not None and not note
-    assert np.linalg.norm(shift) < 0.7
+    assert np.linalg.norm(shift) < 0.3
     moved_by = np.array([1.5, -1.0, 2.0])
     moved = moved_to_mount(model.cameras, moved_by)
     moved_tubes = [replace(t, points_mm=t.points_mm - moved_by) for t in tubes]
