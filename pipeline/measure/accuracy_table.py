@@ -300,13 +300,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             errors = [float(v) for v in args.calib_error.split(",")]
         except ValueError:
             parser.error(f"--calib-error takes degrees separated by commas, got {args.calib_error!r}")
-        if not all(isinstance(c, Case) for c in cases):
-            parser.error("--calib-error applies to the default cases, not to --draw")
+        # A default case's name is its own; a drawn case's tells its error by itself.
         cases = [
             dataclasses.replace(c, name=f"{c.name}-calib{e:g}", calib_error_deg=e)
+            if isinstance(c, Case)
+            else dataclasses.replace(c, calib_error_deg=e)
             for e in errors
             for c in cases
-            if isinstance(c, Case)
         ]
     refine = {"auto": "auto", "true": True, "false": False, None: None}[args.refine]
     try:

@@ -51,6 +51,8 @@ class Case:
     radius_mm: float
     seed: int
     size: tuple[int, int] = (320, 240)
+    # The calibration.toml's error (pipeline.synth.calib_error); the videos use the true cameras.
+    calib_error_deg: float = 0.0
 
     @property
     def scene(self) -> list[str]:
@@ -65,6 +67,7 @@ class Case:
         return (
             f"{self.shape}-{self.tip}-{self.profile}-{self.arrangement}-{self.cameras}cam-"
             f"r{self.radius_mm:g}-{self.size[0]}x{self.size[1]}{bright}{flags}-s{self.seed}"
+            + (f"-calib{self.calib_error_deg:g}" if self.calib_error_deg else "")
         )
 
     def describe(self) -> str:
@@ -73,6 +76,7 @@ class Case:
             f"{self.shape} (seed {self.seed}), {self.tip} tip, {self.profile}, r {self.radius_mm:g} mm, "
             f"{self.arrangement} {self.cameras} cameras, {self.size[0]}x{self.size[1]}, {self.polarity}"
             + "".join(f", {f}" for f in self.scene)
+            + (f", calibration {self.calib_error_deg:g} deg off" if self.calib_error_deg else "")
         )
 
     def options(self) -> SceneOptions:
@@ -83,6 +87,7 @@ class Case:
             size=self.size,
             distractor=self.distractor,
             flicker=self.flicker,
+            calib_error_deg=self.calib_error_deg,
         )
 
 

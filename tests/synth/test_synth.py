@@ -15,6 +15,7 @@ import pytest
 from numpy.typing import NDArray
 
 from pipeline.errors import PipelineError
+from pipeline.session.calibration_io import read_calibration
 from pipeline.session.settings import load_settings
 from pipeline.synth.images import (
     FLICKER,
@@ -822,6 +823,18 @@ def test_render_case_writes_what_the_case_says(tmp_path: Path) -> None:
     assert str(gt["profile"]) == case.profile and len(gt["camera_names"]) == 2
     assert (int(gt["distractor_camera"]) >= 0) == case.distractor
     assert load_settings(tmp_path / "session.toml").silhouette.polarity == case.polarity
+    assert float(gt["calib_error_deg"]) == 0.0
+
+
+def test_a_drawn_case_with_a_calibration_error_says_so_and_renders_it(tmp_path: Path) -> None:
+    case = dataclasses.replace(draw_cases(5, 1)[0], calib_error_deg=0.05)
+    assert case.name.endswith("-calib0.05") and "0.05 deg off" in case.describe()
+    assert case.name != draw_cases(5, 1)[0].name
+    render_case(case, tmp_path, 2)
+    gt = np.load(tmp_path / "ground_truth.npz")
+    assert float(gt["calib_error_deg"]) == 0.05
+    given = read_calibration(tmp_path / "calibration.toml")
+    assert all(not np.allclose(cam.matrix, k) for cam, k in zip(given, gt["K"], strict=True))
 
 
 def test_bad_variety_options_raise_pipeline_errors(tmp_path: Path) -> None:
