@@ -214,18 +214,17 @@ def refine(
     model: SessionModel,
     tubes: Sequence[Tube],
     mode: str | bool,
-    refit: Callable[[Sequence[Camera]], Sequence[Tube]] | None = None,
+    refit: Callable[[Sequence[Camera]], Sequence[Tube]],
 ) -> tuple[tuple[Camera, ...], Refinement]:
     """The cameras to reconstruct with, given the refinement ``mode`` ("auto", True or
     False), and the refinement's report.
 
     ``refit``: the frames' tubes reconstructed again with given cameras
-    (:func:`refitter`), to read the base on (:mod:`.mount`); without it, the base is
-    read on the tubes as adjusted. The adjustment moves each tube by linear steps,
-    smooth along it, and leaves a base that the given cameras put millimetres off
-    still 2-6 mm from where the adjusted cameras see it (a bend, 0.15 deg off, 16
-    frames): too far for the end's reading, which looks along the tube and a radius
-    across it.
+    (:func:`refitter`), to read the base on (:mod:`.mount`). The adjusted tubes will
+    not do: the adjustment moves each tube by linear steps, smooth along it, and leaves
+    a base that the given cameras put millimetres off still 2-6 mm from where the
+    adjusted cameras see it (a bend, 0.15 deg off, 16 frames), too far for the end's
+    reading, which looks along the tube and a radius across it.
     """
     given = model.cameras
     poses = distinct_poses(tubes)
@@ -253,8 +252,7 @@ def refine(
     shift, held_by = None, "no [manipulator] base_mm"
     base = model.settings.manipulator.base_mm
     if applied and base is not None:
-        at_base = adjustment.tubes if refit is None else refit(cameras)
-        shift, held_by = mount_shift(cameras, at_base, np.asarray(base))
+        shift, held_by = mount_shift(cameras, refit(cameras), np.asarray(base))
         if shift is not None:
             cameras = moved_to_mount(cameras, shift)
             points = points - shift

@@ -141,9 +141,9 @@ def test_an_exact_calibration_is_kept(sampled: Sampled) -> None:
 
 def test_a_tube_that_stands_still_is_not_refined_on(sampled: Sampled) -> None:
     """Frames of one pose repeat one view of the tube: "auto" keeps the given cameras."""
-    model, tubes, _ = sampled[0.15]
+    model, tubes, refit = sampled[0.15]
     assert distinct_poses(tubes) >= 2
-    cameras, report = refine(model, [tubes[0]] * 6, "auto")
+    cameras, report = refine(model, [tubes[0]] * 6, "auto", refit)
     assert cameras is model.cameras and not report.applied
     assert "1 distinct pose in the 6 frames" in report.describe()
 
