@@ -239,6 +239,7 @@ def _curve_and_quality(
                 cap=model.tip,
                 radii_mm=radii_mm,
                 n_points=n_points,
+                usual_misfit=usual_misfit(previous),
             )
 
         held = None

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pipeline.reconstruct.frame_result import FrameResult
-from pipeline.reconstruct.frame_task import process_range
+from pipeline.reconstruct.frame_task import Tracker, decode_frames, process_range
 from pipeline.reconstruct.model import build_model
 from pipeline.reconstruct.tracking import (
     LENGTH_FRAMES,
@@ -23,6 +23,7 @@ from pipeline.reconstruct.tracking import (
 )
 from pipeline.session.folder import load_session
 from pipeline.synth import render_session
+from pipeline.synth.session_render import SceneOptions
 
 
 def _ok(index: int, axis_mm: np.ndarray) -> FrameResult:
@@ -91,6 +92,27 @@ def test_a_track_whose_last_frame_has_no_curve_is_lost() -> None:
     axis = np.column_stack([np.zeros(8), np.zeros(8), np.linspace(0.0, 70.0, 8)])
     assert predict_axis([]) is None
     assert predict_axis([_ok(4, axis), FrameResult.failed(5, "camera lost")]) is None
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_a_track_over_spacer_disks_holds(tmp_path: Path, seed: int) -> None:
+    # Disks, which the tube drawn does not have, leave about 1 % of every silhouette
+    # unexplained: the track is judged beyond what its frames usually leave, not lost
+    # (and started again from the hull) wherever a view's share crosses 1 %.
+    render_session(
+        tmp_path,
+        shape="random",
+        frames=24,
+        seed=seed,
+        options=SceneOptions(profile="disks"),
+        progress=False,
+        jobs=1,
+    )
+    session = load_session(tmp_path)
+    tracker = Tracker(build_model(session), [c.name for c in session.cameras], images=False)
+    results = [tracker.step(i, images).result for i, images in decode_frames(session.video_paths, range(24))]
+    assert max(max(r.misfits) for r in results) > 0.01  # the disks' share does cross 1 %
+    assert [r.index for r in results if not r.tracked] == [0]
 
 
 @pytest.fixture(scope="module")
