@@ -78,7 +78,7 @@ TRACK_CROWD_MARGIN_PX = 4.0
 #   loops or disks, `accuracy_table` draws 2, 13 and 21 without them, the demo; 150
 #   frames each, 2026-12-02), the mean error averaged 0.589 -> 0.523 mm, its p95 2.18
 #   -> 1.64 mm, the median tip 1.15 -> 1.08 mm, frames > 2 mm off 951 -> 938; a
-#   two-camera r 7.5 random shape 1.41 -> 0.41 mm mean (p95 10.2 -> 1.25 mm), 20 of
+#   two-camera r 7.5 random shape 1.41 -> 0.41 mm mean (p95 10.2 -> 1.25 mm), 21 of
 #   the 31 unchanged.
 LOST_MISFIT = 0.01
 # ... passes through itself (parts' axes closer than this many radii) ...
@@ -250,12 +250,12 @@ def track_tube(
     (:func:`pipeline.reconstruct.tip_bend.refine_tip_to_pixels`).
     The track is lost (the caller initialises again from the hull) where the
     fit leaves part of a silhouette unexplained even after as many rounds again,
-    passes through itself, or jumped from the prediction (``LOST_*``). ``cap``: the tube's end, "flat"
-    or "round"; ``radii_mm``: (N,) the radius at each point of the prediction, mm
-    (default ``radius_mm`` everywhere); ``n_points``: samples of the curve judged
-    (:func:`judge_fit`); ``usual_misfit``: the share of a silhouette the track's
-    frames usually leave unexplained (:func:`usual_misfit`), beyond which the misfit
-    is judged.
+    passes through itself, or jumped from the prediction (``LOST_*``).
+    ``cap``: the tube's end, "flat" or "round"; ``radii_mm``: (N,) the radius at
+    each point of the prediction, mm (default ``radius_mm`` everywhere);
+    ``n_points``: samples of the curve judged (:func:`judge_fit`); ``usual_misfit``:
+    the share of a silhouette the track's frames usually leave unexplained
+    (:func:`usual_misfit`), beyond which the misfit is judged.
     """
     if not (np.isfinite(radius_mm) and radius_mm > 0):
         return TrackedFit(None, lost="no radius to track")
@@ -308,8 +308,8 @@ def track_tube(
     if not read_a_tube(fit):
         return TrackedFit(None, lost="the fit read no tube")
     judged = judged_with_tip(fit)
-    unexplained = LOST_MISFIT + usual_misfit
-    if judged.misfit > unexplained and judged.fit is not None:
+    lost_misfit = LOST_MISFIT + usual_misfit
+    if judged.misfit > lost_misfit and judged.fit is not None:
         # Part of a silhouette left unexplained: as many rounds again, from where the fit
         # got to, before the track is called lost (see LOST_MISFIT).
         again = rounds(judged.fit.points_mm, judged.fit.radius_mm, judged.fit.radii_mm)
@@ -319,7 +319,7 @@ def track_tube(
                 judged = retried
     fit = judged.fit if judged.fit is not None else fit
     lost = ""
-    if judged.misfit > unexplained:
+    if judged.misfit > lost_misfit:
         lost = "leaves part of a silhouette unexplained"
     elif self_intersects(fit.points_mm, fit.radius_mm, closest_radii=LOST_CLOSEST_RADII):
         lost = "passes through itself"
