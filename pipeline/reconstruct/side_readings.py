@@ -26,7 +26,7 @@ from .profiles import (
     sample_lines_in,
     side_edges,
 )
-from .tube_tip import MIN_SIN_VIEW, tip_zone
+from .tube_tip import END_SPAN_MM, MIN_SIN_VIEW, tip_zone
 
 FloatArray = NDArray[np.float64]
 
@@ -44,6 +44,18 @@ _WIDTH_TOLERANCE = 1.3
 # per 20 mm) and stray readings stay a minority of the window even where it is
 # cut short at the tube's ends; a step or taper is followed within ~16 mm.
 _PROFILE_HALF_SPAN = 4
+# Over the tube's last _END_SPAN_MM (the span its end is extrapolated from, see
+# pipeline.reconstruct.tube_tip.END_SPAN_MM) an edge may sit no farther from the axis than
+# this factor times the tube's own radius at the end, on rigs of three views or more (see
+# _end_limit). Measured on 31 rendered sessions (12 with loops or spacer disks,
+# `accuracy_table` draws 2, 13 and 21, the demo; 90 tracked frames each, the true tube end;
+# 2026-12-03), without the limit and with it: the three-camera disk sessions' median tips
+# 1.38, 1.27, 2.95 against 0.59, 0.89, 2.54 mm (frames more than 2 mm off 29, 24 against
+# 8, 1); the 18 three-camera sessions' frames more than 2 mm off 319 against 281, the
+# bench's loop's median tip 0.43 against 0.50 mm. On two-camera rigs the limit lost tracks
+# (a tapered r 5 tube 1.03 against 1.29 mm mean). 1.2 and 1.15 kept less of the gain.
+_END_TOLERANCE = 1.12
+_END_SPAN_MM = END_SPAN_MM
 
 
 @dataclass(frozen=True, eq=False)
@@ -197,24 +209,12 @@ def read_sides(
     ok = e.ok & sides_seen  # (C, K)
     apart_mm = 2.5 * float(expected.max()) + spacing_mm
     crowd = _crowded(e.px, e.t_hat, e.r_px, arc, apart_mm, margin_px=crowd_margin_px)
-    # A trusted edge is uncrowded on its side and within the limit of the axis
-    # (the axis being where the other edge says, if that one is further out).
-    use_lo = ok & ~crowd[..., 0] & (-e.lo < e.limit + np.maximum(0.0, e.hi))
-    use_hi = ok & ~crowd[..., 1] & (e.hi < e.limit + np.maximum(0.0, -e.lo))
-    # A reading narrower than the tube (by the same tolerance) found an edge
+    rows, left, right = e.rows.transpose(1, 0, 2), e.lo.T, e.hi.T
+    # A reading narrower than the tube (by the width tolerance) found an edge
     # inside the silhouette: the outline of another part lying over this one.
     narrow = ok & (e.hi - e.lo < 2.0 * e.floor)
-    keep = ~narrow
-    use_lo &= keep
-    use_hi &= keep
-    keep = ~(use_lo & use_hi & (e.hi - e.lo > 2.0 * e.limit))
-    use = np.stack([use_lo & keep, use_hi & keep], axis=-1).transpose(1, 0, 2)  # (K, C, 2)
-    rows, left, right = e.rows.transpose(1, 0, 2), e.lo.T, e.hi.T
-    both = use[..., 0] & use[..., 1] & interior[:, None]
-    half = 0.5 * (right - left)[both]
-    radius = median_1d(half) if half.size >= 3 else float(np.median(expected))
     # The radius along the tube from every two-edge reading no other part crowds,
-    # whatever its width: the width tests above judge widths by the radius
+    # whatever its width: the width tests below judge widths by the radius
     # expected, so they would keep a tapered or stepped tube's thinner part from
     # ever being read.
     uncrowded = (ok & ~crowd[..., 0] & ~crowd[..., 1]).T & interior[:, None]
@@ -222,6 +222,16 @@ def read_sides(
     # The end's radius from the uncrowded readings no narrower than the tube (a
     # taper's end is), whatever their width above it (see _end_radius).
     end_radius = _end_radius(0.5 * (right - left), uncrowded & ~narrow.T)
+    limit = _end_limit(e, arc, expected, end_radius)
+    # A trusted edge is uncrowded on its side and within the limit of the axis
+    # (the axis being where the other edge says, if that one is further out).
+    use_lo = ok & ~crowd[..., 0] & ~narrow & (-e.lo < limit + np.maximum(0.0, e.hi))
+    use_hi = ok & ~crowd[..., 1] & ~narrow & (e.hi < limit + np.maximum(0.0, -e.lo))
+    keep = ~(use_lo & use_hi & (e.hi - e.lo > 2.0 * limit))
+    use = np.stack([use_lo & keep, use_hi & keep], axis=-1).transpose(1, 0, 2)  # (K, C, 2)
+    both = use[..., 0] & use[..., 1] & interior[:, None]
+    half = 0.5 * (right - left)[both]
+    radius = median_1d(half) if half.size >= 3 else float(np.median(expected))
     # One edge places the axis a half-width in from it: the half-width as this
     # view reads it (its blur and grey levels bias both edges alike, by up to
     # half a pixel, which the mid-point of two edges cancels and one edge does
@@ -287,6 +297,34 @@ def _end_radius(half_mm: FloatArray, both: NDArray[np.bool_]) -> float:
         return float("nan")
     last = seen[-(2 * _PROFILE_HALF_SPAN + 1) :]
     return percentile_1d(half_mm[last][both[last]], 0.25)
+
+
+def _end_limit(
+    e: _CameraEdges, arc_mm: FloatArray, expected_mm: FloatArray, end_radius_mm: float
+) -> FloatArray:
+    """(C, K) the farthest an edge may sit from the axis (mm): ``e.limit``, and over the
+    tube's last ``_END_SPAN_MM`` no more than ``_END_TOLERANCE`` times its own radius at
+    the end (``end_radius_mm``, +0.5 px of edge blur).
+
+    Spacer disks widen the silhouette by up to their own width: within the usual limit
+    (the profile's radius, which they raise, times ``_WIDTH_TOLERANCE``) their
+    readings are kept. A disk's ellipse read along a normal that is off by the
+    tangent's error has its chord's mid-point off the axis in the same sense (an
+    ellipse's chords are bisected on the axis only across its own axes; a
+    cylinder's, between two parallel edges, on any line), so that near the tip,
+    where nothing past it holds the tangent, a curl feeds itself frame after
+    frame. Judged by the tube's own radius there, a disk's readings are dropped.
+
+    Only where three views or more read the tube: two views' readings are exactly the
+    two numbers that place each sample, and a tip left with one view's readings is
+    free along the other's normal.
+    """
+    if not np.isfinite(end_radius_mm) or e.r_px.shape[0] < 3:
+        return e.limit
+    px_per_mm = e.r_px / np.maximum(expected_mm, 1e-12)[None, :]
+    tight = (_END_TOLERANCE * end_radius_mm * px_per_mm + 0.5) / np.where(px_per_mm > 0, px_per_mm, 1.0)
+    near_end = (arc_mm > arc_mm[-1] - _END_SPAN_MM)[None, :]
+    return np.where(near_end, np.minimum(e.limit, tight), e.limit)
 
 
 def centre_across(

@@ -5,10 +5,12 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
+from pipeline.reconstruct import frame as frame_module
 from pipeline.reconstruct.frame_result import FrameResult
 from pipeline.reconstruct.frame_task import Tracker, decode_frames, process_range
 from pipeline.reconstruct.model import build_model
@@ -16,14 +18,17 @@ from pipeline.reconstruct.tracking import (
     LENGTH_FRAMES,
     SEGMENT_FRAMES,
     WARMUP_FRAMES,
+    TrackedFit,
     predict_axis,
     predict_length,
     segment_start,
     track_start,
+    track_tube,
 )
-from pipeline.session.folder import load_session
+from pipeline.session.folder import Session, load_session
 from pipeline.synth import render_session
 from pipeline.synth.session_render import SceneOptions
+from pipeline.synth.variety import draw_cases, render_case
 
 
 def _ok(index: int, axis_mm: np.ndarray) -> FrameResult:
@@ -94,8 +99,33 @@ def test_a_track_whose_last_frame_has_no_curve_is_lost() -> None:
     assert predict_axis([_ok(4, axis), FrameResult.failed(5, "camera lost")]) is None
 
 
+def _tracked_with_losses(
+    session: Session, frames: range, monkeypatch: pytest.MonkeyPatch
+) -> tuple[list[FrameResult], list[str]]:
+    """``frames`` of ``session`` tracked one after the other: their results, and why the
+    track was lost at each frame after the first ("" where it held)."""
+    losses: list[str] = []
+
+    def recorded(*args: Any, **kwargs: Any) -> TrackedFit:
+        fit = track_tube(*args, **kwargs)
+        losses.append(fit.lost)
+        return fit
+
+    monkeypatch.setattr(frame_module, "track_tube", recorded)
+    tracker = Tracker(build_model(session), [c.name for c in session.cameras], images=False)
+    results, held = [], []
+    for n, (i, images) in enumerate(decode_frames(session.video_paths, frames)):
+        first = len(losses)
+        results.append(tracker.step(i, images).result)
+        if n > 0:  # a frame's first fit, where there is a track, is its prediction's
+            held.append(losses[first])
+    return results, held
+
+
 @pytest.mark.parametrize("seed", [1, 3])
-def test_a_track_over_spacer_disks_holds(tmp_path: Path, seed: int) -> None:
+def test_a_track_over_spacer_disks_is_not_lost_for_them(
+    tmp_path: Path, seed: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # Disks, which the tube drawn does not have, leave about 1 % of every silhouette
     # unexplained: the track is judged beyond what its frames usually leave, not lost
     # (and started again from the hull) wherever a view's share crosses 1 %.
@@ -109,23 +139,42 @@ def test_a_track_over_spacer_disks_holds(tmp_path: Path, seed: int) -> None:
         jobs=1,
     )
     session = load_session(tmp_path)
-    tracker = Tracker(build_model(session), [c.name for c in session.cameras], images=False)
-    results = [tracker.step(i, images).result for i, images in decode_frames(session.video_paths, range(24))]
+    results, held = _tracked_with_losses(session, range(24), monkeypatch)
     assert max(max(r.misfits) for r in results) > 0.01  # the disks' share does cross 1 %
-    assert [r.index for r in results if not r.tracked] == [0]
+    assert "leaves part of a silhouette unexplained" not in held
+    assert sum(not r.tracked for r in results) <= 2
 
 
-def test_a_track_that_falls_behind_its_tube_is_given_more_rounds_not_lost(tmp_path: Path) -> None:
+def test_a_tracked_tip_by_a_spacer_disk_does_not_curl_onto_it(tmp_path: Path) -> None:
+    # A disk a radius or so from the end, seen at an angle, is read across a tangent
+    # that is off by the tip's error: its chord's mid-point lies off the axis in the
+    # same sense, and the tip curls frame after frame (this drawn case: median tip
+    # 1.45 mm without the end's own width limit, 0.9 mm with it).
+    case = next(c for c in draw_cases(2, 10) if c.profile == "disks" and c.cameras == 3)
+    session_dir = render_case(case, tmp_path, 24, jobs=1)
+    truth = np.load(session_dir / "ground_truth.npz")
+    session = load_session(session_dir)
+    model = replace(build_model(session), tip=str(truth["tip"]))
+    tracker = Tracker(model, [c.name for c in session.cameras], images=False)
+    tips = [
+        np.linalg.norm(tracker.step(i, images).result.centerline_mm[-1] - truth["centerlines"][i][-1])
+        for i, images in decode_frames(session.video_paths, range(24))
+    ]
+    assert np.median(tips) < 1.1
+
+
+def test_a_track_that_falls_behind_its_tube_is_given_more_rounds_not_lost(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # Fitted every fifth frame, the tube moves farther between fits than the track's
     # velocity predicts; where the first rounds leave part of a silhouette unexplained,
     # more rounds from where they got to catch it up (without them, frame 50 of this
-    # random shape is started again from the hull).
+    # random shape is started again from the hull for it). A fit that catches up by
+    # more than LOST_JUMP_RADII is still started again (15, 20 and 35 here).
     render_session(tmp_path, shape="random", frames=60, seed=4, progress=False, jobs=1)
-    session = load_session(tmp_path)
-    tracker = Tracker(build_model(session), [c.name for c in session.cameras], images=False)
-    frames = decode_frames(session.video_paths, range(0, 60, 5))
-    results = [tracker.step(i, images).result for i, images in frames]
-    assert [r.index for r in results if not r.tracked] == [0]
+    results, held = _tracked_with_losses(load_session(tmp_path), range(0, 60, 5), monkeypatch)
+    assert "leaves part of a silhouette unexplained" not in held
+    assert sum(not r.tracked for r in results) <= 4
 
 
 @pytest.fixture(scope="module")
