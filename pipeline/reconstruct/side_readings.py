@@ -44,8 +44,8 @@ _WIDTH_TOLERANCE = 1.3
 # per 20 mm) and stray readings stay a minority of the window even where it is
 # cut short at the tube's ends; a step or taper is followed within ~16 mm.
 _PROFILE_HALF_SPAN = 4
-# Over the tube's last _END_SPAN_MM (the span its end is extrapolated from, see
-# pipeline.reconstruct.tube_tip.END_SPAN_MM) an edge may sit no farther from the axis than
+# Over the tube's last END_SPAN_MM (the span its end is extrapolated from, see
+# pipeline.reconstruct.tube_tip) an edge may sit no farther from the axis than
 # this factor times the tube's own radius at the end, on rigs of three views or more (see
 # _end_limit). Measured on 31 rendered sessions (12 with loops or spacer disks,
 # `accuracy_table` draws 2, 13 and 21, the demo; 90 tracked frames each, the true tube end;
@@ -55,7 +55,6 @@ _PROFILE_HALF_SPAN = 4
 # bench's loop's median tip 0.43 against 0.50 mm. On two-camera rigs the limit lost tracks
 # (a tapered r 5 tube 1.03 against 1.29 mm mean). 1.2 and 1.15 kept less of the gain.
 _END_TOLERANCE = 1.12
-_END_SPAN_MM = END_SPAN_MM
 
 
 @dataclass(frozen=True, eq=False)
@@ -303,7 +302,7 @@ def _end_limit(
     e: _CameraEdges, arc_mm: FloatArray, expected_mm: FloatArray, end_radius_mm: float
 ) -> FloatArray:
     """(C, K) the farthest an edge may sit from the axis (mm): ``e.limit``, and over the
-    tube's last ``_END_SPAN_MM`` no more than ``_END_TOLERANCE`` times its own radius at
+    tube's last ``END_SPAN_MM`` no more than ``_END_TOLERANCE`` times its own radius at
     the end (``end_radius_mm``, +0.5 px of edge blur).
 
     Spacer disks widen the silhouette by up to their own width: within the usual limit
@@ -323,7 +322,7 @@ def _end_limit(
         return e.limit
     px_per_mm = e.r_px / np.maximum(expected_mm, 1e-12)[None, :]
     tight = (_END_TOLERANCE * end_radius_mm * px_per_mm + 0.5) / np.where(px_per_mm > 0, px_per_mm, 1.0)
-    near_end = (arc_mm > arc_mm[-1] - _END_SPAN_MM)[None, :]
+    near_end = (arc_mm > arc_mm[-1] - END_SPAN_MM)[None, :]
     return np.where(near_end, np.minimum(e.limit, tight), e.limit)
 
 
