@@ -125,6 +125,7 @@ class _CameraEdges:
     ok: NDArray[np.bool_]  # both edges found in a usable view
     limit: FloatArray  # farthest an edge may sit from the axis, mm
     floor: FloatArray  # least half-width of a reading of the tube alone, mm
+    px_per_mm: FloatArray  # image px per mm across the tube (1 where the view has none)
 
 
 def _camera_edges(
@@ -180,6 +181,7 @@ def _camera_edges(
         ok & found,
         limit,
         floor,
+        safe,
     )
 
 
@@ -221,7 +223,7 @@ def read_sides(
     # The end's radius from the uncrowded readings no narrower than the tube (a
     # taper's end is), whatever their width above it (see _end_radius).
     end_radius = _end_radius(0.5 * (right - left), uncrowded & ~narrow.T)
-    limit = _end_limit(e, arc, expected, end_radius)
+    limit = _end_limit(e, arc, end_radius)
     # A trusted edge is uncrowded on its side and within the limit of the axis
     # (the axis being where the other edge says, if that one is further out).
     use_lo = ok & ~crowd[..., 0] & ~narrow & (-e.lo < limit + np.maximum(0.0, e.hi))
@@ -298,9 +300,7 @@ def _end_radius(half_mm: FloatArray, both: NDArray[np.bool_]) -> float:
     return percentile_1d(half_mm[last][both[last]], 0.25)
 
 
-def _end_limit(
-    e: _CameraEdges, arc_mm: FloatArray, expected_mm: FloatArray, end_radius_mm: float
-) -> FloatArray:
+def _end_limit(e: _CameraEdges, arc_mm: FloatArray, end_radius_mm: float) -> FloatArray:
     """(C, K) the farthest an edge may sit from the axis (mm): ``e.limit``, and over the
     tube's last ``END_SPAN_MM`` no more than ``_END_TOLERANCE`` times its own radius at
     the end (``end_radius_mm``, +0.5 px of edge blur).
@@ -320,8 +320,7 @@ def _end_limit(
     """
     if not np.isfinite(end_radius_mm) or e.r_px.shape[0] < 3:
         return e.limit
-    px_per_mm = e.r_px / np.maximum(expected_mm, 1e-12)[None, :]
-    tight = (_END_TOLERANCE * end_radius_mm * px_per_mm + 0.5) / np.where(px_per_mm > 0, px_per_mm, 1.0)
+    tight = _END_TOLERANCE * end_radius_mm + 0.5 / e.px_per_mm
     near_end = (arc_mm > arc_mm[-1] - END_SPAN_MM)[None, :]
     return np.where(near_end, np.minimum(e.limit, tight), e.limit)
 
