@@ -110,7 +110,7 @@ _TOUCH_RADII = 4.0
 # tip lies on its stem, where its place is bistable: see docs/accuracy.md). One span
 # (4 radii) was faster still (24-31 ms) but put the round end's tip 0.64 mm off;
 # 6 steps instead of 3 changed nothing but the time (34-40 ms).
-_REFINE_SPANS_RADII = (4.0, 1.0)
+REFINE_SPANS_RADII = (4.0, 1.0)
 _DIFFERENCE_MM = 0.5
 _REFINE_STEPS = 3
 _SETTLED_MM = 0.05
@@ -247,7 +247,7 @@ def refine_tip_to_pixels(
     contrasts: Sequence[NDArray[np.float32]],
     radius_mm: float,
     *,
-    spans_radii: Sequence[float] = _REFINE_SPANS_RADII,
+    spans_radii: Sequence[float] = REFINE_SPANS_RADII,
     rejects: Callable[[FloatArray], bool] | None = None,
     cap: str = "flat",
 ) -> FloatArray:

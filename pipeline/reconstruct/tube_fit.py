@@ -43,6 +43,8 @@ from .tube_tip import refit_tip
 
 FloatArray = NDArray[np.float64]
 
+# Distance between the fitted samples along the curve, mm.
+FIT_SPACING_MM = 4.0
 # A curve sample explains the silhouette when it is the first to cover this many
 # of its pixels in some view; samples of a false bridge own none (measured: 0 on
 # every bridge sample, >= 4 on the tube's own samples 3 mm apart).
@@ -113,7 +115,7 @@ def fit_tube(
     *,
     radius_mm: float,
     base_fixed: bool = True,
-    spacing_mm: float = 4.0,
+    spacing_mm: float = FIT_SPACING_MM,
     iterations: int = 3,
     smoothness: float = 0.5,
     cap: str = "flat",
@@ -210,7 +212,7 @@ def refit_body(
     radius_mm: float,
     hold_from_mm: float,
     base_fixed: bool = True,
-    spacing_mm: float = 4.0,
+    spacing_mm: float = FIT_SPACING_MM,
     iterations: int = _BODY_ROUNDS,
     smoothness: float = 0.5,
 ) -> FloatArray:
