@@ -28,7 +28,7 @@ from pipeline.reconstruct.tracking import (
 from pipeline.session.folder import Session, load_session
 from pipeline.synth import render_session
 from pipeline.synth.session_render import SceneOptions
-from pipeline.synth.variety import draw_cases, render_case
+from pipeline.synth.variety import Case, draw_cases, render_case
 
 
 def _ok(index: int, axis_mm: np.ndarray) -> FrameResult:
@@ -145,22 +145,27 @@ def test_a_track_over_spacer_disks_is_not_lost_for_them(
     assert sum(not r.tracked for r in results) <= 2
 
 
+def _tracked_tip_errors(case: Case, directory: Path, frames: int) -> list[float]:
+    """The drawn ``case`` rendered for ``frames`` frames and tracked from frame 0 with its
+    true tube end: each frame's tip distance from the truth, mm."""
+    session_dir = render_case(case, directory, frames, jobs=1)
+    truth = np.load(session_dir / "ground_truth.npz")
+    session = load_session(session_dir)
+    model = replace(build_model(session), tip=str(truth["tip"]))
+    tracker = Tracker(model, [c.name for c in session.cameras], images=False)
+    return [
+        float(np.linalg.norm(tracker.step(i, images).result.centerline_mm[-1] - truth["centerlines"][i][-1]))
+        for i, images in decode_frames(session.video_paths, range(frames))
+    ]
+
+
 def test_a_tracked_tip_by_a_spacer_disk_does_not_curl_onto_it(tmp_path: Path) -> None:
     # A disk a radius or so from the end, seen at an angle, is read across a tangent
     # that is off by the tip's error: its chord's mid-point lies off the axis in the
     # same sense, and the tip curls frame after frame (this drawn case: median tip
     # 1.45 mm without the end's own width limit, 0.9 mm with it).
     case = next(c for c in draw_cases(2, 10) if c.profile == "disks" and c.cameras == 3)
-    session_dir = render_case(case, tmp_path, 24, jobs=1)
-    truth = np.load(session_dir / "ground_truth.npz")
-    session = load_session(session_dir)
-    model = replace(build_model(session), tip=str(truth["tip"]))
-    tracker = Tracker(model, [c.name for c in session.cameras], images=False)
-    tips = [
-        np.linalg.norm(tracker.step(i, images).result.centerline_mm[-1] - truth["centerlines"][i][-1])
-        for i, images in decode_frames(session.video_paths, range(24))
-    ]
-    assert np.median(tips) < 1.1
+    assert np.median(_tracked_tip_errors(case, tmp_path, 24)) < 1.1
 
 
 def test_a_tracked_tip_over_its_own_tube_in_one_view_is_placed_where_the_others_cannot(
@@ -171,17 +176,7 @@ def test_a_tracked_tip_over_its_own_tube_in_one_view_is_placed_where_the_others_
     # edges fix it in one direction across only, and unrefined it drifted along the other
     # (4.4 mm off at frame 40, four frames more than 2 mm off by frame 46).
     case = next(c for c in draw_cases(13, 8) if c.profile == "step" and c.cameras == 3)
-    frames = 47
-    session_dir = render_case(case, tmp_path, frames, jobs=1)
-    truth = np.load(session_dir / "ground_truth.npz")
-    session = load_session(session_dir)
-    model = replace(build_model(session), tip=str(truth["tip"]))
-    tracker = Tracker(model, [c.name for c in session.cameras], images=False)
-    tips = [
-        np.linalg.norm(tracker.step(i, images).result.centerline_mm[-1] - truth["centerlines"][i][-1])
-        for i, images in decode_frames(session.video_paths, range(frames))
-    ]
-    assert max(tips) < 2.0
+    assert max(_tracked_tip_errors(case, tmp_path, 47)) < 2.0
 
 
 def test_a_track_that_falls_behind_its_tube_is_given_more_rounds_not_lost(
