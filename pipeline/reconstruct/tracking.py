@@ -94,30 +94,31 @@ TRACK_MEETING_VIEWS = 2
 # ... or meets it in one view where the other views' readings leave it unplaced across.
 # The views that see it apart usually fix it across their own lines of sight, and the
 # misled view's edges there, dropped as crowded, are not missed: refined wherever it
-# meets one view (150 frames, 2026-12-02), the demo's tip (crossing its stem in one view of three in 14 of 100
-# frames) came out 0.40 -> 0.30 mm, but those frames took 20-27 ms instead of 10-17 and a
-# live replay of the demo fell behind in them (latency p99 23-30 -> 60-93 ms). Where the
-# tube's course just behind the tip (TRACK_TIP_READINGS_RADII end radii before the tip
-# zone) lies near the plane of those views' lines of sight, their edges fix it in one
-# direction across only (SideReadings.conditioning below TRACK_TIP_CONDITIONING: the
-# weaker direction known at least 2.2 times worse), and the tip drifts along the other,
-# unseen by them: on a stepped r 8 tube whose thin end lies over its own body in one
-# view, 2-7 mm over 40 frames, unflagged. There the tip is refined over its last
-# TRACK_ONE_VIEW_SPANS_RADII radii. On 31 rendered sessions (18 with three cameras; 12
-# with loops or disks, `accuracy_table` draws 2, 13 and 21, the demo; 90 frames each,
-# tracked from frame 0 with the true tube end, 2026-12-03): mean error averaged over the
-# sessions 0.522 -> 0.521 mm, p95 1.609 -> 1.605 mm, median tip 1.029 -> 1.017 mm, frames
-# > 2 mm off 711 -> 680; the stepped r 8 tube's tip 1.18 -> 0.60 mm (frames off 38 -> 7),
-# a stepped r 5 shape's 1.40 -> 1.07 mm (17 -> 12), two loops' 0.58 -> 0.53 and 0.58 ->
-# 0.54 mm (frames off 1 -> 3 and 7 -> 10), a disk session's 2.54 -> 3.18 mm (every frame
-# 2 mm off either way); the other 26 unchanged. The bench's round-ended random shape
-# (frames 0-299, same way): mean 0.218 -> 0.206 mm, median tip 0.42 -> 0.34 mm, frames off
-# 24 -> 2, a third of its frames refined, 15.5 -> 21.8 ms a tracked frame (median). The
-# demo's conditioning stays above 0.33 over its 900 frames: none of them is refined for
-# it. With two-camera rigs refined too (below), bars of 0.05, 0.1, 0.2 and 0.3 gave
-# median tips 0.94, 0.92, 0.90 and 0.89 mm and frames off 648, 636, 646 and 620; refining
-# wherever the tip meets one view, 0.82 mm and 641, at the demo's cost above; two spans
-# (4 and 1 radii) instead of one, 0.80 mm but a mean of 0.524 mm and 666 frames off.
+# meets one view (150 frames, 2026-12-02), the demo's tip (crossing its stem in one view
+# of three in 14 of 100 frames) came out 0.40 -> 0.30 mm, but those frames took 20-27 ms
+# instead of 10-17 and a live replay of the demo fell behind in them (latency p99 23-30
+# -> 60-93 ms). Where the tube's course just behind the tip (TRACK_TIP_READINGS_RADII
+# end radii before the tip zone) lies near the plane of those views' lines of sight,
+# their edges fix it in one direction across only (SideReadings.conditioning below
+# TRACK_TIP_CONDITIONING: the weaker direction known at least 2.2 times worse), and the
+# tip drifts along the other, unseen by them: on a stepped r 8 tube whose thin end lies
+# over its own body in one view, 2-7 mm over 40 frames, unflagged. There the tip is
+# refined over its last TRACK_ONE_VIEW_SPANS_RADII radii. On 31 rendered sessions (18
+# with three cameras; 12 with loops or disks, `accuracy_table` draws 2, 13 and 21, the
+# demo; 90 frames each, tracked from frame 0 with the true tube end, 2026-12-03): mean
+# error averaged over the sessions 0.522 -> 0.521 mm, p95 1.609 -> 1.605 mm, median tip
+# 1.029 -> 1.017 mm, frames > 2 mm off 711 -> 680; the stepped r 8 tube's tip 1.18 ->
+# 0.60 mm (frames off 38 -> 7), a stepped r 5 shape's 1.40 -> 1.07 mm (17 -> 12), two
+# loops' 0.58 -> 0.53 and 0.58 -> 0.54 mm (frames off 1 -> 3 and 7 -> 10), a disk
+# session's 2.54 -> 3.18 mm (every frame 2 mm off either way); the other 26 unchanged.
+# The bench's round-ended random shape (frames 0-299, same way): mean 0.218 -> 0.206 mm,
+# median tip 0.42 -> 0.34 mm, frames off 24 -> 2, a third of its frames refined, 15.5 ->
+# 21.8 ms a tracked frame (median). The demo's conditioning stays above 0.33 over its
+# 900 frames: none of them is refined for it. With two-camera rigs refined too (below),
+# bars of 0.05, 0.1, 0.2 and 0.3 gave median tips 0.94, 0.92, 0.90 and 0.89 mm and
+# frames off 648, 636, 646 and 620; refining wherever the tip meets one view, 0.82 mm
+# and 641, at the demo's cost above; two spans (4 and 1 radii) instead of one, 0.80 mm
+# but a mean of 0.524 mm and 666 frames off.
 TRACK_TIP_CONDITIONING = 0.2
 TRACK_TIP_READINGS_RADII = 3.0
 TRACK_ONE_VIEW_SPANS_RADII = (4.0,)
