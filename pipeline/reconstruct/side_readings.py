@@ -117,7 +117,8 @@ class SideReadings:
         their lines of sight in one plane with the tube's course (its epipolar plane) or
         one view alone reads them; 0 without an edge there."""
         edges = self.use[samples].sum(axis=-1).astype(np.float64)  # (k, C)
-        rows = self.rows[samples]  # (k, C, 3)
+        # (k, C, 3); a view that cannot read a sample (behind it, say) may have no row there.
+        rows = np.where(edges[..., None] > 0, self.rows[samples], 0.0)
         information = np.einsum("kc,kci,kcj->ij", edges, rows, rows)
         _, weaker, stronger = np.linalg.eigvalsh(information)
         return float(weaker / stronger) if stronger > 0 else 0.0

@@ -156,6 +156,10 @@ def test_conditioning_says_whether_the_views_fix_a_sample_in_both_directions_acr
     last = np.arange(k) >= k - 3
     assert replace(sides, use=use).conditioning(last) == 0.0
     assert replace(sides, use=use).conditioning(every) == pytest.approx(0.5)
+    # Where those edges are not used, the view's rows do not count, whatever they hold.
+    no_row = sides.rows.copy()
+    no_row[-3:, 1] = np.nan
+    assert replace(sides, use=use, rows=no_row).conditioning(every) == pytest.approx(0.5)
     # No edge at all there.
     assert sides.conditioning(np.zeros(k, dtype=bool)) == 0.0
 
