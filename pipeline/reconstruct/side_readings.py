@@ -46,8 +46,8 @@ _WIDTH_TOLERANCE = 1.3
 _PROFILE_HALF_SPAN = 4
 # Over the tube's last END_SPAN_MM (the span its end is extrapolated from, see
 # pipeline.reconstruct.tube_tip) an edge may sit no farther from the axis than
-# this factor times the tube's own radius at the end, on rigs of three views or more (see
-# _end_limit). Measured on 31 rendered sessions (12 with loops or spacer disks,
+# this factor times the tube's own radius at the end, on rigs of REDUNDANT_VIEWS or more
+# (see _end_limit). Measured on 31 rendered sessions (12 with loops or spacer disks,
 # `accuracy_table` draws 2, 13 and 21, the demo; 90 tracked frames each, the true tube end;
 # 2026-12-03), without the limit and with it: the three-camera disk sessions' median tips
 # 1.38, 1.27, 2.95 against 0.59, 0.89, 2.54 mm (frames more than 2 mm off 29, 24 against
@@ -55,6 +55,10 @@ _PROFILE_HALF_SPAN = 4
 # bench's loop's median tip 0.43 against 0.50 mm. On two-camera rigs the limit lost tracks
 # (a tapered r 5 tube 1.03 against 1.29 mm mean). 1.2 and 1.15 kept less of the gain.
 _END_TOLERANCE = 1.12
+# Rigs of this many views or more read each sample more often than it has unknowns
+# across (two): only there may one view's edges be doubted, dropped or outvoted. Two
+# views' readings are exactly the two numbers that place each sample.
+REDUNDANT_VIEWS = 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -328,11 +332,10 @@ def _end_limit(e: _CameraEdges, arc_mm: FloatArray, end_radius_mm: float) -> Flo
     where nothing past it holds the tangent, a curl feeds itself frame after
     frame. Judged by the tube's own radius there, a disk's readings are dropped.
 
-    Only where three views or more read the tube: two views' readings are exactly the
-    two numbers that place each sample, and a tip left with one view's readings is
-    free along the other's normal.
+    Only on rigs of ``REDUNDANT_VIEWS`` or more: on two, a tip left with one view's
+    readings is free along the other's normal.
     """
-    if not np.isfinite(end_radius_mm) or e.r_px.shape[0] < 3:
+    if not np.isfinite(end_radius_mm) or e.r_px.shape[0] < REDUNDANT_VIEWS:
         return e.limit
     tight = _END_TOLERANCE * end_radius_mm + 0.5 / e.px_per_mm
     near_end = (arc_mm > arc_mm[-1] - END_SPAN_MM)[None, :]

@@ -29,7 +29,7 @@ from ..geometry.camera import Camera
 from ..geometry.polyline import axis_gap_mm, by_fraction, polyline_arclength, self_intersects
 from .frame_result import FrameResult
 from .quality import tube_figures
-from .side_readings import read_sides
+from .side_readings import REDUNDANT_VIEWS, read_sides
 from .spline import Centerline, smooth_curve
 from .tip_bend import REFINE_SPANS_RADII, refine_tip_to_pixels, tip_meets_tube
 from .tube_fit import FIT_SPACING_MM, TubeFit, fit_tube
@@ -118,19 +118,18 @@ TRACK_MEETING_VIEWS = 2
 # bars of 0.05, 0.1, 0.2 and 0.3 gave median tips 0.94, 0.92, 0.90 and 0.89 mm and
 # frames off 648, 636, 646 and 620; refining wherever the tip meets one view, 0.82 mm
 # and 641, at the demo's cost above; two spans (4 and 1 radii) instead of one, 0.80 mm
-# but a mean of 0.524 mm and 666 frames off.
+# but a mean of 0.524 mm and 666 frames off. Only on rigs of REDUNDANT_VIEWS
+# (pipeline.reconstruct.side_readings) or more. On two, a tip over the tube in one view
+# is read by the other alone: its conditioning is 0 whatever the course, and the grey
+# levels, with the tip's outline lost inside the other part's in the first view, have
+# one view to place it by too. Refined there all the same, two-camera sessions went
+# either way: on `accuracy_table --draw 2 --cases 10 --frames 150` (2026-12-03) a
+# tapered r 5 shape 0.78 -> 0.71 mm mean, but an r 7.5 shape's track was lost at frame
+# 133 and started again 30 mm off in depth (mean 0.42 -> 1.46 mm, p95 1.32 -> 10.6 mm),
+# and a round r 4.5 end became a close call chosen flat (tip 1.20 -> 2.06 mm).
 TRACK_TIP_CONDITIONING = 0.2
 TRACK_TIP_READINGS_RADII = 3.0
 TRACK_ONE_VIEW_SPANS_RADII = (4.0,)
-# ... on rigs of this many cameras or more. On two, a tip over the tube in one view is
-# read by the other alone: its conditioning is 0 whatever the course, and the grey
-# levels, with the tip's outline lost inside the other part's in the first view, have
-# one view to place it by too. Refined there all the same, two-camera sessions went
-# either way: on `accuracy_table --draw 2 --cases 10 --frames 150` (2026-12-03) a tapered
-# r 5 shape 0.78 -> 0.71 mm mean, but an r 7.5 shape's track was lost at frame 133 and
-# started again 30 mm off in depth (mean 0.42 -> 1.46 mm, p95 1.32 -> 10.6 mm), and a
-# round r 4.5 end became a close call chosen flat (tip 1.20 -> 2.06 mm).
-TRACK_UNPLACED_CAMERAS = 3
 # The track's last this many frames predict a frame's length (predict_length): a
 # second at 30 fps.
 LENGTH_FRAMES = 30
@@ -276,7 +275,7 @@ def tip_unplaced(fit: TubeFit, cameras: Sequence[Camera], contrasts: Sequence[ND
     frames off. The read costs ~1.3 ms, on frames whose tip meets another part in one
     view."""
     pts = fit.points_mm
-    radii = fit.radii_mm if fit.radii_mm is not None and len(fit.radii_mm) == len(pts) else fit.radius_mm
+    radii = fit.radii_mm if fit.radii_mm is not None else fit.radius_mm
     obs = read_sides(pts, cameras, contrasts, radii, FIT_SPACING_MM, crowd_margin_px=TRACK_CROWD_MARGIN_PX)
     arc = polyline_arclength(pts)
     end_radius = fit.end_radius_mm
@@ -341,7 +340,7 @@ def track_tube(
         if tip_meets_tube(fit.points_mm, cameras, fit.radius_mm, min_views=1):
             if tip_meets_tube(fit.points_mm, cameras, fit.radius_mm, min_views=TRACK_MEETING_VIEWS):
                 spans = REFINE_SPANS_RADII
-            elif len(cameras) >= TRACK_UNPLACED_CAMERAS and tip_unplaced(fit, cameras, contrasts):
+            elif len(cameras) >= REDUNDANT_VIEWS and tip_unplaced(fit, cameras, contrasts):
                 spans = TRACK_ONE_VIEW_SPANS_RADII
         if spans:
             bent = refine_tip_to_pixels(
