@@ -24,7 +24,7 @@ from ..geometry.polyline import (
     vector_norms,
 )
 from ..session.settings import Workspace
-from .tube_drawing import pixel_coverages
+from .tube_drawing import Window, pixel_coverages
 
 FloatArray = NDArray[np.float64]
 
@@ -117,9 +117,15 @@ def reaches_walls(points_mm: NDArray[np.floating], workspace: Workspace, base_mm
 
 
 def tube_mask(
-    camera: Camera, centerline_mm: FloatArray, radius_mm: float | FloatArray, *, supersample: int = 1
+    camera: Camera,
+    centerline_mm: FloatArray,
+    radius_mm: float | FloatArray,
+    *,
+    supersample: int = 1,
+    window: Window | None = None,
 ) -> NDArray[np.bool_]:
-    """(H, W) bool: the tube of ``radius_mm`` around ``centerline_mm`` seen by ``camera``.
+    """(H, W) bool: the tube of ``radius_mm`` around ``centerline_mm`` seen by ``camera``;
+    with ``window`` ((x0, y0), (x1, y1)), only those pixels: (y1 - y0, x1 - x0).
 
     The tube (with round ends) is drawn as the union of discs of the projected
     radius (f r / depth) centred on the projected axis, resampled at r/2 along the
@@ -135,7 +141,7 @@ def tube_mask(
     supersample : drawing resolution factor.
     """
     dense, radii = _disc_centres(centerline_mm, radius_mm)
-    return _draw_tube(camera, dense, camera.project(dense), radii, supersample=supersample)
+    return _draw_tube(camera, dense, camera.project(dense), radii, supersample=supersample, window=window)
 
 
 def tube_masks(
@@ -167,10 +173,17 @@ def _disc_centres(centerline_mm: FloatArray, radius_mm: float | FloatArray) -> t
 
 
 def _draw_tube(
-    camera: Camera, dense: FloatArray, px: FloatArray, radii_mm: FloatArray, *, supersample: int
+    camera: Camera,
+    dense: FloatArray,
+    px: FloatArray,
+    radii_mm: FloatArray,
+    *,
+    supersample: int,
+    window: Window | None = None,
 ) -> NDArray[np.bool_]:
     """:func:`tube_mask` from the discs' centres (n, 3), their pixels (n, 2) and radii (n,) mm."""
-    w, h = camera.size_px
+    (x0, y0), (x1, y1) = ((0, 0), camera.size_px) if window is None else window
+    w, h = x1 - x0, y1 - y0
     canvas = np.zeros((h * supersample, w * supersample), np.uint8)
     depth = camera.to_camera(dense)[:, 2]
     focal = camera.focal_px
@@ -184,10 +197,21 @@ def _draw_tube(
     # (A disc under half a canvas pixel is drawn as one: cv2 takes no negative radius.)
     radii = np.round((focal * radii_mm[ok] / depth[ok] * supersample - 0.5) * (1 << _SHIFT)).astype(np.int64)
     radii = np.maximum(radii, 0)
+    # The window's origin, moved in whole canvas pixels: the same pixels drawn.
+    centres -= np.array([x0, y0]) * scale
+    # Only the discs that reach the canvas are drawn: the others would draw nothing.
+    margin = 2 << _SHIFT
+    x, y = centres[:, 0], centres[:, 1]
+    reach = (
+        (x + radii > -margin)
+        & (x - radii < (w * supersample << _SHIFT) + margin)
+        & (y + radii > -margin)
+        & (y - radii < (h * supersample << _SHIFT) + margin)
+    )
     # Drawn in 1 at full resolution, so that the canvas is the mask (no threshold
     # pass over the image); in 255 when it is averaged down.
     colour = 255 if supersample > 1 else 1
-    for (cx, cy), r in zip(centres.tolist(), radii.tolist(), strict=True):
+    for cx, cy, r in zip(x[reach].tolist(), y[reach].tolist(), radii[reach].tolist(), strict=True):
         cv2.circle(canvas, (cx, cy), r, colour, -1, cv2.LINE_8, _SHIFT)
     if supersample > 1:
         return np.asarray(cv2.resize(canvas, (w, h), interpolation=cv2.INTER_AREA) > 127)

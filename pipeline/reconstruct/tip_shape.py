@@ -39,10 +39,9 @@ from .frame import frame_contrasts, reconstruct_with_silhouettes
 from .frame_task import FrameMap, decode_frames, map_here
 from .model import SessionModel
 from .tip_bend import bend_tip_to_pixels
-from .tube_drawing import drawn_coverage, pixel_coverages
+from .tube_drawing import Window, drawn_coverage, pixel_coverages
 
 FloatArray = NDArray[np.float64]
-Window = tuple[tuple[int, int], tuple[int, int]]
 
 # Frames sampled over the session. Each frame's vote is worth a few pixels of
 # evidence at most, and a frame can miss its tip. On 40 drawn sessions (seeds 1,

@@ -21,6 +21,8 @@ from ..geometry.polyline import polyline_arclength
 from .profiles import MIN_CONTRAST
 
 FloatArray = NDArray[np.float64]
+# A pixel window ((x0, y0), (x1, y1)), half-open.
+Window = tuple[tuple[int, int], tuple[int, int]]
 
 # (x, y) -> (-y, x) applied to (y, x): a quarter turn left.
 _QUARTER_LEFT = np.array([-1.0, 1.0])
@@ -113,7 +115,7 @@ def drawn_coverage(
     camera: Camera,
     axis_mm: FloatArray,
     radius_mm: float,
-    window: tuple[tuple[int, int], tuple[int, int]],
+    window: Window,
     *,
     cap: str,
 ) -> NDArray[np.float32]:
@@ -127,9 +129,7 @@ def drawn_coverage(
     return _LEVELS[canvas_levels(canvas)]
 
 
-def view_window(
-    cam: Camera, axis_mm: FloatArray, radius_mm: float
-) -> tuple[tuple[int, int], tuple[int, int]] | None:
+def view_window(cam: Camera, axis_mm: FloatArray, radius_mm: float) -> Window | None:
     """Pixel window ((x0, y0), (x1, y1)) around the tube of (K, 3) ``axis_mm``, None if not seen."""
     px = cam.project(axis_mm)
     depth = cam.to_camera(axis_mm)[:, 2]
@@ -145,7 +145,7 @@ def view_window(
 def pixel_coverages(
     contrasts: Sequence[NDArray[np.float32]],
     masks: Sequence[NDArray[np.bool_]],
-    windows: Sequence[tuple[tuple[int, int], tuple[int, int]] | None] | None = None,
+    windows: Sequence[Window | None] | None = None,
 ) -> list[NDArray[np.float32]]:
     """Per view, (H, W) float32 in [0, 1]: how much of each pixel the tube covers
     (:func:`_coverage` of its (H, W) contrast and bool silhouette).

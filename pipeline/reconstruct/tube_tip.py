@@ -152,19 +152,30 @@ def _end_by_pixels(
     if not (np.isfinite(px).all() and (depth > radius_mm).all()):
         return None
     focal = cam.focal_px
-    w, h = cam.size_px
-    owner = np.zeros((h, w), np.int32)
     one = 1 << DRAW_SHIFT
     centres = np.round(px * one).astype(np.int64)
     radii = np.maximum(np.round((focal * radius_mm / depth - 0.5) * one).astype(np.int64), 0)
+    # The discs own pixels within a pixel of their bounding box only: the counts are
+    # taken there.
+    w, h = cam.size_px
+    low = (centres - radii[:, None]).min(axis=0) >> DRAW_SHIFT
+    high = (centres + radii[:, None]).max(axis=0) >> DRAW_SHIFT
+    x0, y0 = max(int(low[0]) - 2, 0), max(int(low[1]) - 2, 0)
+    x1, y1 = min(int(high[0]) + 3, w), min(int(high[1]) + 3, h)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    owner = np.zeros((y1 - y0, x1 - x0), np.int32)
+    centres -= np.array([x0, y0]) * one
     # Drawn from the far end back, so the disc nearest the anchor wins each pixel.
     for k in range(len(u) - 1, -1, -1):
         cv2.circle(
             owner, (int(centres[k, 0]), int(centres[k, 1])), int(radii[k]), k + 1, -1, cv2.LINE_8, DRAW_SHIFT
         )
-    owner[tube_mask(cam, body_mm, radius_mm)] = 0
-    inside = np.bincount(owner[mask], minlength=len(u) + 1)[1:]
-    outside = np.bincount(owner[~mask], minlength=len(u) + 1)[1:]
+    window = ((x0, y0), (x1, y1))
+    owner[tube_mask(cam, body_mm, radius_mm, window=window)] = 0
+    seen = mask[y0:y1, x0:x1]
+    inside = np.bincount(owner[seen], minlength=len(u) + 1)[1:]
+    outside = np.bincount(owner[~seen], minlength=len(u) + 1)[1:]
     if inside.sum() < _MIN_PIXELS:
         return None
     gain = np.cumsum(inside - outside)

@@ -147,6 +147,22 @@ def test_masks_in_all_views_equal_the_per_view_ones() -> None:
             np.testing.assert_array_equal(batched, tube_mask(cam, axis, 5.0))
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_windowed_mask_is_the_whole_masks_pixels_there(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    cam = rig_cameras()[seed % 3]
+    curve = shape_centerlines("helix", 12, base_mm=BASE)[int(rng.integers(12))]
+    w, h = cam.size_px
+    for supersample in (1, 4):
+        whole = tube_mask(cam, curve, 5.0, supersample=supersample)
+        for _ in range(5):
+            x0, y0 = int(rng.integers(0, w - 1)), int(rng.integers(0, h - 1))
+            x1, y1 = int(rng.integers(x0 + 1, w + 1)), int(rng.integers(y0 + 1, h + 1))
+            part = tube_mask(cam, curve, 5.0, supersample=supersample, window=((x0, y0), (x1, y1)))
+            np.testing.assert_array_equal(part, whole[y0:y1, x0:x1])
+        assert whole.any()
+
+
 def test_a_hull_against_a_wall_other_than_the_bases_is_reported() -> None:
     box = Workspace(origin_mm=(-50.0, 0.0, 10.0), size_mm=(100.0, 100.0, 100.0), voxel_mm=2.0)
     base = np.array([0.0, 50.0, 10.0])  # on the floor
