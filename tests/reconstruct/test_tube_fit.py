@@ -184,6 +184,24 @@ def test_the_radius_profile_follows_a_step_and_ignores_disks() -> None:
     np.testing.assert_array_equal(_radius_profile(arc, half, np.zeros((k, 2), bool), np.full(k, 6.0)), 6.0)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_views_width_is_read_against_the_radius_where_it_read_it(seed: int) -> None:
+    from pipeline.reconstruct.side_readings import width_ratios
+
+    rng = np.random.default_rng(seed)
+    k = 40
+    # A tube stepped from 6 to 4 mm half way; view 0 reads it 10 % wider (blur), view 1
+    # as it is; view 2 too, but only its wider part has two edges there (the thinner part
+    # crowded in that view), view 3 has too few two-edge readings to say.
+    radii = np.where(np.arange(k) < k // 2, 6.0, 4.0)
+    scale = np.array([1.1, 1.0, 1.0, 1.3])
+    half = radii[:, None] * scale[None, :] + rng.normal(0.0, 0.02, size=(k, 4))
+    both = np.ones((k, 4), dtype=bool)
+    both[k // 2 :, 2] = False
+    both[4:, 3] = False
+    np.testing.assert_allclose(width_ratios(half, both, radii), [1.1, 1.0, 1.0, 1.0], atol=0.02)
+
+
 def test_the_end_radius_is_the_tubes_where_disks_widen_most_readings() -> None:
     from pipeline.reconstruct.side_readings import _end_radius, _radius_profile
 
