@@ -34,6 +34,11 @@ FloatArray = NDArray[np.float64]
 _PROFILE_STEP_PX = 0.5
 # Two-edge readings a view needs for its own half-width (see read_sides).
 _OWN_WIDTH_READINGS = 5
+# A radius read along the tube that varies by more than this fraction of its median is
+# a tube's own profile (width_ratios): at the true axes of rendered sessions (8 frames
+# each, 2026-12-03), uniform tubes' varied by 2-9 % (median 2-5 %), tapered, stepped and
+# disk ones' by 20-50 % (median 20-44 %).
+_FLAT_PROFILE = 0.15
 # Another part of the tube touches a sample's silhouette when the two
 # projected tubes come within this many pixels (their edges' blur).
 CROWD_MARGIN_PX = 2.0
@@ -252,7 +257,7 @@ def read_sides(
     radius = median_1d(half) if half.size >= 3 else float(np.median(expected))
     # One edge places the axis a half-width in from it: the half-width as this
     # view reads it, along the tube in proportion to the radius there.
-    ratio = width_ratios(0.5 * (right - left), both, radii)
+    ratio = width_ratios(0.5 * (right - left), both, radii, radius)
     return SideReadings(
         rows,
         left,
@@ -266,28 +271,39 @@ def read_sides(
     )
 
 
-def width_ratios(half_mm: FloatArray, both: NDArray[np.bool_], radii_mm: FloatArray) -> FloatArray:
+def width_ratios(
+    half_mm: FloatArray, both: NDArray[np.bool_], radii_mm: FloatArray, radius_mm: float
+) -> FloatArray:
     """(C,) each view's half-width of the tube per mm of its radius, from the half-widths
-    ``half_mm`` (K, C) of its two-edge readings ``both`` (K, C), each against the radius
-    ``radii_mm`` (K,) at its own sample; 1 for a view with fewer than
-    ``_OWN_WIDTH_READINGS`` of them.
+    ``half_mm`` (K, C) of its two-edge readings ``both`` (K, C), the radius read along the
+    tube ``radii_mm`` (K,) and the tube's median radius ``radius_mm``; 1 for a view with
+    fewer than ``_OWN_WIDTH_READINGS`` of them.
 
     A view's blur and grey levels bias both its edges alike, by up to half a pixel: the
     mid-point of two edges cancels that, one edge moved in by the radius does not, and is
-    moved in by the view's own half-width instead. Taken against the radius where each
-    reading was made, not the tube's median: a view whose two-edge readings all lie on a
-    stepped tube's wider part (the thinner part crowded by another in that view) reads
-    that part's width, and taken as the whole tube's, it put every one-edge reading of the
-    thinner part that many mm off: 1.2-1.7 mm at the true axis of a random shape stepped
-    from 6 to 4.2 mm (``pipeline synth --shape random --seed 12 --profile step
+    moved in by the view's own half-width instead. Where the radius read along the tube
+    varies by more than ``_FLAT_PROFILE`` of its median (a taper, a step, spacer disks),
+    each reading is taken against the radius at its own sample; elsewhere a view's readings
+    are pooled against the tube's median radius, which more readings hold steady.
+    Pooled on a stepped tube, a view whose two-edge readings all lay on the wider part (the
+    thinner part crowded by another in that view) took the thinner part for that much
+    wider, and put its one-edge readings there 1.2-1.7 mm off: at the true axis of a random
+    shape stepped from 6 to 4.2 mm (``pipeline synth --shape random --seed 12 --profile step
     --arrangement ninety``, frame 20, 2026-12-03), whose frames then came out 0.75 mm off
     in mean instead of 0.19.
     """
     ratio = np.ones(half_mm.shape[1])
+    middle = float(np.median(radii_mm)) if len(radii_mm) else 0.0
+    local = middle > 0 and float(np.ptp(radii_mm)) > _FLAT_PROFILE * middle
     for j in range(half_mm.shape[1]):
-        mine = both[:, j] & (radii_mm > 0)
-        if np.count_nonzero(mine) >= _OWN_WIDTH_READINGS:
-            ratio[j] = median_1d(half_mm[mine, j] / radii_mm[mine])
+        if local:
+            mine = both[:, j] & (radii_mm > 0)
+            if np.count_nonzero(mine) >= _OWN_WIDTH_READINGS:
+                ratio[j] = median_1d(half_mm[mine, j] / radii_mm[mine])
+        else:
+            own = half_mm[both[:, j], j]
+            if own.size >= _OWN_WIDTH_READINGS and radius_mm > 0:
+                ratio[j] = median_1d(own) / radius_mm
     return ratio
 
 

@@ -199,7 +199,15 @@ def test_a_views_width_is_read_against_the_radius_where_it_read_it(seed: int) ->
     both = np.ones((k, 4), dtype=bool)
     both[k // 2 :, 2] = False
     both[4:, 3] = False
-    np.testing.assert_allclose(width_ratios(half, both, radii), [1.1, 1.0, 1.0, 1.0], atol=0.02)
+    median = float(np.median(half[both]))
+    np.testing.assert_allclose(width_ratios(half, both, radii, median), [1.1, 1.0, 1.0, 1.0], atol=0.02)
+    # A uniform tube (its radius read within a few % along it): each view's readings
+    # pooled against the tube's median radius.
+    flat = 6.0 + rng.normal(0.0, 0.05, size=k)
+    half = flat[:, None] * scale[None, :] + rng.normal(0.0, 0.02, size=(k, 4))
+    median = float(np.median(half[both]))
+    expected = [np.median(half[both[:, j], j]) / median if both[:, j].sum() >= 5 else 1.0 for j in range(4)]
+    np.testing.assert_allclose(width_ratios(half, both, flat, median), expected)
 
 
 def test_the_end_radius_is_the_tubes_where_disks_widen_most_readings() -> None:
