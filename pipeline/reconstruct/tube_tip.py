@@ -155,8 +155,8 @@ def _end_by_pixels(
     one = 1 << DRAW_SHIFT
     centres = np.round(px * one).astype(np.int64)
     radii = np.maximum(np.round((focal * radius_mm / depth - 0.5) * one).astype(np.int64), 0)
-    # The discs own pixels within a pixel of their bounding box only: the counts are
-    # taken there.
+    # Only pixels in the discs' bounding box (and a pixel or two around it) can be owned:
+    # the counts are taken there.
     w, h = cam.size_px
     low = (centres - radii[:, None]).min(axis=0) >> DRAW_SHIFT
     high = (centres + radii[:, None]).max(axis=0) >> DRAW_SHIFT
