@@ -240,6 +240,7 @@ def _curve_and_quality(
                 radii_mm=radii_mm,
                 n_points=n_points,
                 usual_misfit=usual_misfit(previous),
+                length_mm=predict_length(previous, index),
             )
 
         held = None

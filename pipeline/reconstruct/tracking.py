@@ -296,6 +296,7 @@ def track_tube(
     radii_mm: FloatArray | None = None,
     n_points: int = 64,
     usual_misfit: float = 0.0,
+    length_mm: float = np.nan,
 ) -> TrackedFit:
     """The tube fitted from its prediction (N, 3) mm, and whether the track holds.
 
@@ -312,7 +313,9 @@ def track_tube(
     each point of the prediction, mm (default ``radius_mm`` everywhere);
     ``n_points``: samples of the curve judged (:func:`judge_fit`); ``usual_misfit``:
     the share of a silhouette the track's frames usually leave unexplained
-    (:func:`usual_misfit`), beyond which the misfit is judged.
+    (:func:`usual_misfit`), beyond which the misfit is judged; ``length_mm``: the
+    length the track predicts (:func:`predict_length`), which the tube keeps where
+    no view reads its end.
     """
     if not (np.isfinite(radius_mm) and radius_mm > 0):
         return TrackedFit(None, lost="no radius to track")
@@ -330,6 +333,7 @@ def track_tube(
             cap=cap,
             seek_radii=TRACK_SEEK_RADII,
             crowd_margin_px=TRACK_CROWD_MARGIN_PX,
+            unseen_length_mm=length_mm,
         )
 
     def judged_with_tip(fit: TubeFit) -> TrackedFit:

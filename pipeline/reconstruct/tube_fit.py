@@ -125,6 +125,7 @@ def fit_tube(
     seek_radii: float = _FIRST_CORE,
     crowd_margin_px: float = CROWD_MARGIN_PX,
     radii_mm: FloatArray | None = None,
+    unseen_length_mm: float = np.nan,
 ) -> TubeFit:
     """Move ``curve_mm`` so that the tube around it projects onto every silhouette.
 
@@ -156,6 +157,8 @@ def fit_tube(
     radii_mm : (M,) first guess of the radius at each sample of ``curve_mm``, mm
         (a tapered or stepped tube); default ``radius_mm`` everywhere. Re-estimated
         as the fit goes, and returned as ``TubeFit.radii_mm``.
+    unseen_length_mm : the curve's length (mm) where no view reads its end (see
+        :func:`pipeline.reconstruct.tube_tip.refit_tip`); NaN: as long as it is.
 
     Returns
     -------
@@ -195,7 +198,15 @@ def fit_tube(
             pts = pts + _step(pts, obs, base_fixed=base_fixed, smoothness=smoothness, robust=robust)
         along, radii = polyline_arclength(pts), local
         pts = refit_tip(
-            pts, cameras, contrasts, end_radius, cap=cap, masks=masks, max_length_mm=max_length_mm
+            pts,
+            cameras,
+            contrasts,
+            end_radius,
+            cap=cap,
+            masks=masks,
+            max_length_mm=max_length_mm,
+            radii_mm=local,
+            unseen_length_mm=unseen_length_mm,
         )
     pts = _resampled(pts, spacing_mm)
     obs = read_sides(pts, cameras, contrasts, np.interp(polyline_arclength(pts), along, radii), spacing_mm)

@@ -7,8 +7,11 @@ is taken off. Views seeing the end nearly head-on are weighted down. A view
 where the end line crosses another part of the tube (a loop's tip coming back to
 its stem) gives no edge reading; given the silhouettes, it is read from pixels
 instead: where discs along the end line stop adding more silhouette pixels that
-the rest of the curve leaves unexplained than background pixels. The end never
-moves past where the hull ends.
+the rest of the curve (drawn at its own radius along it) leaves unexplained than
+background pixels. Where the end line runs over another part of the tube in that
+view, the end may lie anywhere over that part: the view then only bounds it.
+Where no view places the end, a tracked frame gives the curve the length its
+track predicts. The end never moves past where the hull ends.
 """
 
 from __future__ import annotations
@@ -49,6 +52,9 @@ _END_DEGREE = 2
 _PIXEL_STEP_MM = 0.5
 _MIN_PIXELS = 4
 _PIXEL_WEIGHT = 0.5
+# A disc along the end line owning less than this share of the pixels it would
+# own without the rest of the tube drawn is hidden by another part of it.
+_HIDDEN_SHARE = 0.5
 
 
 def refit_tip(
@@ -60,6 +66,8 @@ def refit_tip(
     cap: str,
     masks: Sequence[NDArray[np.bool_]] | None = None,
     max_length_mm: float = np.inf,
+    radii_mm: FloatArray | None = None,
+    unseen_length_mm: float = np.nan,
 ) -> FloatArray:
     """Extend or trim the curve to where the views see the tube end.
 
@@ -67,8 +75,16 @@ def refit_tip(
     length fitted to the measured part before the last half radius (which has no
     side readings, see :func:`read_sides`), so that a loop's tip is sought on the
     loop and not on a tangent line. That last part is regenerated from it.
+    ``radius_mm`` is the tube's radius at its end; ``radii_mm``, (M,), the radius
+    at each point of ``pts`` (default ``radius_mm`` everywhere): the parts of a
+    tapered or stepped tube that lie across the end line in a view are as wide
+    as they are there, not as the end. Where no view reads the end (hidden in
+    another part of the tube, or seen end-on), the curve is given
+    ``unseen_length_mm`` if that is finite (a tracked frame: the length its track
+    predicts), and left as long as it is otherwise.
     """
     arc = polyline_arclength(pts)
+    radii = np.full(len(pts), float(radius_mm)) if radii_mm is None else np.asarray(radii_mm, np.float64)
     anchor = max(arc[-1] - tip_zone(radius_mm), 0.5 * arc[-1])
     path = end_frame(pts, arc, at_mm=anchor, span_mm=END_SPAN_MM)
     lead = arc[-1] - anchor  # the current end, in arc length past the anchor
@@ -79,7 +95,12 @@ def refit_tip(
     end_dir /= np.linalg.norm(end_dir)
     # Parts of the tube away from the end can lie across the end line in a view
     # (a loop's tip coming back to its stem): that view's reading is skipped.
-    others = pts[arc < arc[-1] - (2.5 * radius_mm + 4.0)]
+    apart = arc < arc[-1] - (2.5 * radius_mm + 4.0)
+    others, others_radii = pts[apart], radii[apart]
+    body = cut_polyline(pts, anchor)
+    body_radii = np.interp(polyline_arclength(body), arc, radii)
+    # Where the views cannot place the end, past the anchor (mm).
+    unseen = unseen_length_mm - anchor if np.isfinite(unseen_length_mm) else lead
     probe = np.concatenate([line, others, end + JAC_EPS_MM * np.eye(3), end[None]])
     estimates, weights = [], []
     probe_px = project_in_views(cameras, probe)  # (C, P, 2): every view in one go
@@ -100,10 +121,10 @@ def refit_tip(
         # Where the tip touches another part in this view, the end line runs on
         # through that part and leaves it at its far side: a reading whose line,
         # from the current end to the edge found, passes over another part's axis
-        # (within its radius, + 1 px for the samples' spacing) is not the end's.
+        # (within that part's radius, + 1 px for the samples' spacing) is not the end's.
         if edge is not None and len(others):
             read = line_px[(u >= min(lead, lead + edge)) & (u <= lead + max(edge, 0.0))]
-            if len(read) and min_distance(others_px, read) < radius_mm * px_per_mm + 1.0:
+            if len(read) and _overlaps(others_px, others_radii * px_per_mm + 1.0, read):
                 edge = None
         if edge is not None:
             cap_mm = radius_mm / sin_view if cap == "round" else radius_mm * cos_view / sin_view
@@ -112,16 +133,20 @@ def refit_tip(
         elif masks is not None:
             # No end in sight along the line: the silhouette pixels that only
             # the end can explain say where it is, if any do.
-            stop = _end_by_pixels(cam, masks[view], cut_polyline(pts, anchor), path, lead, radius_mm)
-            if stop is not None:
+            span = _end_by_pixels(cam, masks[view], body, path, lead, radius_mm, body_radii_mm=body_radii)
+            if span is not None:
                 # A disc centred on the axis' end reaches r past it, a flat
                 # end's outline r cos / sin (along the line, in mm): the
                 # difference, in mm along the line.
                 extra = 0.0 if cap == "round" else radius_mm * (1.0 - cos_view) / sin_view
-                estimates.append(stop + extra - lead)
-                weights.append(_PIXEL_WEIGHT * sin_view**2)
-    shift = _weighted_median(np.asarray(estimates), np.asarray(weights)) if estimates else 0.0
-    stop = min(lead + shift, max_length_mm - anchor)
+                low, high = span[0] + extra, span[1] + extra
+                # An end hidden over another part of the tube, where it may be
+                # as far as the view can tell, is left to the other views.
+                if not low <= unseen <= high:
+                    estimates.append(min(max(unseen, low), high) - lead)
+                    weights.append(_PIXEL_WEIGHT * sin_view**2)
+    stop = lead + _weighted_median(np.asarray(estimates), np.asarray(weights)) if estimates else unseen
+    stop = min(stop, max_length_mm - anchor)
     if stop <= 0:
         return cut_polyline(pts, anchor + stop)
     ahead = np.append(np.arange(2.0, stop, 2.0), stop)
@@ -135,15 +160,21 @@ def _end_by_pixels(
     path: Callable[[FloatArray], FloatArray],
     lead: float,
     radius_mm: float,
-) -> float | None:
-    """Where the end is along ``path`` (mm past the anchor), read from one view's pixels.
+    *,
+    body_radii_mm: FloatArray | None = None,
+) -> tuple[float, float] | None:
+    """Where the end is along ``path`` (mm past the anchor), read from one view's pixels:
+    (low, high), the span it lies in.
 
-    The tube of the curve up to the anchor (``body_mm``, (B, 3)) is drawn; then
+    The tube of the curve up to the anchor (``body_mm``, (B, 3), its radius
+    ``body_radii_mm``, (B,), default ``radius_mm`` throughout) is drawn; then
     discs along the end line, from the anchor on, each owning the pixels no
     nearer disc (nor the body) covers. The end is where the count of owned
     silhouette pixels minus owned background pixels peaks: past it a disc adds
-    only background. None when no disc adds a silhouette pixel (the end hides
-    in another part of the tube in this view).
+    only background (low = high). Where the discs just past the peak are hidden
+    by the body (the end line runs over another part of the tube), the end lies
+    somewhere over that part: the span runs to its far side. None when no disc
+    adds a silhouette pixel.
     """
     u = np.arange(0.0, lead + 3.0 * radius_mm + 12.0, _PIXEL_STEP_MM)
     line = path(u)
@@ -171,20 +202,41 @@ def _end_by_pixels(
         cv2.circle(
             owner, (int(centres[k, 0]), int(centres[k, 1])), int(radii[k]), k + 1, -1, cv2.LINE_8, DRAW_SHIFT
         )
+    free = np.bincount(owner.ravel(), minlength=len(u) + 1)[1:]
     window = ((x0, y0), (x1, y1))
-    owner[tube_mask(cam, body_mm, radius_mm, window=window)] = 0
+    body_radii = radius_mm if body_radii_mm is None else body_radii_mm
+    owner[tube_mask(cam, body_mm, body_radii, window=window)] = 0
     seen = mask[y0:y1, x0:x1]
     inside = np.bincount(owner[seen], minlength=len(u) + 1)[1:]
     outside = np.bincount(owner[~seen], minlength=len(u) + 1)[1:]
+    # A disc that the body covers for the most part (the end line running over
+    # another part of the tube) says nothing: the few pixels left to it are the
+    # drawn body's and the silhouette's disagreement at that part's edges.
+    hidden = inside + outside < _HIDDEN_SHARE * free
+    inside[hidden] = 0
+    outside[hidden] = 0
     if inside.sum() < _MIN_PIXELS:
         return None
     gain = np.cumsum(inside - outside)
-    return float(u[int(np.argmax(gain))])
+    peak = int(np.argmax(gain))
+    # The gain still at its peak over hidden discs: the end lies somewhere in
+    # the part of the tube they cross, unseen.
+    last = peak
+    while last + 1 < len(u) and hidden[last + 1]:
+        last += 1
+    return float(u[peak]), float(u[last])
 
 
 def tip_zone(radius_mm: float) -> float:
     """Length (mm) at the tip end with no side readings: see _TIP_ZONE_MM."""
     return min(0.5 * radius_mm, _TIP_ZONE_MM)
+
+
+def _overlaps(centres_px: FloatArray, reach_px: FloatArray, points_px: FloatArray) -> bool:
+    """Whether a point of (P, 2) ``points_px`` lies within ``reach_px`` ((C,)) of one
+    of (C, 2) ``centres_px``, each centre its own reach."""
+    gap = centres_px[:, None, :] - points_px[None, :, :]
+    return bool((np.einsum("cpi,cpi->cp", gap, gap) < (reach_px**2)[:, None]).any())
 
 
 def min_distance(a: FloatArray, b: FloatArray) -> float:
