@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..geometry.camera import Camera, project_in_views
-from ..geometry.polyline import cut_polyline, polyline_arclength
+from ..geometry.polyline import by_fraction, cut_polyline, polyline_arclength
 from .tube_drawing import (
     SUPERSAMPLE,
     canvas_levels,
@@ -181,6 +181,8 @@ class _TipDrawing:
     the bend (to a radius before it, so that the drawn pieces overlap) drawn in a
     window of each view, and that drawing's levels; a bend's drawing changes only
     the blocks it touches, which alone are averaged again (see canvas_levels).
+    ``radii_mm``: (M,) the radius at each point of ``pts`` the body is drawn with
+    (default ``radius_mm``, the end's, throughout).
     """
 
     def __init__(
@@ -191,6 +193,7 @@ class _TipDrawing:
         radius_mm: float,
         span_mm: float,
         flat_end: bool,
+        radii_mm: FloatArray | None = None,
     ) -> None:
         arc = polyline_arclength(pts)
         start = max(float(arc[-1]) - span_mm, 0.5 * float(arc[-1]))
@@ -199,7 +202,10 @@ class _TipDrawing:
         self.radius_mm, self.flat_end = radius_mm, flat_end
         ahead = end_frame(pts, arc, at_mm=float(arc[-1]), span_mm=END_SPAN_MM)
         self.bent = _end_bender(pts, arc, start, ahead)
-        body = tube_points(cut_polyline(pts, keep), radius_mm, flat_end=False)
+        body, _ = tube_points(cut_polyline(pts, keep), radius_mm, flat_end=False)
+        # The body as thick as it is along it (a tapered tube's stem drawn as thin as
+        # its end leaves the stem's rim to the bent end, which then lies on it).
+        body_radii = radius_mm if radii_mm is None else np.interp(polyline_arclength(body), arc, radii_mm)
         # Per view that sees the end part: camera, coverage, drawing of the body, origin.
         self.windows: list[tuple[Camera, NDArray[np.float32], NDArray[np.uint8], tuple[int, int]]] = []
         for cam, coverage in zip(cameras, coverages, strict=True):
@@ -208,7 +214,7 @@ class _TipDrawing:
                 continue
             (x0, y0), (x1, y1) = window
             fixed = np.zeros(((y1 - y0) * SUPERSAMPLE, (x1 - x0) * SUPERSAMPLE), np.uint8)
-            draw_tube(fixed, cam, *body, radius_mm, (x0, y0))
+            draw_tube(fixed, cam, body, np.zeros((0, 3)), body_radii, (x0, y0))
             self.windows.append((cam, coverage[y0:y1, x0:x1], fixed, (x0, y0)))
         self.fixed_levels = [canvas_levels(window[2]) for window in self.windows]
         self.cameras = [window[0] for window in self.windows]
@@ -250,12 +256,14 @@ def refine_tip_to_pixels(
     spans_radii: Sequence[float] = REFINE_SPANS_RADII,
     rejects: Callable[[FloatArray], bool] | None = None,
     cap: str = "flat",
+    radii_mm: FloatArray | None = None,
 ) -> FloatArray:
     """The bends of :func:`bend_tip_to_pixels` (its arguments but the search's
     steps), fitted from the curve's own tip by damped Gauss-Newton on each view's
     pixel differences instead of searched for: a few drawings a span where the search
     takes tens, for a tip already near its place (a tracked frame's), not for one that
-    may be far from it.
+    may be far from it. ``radius_mm`` is the tube's radius at its end, ``radii_mm``
+    (M,) the radius at each point of ``points_mm`` (default ``radius_mm`` throughout).
 
     Returns (M', 3) float64, the bent axis; ``points_mm`` when no bend matches better.
     """
@@ -267,7 +275,9 @@ def refine_tip_to_pixels(
     reach = (1.0 + _MAX_BEND_RADII) * radius_mm
     seen = pixel_coverages(contrasts, masks, [view_window(cam, end_part, reach) for cam in cameras])
     for span in spans_radii:
-        pts = _refine_once(pts, cameras, seen, radius_mm, span * radius_mm, rejects, cap == "flat")
+        # The radii follow a bent tip by sample fraction (a bend may add or drop samples).
+        radii = None if radii_mm is None else by_fraction(radii_mm, len(pts))
+        pts = _refine_once(pts, cameras, seen, radius_mm, span * radius_mm, rejects, cap == "flat", radii)
     return pts
 
 
@@ -279,9 +289,10 @@ def _refine_once(
     span_mm: float,
     rejects: Callable[[FloatArray], bool] | None,
     flat_end: bool,
+    radii_mm: FloatArray | None = None,
 ) -> FloatArray:
     """One fit of :func:`refine_tip_to_pixels`, bending the last ``span_mm``."""
-    drawing = _TipDrawing(pts, cameras, coverages, radius_mm, span_mm, flat_end)
+    drawing = _TipDrawing(pts, cameras, coverages, radius_mm, span_mm, flat_end, radii_mm)
     if not drawing.windows:
         return pts
 

@@ -356,6 +356,7 @@ def track_tube(
                 spans_radii=spans,
                 rejects=lambda axis: self_intersects(axis, fit.radius_mm),
                 cap=cap,
+                radii_mm=fit.radii_mm,
             )
             fit = replace(
                 fit,

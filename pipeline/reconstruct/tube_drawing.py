@@ -284,14 +284,15 @@ def draw_tube(
     cam: Camera,
     discs_mm: FloatArray,
     outline_mm: FloatArray,
-    radius_mm: float,
+    radius_mm: float | FloatArray,
     origin: tuple[int, int],
     *,
     pixels: FloatArray | None = None,
 ) -> tuple[int, int, int, int]:
     """Draw (255) a tube given by :func:`tube_points` on a ``SUPERSAMPLE``-times
     finer canvas whose pixel (0, 0) is the image's pixel ``origin`` (x, y);
-    ``pixels``: the (D + O, 2) projection of its discs and outline, if known.
+    ``radius_mm``: one for every disc, or (D,) each its own; ``pixels``: the
+    (D + O, 2) projection of its discs and outline, if known.
 
     Returns the canvas rectangle (x0, y0, x1, y1), half-open, that holds every
     canvas pixel drawn (with a margin)."""

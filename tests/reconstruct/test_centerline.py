@@ -428,6 +428,24 @@ def test_an_end_no_view_reads_keeps_the_tracks_length(rendered_tapered_loop: tup
     assert max(tip_error(start, np.nan) for start in (short, long)) > 6.0
 
 
+def test_a_tip_refined_over_a_thicker_part_of_the_tube_stays_where_it_is(
+    rendered_tapered_loop: tuple,
+) -> None:
+    from pipeline.reconstruct.tip_bend import refine_tip_to_pixels
+
+    curve, radii, cams, masks, contrasts = rendered_tapered_loop
+    start = resample_polyline(curve, 70)
+    start_radii = np.interp(polyline_arclength(start), polyline_arclength(curve), radii)
+    # Started from the true axis, the thin end fitted to the grey levels with the
+    # tube behind it drawn as thick as it is: measured 0.4 and 1.9 mm from the
+    # true end. Drawn as thin as the end throughout, the thick part's rim is left
+    # to the end, which grows over it: 1.5 and 7.2 mm.
+    bent = refine_tip_to_pixels(
+        start, cams, masks, contrasts, 4.0, spans_radii=(4.0, 1.0), radii_mm=start_radii
+    )
+    assert np.linalg.norm(bent[-1] - curve[-1]) < 2.5
+
+
 def test_self_intersects_only_where_the_axis_comes_back_onto_itself() -> None:
     from pipeline.geometry.polyline import self_intersects
 
