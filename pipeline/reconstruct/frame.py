@@ -27,7 +27,15 @@ from .model import build_model as build_model  # re-exported: build the model, t
 from .ordering import infer_base
 from .quality import suspect_reason, tube_figures
 from .spline import smooth_curve
-from .tracking import TrackedFit, judge_fit, predict_axis, predict_length, track_tube, usual_misfit
+from .tracking import (
+    TrackedFit,
+    held_length,
+    judge_fit,
+    predict_axis,
+    predict_length,
+    track_tube,
+    usual_misfit,
+)
 from .tube_fit import foreground_contrast
 from .tube_scores import radius_from_silhouettes
 
@@ -240,7 +248,7 @@ def _curve_and_quality(
                 radii_mm=radii_mm,
                 n_points=n_points,
                 usual_misfit=usual_misfit(previous),
-                length_mm=predict_length(previous, index),
+                length_mm=held_length(previous),
             )
 
         held = None

@@ -11,7 +11,7 @@ the rest of the curve (drawn at its own radius along it) leaves unexplained than
 background pixels. Where the end line runs over another part of the tube in that
 view, the end may lie anywhere over that part: the view then only bounds it.
 Where no view places the end, a tracked frame gives the curve the length its
-track predicts. The end never moves past where the hull ends.
+track has held. The end never moves past where the hull ends.
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ def refit_tip(
     as they are there, not as the end. Where no view reads the end (hidden in
     another part of the tube, or seen end-on), the curve is given
     ``unseen_length_mm`` if that is finite (a tracked frame: the length its track
-    predicts), and left as long as it is otherwise.
+    has held), and left as long as it is otherwise.
     """
     arc = polyline_arclength(pts)
     radii = np.full(len(pts), float(radius_mm)) if radii_mm is None else np.asarray(radii_mm, np.float64)
