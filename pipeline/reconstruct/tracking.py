@@ -186,15 +186,14 @@ def predict_length(previous: Sequence[FrameResult], index: int) -> float:
     frame or a few with a tip cut short or run on lie off the line and do not
     move it. With fewer than three frames, their median.
     """
-    known = [(r.index, r.length_mm) for r in previous[-LENGTH_FRAMES:] if math.isfinite(r.length_mm)]
-    if not known:
+    frames, lengths = _last_lengths(previous)
+    if not len(lengths):
         return math.nan
-    frames, lengths = (np.array(column, dtype=np.float64) for column in zip(*known, strict=True))
-    if len(known) < 3:
+    if len(lengths) < 3:
         return float(np.median(lengths))
     # Written out: scipy.stats.theilslopes also works out a confidence interval,
     # and took 0.46 ms for 30 frames, a few % of a tracked frame.
-    i, j = np.triu_indices(len(known), 1)
+    i, j = np.triu_indices(len(lengths), 1)
     slope = float(np.median((lengths[j] - lengths[i]) / (frames[j] - frames[i])))
     return float(np.median(lengths - slope * frames)) + slope * index
 
@@ -211,8 +210,16 @@ def held_length(previous: Sequence[FrameResult]) -> float:
     two views and end-on in the third over frames 81-106, ran up to 43 mm on held to the
     line, and comes to at most 8 mm held at the median.
     """
-    known = [r.length_mm for r in previous[-LENGTH_FRAMES:] if math.isfinite(r.length_mm)]
-    return float(np.median(known)) if known else math.nan
+    _, lengths = _last_lengths(previous)
+    return float(np.median(lengths)) if len(lengths) else math.nan
+
+
+def _last_lengths(previous: Sequence[FrameResult]) -> tuple[FloatArray, FloatArray]:
+    """The frame indices (L,) and lengths (L,) mm of the track's last ``LENGTH_FRAMES``
+    frames (``previous``, oldest first) that have a length."""
+    known = [(r.index, r.length_mm) for r in previous[-LENGTH_FRAMES:] if math.isfinite(r.length_mm)]
+    frames = np.array([i for i, _ in known], dtype=np.float64)
+    return frames, np.array([n for _, n in known], dtype=np.float64)
 
 
 def usual_misfit(previous: Sequence[FrameResult]) -> float:

@@ -150,7 +150,7 @@ def refit_tip(
     if stop <= 0:
         return cut_polyline(pts, anchor + stop)
     ahead = np.append(np.arange(2.0, stop, 2.0), stop)
-    return np.vstack([cut_polyline(pts, anchor), path(ahead)])
+    return np.vstack([body, path(ahead)])
 
 
 def _end_by_pixels(

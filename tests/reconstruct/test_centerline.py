@@ -390,8 +390,10 @@ def test_end_by_pixels_does_not_read_the_end_past_a_thicker_part_it_lies_on(
 
     # The thin end (r 4) lies over the circle's start (r ~8) in some views. Drawn
     # as thin as its end, the body leaves that part's rim to the discs along the
-    # end line, which read the end 2-23 mm past it; drawn at its own radius, a
-    # view either sees nothing of the end or places it no farther than it is.
+    # end line, which read the end 2-23 mm past it in some view; drawn at its own
+    # radius, a view either sees nothing of the end or places it no farther than it is.
+    thin = [_end_by_pixels(cam, mask, body, path, 30.0, 4.0) for cam, mask in zip(cams, masks, strict=True)]
+    assert any(span is not None and span[0] > 30.0 + 1.0 for span in thin)
     for cam, mask in zip(cams, masks, strict=True):
         span = _end_by_pixels(cam, mask, body, path, 30.0, 4.0, body_radii_mm=body_radii)
         assert span is None or span[0] <= 30.0 + 1.0
