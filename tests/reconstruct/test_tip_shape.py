@@ -172,3 +172,22 @@ def test_the_end_radius_is_read_whole_with_the_axis_off_to_one_side(
     for shift, values in readings.items():
         assert len(values) >= FRAMES, shift
         assert np.median(values) == pytest.approx(7.0, rel=0.02), (shift, np.round(values, 2))
+
+
+@pytest.mark.parametrize(("tip", "misread"), [("flat", 1.15), ("round", 0.9)])
+def test_an_end_radius_read_a_little_off_does_not_choose_the_end(
+    sessions: dict[str, Path], tip: str, misread: float
+) -> None:
+    from pipeline.reconstruct.tip_shape import _frame_tip, frame_evidence
+
+    session = load_session(sessions[tip])
+    model = build_model(session)
+    frames = decode_frames(session.video_paths, range(FRAMES))
+    tips = [t for t in (_frame_tip(index, images, model) for index, images in frames) if t is not None]
+    # The 7 mm tube's end read too wide for the flat end (a radius too large favours the
+    # round end; a spacer disk near the end read one 21 % too wide) and too narrow for the
+    # round one (which favours the flat end).
+    evidence = [frame_evidence(t, model.cameras, 7.0 * misread) for t in tips]
+    choice = TipChoice.from_votes([e.vote for e in evidence if e.views], 7.0 * misread)
+    assert choice.frames >= FRAMES // 2
+    assert choice.tip == tip and choice.clear, choice.describe()
