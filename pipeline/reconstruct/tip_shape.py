@@ -124,6 +124,7 @@ _MAX_SEPARATION = 2.0 - np.pi / 2.0
 # end radius read 1.21 times the truth is now a close call), with 18 close calls
 # instead of 15. From 0.9 to 1.1 times: 8 wrong.
 _DRAWN_SCALES = (0.94, 0.97, 1.0, 1.03, 1.06)
+_AT_READING = _DRAWN_SCALES.index(1.0)
 # The axis' last radii are sampled every this many mm (_last).
 _LAST_STEP_MM = 0.25
 
@@ -133,7 +134,8 @@ class FrameEvidence:
     """How well each end explains one frame's pixels around its tip.
 
     flat_cost, round_cost : squared coverage difference (px) between the grey
-        levels and the tube drawn with that end, summed over the compared views.
+        levels and the tube drawn with that end, summed over the compared views, at
+        the radius near the end's reading that makes it least (``_DRAWN_SCALES``).
     separation : squared coverage difference (px) between the two ends' tubes:
         what the costs could differ by if one of them were exact.
     views : how many views were compared.
@@ -360,18 +362,16 @@ def frame_evidence(tip: _FrameTip, cameras: Sequence[Camera], radius_mm: float) 
             continue
         (x0, y0), (x1, y1) = window
         pixels = coverage[y0:y1, x0:x1]
+        # Per end, per scale; the ends are told apart at the radius read.
         drawn = [
-            drawn_coverage(cam, axis, radius_mm, window, cap=cap)
+            [drawn_coverage(cam, axis, radius_mm * scale, window, cap=cap) for scale in _DRAWN_SCALES]
             for axis, cap in zip(axes, CAPS, strict=True)
         ]
-        apart = float(np.square(drawn[0] - drawn[1]).sum())
+        apart = float(np.square(drawn[0][_AT_READING] - drawn[1][_AT_READING]).sum())
         radius_px = cam.focal_px * radius_mm / float(cam.to_camera(axes[0][-1:])[0, 2])
         if apart > _MAX_SEPARATION * radius_px**2:
             return FrameEvidence(0.0, 0.0, 0.0, 0)
-        for c, (axis, cap) in enumerate(zip(axes, CAPS, strict=True)):
-            for k, scale in enumerate(_DRAWN_SCALES):
-                scaled = drawn_coverage(cam, axis, radius_mm * scale, window, cap=cap)
-                costs[c, k] += float(np.square(scaled - pixels).sum())
+        costs += [[float(np.square(d - pixels).sum()) for d in per_end] for per_end in drawn]
         separation += apart
         views += 1
     flat, round_ = costs.min(axis=1).tolist()
