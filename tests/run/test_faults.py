@@ -433,8 +433,7 @@ def test_a_signal_stops_the_run_and_keeps_previous_outputs(tmp_path: Path, sig: 
         stderr=subprocess.PIPE,
         text=True,
         env=env,
-        # A run started from a background job inherits SIGINT ignored, and honours it.
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        preexec_fn=_as_from_a_terminal,
     )
     try:
         # Wait until the run is under way (its temporary MCAP exists), then a little more:
@@ -689,9 +688,19 @@ if os.environ.get("FAULTS_LOADING_MARK") and sys.orig_argv[1:3] == ["-m", "pipel
 """
 
 
+def _as_from_a_terminal() -> None:
+    """In a child about to run the pipeline: SIGINT and SIGHUP as a terminal's job has them.
+    A run started from a background job inherits SIGINT ignored, one under ``nohup`` SIGHUP
+    ignored, and honours that (:mod:`pipeline.run.interrupts`): the test suite may itself
+    run under either."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
+
 def _popen_in_a_group(command: list[str], env: dict[str, str]) -> subprocess.Popen[str]:
     """Start ``command`` as a terminal starts a job: a process group of its own (which
-    :func:`_signal` can signal whole, as Ctrl-C does), SIGINT not ignored."""
+    :func:`_signal` can signal whole, as Ctrl-C does), SIGINT and SIGHUP not ignored
+    (:func:`_as_from_a_terminal`)."""
     return subprocess.Popen(
         command,
         stdout=subprocess.PIPE,
@@ -699,7 +708,7 @@ def _popen_in_a_group(command: list[str], env: dict[str, str]) -> subprocess.Pop
         text=True,
         env=env,
         start_new_session=True,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        preexec_fn=_as_from_a_terminal,
     )
 
 
@@ -908,8 +917,7 @@ def _start_dying_run(tmp_path: Path, frames: int, **env: str) -> tuple[subproces
         stderr=subprocess.PIPE,
         text=True,
         env={**os.environ, **variables, **env},
-        # A run started from a background job inherits SIGINT ignored, and honours it.
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        preexec_fn=_as_from_a_terminal,
     )
     return proc, out, mark
 
