@@ -28,6 +28,7 @@ comparison of the two ends and nothing else:
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,8 +41,10 @@ from ..geometry.polyline import polyline_arclength
 from .frame import frame_contrasts, reconstruct_with_silhouettes
 from .frame_task import FrameMap, decode_frames, map_here
 from .model import SessionModel
+from .side_readings import read_sides
 from .tip_bend import bend_tip_to_pixels
 from .tube_drawing import Window, drawn_coverage, pixel_coverages
+from .tube_fit import FIT_SPACING_MM
 
 FloatArray = NDArray[np.float64]
 
@@ -54,7 +57,15 @@ FloatArray = NDArray[np.float64]
 # the choice made from all: on 32 rendered sessions (`accuracy_table` draws 2, 7 and
 # 11, the demo, the bench's loop and random shape, four loops; 2026-12-02) close calls
 # 11 -> 7 (three cameras 3 -> 2), wrong choices 2 -> 1; the clear sessions read no more.
+# Where nineteen still leave it close, the eighteen halfway between those (ROUNDS): on the
+# 19 close calls of 78 rendered sessions (`accuracy_table` draws 2, 7, 13, 41, 61 and 73,
+# 28 cases of draw 91 at 40 frames; 2026-12-03) 7 became clear and right, none clear and
+# wrong; over the 78, the end chosen wrongly on 4, 1 of them clear (a round-ended stepped
+# shape beside a dark object), and 12 close calls (5, 1 and 18 with two rounds). With the
+# end's band placed by the fit's radius along the tube instead (see _frame_tip), the third
+# round made a spacer-disk helix clear and wrong.
 SAMPLE_FRAMES = 10
+ROUNDS = 3
 # Where the mean vote lies within this many standard errors of 0, the choice is a close
 # one: the summary says so, and every frame is suspect for it (TIP_DOUBT). On the 32
 # sessions above (with the second round of frames) the sign of the mean vote chose wrongly
@@ -233,11 +244,24 @@ def sample_frames(start: int, stop: int, count: int = SAMPLE_FRAMES) -> list[int
     return sorted({int(i) for i in np.linspace(start, stop - 1, n).round()}) if n > 0 else []
 
 
+def sample_rounds(start: int, stop: int, rounds: int = ROUNDS) -> list[list[int]]:
+    """``rounds`` lists of frame indices over ``[start, stop)``, none in two: the first
+    ``SAMPLE_FRAMES`` spread evenly, each next one the frames halfway between all those
+    before it (10, 19, 37 frames read in all)."""
+    out: list[list[int]] = []
+    count = SAMPLE_FRAMES
+    for _ in range(rounds):
+        read = {index for frames in out for index in frames}
+        out.append(sorted(set(sample_frames(start, stop, count)) - read))
+        count = 2 * count - 1
+    return out
+
+
 def choose_tip(
     model: SessionModel,
     frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
     map_frames: FrameMap = map_here,
-    more: Callable[[], Sequence[tuple[int, Sequence[NDArray[np.uint8]]]]] | None = None,
+    more: Sequence[Callable[[], Sequence[tuple[int, Sequence[NDArray[np.uint8]]]]]] = (),
 ) -> TipChoice:
     """The end ("flat" or "round") that explains the tips of ``frames`` best.
 
@@ -245,13 +269,15 @@ def choose_tip(
     reconstructed from its hull (by ``map_frames``, see
     :data:`pipeline.reconstruct.frame_task.FrameMap`); frames without a curve, or whose
     tip no view shows to either end's satisfaction, are skipped. ``more``: further
-    frames, asked for only where those do not make the choice clear; the choice is
-    then made from all of them.
+    rounds of frames, each asked for only where those before it leave the choice a
+    close one; the choice is then made from all the frames read.
     """
     tips = [tip for tip in map_frames(_frame_tip, frames, model) if tip is not None]
     choice = _choice(model, tips)
-    if more is not None and not choice.clear:
-        tips += [tip for tip in map_frames(_frame_tip, more(), model) if tip is not None]
+    for frames_of_round in more:
+        if choice.clear:
+            break
+        tips += [tip for tip in map_frames(_frame_tip, frames_of_round(), model) if tip is not None]
         choice = _choice(model, tips)
     return choice
 
@@ -273,13 +299,22 @@ def _choice(model: SessionModel, tips: Sequence[_FrameTip]) -> TipChoice:
 
 
 def _frame_tip(index: int, images: Sequence[NDArray[np.uint8]], model: SessionModel) -> _FrameTip | None:
-    """The frame's fitted tube and its end's radius read from its pixels; None without a curve."""
+    """The frame's fitted tube and its end's radius read from its pixels; None without a curve.
+
+    The band read is placed by the radius the side readings give the end (their lower
+    quartile there: the tube's own), not the fit's radius along the tube, which spacer
+    disks seen at an angle widen (a helix's to 1.28 times its 7.5 mm tube), so that the
+    band, so much longer, reached into the last disk's pixels."""
     result, masks = reconstruct_with_silhouettes(index, images, model)
     if result.status != "ok" or result.centerline_mm is None or not np.isfinite(result.radius_mm):
         return None
     contrasts = frame_contrasts(images, model)
     coverages = pixel_coverages(contrasts, masks)
-    fitted = float(result.radii_mm[-1]) if result.radii_mm is not None else result.radius_mm
+    radii = result.radii_mm if result.radii_mm is not None else result.radius_mm
+    sides = read_sides(result.centerline_mm, model.cameras, contrasts, radii, FIT_SPACING_MM)
+    fitted = float(np.ravel(radii)[-1])
+    if np.isfinite(sides.end_radius_mm):
+        fitted = sides.end_radius_mm
     readings = end_radius_readings(
         result.centerline_mm, model.cameras, coverages, fitted, radii_mm=result.radii_mm
     )
@@ -462,13 +497,11 @@ def with_session_tip(
     settings = model.settings
     if settings.manipulator.tip != "auto" or settings.centerline.method != "fit":
         return model, None
-    first = sample_frames(start, stop)
-    # Where those leave the choice close, the frames halfway between them.
-    between = sorted(set(sample_frames(start, stop, 2 * SAMPLE_FRAMES - 1)) - set(first))
+    rounds = sample_rounds(start, stop)
     choice = choose_tip(
         model,
-        decode_frames(video_paths, first),
+        decode_frames(video_paths, rounds[0]),
         map_frames,
-        more=lambda: decode_frames(video_paths, between),
+        more=[functools.partial(decode_frames, video_paths, frames) for frames in rounds[1:]],
     )
     return dataclasses.replace(model, tip=choice.tip), choice

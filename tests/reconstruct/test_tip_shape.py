@@ -18,6 +18,7 @@ from pipeline.reconstruct.tip_shape import (
     TipChoice,
     choose_tip,
     sample_frames,
+    sample_rounds,
 )
 from pipeline.session.folder import load_session
 from pipeline.synth import render_session
@@ -57,6 +58,19 @@ def test_sampled_frames_spread_over_the_span() -> None:
     assert sample_frames(5, 5, 6) == []
 
 
+def test_each_round_of_frames_lies_halfway_between_those_before() -> None:
+    rounds = sample_rounds(0, 900)
+    assert [len(frames) for frames in rounds] == [10, 9, 18]
+    assert sorted(i for frames in rounds for i in frames) == sample_frames(0, 900, 37)
+    # Halfway: each frame of a round lies between two of the frames read before it.
+    for k in range(1, len(rounds)):
+        before = sorted(i for frames in rounds[:k] for i in frames)
+        assert all(before[0] < i < before[-1] for i in rounds[k])
+        assert len(set(np.searchsorted(before, rounds[k]))) == len(rounds[k])
+    # A short span is read once, whole.
+    assert sorted(i for frames in sample_rounds(10, 22) for i in frames) == list(range(10, 22))
+
+
 @pytest.mark.parametrize("tip", ["flat", "round"])
 def test_the_end_that_explains_the_tips_is_chosen(sessions: dict[str, Path], tip: str) -> None:
     session = load_session(sessions[tip])
@@ -75,11 +89,13 @@ def test_more_frames_are_read_only_where_the_first_leave_a_close_call(sessions: 
         asked.append(1)
         return decode_frames(session.video_paths, range(1, FRAMES))
 
-    # One frame's vote is never clear: the rest are read, and the choice is theirs too.
-    choice = choose_tip(model, decode_frames(session.video_paths, [0]), more=more)
+    # One frame's vote is never clear: the rest are read, and the choice is theirs too;
+    # where those make it clear, the round after them is not asked for.
+    choice = choose_tip(model, decode_frames(session.video_paths, [0]), more=[more, more])
     assert asked == [1] and choice.frames > 1 and choice.tip == "round"
+    assert choice.clear, choice.describe()
     # A clear choice from the first frames reads no more.
-    clear = choose_tip(model, decode_frames(session.video_paths, range(FRAMES)), more=more)
+    clear = choose_tip(model, decode_frames(session.video_paths, range(FRAMES)), more=[more])
     assert clear.clear, clear.describe()
     assert asked == [1]
 
