@@ -130,10 +130,11 @@ _MAX_SEPARATION = 2.0 - np.pi / 2.0
 # drawing does: a radius read a few % off (a spacer disk near the end, a taper's wider
 # part) no longer decides for one end, a radius too large for the round one and too small
 # for the flat. On 78 rendered sessions (`accuracy_table` draws 2, 7, 13, 41, 61 and 73,
-# and 28 cases of draw 91 at 40 frames; 2026-12-03) the end was chosen wrongly on 5
-# instead of 9, wrongly without a close call on 1 instead of 4 (a spacer-disk helix whose
-# end radius read 1.21 times the truth is now a close call), with 18 close calls
-# instead of 15. From 0.9 to 1.1 times: 8 wrong.
+# and 28 cases of draw 91 at 40 frames; 2026-12-03), with the end's band then placed by
+# the fit's radius along the tube, the end was chosen wrongly on 5 instead of 9, wrongly
+# without a close call on 1 instead of 4 (a spacer-disk helix whose end radius read 1.21
+# times the truth became a close call), with 18 close calls instead of 15. From 0.9 to
+# 1.1 times: 8 wrong.
 _DRAWN_SCALES = (0.94, 0.97, 1.0, 1.03, 1.06)
 _AT_READING = _DRAWN_SCALES.index(1.0)
 # The axis' last radii are sampled every this many mm (_last).
