@@ -59,8 +59,8 @@ FloatArray = NDArray[np.float64]
 # 11 -> 7 (three cameras 3 -> 2), wrong choices 2 -> 1; the clear sessions read no more.
 # Where nineteen still leave it close, the eighteen halfway between those (ROUNDS): on the
 # 19 close calls of 78 rendered sessions (`accuracy_table` draws 2, 7, 13, 41, 61 and 73,
-# 28 cases of draw 91 at 40 frames; 2026-12-03) 7 became clear and right, none clear and
-# wrong; over the 78, the end chosen wrongly on 4, 1 of them clear (a round-ended stepped
+# 28 cases of draw 91 at 40 frames; 2026-12-03) the third round makes 7 clear and right,
+# none clear and wrong; over the 78, the end chosen wrongly on 4, 1 of them clear (a round-ended stepped
 # shape beside a dark object), and 12 close calls (5, 1 and 18 with two rounds). With the
 # end's band placed by the fit's radius along the tube instead (see _frame_tip), the third
 # round made a spacer-disk helix clear and wrong.
@@ -133,7 +133,7 @@ _MAX_SEPARATION = 2.0 - np.pi / 2.0
 # and 28 cases of draw 91 at 40 frames; 2026-12-03), with the end's band then placed by
 # the fit's radius along the tube, the end was chosen wrongly on 5 instead of 9, wrongly
 # without a close call on 1 instead of 4 (a spacer-disk helix whose end radius read 1.21
-# times the truth became a close call), with 18 close calls instead of 15. From 0.9 to
+# times the truth is a close call, not a wrong choice), with 18 close calls instead of 15. From 0.9 to
 # 1.1 times: 8 wrong.
 _DRAWN_SCALES = (0.94, 0.97, 1.0, 1.03, 1.06)
 _AT_READING = _DRAWN_SCALES.index(1.0)
