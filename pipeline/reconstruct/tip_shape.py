@@ -61,9 +61,9 @@ FloatArray = NDArray[np.float64]
 # 19 close calls of 78 rendered sessions (`accuracy_table` draws 2, 7, 13, 41, 61 and 73,
 # 28 cases of draw 91 at 40 frames; 2026-12-03) the third round makes 7 clear and right,
 # none clear and wrong; over the 78, the end chosen wrongly on 4, 1 of them clear (a round-ended stepped
-# shape beside a dark object), and 12 close calls (5, 1 and 18 with two rounds). With the
-# end's band placed by the fit's radius along the tube instead (see _frame_tip), the third
-# round made a spacer-disk helix clear and wrong.
+# shape beside a dark object), and 12 close calls (5, 1 and 18 with two rounds and the
+# end's band placed by the fit's radius along the tube, see _frame_tip; placed so, a third
+# round makes a spacer-disk helix clear and wrong).
 SAMPLE_FRAMES = 10
 ROUNDS = 3
 # Where the mean vote lies within this many standard errors of 0, the choice is a close
@@ -304,8 +304,8 @@ def _frame_tip(index: int, images: Sequence[NDArray[np.uint8]], model: SessionMo
 
     The band read is placed by the radius the side readings give the end (their lower
     quartile there: the tube's own), not the fit's radius along the tube, which spacer
-    disks seen at an angle widen (a helix's to 1.28 times its 7.5 mm tube), so that the
-    band, so much longer, reached into the last disk's pixels."""
+    disks seen at an angle widen (a helix's to 1.28 times its 7.5 mm tube): a band as much
+    longer reaches into the last disk's pixels."""
     result, masks = reconstruct_with_silhouettes(index, images, model)
     if result.status != "ok" or result.centerline_mm is None or not np.isfinite(result.radius_mm):
         return None
