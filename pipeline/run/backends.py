@@ -24,6 +24,8 @@ log = logging.getLogger(__name__)
 
 BACKENDS = ("loky", "threading", "dask")
 DASK_CONNECT_TIMEOUT_S = 10
+# The loggers that distributed configures, each with a level of its own.
+_DASK_LOGGERS = ("distributed", "distributed.client", "distributed.gc", "tornado", "tornado.application")
 
 
 @contextlib.contextmanager
@@ -44,18 +46,17 @@ def parallel_backend(
             else:
                 yield n_jobs, model
         return
-    # distributed logs ~45 INFO lines while a cluster starts, and warnings as an interrupted
-    # one stops (cancelled tasks, workers killed), in this process and in its workers
-    # (which read the variable): the run's own lines say what matters.
+    # distributed logs ~45 INFO lines while a cluster starts, and warnings and errors as an
+    # interrupted one stops (cancelled tasks, workers killed, the clients that joblib opens
+    # in each worker finding the scheduler gone), in this process and in its workers: the
+    # run's own lines say what matters. The workers read the variable as they start.
     quiet = not log.isEnabledFor(logging.DEBUG)
     if quiet:
-        os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "critical")
+        os.environ.setdefault("DASK_LOGGING", repr(dict.fromkeys(_DASK_LOGGERS, "critical")))
     from distributed import Client, LocalCluster
 
-    if quiet:
-        # Dask's logging config gives these their own handlers (tornado's: a client's
-        # callback that finds its connections closed as an interrupted run stops).
-        for name in ("distributed", "tornado", "tornado.application"):
+    if quiet:  # in case distributed was imported, and its logging set up, before
+        for name in _DASK_LOGGERS:
             logging.getLogger(name).setLevel(logging.CRITICAL)
 
     cluster = None

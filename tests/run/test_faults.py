@@ -538,6 +538,29 @@ def test_dask_run_keeps_stderr_to_the_projects_own_lines(tmp_path: Path) -> None
     assert "6 processed, 6 ok" in done.stdout
 
 
+_WORKER_LOG_LEVELS = """
+import logging
+from distributed import default_client
+from pipeline.run.backends import parallel_backend
+names = ("distributed", "distributed.client", "tornado", "tornado.application")
+levels = lambda: sorted({logging.getLogger(n).getEffectiveLevel() for n in names})
+with parallel_backend("dask", None, 2, None):
+    print(levels(), *default_client().run(levels).values())
+"""
+
+
+@pytest.mark.slow
+def test_dask_workers_keep_distributeds_logs_to_themselves(tmp_path: Path) -> None:
+    # joblib opens a client in every worker: when the scheduler dies under it (the terminal
+    # closed on the run), that client's error must not reach the run's stderr.
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DASK_")}
+    done = subprocess.run(
+        [sys.executable, "-c", _WORKER_LOG_LEVELS], capture_output=True, text=True, timeout=120, env=env
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == [f"[{logging.CRITICAL}]"] * 3
+
+
 # --- two runs, dead runs, the pair of outputs ------------------------------------------------
 
 
