@@ -109,7 +109,15 @@ _TOUCH_RADII = 4.0
 # tip medians 0.49, 1.34 and 0.49 mm against 0.51, 3.07 and 0.49 (the tapered loop's
 # tip lies on its stem, where its place is bistable: see docs/accuracy.md). One span
 # (4 radii) was faster still (24-31 ms) but put the round end's tip 0.64 mm off;
-# 6 steps instead of 3 changed nothing but the time (34-40 ms).
+# 6 steps instead of 3 changed nothing but the time (34-40 ms). On the same three loops
+# (120 frames each, 2026-12-03; the frames timed in CPU time, interleaved with the
+# spans as they are), against the spans fitted one after the other: one span of 2.5 or
+# 4 radii, frames 13-21 % faster, tip medians 0.45 -> 0.57-0.63 mm on the round end and
+# 0.54 -> 0.57-0.67 mm on the bench loop; both spans' bends fitted together (five
+# parameters, one drawing set up), 8-15 % faster, tips 0.45 -> 0.56-0.59 and 0.54 ->
+# 0.61-0.67 mm; the Jacobian from the drawn coverage's gradient at each edge pixel
+# (moved as its nearest axis point) instead of three drawings, 13-15 % slower, tips
+# 0.45 -> 0.50 and 0.54 -> 0.60 mm.
 REFINE_SPANS_RADII = (4.0, 1.0)
 _DIFFERENCE_MM = 0.5
 _REFINE_STEPS = 3
