@@ -182,6 +182,9 @@ def _coverage(contrast: NDArray[np.float32], mask: NDArray[np.bool_]) -> NDArray
     level for each, a background patch darker than the median reads as part
     covered, and the tip is drawn towards it.
     """
+    if not mask.any():
+        # No silhouette pixel near (a window where a view lost the tube): none of it here.
+        return np.zeros(contrast.shape, np.float32)
     grow = np.ones((_CORE_PX, _CORE_PX), np.uint8)
     core = cv2.erode(mask.view(np.uint8), grow).view(bool)
     away = ~cv2.dilate(mask.view(np.uint8), grow).view(bool)
