@@ -246,14 +246,14 @@ def read_sides(
     # ever being read.
     uncrowded = (ok & ~crowd[..., 0] & ~crowd[..., 1]).T & interior[:, None]
     # Where a tracked frame reads no radius (a part hidden by another in every view), the
-    # track's profile stands rather than a line across the gap. Measured on 42
+    # track's profile stands rather than a line across the gap. Measured on 43
     # three-camera rendered sessions (`accuracy_table` draws 2, 7, 13, 41, 61, 73 and 91
     # with steps, tapers, disks or uniform tubes, the demo and the bench's two further
     # shapes; 40-90 frames tracked from frame 0 with the true end; 2026-12-03): on the 32
     # stepped, tapered or disk tubes frames more than 2 mm off 284 -> 263 (a stepped r 6
     # tube's 11 -> 0: its thin part hidden just past the step read 5.3 mm against 4.2),
-    # mean error 0.281 -> 0.277 mm (8 sessions better, 5 worse); the 10 uniform ones 1 ->
-    # 3, 0.137 -> 0.136 mm. On two cameras, where no reading is redundant, a radius read
+    # mean error 0.281 -> 0.277 mm (8 sessions better, 5 worse); the 11 uniform ones 2 ->
+    # 3, 0.141 -> 0.139 mm. On two cameras, where no reading is redundant, a radius read
     # wrong is carried along as well (tapered r 5.5 and 7 tubes 18 -> 22 and 23 -> 39
     # frames off, a disk tube's mean 4.9 -> 7.8 mm): there the frame's own line stands.
     known = profile_known and len(cameras) >= REDUNDANT_VIEWS
