@@ -217,13 +217,9 @@ def read_sides(
     *,
     core: float = 0.6,
     crowd_margin_px: float = CROWD_MARGIN_PX,
-    profile_known: bool = False,
 ) -> SideReadings:
     """Side readings at the K samples ``pts`` (mm) where the tube's radius is
-    ``radius_mm`` (one for all, or (K,) along the tube); ``profile_known``: that
-    profile was read before (a tracked frame's, from the frames before it), and stands
-    where no view reads this frame's (see :func:`_radius_profile`), on rigs of
-    ``REDUNDANT_VIEWS`` or more."""
+    ``radius_mm`` (one for all, or (K,) along the tube)."""
     tangents = unit_tangents(pts)
     arc = polyline_arclength(pts)
     expected = np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), arc.shape)
@@ -245,19 +241,7 @@ def read_sides(
     # expected, so they would keep a tapered or stepped tube's thinner part from
     # ever being read.
     uncrowded = (ok & ~crowd[..., 0] & ~crowd[..., 1]).T & interior[:, None]
-    # Where a tracked frame reads no radius (a part hidden by another in every view), the
-    # track's profile stands rather than a line across the gap. Measured on 43
-    # three-camera rendered sessions (`accuracy_table` draws 2, 7, 13, 41, 61, 73 and 91
-    # with steps, tapers, disks or uniform tubes, the demo and the bench's two further
-    # shapes; 40-90 frames tracked from frame 0 with the true end; 2026-12-03): on the 32
-    # stepped, tapered or disk tubes frames more than 2 mm off 284 -> 263 (a stepped r 6
-    # tube's 11 -> 0: its thin part hidden just past the step read 5.3 mm against 4.2),
-    # mean error 0.281 -> 0.277 mm (8 sessions better, 5 worse); the 11 uniform ones 2 ->
-    # 3, 0.141 -> 0.139 mm. On two cameras, where no reading is redundant, a radius read
-    # wrong is carried along as well (tapered r 5.5 and 7 tubes 18 -> 22 and 23 -> 39
-    # frames off, a disk tube's mean 4.9 -> 7.8 mm): there the frame's own line stands.
-    known = profile_known and len(cameras) >= REDUNDANT_VIEWS
-    radii = _radius_profile(arc, 0.5 * (right - left), uncrowded, expected, known=known)
+    radii = _radius_profile(arc, 0.5 * (right - left), uncrowded, expected)
     # The end's radius from the uncrowded readings no narrower than the tube (a
     # taper's end is), whatever their width above it (see _end_radius).
     end_radius = _end_radius(0.5 * (right - left), uncrowded & ~narrow.T)
@@ -324,12 +308,7 @@ def width_ratios(
 
 
 def _radius_profile(
-    arc_mm: FloatArray,
-    half_mm: FloatArray,
-    both: NDArray[np.bool_],
-    expected_mm: FloatArray,
-    *,
-    known: bool = False,
+    arc_mm: FloatArray, half_mm: FloatArray, both: NDArray[np.bool_], expected_mm: FloatArray
 ) -> FloatArray:
     """(K,) the tube's radius along it (mm), from the half-widths ``half_mm`` (K, C) of
     the two-edge readings ``both`` (K, C) at arc lengths ``arc_mm`` (K,).
@@ -337,18 +316,9 @@ def _radius_profile(
     The median of the readings of each sample and its neighbours within
     ``_PROFILE_HALF_SPAN`` samples, in every view (a disk or a stray reading is
     one sample, a taper or a step many); samples without readings take the
-    profile interpolated along the arc, ``expected_mm`` where there is none. With
-    ``known``, ``expected_mm`` (K,) is a profile read before (the track's), and a sample
-    no view reads takes it as its reading in every view: a part hidden in this frame
-    keeps the radius it had, where a line across the gap would move a step along the
-    tube, and the window of a sample beside the gap weighs it as a part seen.
+    profile interpolated along the arc, ``expected_mm`` where there is none.
     """
     readings = np.where(both, half_mm, np.nan)
-    if known:
-        unread = ~both.any(axis=1)
-        readings[unread] = np.asarray(expected_mm, dtype=np.float64)[unread, None]
-        both = both.copy()
-        both[unread] = True
     seen = np.flatnonzero(both.any(axis=1))
     if len(seen) < 3:
         return np.array(expected_mm, dtype=np.float64)

@@ -188,7 +188,6 @@ def fit_tube(
             spacing_mm,
             core=seek_radii if i == 0 else _CORE,
             crowd_margin_px=crowd_margin_px,
-            profile_known=radii_mm is not None,
         )
         end_radius = float(local[-1])
         if obs.readings >= 6:
@@ -210,14 +209,7 @@ def fit_tube(
             unseen_length_mm=unseen_length_mm,
         )
     pts = _resampled(pts, spacing_mm)
-    obs = read_sides(
-        pts,
-        cameras,
-        contrasts,
-        np.interp(polyline_arclength(pts), along, radii),
-        spacing_mm,
-        profile_known=radii_mm is not None,
-    )
+    obs = read_sides(pts, cameras, contrasts, np.interp(polyline_arclength(pts), along, radii), spacing_mm)
     if obs.readings == 0:
         return TubeFit(pts, float("nan"), float("nan"), 0)
     return TubeFit(pts, obs.radius_mm, obs.residual_mm(), obs.readings, obs.radii_mm)

@@ -185,29 +185,6 @@ def test_the_radius_profile_follows_a_step_and_ignores_disks() -> None:
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_a_part_no_view_reads_keeps_the_radius_the_track_read_there(seed: int) -> None:
-    from pipeline.reconstruct.side_readings import _radius_profile
-
-    rng = np.random.default_rng(seed)
-    k, views = 50, 3
-    arc = np.arange(k) * 4.0
-    # A tube stepped from 6 to 4 mm; in this frame another part hides the 6-9 samples
-    # just past the step from every view, and the tip zone has no reading.
-    step = int(rng.integers(15, 30))
-    truth = np.where(np.arange(k) < step, 6.0, 4.0)
-    half = truth[:, None] + rng.normal(0.0, 0.03, size=(k, views))
-    both = np.ones((k, views), dtype=bool)
-    both[step : step + int(rng.integers(6, 10))] = False
-    both[-3:] = False
-    # Read on its own, the hidden part takes a line from one side of the gap to the other.
-    alone = _radius_profile(arc, half, both, np.full(k, 6.0))
-    assert np.abs(alone - truth).max() > 0.5
-    # Given the profile the track read before, it keeps it, and so does the step.
-    tracked = _radius_profile(arc, half, both, truth, known=True)
-    np.testing.assert_allclose(tracked, truth, atol=0.1)
-
-
-@pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_views_width_is_read_against_the_radius_where_it_read_it(seed: int) -> None:
     from pipeline.reconstruct.side_readings import width_ratios
 
