@@ -307,6 +307,17 @@ def width_ratios(
     return ratio
 
 
+# Where another part of the tube hides a stretch of it from every view, the profile there
+# is a line across the gap. Keeping the track's profile there instead (the frame before's,
+# on rigs of three cameras or more) was measured (2026-12-03). Tracked from frame 0 with
+# the true end, on 32 stepped, tapered and disk sessions of `accuracy_table` draws 2, 7,
+# 13, 41, 61, 73 and 91: frames more than 2 mm off 284 -> 263, a stepped r 6 tube hidden
+# just past its step (read 5.3 mm there against 4.2) 11 -> 0. Through `accuracy_table` on
+# draws 2, 7 and 13 and a fresh draw 97 (the same renders both ways): the three-camera
+# frames off 154 -> 160, draw 97's stepped r 7 shape 10 -> 22 (83 frames off on that draw
+# against 67 with the profile carried by the distance along the tube rather than by
+# sample fraction). On two cameras a radius read wrong was carried along as well (a disk
+# tube's mean 4.9 -> 7.8 mm). Left out.
 def _radius_profile(
     arc_mm: FloatArray, half_mm: FloatArray, both: NDArray[np.bool_], expected_mm: FloatArray
 ) -> FloatArray:
