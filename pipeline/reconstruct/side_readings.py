@@ -314,10 +314,10 @@ def width_ratios(
 # 13, 41, 61, 73 and 91: frames more than 2 mm off 284 -> 263, a stepped r 6 tube hidden
 # just past its step (read 5.3 mm there against 4.2) 11 -> 0. Through `accuracy_table` on
 # draws 2, 7 and 13 and a fresh draw 97 (the same renders both ways): the three-camera
-# frames off 154 -> 160, draw 97's stepped r 7 shape 10 -> 22 (83 frames off on that draw
-# against 67 with the profile carried by the distance along the tube rather than by
-# sample fraction). On two cameras a radius read wrong was carried along as well (a disk
-# tube's mean 4.9 -> 7.8 mm). Left out.
+# frames off 154 -> 160, draw 97's stepped r 7 shape 10 -> 22; carried by the distance
+# along the tube rather than by sample fraction, draw 97's three-camera frames off 67 ->
+# 83. On two cameras a radius read wrong was carried along as well (a disk tube's mean
+# 4.9 -> 7.8 mm). Left out.
 def _radius_profile(
     arc_mm: FloatArray, half_mm: FloatArray, both: NDArray[np.bool_], expected_mm: FloatArray
 ) -> FloatArray:
