@@ -308,7 +308,7 @@ def width_ratios(
 
 
 # Where another part of the tube hides a stretch of it from every view, the profile there
-# is a line across the gap. Keeping the track's profile there instead (the frame before's,
+# is a line across the gap. Keeping the track's profile there instead (the previous frame's,
 # on rigs of three cameras or more) was measured (2026-12-03). Tracked from frame 0 with
 # the true end, on 32 stepped, tapered and disk sessions of `accuracy_table` draws 2, 7,
 # 13, 41, 61, 73 and 91: frames more than 2 mm off 284 -> 263, a stepped r 6 tube hidden
