@@ -60,10 +60,10 @@ FloatArray = NDArray[np.float64]
 # Where nineteen still leave it close, the eighteen halfway between those (ROUNDS): on the
 # 19 close calls of 78 rendered sessions (`accuracy_table` draws 2, 7, 13, 41, 61 and 73,
 # 28 cases of draw 91 at 40 frames; 2026-12-03) the third round makes 7 clear and right,
-# none clear and wrong; over the 78, the end chosen wrongly on 4, 1 of them clear (a round-ended stepped
-# shape beside a dark object), and 12 close calls (5, 1 and 18 with two rounds and the
-# end's band placed by the fit's radius along the tube, see _frame_tip; placed so, a third
-# round makes a spacer-disk helix clear and wrong).
+# none clear and wrong; over the 78, the end chosen wrongly on 4, 1 of them clear (a
+# round-ended stepped shape beside a dark object), and 12 close calls (5, 1 and 18 with two
+# rounds and the end's band placed by the fit's radius along the tube, see _frame_tip;
+# placed so, a third round makes a spacer-disk helix clear and wrong).
 SAMPLE_FRAMES = 10
 ROUNDS = 3
 # Where the mean vote lies within this many standard errors of 0, the choice is a close
@@ -128,13 +128,13 @@ _REGION_MARGIN_PX = 2.0
 _MAX_SEPARATION = 2.0 - np.pi / 2.0
 # Each end is drawn at these multiples of the end's radius read, and costs what its best
 # drawing does: a radius read a few % off (a spacer disk near the end, a taper's wider
-# part) no longer decides for one end, a radius too large for the round one and too small
+# part) does not decide for one end, a radius too large for the round one and too small
 # for the flat. On 78 rendered sessions (`accuracy_table` draws 2, 7, 13, 41, 61 and 73,
-# and 28 cases of draw 91 at 40 frames; 2026-12-03), with the end's band then placed by
-# the fit's radius along the tube, the end was chosen wrongly on 5 instead of 9, wrongly
-# without a close call on 1 instead of 4 (a spacer-disk helix whose end radius read 1.21
-# times the truth is a close call, not a wrong choice), with 18 close calls instead of 15. From 0.9 to
-# 1.1 times: 8 wrong.
+# and 28 cases of draw 91 at 40 frames; 2026-12-03), with the end's band placed by the
+# fit's radius along the tube, against each end drawn at the reading alone: the end
+# chosen wrongly on 5 against 9, wrongly without a close call on 1 against 4 (a
+# spacer-disk helix whose end radius read 1.21 times the truth is a close call, not a
+# wrong choice), close calls 18 against 15. From 0.9 to 1.1 times: 8 wrong.
 _DRAWN_SCALES = (0.94, 0.97, 1.0, 1.03, 1.06)
 _AT_READING = _DRAWN_SCALES.index(1.0)
 # The axis' last radii are sampled every this many mm (_last).
@@ -313,11 +313,9 @@ def _frame_tip(index: int, images: Sequence[NDArray[np.uint8]], model: SessionMo
     coverages = pixel_coverages(contrasts, masks)
     radii = result.radii_mm if result.radii_mm is not None else result.radius_mm
     sides = read_sides(result.centerline_mm, model.cameras, contrasts, radii, FIT_SPACING_MM)
-    fitted = float(np.ravel(radii)[-1])
-    if np.isfinite(sides.end_radius_mm):
-        fitted = sides.end_radius_mm
+    band_radius_mm = sides.end_radius_mm if np.isfinite(sides.end_radius_mm) else float(np.ravel(radii)[-1])
     readings = end_radius_readings(
-        result.centerline_mm, model.cameras, coverages, fitted, radii_mm=result.radii_mm
+        result.centerline_mm, model.cameras, coverages, band_radius_mm, radii_mm=result.radii_mm
     )
     return _FrameTip(result.centerline_mm, masks, contrasts, coverages, tuple(readings))
 
