@@ -362,6 +362,15 @@ def _end_radius(half_mm: FloatArray, both: NDArray[np.bool_]) -> float:
     return percentile_1d(half_mm[last][both[last]], 0.25)
 
 
+# The same limit along the whole tube, with the radius profile from each window's shorth
+# or lower quartile instead of its median (so that disks raise it less) and a single edge
+# held to the limit too, was measured on 13 three-camera disk sessions of `accuracy_table`
+# draws 2, 7, 41, 61, 91 and 97 (90 frames each, 2026-12-03): frames more than 2 mm off
+# 300 -> 361 (shorth) and 362 (lower quartile). At the true axis of a coiled r 6 tube with
+# r 9 disks every 20 mm (draw 97), even at its true radius, readings 3-10 mm from a disk
+# put the axis 0.3-0.5 mm off (median): between the disk and the sample the tube turns
+# by up to 20 degrees, tilting the disk's ellipse across the sample's profile. Only a
+# drawing of the disks would read such a tube's edges. Left out.
 def _end_limit(e: _CameraEdges, arc_mm: FloatArray, end_radius_mm: float) -> FloatArray:
     """(C, K) the farthest an edge may sit from the axis (mm): ``e.limit``, and over the
     tube's last ``END_SPAN_MM`` no more than ``_END_TOLERANCE`` times its own radius at
