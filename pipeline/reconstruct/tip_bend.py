@@ -208,8 +208,7 @@ class _TipDrawing:
         keep = max(start - radius_mm, 0.0)
         self.first = max(int(np.searchsorted(arc, keep)) - 1, 0)
         self.radius_mm, self.flat_end = radius_mm, flat_end
-        # Lengthened by what the grey levels fit, in the continuation's own parameter (see end_frame).
-        ahead = end_frame(pts, arc, at_mm=float(arc[-1]), span_mm=END_SPAN_MM, by_length=False)
+        ahead = end_frame(pts, arc, at_mm=float(arc[-1]), span_mm=END_SPAN_MM)
         self.bent = _end_bender(pts, arc, start, ahead)
         body, _ = tube_points(cut_polyline(pts, keep), radius_mm, flat_end=False)
         # The body as thick as it is along it (a tapered tube's stem drawn as thin as

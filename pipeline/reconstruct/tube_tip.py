@@ -46,11 +46,6 @@ MIN_SIN_VIEW = 0.3
 _TIP_ZONE_MM = 3.0
 END_SPAN_MM = 24.0
 _END_DEGREE = 2
-# end_frame measures its continuation's length on samples this far apart (in its
-# parameter), this far either side of where it starts (mm); farther out, the
-# parameter runs on at the speed of the last sample.
-_PATH_STEP_MM = 1.0
-_PATH_REACH_MM = 64.0
 # Reading the end from a view's pixels (see _end_by_pixels): discs every
 # _PIXEL_STEP_MM along the end line; fewer than _MIN_PIXELS silhouette pixels of
 # its own say nothing. Such a reading weighs _PIXEL_WEIGHT times an edge reading.
@@ -250,34 +245,31 @@ def min_distance(a: FloatArray, b: FloatArray) -> float:
     return float(np.sqrt(np.einsum("abi,abi->ab", gap, gap).min()))
 
 
+# The continuation is run in the polynomial's own parameter, not by its length. Where the
+# curve's course changes over the span (a coil running into a straight end) the
+# parabola's speed reaches 1.12 mm a mm, and an end read along it, a round cap's length
+# taken off a reading in that parameter, lies 0.8-1.5 mm short (on the true axis of
+# seeded coils with round ends, 320x240). Re-parametrized by its length (sampled every
+# 0.25 mm) in the end reading and the tip's bends alike, it was measured on 45
+# three-camera sessions of `accuracy_table` draws 2, 7, 13, 41, 61, 73, 91, 97 (one made
+# uniform) and 103 and the demo (90 frames each, 2026-12-03): median tips averaged 0.640
+# against 0.710 mm, means 0.238 against 0.241 mm, frames more than 2 mm off 309 against
+# 320, but 144 of them flagged against 173, and good frames flagged 439 against 262
+# (three more ends close calls between flat and round); the coil 0.58 against 1.28 mm.
+# It also sent a hull-started frame of a random shape, with a stretch hidden in one view,
+# 10 mm off (its resumed march set off from a slightly different end:
+# tests/reconstruct/test_frame.py, seed 1). In the end reading alone, with the bends
+# kept in the parameter, a coiled tube with disks (draw 97) had its tip curl across
+# (2.27 against 0.82 mm). Left out.
 def end_frame(
-    pts: FloatArray, arc: FloatArray, *, at_mm: float, span_mm: float, by_length: bool = True
+    pts: FloatArray, arc: FloatArray, *, at_mm: float, span_mm: float
 ) -> Callable[[FloatArray], FloatArray]:
-    """The curve's continuation past arc length ``at_mm``: u (mm, (U,)) -> (U, 3) points,
-    0 at ``at_mm``.
+    """The curve's continuation past arc length ``at_mm``: u (mm, (U,)) -> (U, 3) points.
 
     A polynomial of degree ``_END_DEGREE`` in arc length, fitted by least squares
     to the ``span_mm`` of the curve before ``at_mm``; fewer samples give a lower
     degree. (A helix's torsion makes a parabola drift ~0.4 mm over 6 mm of
     extrapolation, which is why only half a radius is extrapolated.)
-
-    ``by_length``: u is the length along the continuation itself (resampled every
-    ``_PATH_STEP_MM``); otherwise the polynomial's own parameter. The two differ where
-    the curve's course changes over the span: past a coil running into a straight end
-    the parabola's speed reached 1.12 mm a mm, and an end read along it, a cap's length
-    taken off a reading in its parameter, came out 0.8-1.5 mm short. Measured on 45
-    three-camera sessions of `accuracy_table` draws 2, 7, 13, 41, 61, 73, 91, 97 (one
-    made uniform) and 103 and the demo (90 frames each, `pipeline process` then
-    `pipeline evaluate`, 2026-12-03), the end read along its length against its
-    parameter: median tips averaged 0.632 against 0.710 mm, means 0.239 against 0.241 mm,
-    frames more than 2 mm off 296 against 320 (145 of them flagged against 173), good
-    frames flagged 271 against 262; the coil 0.60 against 1.28 mm. On 17 two-camera
-    ones: median tips 1.66 against 1.74 mm, means 1.19 against 1.21 mm, frames off 633
-    against 622. The tip's bends (pipeline.reconstruct.tip_bend) lengthen the tube by a
-    length the grey levels fit, in whichever unit, and keep the parameter: bent along
-    the length as well (the length sampled every 0.25 mm), the three-camera median tips
-    averaged 0.640 against 0.623 mm, and three more sessions' ends were close calls
-    between flat and round (good frames flagged 439 against 315).
     """
     s = arc - at_mm
     sel = (s >= -span_mm) & (s <= 0.0)
@@ -287,25 +279,8 @@ def end_frame(
     degree = int(min(_END_DEGREE, sel.sum() - 2))
     coef, *_ = np.linalg.lstsq(np.vander(s[sel], degree + 1, increasing=True), pts[sel], rcond=None)
 
-    def polynomial(v: FloatArray) -> FloatArray:
-        return np.asarray(np.vander(np.atleast_1d(v), degree + 1, increasing=True) @ coef)
-
-    if not by_length:
-        return polynomial
-    # The polynomial's own parameter at each length along it, from 0 at ``at_mm``; past
-    # the samples, the parameter runs on at the speed of the last step.
-    v = np.arange(-_PATH_REACH_MM, _PATH_REACH_MM + 0.5 * _PATH_STEP_MM, _PATH_STEP_MM)
-    steps = np.maximum(np.linalg.norm(np.diff(polynomial(v), axis=0), axis=1), 1e-9)
-    length = np.concatenate([[0.0], np.cumsum(steps)])
-    length -= np.interp(0.0, v, length)
-
     def path(u: FloatArray) -> FloatArray:
-        u = np.atleast_1d(np.asarray(u, dtype=np.float64))
-        inner = np.interp(u, length, v)
-        below, above = u < length[0], u > length[-1]
-        inner[below] = v[0] + (u[below] - length[0]) * _PATH_STEP_MM / steps[0]
-        inner[above] = v[-1] + (u[above] - length[-1]) * _PATH_STEP_MM / steps[-1]
-        return polynomial(inner)
+        return np.asarray(np.vander(np.atleast_1d(u), degree + 1, increasing=True) @ coef)
 
     return path
 
