@@ -248,14 +248,15 @@ def min_distance(a: FloatArray, b: FloatArray) -> float:
 # The continuation is run in the polynomial's own parameter, not by its length. Where the
 # curve's course changes over the span (a coil running into a straight end) the
 # parabola's speed reaches 1.12 mm a mm, and an end read along it, a round cap's length
-# taken off a reading in that parameter, lies 0.8-1.5 mm short (on the true axis of
-# seeded coils with round ends, 320x240). Re-parametrized by its length (sampled every
-# 0.25 mm) in the end reading and the tip's bends alike, it was measured on 45
-# three-camera sessions of `accuracy_table` draws 2, 7, 13, 41, 61, 73, 91, 97 (one made
-# uniform) and 103 and the demo (90 frames each, 2026-12-03): median tips averaged 0.640
-# against 0.710 mm, means 0.238 against 0.241 mm, frames more than 2 mm off 309 against
-# 320, but 144 of them flagged against 173, and good frames flagged 439 against 262
-# (three more ends close calls between flat and round); the coil 0.58 against 1.28 mm.
+# taken off a reading in that parameter, lies short (0.35-1.6 mm, median 1.0 mm, read
+# from the true axis of six seeded coils with round ends, r 5-7 mm, 320x240; 0.0-0.65 mm
+# by its length). Re-parametrized by its length (sampled every 0.25 mm) in the end
+# reading and the tip's bends alike, it was measured on 45 three-camera sessions of
+# `accuracy_table` draws 2, 7, 13, 41, 61, 73, 91, 97 (one made uniform) and 103 and the
+# demo (90 frames each, 2026-12-03): median tips averaged 0.640 against 0.710 mm, means
+# 0.238 against 0.241 mm, frames more than 2 mm off 309 against 320, but 144 of them
+# flagged against 173, and good frames flagged 439 against 262 (three more ends close
+# calls between flat and round); the coil 0.58 against 1.28 mm.
 # It also sent a hull-started frame of a random shape, with a stretch hidden in one view,
 # 10 mm off (its resumed march set off from a slightly different end:
 # tests/reconstruct/test_frame.py, seed 1). In the end reading alone, with the bends
