@@ -35,6 +35,7 @@ from .tracking import (
     predict_length,
     track_tube,
     usual_misfit,
+    velocity_pair,
 )
 from .tube_fit import foreground_contrast
 from .tube_scores import radius_from_silhouettes
@@ -304,8 +305,10 @@ def _curve_and_quality(
         drawn,
         iou=iou,
         misfit=misfits,
-        # A prediction from a suspect frame says nothing of this one's.
-        predicted_mm=predicted if previous and not previous[-1].suspect else None,
+        # Only a prediction that carries the track's velocity says where this frame's
+        # tube should be: one that holds the last curve still (after a suspect frame)
+        # misses a moving tube by a frame's motion (see SUSPECT_JUMP_RADII).
+        predicted_mm=predicted if velocity_pair(previous) is not None else None,
         expected_length_mm=predict_length(previous, index),
         usual_misfit=usual_misfit(previous),
     )

@@ -60,7 +60,16 @@ STRAY_COVERAGE = 0.1
 # ... where two of its parts come closer than this many radii (a tube cannot
 # pass through itself) ...
 SUSPECT_CLOSEST_RADII = 1.5
-# ... where it lies farther than this many radii from its track's prediction ...
+# ... where it lies farther than this many radii from its track's prediction, judged
+# only where the prediction carries the track's velocity
+# (pipeline.reconstruct.tracking.velocity_pair): after a suspect frame the prediction
+# holds the last curve still and misses a moving tube by a frame's motion, so that a
+# sweep of a few radii a frame was flagged every other frame. On 46 three-camera
+# sessions (`accuracy_table` draws 2, 7, 13, 41, 61, 73 and 103 and 14 cases of draw 91,
+# two coils made from draw 97's disk case, the demo; 90 frames each, 2026-12-03),
+# against judging every frame after an unsuspect one: good frames flagged for a jump 11
+# against 39 (all reasons 245 against 263 of ~3,100), frames more than 2 mm off 370
+# against 377, 179 of them flagged against 176 ...
 SUSPECT_JUMP_RADII = 1.0
 # ... or where its length is more than this far from the length its track predicts
 # (pipeline.reconstruct.tracking.predict_length): a tip cut short or run on along its own

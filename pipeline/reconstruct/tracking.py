@@ -153,27 +153,41 @@ def predict_axis(previous: Sequence[FrameResult], index: int | None = None) -> F
 
     ``previous``: the track's results so far, oldest first; ``index``: the frame
     predicted (default: the one after the last). The last ok curve, moved on at the
-    velocity it had from the one before when both are ok and neither is suspect
-    (the curves are uniform in arc length with the same sample count, so sample k
-    of one matches sample k of the other; a suspect curve, cut short say, would
-    send the prediction's samples off by its error each frame): constant
-    velocity, over any gap between the frames (a live run drops frames when it
-    falls behind); None when the last frame has no curve (the track is lost).
+    velocity it had from the one before where :func:`velocity_pair` gives one:
+    constant velocity, over any gap between the frames (a live run drops frames when
+    it falls behind); None when the last frame has no curve (the track is lost).
     """
     if not previous or previous[-1].centerline_mm is None:
         return None
     last = previous[-1]
     axis = np.asarray(last.centerline_mm, dtype=np.float64)
     ahead = 1 if index is None else index - last.index
-    if len(previous) >= 2 and not (previous[-2].suspect or last.suspect):
-        before = previous[-2]
-        apart = last.index - before.index
-        if before.centerline_mm is not None and apart > 0 and before.centerline_mm.shape == axis.shape:
-            if apart == 1 and ahead == 1:
-                return 2.0 * axis - np.asarray(before.centerline_mm, dtype=np.float64)
-            velocity = (axis - np.asarray(before.centerline_mm, dtype=np.float64)) / apart
-            return axis + ahead * velocity
-    return axis
+    pair = velocity_pair(previous)
+    if pair is None:
+        return axis
+    before, apart = pair
+    if apart == 1 and ahead == 1:
+        return 2.0 * axis - before
+    return axis + ahead * ((axis - before) / apart)
+
+
+def velocity_pair(previous: Sequence[FrameResult]) -> tuple[FloatArray, int] | None:
+    """The curve (N, 3) mm the track's last one moved from, and how many frames before
+    it, where the two give the track's velocity; None where they do not.
+
+    Both frames ok and neither suspect (the curves are uniform in arc length with the
+    same sample count, so sample k of one matches sample k of the other; a suspect
+    curve, cut short say, would send the prediction's samples off by its error each
+    frame)."""
+    if len(previous) < 2 or previous[-2].suspect or previous[-1].suspect:
+        return None
+    before, last = previous[-2], previous[-1]
+    apart = last.index - before.index
+    if before.centerline_mm is None or last.centerline_mm is None or apart <= 0:
+        return None
+    if before.centerline_mm.shape != last.centerline_mm.shape:
+        return None
+    return np.asarray(before.centerline_mm, dtype=np.float64), apart
 
 
 def predict_length(previous: Sequence[FrameResult], index: int) -> float:

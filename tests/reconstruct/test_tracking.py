@@ -25,6 +25,7 @@ from pipeline.reconstruct.tracking import (
     segment_start,
     track_start,
     track_tube,
+    velocity_pair,
 )
 from pipeline.session.folder import Session, load_session
 from pipeline.synth import render_session
@@ -63,6 +64,30 @@ def test_a_suspect_frame_lends_the_prediction_no_velocity() -> None:
     np.testing.assert_allclose(predict_axis([suspect, _ok(5, axis)]), axis)  # type: ignore[arg-type]
     last = replace(_ok(5, short), suspect_reason="length 35.0 mm, -35.0 mm from its track's")
     np.testing.assert_allclose(predict_axis([_ok(4, axis), last]), short)  # type: ignore[arg-type]
+
+
+def test_a_fast_tube_is_judged_against_its_velocity_not_against_a_prediction_held_still(
+    tmp_path: Path,
+) -> None:
+    # A three-segment arm sweeping ~25 mm a frame. After a suspect frame the prediction
+    # holds the last curve still (it lends no velocity), and so misses this tube by a
+    # frame's motion: a frame fitted from it is not judged against it, or every other
+    # frame of a fast sweep would be flagged for a jump it did not make.
+    render_session(tmp_path, shape="three_segments", frames=30, seed=4, progress=False, jobs=1)
+    session = load_session(tmp_path)
+    model = build_model(session)
+    frames = dict(decode_frames(session.video_paths, range(9)))
+    truth = np.load(tmp_path / "ground_truth.npz")["centerlines"]
+    assert np.linalg.norm(truth[8] - truth[7], axis=1).max() > 4 * session.settings.manipulator.radius_mm
+    previous: list[FrameResult] = []
+    for index in range(8):
+        previous.append(frame_module.reconstruct_with_silhouettes(index, frames[index], model, previous)[0])
+    held = [replace(previous[-2], suspect_reason="a reason"), replace(previous[-1], suspect_reason="")]
+    assert velocity_pair(held) is None
+    result, _ = frame_module.reconstruct_with_silhouettes(8, frames[8], model, held)
+    assert result.centerline_mm is not None
+    assert np.abs(result.centerline_mm[-1] - truth[8][-1]).max() < 2.0
+    assert "prediction" not in result.suspect_reason
 
 
 def _lengths(indices: np.ndarray, lengths_mm: np.ndarray) -> list[FrameResult]:
