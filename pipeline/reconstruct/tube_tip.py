@@ -261,7 +261,13 @@ def min_distance(a: FloatArray, b: FloatArray) -> float:
 # 10 mm off (its resumed march set off from a slightly different end:
 # tests/reconstruct/test_frame.py, seed 1). In the end reading alone, with the bends
 # kept in the parameter, a coiled tube with disks (draw 97) had its tip curl across
-# (2.27 against 0.82 mm). Left out.
+# (2.27 against 0.82 mm). Only the cap's length turned into the parameter at the
+# continuation's speed where the end is read (refit_tip), on 46 three-camera sessions
+# (the 45 above and draw 97's coil with disks; 90 frames, 2026-12-03): median tips 0.660
+# against 0.709 mm, the uniform coil 0.53 against 1.28 mm, but frames more than 2 mm off
+# 448 against 370, as two round ends' evidence faded (draw 97's coil with disks, mean vote
+# +0.10 +- 0.05 against +0.75 +- 0.07, 87 frames off against 57; a stepped r 4.5 tube
+# chosen flat, 51 against 2). Left out.
 def end_frame(
     pts: FloatArray, arc: FloatArray, *, at_mm: float, span_mm: float
 ) -> Callable[[FloatArray], FloatArray]:
