@@ -63,7 +63,13 @@ FloatArray = NDArray[np.float64]
 # none clear and wrong; over the 78, the end chosen wrongly on 4, 1 of them clear (a
 # round-ended stepped shape beside a dark object), and 12 close calls (5, 1 and 18 with two
 # rounds and the end's band placed by the fit's radius along the tube, see _frame_tip;
-# placed so, a third round makes a spacer-disk helix clear and wrong).
+# placed so, a third round makes a spacer-disk helix clear and wrong). A fourth round (73
+# frames read in all) was measured on the 9 close calls of 63 rendered sessions (90 frames
+# each, the 46 of pipeline.reconstruct.quality.SUSPECT_JUMP_RADII, 17 two-camera ones and
+# draw 109's loop with disks; 2026-12-03): it made 2 clear and right (a tapered loop and a
+# two-camera tapered shape, good frames flagged 37 -> 0 and 72 -> 4), turned 2 two-camera
+# choices from wrong to right but still close, made none clear and wrong, left 5 close,
+# and cost 7-22 s a session. Left out: most close calls stay close.
 SAMPLE_FRAMES = 10
 ROUNDS = 3
 # Where the mean vote lies within this many standard errors of 0, the choice is a close
