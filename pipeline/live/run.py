@@ -163,12 +163,13 @@ def run_live(
     return summary
 
 
-def _model(rig: Session, sources: Sequence[Source]) -> tuple[Any, str]:
+def _model(rig: Session, sources: Sequence[Source]) -> tuple[Any, str, str]:
     """The per-session model; a replay chooses its tube end from its videos, as ``process``
     does. With it, why every frame's tip is in doubt ("" where it is not: see
-    :attr:`pipeline.reconstruct.tip_shape.TipChoice.doubt`)."""
+    :attr:`pipeline.reconstruct.tip_shape.TipChoice.doubt`), and the end assumed and how
+    it was chosen (for the recordings' metadata)."""
     from ..reconstruct.model import build_model
-    from ..reconstruct.tip_shape import with_session_tip
+    from ..reconstruct.tip_shape import end_assumed, with_session_tip
 
     model = build_model(rig)
     if rig.settings.manipulator.tip == "auto" and not all(s.is_replay for s in sources):
@@ -183,8 +184,8 @@ def _model(rig: Session, sources: Sequence[Source]) -> tuple[Any, str]:
         paths = [Path(s.url) for s in sources]
         frames = min(probe_video(p).frame_count for p in paths)
         model, choice = with_session_tip(model, paths, 0, frames)
-        return model, choice.doubt if choice is not None else ""
-    return model, ""
+        return model, choice.doubt if choice is not None else "", end_assumed(model, choice)
+    return model, "", end_assumed(model, None)
 
 
 def _run(
@@ -199,7 +200,7 @@ def _run(
 ) -> LiveSummary:
     t0 = time.perf_counter()
     names = [c.name for c in rig.cameras]
-    model, doubt = _model(rig, sources)
+    model, doubt, tube_end = _model(rig, sources)
     server = None
     writer: Writers | None = None
     stop = threading.Event()
@@ -210,7 +211,15 @@ def _run(
 
             server = FoxgloveServer(*foxglove, name=f"pipeline live {rig.name}")
             log.info("Foxglove: %s (in Foxglove: Open connection, Foxglove WebSocket)", server.address)
-        writer = Writers(rig, target, images=images, viewer_url=viewer_url, mirror=server, frame_doubt=doubt)
+        writer = Writers(
+            rig,
+            target,
+            images=images,
+            viewer_url=viewer_url,
+            mirror=server,
+            tube_end=tube_end,
+            frame_doubt=doubt,
+        )
         queue = DroppingQueue(queue_sets)
         matcher = FrameMatcher(len(sources), half_period_ns(rig.fps))
         lock = threading.Lock()

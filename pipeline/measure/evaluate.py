@@ -79,6 +79,8 @@ class EvaluationReport:
     smoothed : the same figures for the temporally smoothed centrelines, if any.
     cameras : the cameras the recording was reconstructed with ("given" or "refined ...");
         "" when the recording does not say.
+    tube_end : the tube end the recording's fit assumed, and how it was chosen; "" when
+        the recording does not say.
     """
 
     label: str
@@ -99,6 +101,7 @@ class EvaluationReport:
     good_flagged: int | None = None
     smoothed: EvaluationReport | None = None
     cameras: str = ""
+    tube_end: str = ""
 
     @property
     def frames_off(self) -> int:
@@ -374,6 +377,7 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
         off_flagged=len(off & suspect),
         good_flagged=len(suspect - off - set(report.failed_indices)),
         cameras=rec.cameras,
+        tube_end=rec.tube_end,
     )
     if rec.smoothed_centerlines_m is not None:
         smoothed = evaluate_centerlines(
@@ -436,6 +440,8 @@ def format_report(report: EvaluationReport) -> str:
     lines = ["  ".join(_align(row, widths)) for row in rows]
     lines.insert(1, "-" * len(lines[0]))
     lines.insert(0, f"{report.frames} frames evaluated")
+    if report.tube_end:
+        lines.insert(1, f"tube end: {report.tube_end}")
     if report.cameras:
         lines.insert(1, f"cameras: {report.cameras}")
     if report.failed_indices:

@@ -493,6 +493,18 @@ def _near_other_parts(
     return near
 
 
+def end_assumed(model: SessionModel, choice: TipChoice | None) -> str:
+    """The tube end ``model``'s fit assumes and how it came to (``choice``, where frames
+    chose it), for the recordings' metadata; "" where no tube is fitted (polyfit)."""
+    if choice is not None:
+        return choice.describe()
+    if model.settings.centerline.method != "fit":
+        return ""
+    if model.settings.manipulator.tip == "auto":
+        return f"{model.tip} (assumed, not chosen: set [manipulator] tip in session.toml)"
+    return f"{model.tip} (set in session.toml)"
+
+
 def with_session_tip(
     model: SessionModel, video_paths: Sequence[Path], start: int, stop: int, map_frames: FrameMap = map_here
 ) -> tuple[SessionModel, TipChoice | None]:

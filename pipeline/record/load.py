@@ -67,6 +67,8 @@ class Recording:
     complete : False when the file ended before its footer (a truncated recording).
     cameras : the cameras the frames were reconstructed with, "given" or "refined ..."
         (the refinement's summary line); "" when the file does not say.
+    tube_end : the tube end the fit assumed, "flat" or "round", and how it was chosen
+        (the summary's "tube end" line); "" when the file does not say.
     """
 
     path: Path
@@ -80,6 +82,7 @@ class Recording:
     smoothed_centerlines_m: NDArray[np.float64] | None
     complete: bool
     cameras: str = ""
+    tube_end: str = ""
 
     def __len__(self) -> int:
         return len(self.frame_indices)
@@ -313,4 +316,5 @@ def _assemble(
         smoothed_centerlines_m=_stack(smoothed, times, n) if smoothed and complete else None,
         complete=complete,
         cameras=metadata.get("cameras_used", ""),
+        tube_end=metadata.get("tube_end", ""),
     )

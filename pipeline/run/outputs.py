@@ -128,7 +128,8 @@ class Writers:
     A live run passes ``viewer_url`` (the frames are also logged, as they come, to a Rerun
     viewer at that gRPC address) and ``mirror`` (every MCAP message is also handed to it:
     the Foxglove server). ``cameras_used`` says in the MCAP's metadata which cameras the
-    frames were reconstructed with (the summary's line of :mod:`pipeline.calibrate.refine`).
+    frames were reconstructed with (the summary's line of :mod:`pipeline.calibrate.refine`),
+    ``tube_end`` which end the fit assumed and how it was chosen.
     """
 
     def __init__(
@@ -140,6 +141,7 @@ class Writers:
         viewer_url: str | None = None,
         mirror: MessageMirror | None = None,
         cameras_used: str = "",
+        tube_end: str = "",
         frame_doubt: str = "",
     ) -> None:
         # Imported here, not with this module: a run's parent opens its writers once
@@ -182,6 +184,8 @@ class Writers:
             }
             if cameras_used:
                 meta["cameras_used"] = cameras_used
+            if tube_end:
+                meta["tube_end"] = tube_end
             self.mcap = McapRecorder(
                 self._mcap_file, session.cameras, images=images, metadata=meta, mirror=mirror
             )

@@ -287,7 +287,7 @@ def _run_with(
     videos = tuple(p.resolve() for p in session.video_paths)
     writer: Writers | None = None
     done = 0
-    tip = doubt = ""
+    tip = doubt = end = ""
     refinement = None
     written: list[tuple[Path, int]] = []
     # Local workers tell the bar of each frame as they finish it (a range's results
@@ -305,7 +305,7 @@ def _run_with(
             if frame_fn is None:
                 from ..calibrate.refine import refined_cameras
                 from ..reconstruct.model import build_model
-                from ..reconstruct.tip_shape import with_session_tip
+                from ..reconstruct.tip_shape import end_assumed, with_session_tip
 
                 model: Any = build_model(session)
                 # The sample frames that settle the cameras and the tube's end are
@@ -318,6 +318,7 @@ def _run_with(
                 model, choice = with_session_tip(model, session.video_paths, start, stop, frame_map)
                 tip = choice.describe() if choice is not None else ""
                 doubt = choice.doubt if choice is not None else ""
+                end = end_assumed(model, choice)
             else:
                 model = session  # a replacement frame function gets the session as its model
             with parallel_backend(backend, scheduler, n_jobs, model) as (n_workers, shared):
@@ -348,6 +349,7 @@ def _run_with(
                     target,
                     images=images,
                     cameras_used="" if refinement is None else refinement.describe(),
+                    tube_end=end,
                     frame_doubt=doubt,
                 )
                 for span, outputs in results:

@@ -217,6 +217,8 @@ def test_a_replay_records_what_process_records(
     # The same core on the same frames: the bar is 0.05 mm mean; within one
     # tracking segment (20 frames) the two runs fit the same frames from the same track.
     assert mean_gap_mm(live, processed) < 0.05
+    # The replay chooses its tube end from its videos as process does, and says so.
+    assert live.tube_end == processed.tube_end != ""
     assert live.smoothed_centerlines_m is not None
     _verify_rrd(tmp_path / "take.rrd")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["take.mcap", "take.rrd"]

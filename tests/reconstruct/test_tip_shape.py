@@ -17,6 +17,7 @@ from pipeline.reconstruct.tip_shape import (
     FrameEvidence,
     TipChoice,
     choose_tip,
+    end_assumed,
     sample_frames,
     sample_rounds,
 )
@@ -69,6 +70,24 @@ def test_each_round_of_frames_lies_halfway_between_those_before() -> None:
         assert len(set(np.searchsorted(before, rounds[k]))) == len(rounds[k])
     # A short span is read once, whole.
     assert sorted(i for frames in sample_rounds(10, 22) for i in frames) == list(range(10, 22))
+
+
+def test_the_recordings_say_how_the_end_was_come_to(sessions: dict[str, Path]) -> None:
+    model = build_model(load_session(sessions["round"]))
+    manipulator, centerline = model.settings.manipulator, model.settings.centerline
+
+    def with_settings(**changes: object) -> object:
+        settings = dataclasses.replace(model.settings, **changes)
+        return dataclasses.replace(model, settings=settings, tip="round")
+
+    chosen = TipChoice("round", 10, score=0.6, favouring=9, radius_mm=7.0, score_error=0.05)
+    assert end_assumed(model, chosen) == chosen.describe()
+    given = with_settings(manipulator=dataclasses.replace(manipulator, tip="round"))
+    assert end_assumed(given, None) == "round (set in session.toml)"  # type: ignore[arg-type]
+    auto = with_settings(manipulator=dataclasses.replace(manipulator, tip="auto"))
+    assert end_assumed(auto, None).startswith("round (assumed, not chosen")  # type: ignore[arg-type]
+    polyfit = with_settings(centerline=dataclasses.replace(centerline, method="polyfit"))
+    assert end_assumed(polyfit, None) == ""  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize("tip", ["flat", "round"])

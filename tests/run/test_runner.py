@@ -376,10 +376,13 @@ def test_end_to_end_summary_and_files(e2e: tuple[Path, Path, str]) -> None:
 
 @pytest.mark.slow
 def test_end_to_end_centrelines_match_the_ground_truth(e2e: tuple[Path, Path, str]) -> None:
-    session, out, _ = e2e
+    session, out, stdout = e2e
     rec = load_recording(out / "demo.mcap")
     truth_mm = np.load(session / "ground_truth.npz")["centerlines"]
     assert (rec.statuses == "ok").all() and len(rec) == E2E_FRAMES
+    # The recording says which tube end its fit assumed, as the summary did.
+    assert rec.tube_end.split(" ")[0] in ("flat", "round")
+    assert f"tube end: {rec.tube_end}" in stdout
     # Every stage of the worker's frame path is timed, silhouettes included.
     stages = {"decode", "silhouette", "carve", "centerline", "quality", "encode"}
     assert all(stages <= set(m["timings_s"]) for m in rec.metrics)
@@ -392,6 +395,19 @@ def test_end_to_end_centrelines_match_the_ground_truth(e2e: tuple[Path, Path, st
         # hull, whose tips on this session are 0.1-1.5 mm off.
         distance = np.linalg.norm(curve_mm[:, None] - truth_mm[frame][None], axis=2).min(axis=1)
         assert distance.max() < 2.0, f"frame {frame}"
+
+
+@pytest.mark.slow
+def test_end_to_end_evaluation_names_the_cameras_and_the_tube_end_used(e2e: tuple[Path, Path, str]) -> None:
+    from pipeline.cli import main
+
+    session, out, _ = e2e
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        assert main(["evaluate", str(out / "demo.mcap"), str(session)]) == 0
+    rec = load_recording(out / "demo.mcap")
+    lines = stdout.getvalue().splitlines()
+    assert f"cameras: {rec.cameras}" in lines and f"tube end: {rec.tube_end}" in lines
 
 
 @pytest.mark.slow
