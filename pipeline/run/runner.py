@@ -287,7 +287,7 @@ def _run_with(
     videos = tuple(p.resolve() for p in session.video_paths)
     writer: Writers | None = None
     done = 0
-    tip = doubt = end = ""
+    tip = doubt = ""
     refinement = None
     written: list[tuple[Path, int]] = []
     # Local workers tell the bar of each frame as they finish it (a range's results
@@ -316,9 +316,8 @@ def _run_with(
                     session = dataclasses.replace(session, cameras=cameras)
                     model = build_model(session)
                 model, choice = with_session_tip(model, session.video_paths, start, stop, frame_map)
-                tip = choice.describe() if choice is not None else ""
+                tip = end_assumed(model, choice)
                 doubt = choice.doubt if choice is not None else ""
-                end = end_assumed(model, choice)
             else:
                 model = session  # a replacement frame function gets the session as its model
             with parallel_backend(backend, scheduler, n_jobs, model) as (n_workers, shared):
@@ -349,7 +348,7 @@ def _run_with(
                     target,
                     images=images,
                     cameras_used="" if refinement is None else refinement.describe(),
-                    tube_end=end,
+                    tube_end=tip,
                     frame_doubt=doubt,
                 )
                 for span, outputs in results:

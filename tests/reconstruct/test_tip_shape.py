@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from pipeline.reconstruct.frame_task import decode_frames
-from pipeline.reconstruct.model import build_model
+from pipeline.reconstruct.model import SessionModel, build_model
 from pipeline.reconstruct.tip_shape import (
     CLEAR_T,
     TIP_DOUBT,
@@ -76,18 +77,18 @@ def test_the_recordings_say_how_the_end_was_come_to(sessions: dict[str, Path]) -
     model = build_model(load_session(sessions["round"]))
     manipulator, centerline = model.settings.manipulator, model.settings.centerline
 
-    def with_settings(**changes: object) -> object:
+    def with_settings(**changes: Any) -> SessionModel:
         settings = dataclasses.replace(model.settings, **changes)
         return dataclasses.replace(model, settings=settings, tip="round")
 
     chosen = TipChoice("round", 10, score=0.6, favouring=9, radius_mm=7.0, score_error=0.05)
     assert end_assumed(model, chosen) == chosen.describe()
     given = with_settings(manipulator=dataclasses.replace(manipulator, tip="round"))
-    assert end_assumed(given, None) == "round (set in session.toml)"  # type: ignore[arg-type]
+    assert end_assumed(given, None) == "round (set in session.toml)"
     auto = with_settings(manipulator=dataclasses.replace(manipulator, tip="auto"))
-    assert end_assumed(auto, None).startswith("round (assumed, not chosen")  # type: ignore[arg-type]
+    assert end_assumed(auto, None).startswith("round (assumed, not chosen")
     polyfit = with_settings(centerline=dataclasses.replace(centerline, method="polyfit"))
-    assert end_assumed(polyfit, None) == ""  # type: ignore[arg-type]
+    assert end_assumed(polyfit, None) == ""
 
 
 @pytest.mark.parametrize("tip", ["flat", "round"])
