@@ -317,7 +317,12 @@ def width_ratios(
 # frames off 154 -> 160, draw 97's stepped r 7 shape 10 -> 22; carried by the distance
 # along the tube rather than by sample fraction, draw 97's three-camera frames off 67 ->
 # 83. On two cameras a radius read wrong was carried along as well (a disk tube's mean
-# 4.9 -> 7.8 mm). Left out.
+# 4.9 -> 7.8 mm). Left out. So was reading and drawing every sample with the median, by
+# arc length from the base, of the own profiles of the track's last LENGTH_FRAMES
+# unsuspect frames (pipeline.reconstruct.tracking), measured end to end on 58 sessions
+# of pipeline.synth.variety.draw_cases(seed, 14), seeds 7000-7010 (90 frames each,
+# `process`, 2026-12-04): three-camera frames more than 2 mm off 334 -> 340 (stepped
+# tubes 125 -> 123), unflagged 224 -> 240; two-camera stepped tubes 329 -> 389.
 def _radius_profile(
     arc_mm: FloatArray, half_mm: FloatArray, both: NDArray[np.bool_], expected_mm: FloatArray
 ) -> FloatArray:
