@@ -227,3 +227,35 @@ def test_an_end_radius_read_a_little_off_does_not_choose_the_end(
     choice = TipChoice.from_votes([e.vote for e in evidence if e.views], 7.0 * misread)
     assert choice.frames >= FRAMES // 2
     assert choice.tip == tip and choice.clear, choice.describe()
+
+
+def test_a_round_end_is_read_as_thick_as_it_is_though_fitted_as_flat(tmp_path: Path) -> None:
+    from pipeline.reconstruct.tip_shape import _frame_tip
+
+    # Random shapes with round ends of 4.5-7 mm: the tips are fitted as flat first, over
+    # half a radius long, and the end's radius is read behind that. Read within the cap it
+    # comes out thinner than the tube, nearer a flat end's, which prejudges the choice.
+    ratios: list[float] = []
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        radius = float(rng.choice([4.5, 5.0, 5.5, 6.0, 6.5, 7.0]))
+        directory = tmp_path / str(seed)
+        render_session(
+            directory,
+            shape="random",
+            frames=FRAMES,
+            seed=seed,
+            radius_mm=radius,
+            options=SceneOptions(tip="round"),
+            progress=False,
+            jobs=1,
+        )
+        session = load_session(directory)
+        model = build_model(session)
+        assert model.tip == "flat"
+        for index, images in decode_frames(session.video_paths, range(FRAMES)):
+            tip = _frame_tip(index, images, model)
+            ratios += [] if tip is None else [reading / radius for reading in tip.radius_readings_mm]
+    assert len(ratios) >= 3 * FRAMES
+    quartiles = np.round(np.percentile(ratios, [25, 50, 75]), 3)
+    assert np.median(ratios) == pytest.approx(1.0, abs=0.015), quartiles
