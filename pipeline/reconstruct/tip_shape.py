@@ -118,7 +118,9 @@ _RADIUS_SCALES = np.round(np.arange(0.7, 1.1001, 0.05), 2)
 # on round ones (with the band from 0.25 radii: 0.998 and 0.969, a round end read thinner
 # and so nearer a flat one). Over those and 112 sessions of seeds 8000-8003 and 9000-9003
 # (60 frames each), the end chosen rightly and clearly on 158 sessions against 152, wrongly
-# on 2 against 2, close calls 10 against 16.
+# on 2 against 2, close calls 10 against 16; on the 34 of `accuracy_table` draws 2, 97, 103
+# and 109 (same day), 29, 0 and 5 against 30, 0 and 4 (round ends read clearer, thin flat
+# ones closer).
 _BAND_RADII = (0.6, 1.0)
 _BAND_REACH_RADII = 1.6
 # ... and away from the other parts of the tube: the pixels within a projected radius
