@@ -235,17 +235,17 @@ def test_a_round_end_is_read_as_thick_as_it_is_though_fitted_as_flat(tmp_path: P
     # Random shapes with round ends of 4.5-7 mm: the tips are fitted as flat first, over
     # half a radius long, and the end's radius is read behind that. Read within the cap it
     # comes out thinner than the tube, nearer a flat end's, which prejudges the choice.
-    ratios: list[float] = []
+    ratios: list[float] = []  # each view's reading of the end's radius / the true radius
     for seed in range(4):
         rng = np.random.default_rng(seed)
-        radius = float(rng.choice([4.5, 5.0, 5.5, 6.0, 6.5, 7.0]))
+        radius_mm = float(rng.choice([4.5, 5.0, 5.5, 6.0, 6.5, 7.0]))
         directory = tmp_path / str(seed)
         render_session(
             directory,
             shape="random",
             frames=FRAMES,
             seed=seed,
-            radius_mm=radius,
+            radius_mm=radius_mm,
             options=SceneOptions(tip="round"),
             progress=False,
             jobs=1,
@@ -255,7 +255,7 @@ def test_a_round_end_is_read_as_thick_as_it_is_though_fitted_as_flat(tmp_path: P
         assert model.tip == "flat"
         for index, images in decode_frames(session.video_paths, range(FRAMES)):
             tip = _frame_tip(index, images, model)
-            ratios += [] if tip is None else [reading / radius for reading in tip.radius_readings_mm]
+            ratios += [] if tip is None else [reading / radius_mm for reading in tip.radius_readings_mm]
     assert len(ratios) >= 3 * FRAMES
     quartiles = np.round(np.percentile(ratios, [25, 50, 75]), 3)
     assert np.median(ratios) == pytest.approx(1.0, abs=0.015), quartiles
