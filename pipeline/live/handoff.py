@@ -36,6 +36,10 @@ class DroppingQueue:
             self._items.append(item)
             self._ready.notify()
 
+    @property
+    def capacity(self) -> int:
+        return self._capacity
+
     def get(self, timeout_s: float) -> FrameSet | None:
         """The oldest waiting set, or None if none came within ``timeout_s``."""
         with self._ready:

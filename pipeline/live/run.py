@@ -3,7 +3,8 @@
 One reader thread per camera (:mod:`.capture`) stamps frames on arrival; the
 matcher (:mod:`.sync`) pairs them into frame-sets; a short queue (:mod:`.handoff`)
 hands those to this thread, which reconstructs each with the tracked core of
-``process`` (:class:`pipeline.reconstruct.frame_task.Tracker`) and writes it at once to the MCAP
+``process`` (:class:`pipeline.reconstruct.frame_task.Tracker`; a lost track starts again
+from the hull in a process of its own, :mod:`.restarts`) and writes it at once to the MCAP
 and Rerun writers of ``process`` (the Rerun stream also to a viewer, the MCAP's
 messages also to a Foxglove server). The run stops at Ctrl-C, SIGTERM or SIGHUP,
 after ``duration_s``, or at the end of a replay; the recordings are then finished
@@ -31,6 +32,7 @@ from ..run.summary import RunSummary
 from ..session.folder import Session
 from .capture import CameraReader
 from .handoff import QUEUE_SETS, DroppingQueue
+from .restarts import RestartWorker
 from .sources import Source
 from .sync import CapturedFrame, FrameMatcher, half_period_ns
 
@@ -38,6 +40,8 @@ log = logging.getLogger(__name__)
 
 # How often the run looks up from an empty queue (stop requests, the end of a replay).
 POLL_S = 0.05
+# The restart worker gets this long to start before the cameras do (it takes ~1 s).
+RESTARTS_READY_S = 30.0
 # Readers blocked in a read get this long to notice the stop (their reads time out).
 JOIN_S = 3.0
 
@@ -205,6 +209,7 @@ def _run(
     writer: Writers | None = None
     stop = threading.Event()
     readers: list[CameraReader] = []
+    restarts = RestartWorker(model)
     try:
         if foxglove is not None:
             from .stream import FoxgloveServer
@@ -233,6 +238,7 @@ def _run(
                 for frame_set in matcher.add(frame):
                     queue.put(frame_set)
 
+        restarts.wait_ready(RESTARTS_READY_S)
         start_ns = time.monotonic_ns()
         readers = [
             CameraReader(k, s, rig.cameras[k].size_px, deliver, stop, start_ns=start_ns)
@@ -246,7 +252,7 @@ def _run(
             target.mcap_path,
             target.rrd_path,
         )
-        latencies, stopped_by = _loop(readers, queue, writer, model, names, images, duration_s)
+        latencies, stopped_by = _loop(readers, queue, writer, model, names, images, duration_s, restarts)
         try:
             with deferred_signals():  # from here a signal waits for the recordings to be complete
                 _stop_readers(stop, readers)
@@ -261,6 +267,7 @@ def _run(
             writer.abort()
         raise
     finally:
+        restarts.close()
         if server is not None:
             server.stop()
     return LiveSummary(
@@ -282,9 +289,14 @@ def _loop(
     names: Sequence[str],
     images: bool,
     duration_s: float | None,
+    restarts: RestartWorker,
 ) -> tuple[list[float], str]:
     """Reconstruct and write frame-sets until the run stops; (latencies in ms, why it stopped)."""
-    tracker = Tracker(model, names, images=images)
+    # A frame whose track is lost waits for its start from the hull as long as a frame-set
+    # can still wait in the queue behind it: its result is then process's.
+    tracker = Tracker(
+        model, names, images=images, restarts=restarts, may_wait=lambda: len(queue) + 1 < queue.capacity
+    )
     # Frame times in the recordings: the arrival of the frame's last image, on the wall clock.
     wall_from_monotonic_ns = time.time_ns() - time.monotonic_ns()
     deadline = None if duration_s is None else time.monotonic() + duration_s

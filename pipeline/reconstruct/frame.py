@@ -88,6 +88,8 @@ def reconstruct_with_silhouettes(
     images: Sequence[NDArray[np.uint8]],
     model: SessionModel,
     previous: Sequence[FrameResult] = (),
+    *,
+    restart_here: bool = True,
 ) -> tuple[FrameResult, list[NDArray[np.bool_]]]:
     """:func:`frame_silhouettes` + :func:`reconstruct_from_silhouettes`, with the
     silhouette time recorded under "silhouette"; the silhouettes are returned too
@@ -95,7 +97,7 @@ def reconstruct_with_silhouettes(
     start = time.perf_counter()
     masks = frame_silhouettes(images, model)
     elapsed = time.perf_counter() - start
-    result = reconstruct_from_silhouettes(index, images, masks, model, previous)
+    result = reconstruct_from_silhouettes(index, images, masks, model, previous, restart_here=restart_here)
     result.timings_s["silhouette"] = elapsed
     return result, masks
 
@@ -106,6 +108,8 @@ def reconstruct_from_silhouettes(
     masks: Sequence[NDArray[np.bool_]],
     model: SessionModel,
     previous: Sequence[FrameResult] = (),
+    *,
+    restart_here: bool = True,
 ) -> FrameResult:
     """Hull, centreline and quality figures of one frame from its silhouettes.
 
@@ -117,6 +121,10 @@ def reconstruct_from_silhouettes(
     model : the session's model.
     previous : the track's results before this frame, oldest first
         (:mod:`pipeline.reconstruct.tracking`); empty: the frame is fitted from the hull alone.
+    restart_here : where the track is lost, start it again from the hull in this call;
+        False: keep the lost track's fit, flagged suspect and with its ``lost`` reason, for
+        the caller to start the track again elsewhere (a live run's restart worker,
+        :mod:`pipeline.live.restarts`, so that this frame does not wait for it).
 
     Returns
     -------
@@ -153,7 +161,7 @@ def reconstruct_from_silhouettes(
     # The fit and the quality figures see only what the hull supports (see hull_supported).
     masks = hull_supported(masks, points, model)
     try:
-        return _curve_and_quality(index, images, masks, points, model, timings, previous)
+        return _curve_and_quality(index, images, masks, points, model, timings, previous, restart_here)
     except (ValueError, ArithmeticError, np.linalg.LinAlgError, cv2.error) as exc:
         # Numerical trouble with this frame's data (OpenCV's included: a drawing
         # asked for an impossible disc) is a failed frame, not a crash; on one line.
@@ -210,6 +218,7 @@ def _curve_and_quality(
     model: SessionModel,
     timings: dict[str, float],
     previous: Sequence[FrameResult],
+    restart_here: bool = True,
 ) -> FrameResult:
     settings = model.settings
     cameras = model.cameras
@@ -227,6 +236,7 @@ def _curve_and_quality(
     n_points = settings.centerline.points
     predicted: NDArray[np.float64] | None = None
     tracked = False
+    lost = ""
     if settings.centerline.method == "polyfit":
         curve = smooth_curve(_polyfit()(pts, base if known else None, n_points=n_points), n_points=n_points)
         radius, residual, radii = radius_guess, float("nan"), None
@@ -255,8 +265,8 @@ def _curve_and_quality(
         held = None
         if predicted is not None:
             held = track(predicted, previous[-1].radius_mm, previous[-1].radii_mm)
-        if held is not None and held.curve is not None and not held.lost:
-            best, tracked = held, True
+        if held is not None and held.curve is not None and (not held.lost or not restart_here):
+            best, tracked, lost = held, True, held.lost
         else:
             # A track starts here, or was lost: the tube from the hull, fitted
             # again as a tracked frame would be; of that, the hull's own fit
@@ -312,6 +322,8 @@ def _curve_and_quality(
         expected_length_mm=predict_length(previous, index),
         usual_misfit=usual_misfit(previous),
     )
+    if lost:
+        reason = "; ".join(filter(None, [f"its track was lost here ({lost})", reason]))
     timings["quality"] = time.perf_counter() - start
     return FrameResult(
         index=index,
@@ -327,6 +339,7 @@ def _curve_and_quality(
         iou=iou,
         misfits=tuple(misfits),
         tracked=tracked,
+        lost=lost,
         suspect_reason=reason,
         timings_s=timings,
     )

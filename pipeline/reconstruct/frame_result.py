@@ -38,6 +38,9 @@ class FrameResult:
         unexplained (:func:`pipeline.reconstruct.quality.misfit_fractions`).
     tracked : the curve was fitted from the previous frames' (:mod:`pipeline.reconstruct.tracking`),
         not initialised from the hull.
+    lost : why the track was lost at this frame, where the frame kept the lost track's
+        fit instead of starting again from the hull (a live run starts it again on
+        another core, :mod:`pipeline.live.restarts`); "" otherwise.
     suspect_reason : why the curve may be wrong, judged without ground truth
         (:func:`pipeline.reconstruct.quality.suspect_reason`); "" when nothing says so.
     timings_s : stage name -> seconds spent on this frame.
@@ -57,6 +60,7 @@ class FrameResult:
     iou: tuple[float, ...] = ()
     misfits: tuple[float, ...] = ()
     tracked: bool = False
+    lost: str = ""
     suspect_reason: str = ""
     timings_s: dict[str, float] = field(default_factory=dict)
 

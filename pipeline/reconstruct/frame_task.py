@@ -16,7 +16,7 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from ..session.video import read_frames
 from .frame_result import FrameResult
-from .tracking import LENGTH_FRAMES, WARMUP_FRAMES, segment_start, track_start
+from .tracking import LENGTH_FRAMES, WARMUP_FRAMES, segment_start, starts_next_track, track_start
 
 JPEG_QUALITY = 85
 # Silhouettes are drawn over the camera image in Rerun: a translucent tint (RGBA).
@@ -156,32 +156,116 @@ def frame_output(
     return FrameOutput(dataclasses.replace(result, timings_s=timings), jpegs, pngs)
 
 
+class Restarts(Protocol):
+    """Where a :class:`Tracker` starts tracks (from the hull) and follows them until they
+    catch up, away from its own thread (a live run's
+    :class:`pipeline.live.restarts.RestartWorker`)."""
+
+    @property
+    def available(self) -> bool:
+        """Whether it can take starts (False once it has failed)."""
+        ...
+
+    @property
+    def under_way(self) -> bool:
+        """Whether a started track has yet to catch up."""
+        ...
+
+    def start(self, index: int, images: Sequence[Image], previous: Sequence[FrameResult]) -> bool:
+        """Start a track at frame ``index``, computed as ``process`` computes it (from its
+        per camera (H, W) uint8 grey ``images`` and the track's results before it,
+        ``previous``: from the hull where there are none or the track is lost); False
+        where one is under way."""
+        ...
+
+    def follow(self, index: int, images: Sequence[Image]) -> None:
+        """The started track goes on through frame ``index`` (the frame after its last)."""
+        ...
+
+    def caught_up(self, may_wait: Callable[[], bool]) -> list[FrameResult] | None:
+        """The started track's last results, oldest first, once it has every frame given to
+        it, waiting for that as long as ``may_wait()`` says the caller can; else None."""
+        ...
+
+
 class Tracker:
     """Frames reconstructed one after another, each fitted from the track's last results.
 
-    A live run's core: the same per-frame computation as :func:`process_range`'s, with
-    one track that goes on across every frame (no segments: a live run has no fixed
-    frame indices to cut at) and starts again from the hull only where it is lost
-    (:mod:`pipeline.reconstruct.tracking`).
+    A live run's core: the same per-frame computation as :func:`process_range`'s, frame
+    after frame (:mod:`pipeline.reconstruct.tracking`).
+
+    ``restarts``: where to start tracks from the hull. Without, one track goes on across
+    every frame and starts again only where it is lost, the frame waiting for its start
+    (150-350 ms on a loop). With, starts run there: where the track is lost, the frame
+    waits for its start only as long as ``may_wait()`` says it can (a live run: while no
+    frame-set would be dropped for it), and a start that comes in time gives the frame
+    ``process``'s result. Otherwise the frame keeps the lost track's fit, flagged
+    suspect, the frames go on from it, and the started track follows them there until it
+    has caught up, when it takes over; a frame lost again from the lost track's fit waits
+    for the started track and, lost from it too, for its own start. A track also starts
+    where ``process`` starts each segment's.
     """
 
-    def __init__(self, model: Any, camera_names: Sequence[str], *, images: bool) -> None:
+    def __init__(
+        self,
+        model: Any,
+        camera_names: Sequence[str],
+        *,
+        images: bool,
+        restarts: Restarts | None = None,
+        may_wait: Callable[[], bool] = lambda: False,
+    ) -> None:
         from .frame import reconstruct_with_silhouettes
 
         self._compute = reconstruct_with_silhouettes
         self._model, self._names, self._images = model, tuple(camera_names), images
+        self._restarts, self._may_wait = restarts, may_wait
         self._track: list[FrameResult] = []
         self._problems: list[dict[int, str]] = [{} for _ in self._names]
 
     def step(self, index: int, images: Sequence[Image]) -> FrameOutput:
         """Frame ``index`` from its per camera (H, W) uint8 grey images."""
+        restarts = self._restarts if self._restarts is not None and self._restarts.available else None
+        if restarts is not None and restarts.under_way:
+            self._take_over(restarts.caught_up(lambda: False))
 
-        def fit(i: int, grey: Sequence[Image]) -> tuple[FrameResult, Sequence[Mask] | None]:
-            return self._compute(i, grey, self._model, self._track)
+        def fitted(restart_here: bool) -> tuple[FrameResult, Sequence[Mask] | None]:
+            def fit(i: int, grey: Sequence[Image]) -> tuple[FrameResult, Sequence[Mask] | None]:
+                return self._compute(i, grey, self._model, self._track, restart_here=restart_here)
 
-        result, masks = one_frame(index, list(images), self._model, self._names, fit, self._problems)
+            return one_frame(index, list(images), self._model, self._names, fit, self._problems)
+
+        result, masks = fitted(restart_here=restarts is None)
+        if restarts is not None and result.lost and self._track and self._track[-1].lost:
+            # Lost again from a lost track's fit, which is no guide: this frame waits for the
+            # started track and is fitted from it as process fits it, started again here if
+            # lost (as many frame-sets are dropped as that takes: a tube too fast for its
+            # track gives dropped frames, not a run of wrong ones).
+            self._take_over(restarts.caught_up(lambda: True))
+            result, masks = fitted(restart_here=True)
+        if restarts is None:
+            pass
+        elif restarts.under_way:
+            restarts.follow(index, images)
+        elif result.lost:
+            if restarts.start(index, images, self._track):
+                started = restarts.caught_up(self._may_wait)
+                if started is not None:  # the frame as process has it (its silhouettes are these)
+                    self._track, result = started[:-1], started[-1]
+        elif starts_next_track(index):
+            # Where process starts its next segment's track (from the hull, WARMUP_FRAMES
+            # before the segment), one starts here too, and takes over once caught up: a
+            # wrong course that no lost-track test catches is forgotten as in process, and
+            # from the take-over on the frames are process's.
+            restarts.start(index, images, ())
         self._track = [*self._track, result][-LENGTH_FRAMES:]
         return frame_output(result, masks, list(images), self._images, None)
+
+    def _take_over(self, started: list[FrameResult] | None) -> bool:
+        """The started track, where it has caught up, replaces the run's."""
+        if started is not None:
+            self._track = started
+        return started is not None
 
 
 def process_range(

@@ -148,6 +148,11 @@ def track_start(index: int) -> int:
     return max(0, segment_start(index) - WARMUP_FRAMES)
 
 
+def starts_next_track(index: int) -> bool:
+    """Whether the track of the segment after frame ``index``'s starts at ``index``."""
+    return (index + WARMUP_FRAMES) % SEGMENT_FRAMES == 0
+
+
 def predict_axis(previous: Sequence[FrameResult], index: int | None = None) -> FloatArray | None:
     """(N, 3) mm: frame ``index``'s axis predicted from the last frames' results, or None.
 

@@ -27,6 +27,7 @@ import tomli_w
 import pipeline
 from pipeline.errors import SettingsError
 from pipeline.live.handoff import DroppingQueue
+from pipeline.live.restarts import RestartWorker
 from pipeline.live.run import LiveSummary, run_live
 from pipeline.live.sources import V4L2_FORMAT, Source, open_rig, parse_source
 from pipeline.live.stream import grpc_url, parse_host_port
@@ -192,6 +193,38 @@ def processed(session: Path, tmp_path_factory: pytest.TempPathFactory) -> pipeli
     return pipeline.load_recording(out / "take.mcap")
 
 
+def test_the_restart_worker_starts_a_track_and_follows_it_as_this_process_would(session: Path) -> None:
+    from pipeline.reconstruct.frame import reconstruct_with_silhouettes
+    from pipeline.reconstruct.frame_task import decode_frames
+    from pipeline.reconstruct.model import build_model
+
+    model = build_model(pipeline.load_session(session))
+    frames = decode_frames(pipeline.load_session(session).video_paths, [5, 6, 7, 8])
+    before, _ = reconstruct_with_silhouettes(*frames[0], model)
+    here = [before]
+    for index, images in frames[1:]:
+        here.append(reconstruct_with_silhouettes(index, images, model, here)[0])
+    worker = RestartWorker(model)
+    try:
+        worker.wait_ready(60.0)
+        assert worker.available and not worker.under_way
+        assert worker.caught_up(lambda: True) is None  # nothing started
+        assert worker.start(*frames[1], [before])
+        assert not worker.start(*frames[1], [before])  # one start at a time
+        for index, images in frames[2:]:
+            worker.follow(index, images)
+        assert worker.caught_up(lambda: False) is None  # not done at once (a start takes > 0.1 s)
+        deadline = time.monotonic() + 60.0
+        track = worker.caught_up(lambda: time.monotonic() < deadline)
+        assert not worker.under_way  # taken over
+    finally:
+        worker.close()
+    assert track is not None and [r.index for r in track] == [5, 6, 7, 8]
+    for a, b in zip(here, track, strict=True):
+        assert a.centerline_mm is not None and b.centerline_mm is not None
+        np.testing.assert_array_equal(a.centerline_mm, b.centerline_mm)
+
+
 def _verify_rrd(path: Path) -> None:
     verify = subprocess.run(
         [str(RERUN), "rrd", "verify", str(path)], env=RERUN_ENV, capture_output=True, text=True
@@ -346,10 +379,16 @@ def test_cameras_streaming_over_udp_are_reconstructed(
         sender.wait()
     assert summary.stopped_by == "--duration"
     live = pipeline.load_recording(tmp_path / "out" / "rig.mcap")
-    ok = live.statuses == "ok"
-    # A few frames at least, however loaded the machine (a frame from the hull, as after
-    # each drop in this fast-moving session, takes a few hundred ms on two busy cores).
-    assert ok.sum() >= 3, summary.lines()
+    # The frames whose track held: where it is lost (often, in this fast-moving session), a
+    # frame that cannot wait for its start from the hull keeps the lost fit, flagged.
+    held = np.array(
+        [
+            status == "ok" and "track was lost" not in metrics["suspect_reason"]
+            for status, metrics in zip(live.statuses, live.metrics, strict=True)
+        ]
+    )
+    # A few frames at least, however loaded the machine.
+    assert held.sum() >= 3, summary.lines()
     # Each frame-set holds the same moment from the three cameras: its curve is one that
     # process found on some frame of the session (the re-encoding costs a little: 1 mm).
     # Three cameras' frames from different moments would fit no tube this well: the
@@ -358,7 +397,7 @@ def test_cameras_streaming_over_udp_are_reconstructed(
     reference_mm = processed.centerlines_m * 1000.0
     found = [
         np.linalg.norm(reference_mm - curve_mm, axis=-1).mean(axis=-1).min() < 1.0
-        for curve_mm in live.centerlines_m[ok] * 1000.0
+        for curve_mm in live.centerlines_m[held] * 1000.0
     ]
     assert np.mean(found) >= 0.8, found
 

@@ -279,3 +279,134 @@ def test_a_frames_curve_does_not_depend_on_how_the_run_splits_the_frames(session
     # Most frames are fitted from their track, not from the hull.
     tracked = [o.result.tracked for o in process_range(model, session.video_paths, names, 0, n, images=False)]
     assert sum(tracked) >= n - 2 * (WARMUP_FRAMES + 1)
+
+
+class _StartsHere:
+    """Restarts (pipeline.reconstruct.frame_task.Restarts) computed at once in this process,
+    but caught up only at the ``lag``-th look after the start (the lost frame's own the
+    first), or when the frame may wait."""
+
+    available = True
+
+    def __init__(self, model: Any, lag: int) -> None:
+        self.model, self.lag = model, lag
+        self.started: list[int] = []
+        self.before: list[FrameResult] = []
+        self.track: list[FrameResult] = []
+        self.results: list[FrameResult] = []
+        self.pending = 0
+
+    @property
+    def under_way(self) -> bool:
+        return bool(self.results)
+
+    def start(self, index: int, images: Any, previous: Any) -> bool:
+        if self.results:
+            return False
+        self.started.append(index)
+        self.before, self.track, self.pending = list(previous), list(previous), self.lag
+        self.follow(index, images)
+        return True
+
+    def follow(self, index: int, images: Any) -> None:
+        result = frame_module.reconstruct_with_silhouettes(index, images, self.model, self.track)[0]
+        self.track = [*self.track, result][-LENGTH_FRAMES:]
+        self.results.append(result)
+
+    def caught_up(self, may_wait: Any) -> list[FrameResult] | None:
+        if not self.results:
+            return None
+        if self.pending > 0 and not may_wait():
+            self.pending -= 1
+            return None
+        track, self.results = [*self.before, *self.results][-LENGTH_FRAMES:], []
+        return track
+
+
+def _same(a: FrameResult, b: FrameResult) -> bool:
+    assert a.centerline_mm is not None and b.centerline_mm is not None
+    return bool(np.array_equal(a.centerline_mm, b.centerline_mm)) and a.suspect_reason == b.suspect_reason
+
+
+def test_a_lost_track_started_elsewhere_takes_over_as_process_has_it_once_caught_up(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # With its starts from the hull run elsewhere (a live run's restart worker), a frame
+    # whose track is lost keeps the lost track's fit, flagged, the frames after go on from
+    # it, and the started track follows them until it has caught up (three frames here); from
+    # then on the frames are a waiting track's (process's), to the bit.
+    render_session(tmp_path, shape="random", frames=20, seed=4, progress=False, jobs=1)
+    session = load_session(tmp_path)
+    model = build_model(session)
+    names = [c.name for c in session.cameras]
+    frames = decode_frames(session.video_paths, range(20))
+    losing = {"now": False}
+
+    def lost_when_told(*args: Any, **kwargs: Any) -> TrackedFit:
+        fit = track_tube(*args, **kwargs)
+        return replace(fit, lost="told to") if losing["now"] else fit
+
+    monkeypatch.setattr(frame_module, "track_tube", lost_when_told)
+
+    def run(tracker: Tracker) -> list[FrameResult]:
+        out = []
+        for i, images in frames:
+            losing["now"] = i == 10
+            out.append(tracker.step(i, images).result)
+        return out
+
+    waited = run(Tracker(model, names, images=False))
+    assert [r.index for r in waited if not r.tracked] == [0, 10]
+    starts = _StartsHere(model, lag=3)  # caught up with frame 12, taken over at 13
+    went_on = run(Tracker(model, names, images=False, restarts=starts))
+    assert starts.started == [10]
+    assert went_on[10].lost == "told to" and "its track was lost here" in went_on[10].suspect_reason
+    assert not any(r.lost for r in went_on[11:13])  # followed the lost fit
+    assert [r.index for r in went_on if not _same(r, waited[r.index])] == [10, 11, 12]
+
+
+def test_a_frame_lost_again_from_a_lost_fit_waits_for_the_started_track(tmp_path: Path) -> None:
+    # Fitted every tenth frame, this random shape's track is lost at frames 10, 30 and 40
+    # (started again from the hull there), and from the lost fits kept at 10 and 30 again
+    # at 20 and 40: those frames wait for the tracks started at 10 and 30 instead of going
+    # on from a fit that is no guide, and are process's.
+    render_session(tmp_path, shape="random", frames=60, seed=4, progress=False, jobs=1)
+    session = load_session(tmp_path)
+    model = build_model(session)
+    names = [c.name for c in session.cameras]
+    frames = decode_frames(session.video_paths, range(0, 60, 10))
+    waiting = Tracker(model, names, images=False)
+    waited = [waiting.step(i, images).result for i, images in frames]
+    assert [r.index for r in waited if not r.tracked] == [0, 10, 30, 40]
+
+    starts = _StartsHere(model, lag=2)
+    elsewhere = Tracker(model, names, images=False, restarts=starts)  # never waits at the loss
+    went_on = [elsewhere.step(i, images).result for i, images in frames]
+    assert starts.started == [10, 30]
+    assert [r.index for r in went_on if r.lost and "its track was lost here" in r.suspect_reason] == [10, 30]
+    assert [r.index for r, w in zip(went_on, waited, strict=True) if not _same(r, w)] == [10, 30]
+
+    # A start that comes while the frame can wait for it gives the frame process's result.
+    patient = Tracker(model, names, images=False, restarts=_StartsHere(model, lag=2), may_wait=lambda: True)
+    for (i, images), w in zip(frames, waited, strict=True):
+        assert _same(patient.step(i, images).result, w)
+
+
+def test_a_tracker_with_starts_elsewhere_starts_each_segments_track_where_process_does(
+    tmp_path: Path,
+) -> None:
+    # process starts the track of each segment from the hull WARMUP_FRAMES before it (frame
+    # 87 for the segment at 90); a tracker with starts elsewhere starts one there too, and
+    # once it has caught up (taken over at 91 here) its frames are process's, whatever its
+    # own track was before (here one started at frame 80).
+    render_session(tmp_path, shape="random", frames=96, seed=5, progress=False, jobs=1)
+    session = load_session(tmp_path)
+    model = build_model(session)
+    names = [c.name for c in session.cameras]
+    processed = [o.result for o in process_range(model, session.video_paths, names, 80, 96, images=False)]
+    starts = _StartsHere(model, lag=3)  # caught up with frame 90
+    tracker = Tracker(model, names, images=False, restarts=starts)
+    live = [tracker.step(i, images).result for i, images in decode_frames(session.video_paths, range(80, 96))]
+    assert starts.started == [SEGMENT_FRAMES - WARMUP_FRAMES]
+    differ = [r.index for r, p in zip(live, processed, strict=True) if not _same(r, p)]
+    assert differ and max(differ) < SEGMENT_FRAMES + 1
