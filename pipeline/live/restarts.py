@@ -99,6 +99,15 @@ class RestartWorker:
     def under_way(self) -> bool:
         return bool(self._frames)
 
+    @property
+    def behind(self) -> int:
+        """Frames given to the started track that it has yet to fit."""
+        return sum(not f.done() for f in self._frames)
+
+    @property
+    def nearly_caught_up(self) -> bool:
+        return len(self._frames) > 1 and self._frames[-2].done()
+
     def wait_ready(self, timeout_s: float) -> None:
         """Wait until the worker has started (spawned and imported, ~1 s), so that it does
         not compete with the first frames for the cores."""
@@ -116,7 +125,7 @@ class RestartWorker:
     def follow(self, index: int, images: Sequence[NDArray[np.uint8]]) -> None:
         if not self._frames:
             return
-        if sum(not f.done() for f in self._frames) >= MAX_BEHIND_FRAMES:
+        if self.behind >= MAX_BEHIND_FRAMES:
             log.warning(
                 "the track started again from the hull at frame %d fell %d frames behind; given up",
                 self._started_at,

@@ -171,6 +171,12 @@ class Restarts(Protocol):
         """Whether a started track has yet to catch up."""
         ...
 
+    @property
+    def nearly_caught_up(self) -> bool:
+        """Whether the started track has only its last frame given to it left to fit, and
+        that one tracked (its start from the hull done)."""
+        ...
+
     def start(self, index: int, images: Sequence[Image], previous: Sequence[FrameResult]) -> bool:
         """Start a track at frame ``index``, computed as ``process`` computes it (from its
         per camera (H, W) uint8 grey ``images`` and the track's results before it,
@@ -227,7 +233,11 @@ class Tracker:
         """Frame ``index`` from its per camera (H, W) uint8 grey images."""
         restarts = self._restarts if self._restarts is not None and self._restarts.available else None
         if restarts is not None and restarts.under_way:
-            self._take_over(restarts.caught_up(lambda: False))
+            # A started track with only its last tracked frame left is worth waiting for while
+            # a frame-set can still wait: it fits a frame about as fast as this thread, so
+            # without the wait it could stay a frame behind for good.
+            patience = self._may_wait if restarts.nearly_caught_up else lambda: False
+            self._take_over(restarts.caught_up(patience))
 
         def fitted(restart_here: bool) -> tuple[FrameResult, Sequence[Mask] | None]:
             def fit(i: int, grey: Sequence[Image]) -> tuple[FrameResult, Sequence[Mask] | None]:

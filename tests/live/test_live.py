@@ -213,10 +213,12 @@ def test_the_restart_worker_starts_a_track_and_follows_it_as_this_process_would(
         assert not worker.start(*frames[1], [before])  # one start at a time
         for index, images in frames[2:]:
             worker.follow(index, images)
-        assert worker.caught_up(lambda: False) is None  # not done at once (a start takes > 0.1 s)
+        # Not done at once (a start takes > 0.1 s), nor nearly (the start is not done).
+        assert worker.behind >= 1 and not worker.nearly_caught_up
+        assert worker.caught_up(lambda: False) is None
         deadline = time.monotonic() + 60.0
         track = worker.caught_up(lambda: time.monotonic() < deadline)
-        assert not worker.under_way  # taken over
+        assert not worker.under_way and worker.behind == 0  # taken over
     finally:
         worker.close()
     assert track is not None and [r.index for r in track] == [5, 6, 7, 8]

@@ -300,6 +300,10 @@ class _StartsHere:
     def under_way(self) -> bool:
         return bool(self.results)
 
+    @property
+    def nearly_caught_up(self) -> bool:
+        return self.pending <= 1 and len(self.results) > 1
+
     def start(self, index: int, images: Any, previous: Any) -> bool:
         if self.results:
             return False

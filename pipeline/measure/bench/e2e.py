@@ -60,7 +60,7 @@ def ensure_session(directory: Path, *, frames: int, synth_args: Sequence[str] = 
     return directory
 
 
-def _tree_rss(proc: psutil.Process) -> int:
+def tree_rss(proc: psutil.Process) -> int:
     """Summed RSS of ``proc`` and all its descendants, bytes (0 once it is gone)."""
     total = 0
     try:
@@ -116,7 +116,7 @@ def run_process(
     proc = psutil.Process(popen.pid)
     peak = 0
     while popen.poll() is None:
-        peak = max(peak, _tree_rss(proc))
+        peak = max(peak, tree_rss(proc))
         time.sleep(RSS_SAMPLE_S)
     wall = time.perf_counter() - start
     # Children's CPU time counts every descendant reaped so far (the loky workers are

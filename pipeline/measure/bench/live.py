@@ -20,7 +20,7 @@ import numpy as np
 import psutil
 
 from ...record.load import Recording, load_recording
-from .e2e import RSS_SAMPLE_S
+from .e2e import RSS_SAMPLE_S, tree_rss
 from .report import LiveRun
 
 log = logging.getLogger(__name__)
@@ -79,7 +79,8 @@ def run_live(
         samples: list[tuple[float, int]] = []
         while popen.poll() is None:
             try:
-                samples.append((time.perf_counter() - start, proc.memory_info().rss))
+                # The run and its restart worker (pipeline.live.restarts).
+                samples.append((time.perf_counter() - start, tree_rss(proc)))
             except psutil.Error:
                 pass
             time.sleep(RSS_SAMPLE_S)

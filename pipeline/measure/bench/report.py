@@ -161,7 +161,7 @@ class LiveRun:
     latency_p50_ms, latency_p99_ms : capture of a frame's last image to its result written, ms.
     camera_fps : per camera, frames per second delivered.
     wall_s : the subprocess's wall time, seconds.
-    peak_rss_mb : its peak RSS, MiB.
+    peak_rss_mb : the peak of its process tree's summed RSS (the run and its restart worker), MiB.
     rss_growth_mb : its lowest RSS over 75-95 % of the run less its lowest over 25-45 %, MiB
         (flat memory: ~0; the lows leave out the frames the Rerun writer batches up).
     gap_to_process_mm : mean distance of its centrelines to ``process``'s on the frames
