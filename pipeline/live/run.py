@@ -148,7 +148,8 @@ def run_live(
     images : store (and stream) the camera images.
     force : replace existing outputs (when the run stops).
     queue_sets : frame-sets that may wait for the reconstruction before the oldest is
-        dropped (a replay that must keep every frame, as the tests', passes many).
+        dropped, once the run has settled (a replay that must keep every frame, as the
+        tests', passes many; see :mod:`.handoff`).
 
     Raises
     ------
@@ -324,6 +325,7 @@ def _loop(
                     extra_metrics={"latency_ms": latency_ms},
                 )
                 latencies.append(latency_ms)
+                queue.settle()
     except KeyboardInterrupt:
         return latencies, "a signal"
 

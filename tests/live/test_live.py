@@ -94,12 +94,33 @@ def test_a_stalled_camera_keeps_the_others_waiting_frames_bounded() -> None:
 
 
 def test_the_queue_drops_its_oldest_set_when_full_and_counts_it() -> None:
-    queue = DroppingQueue(capacity=2)
+    queue = DroppingQueue(capacity=2, settling=2)
     for k in range(5):
         queue.put(FrameSet(k, (), (k,)))
     assert queue.dropped == 3
     got = [queue.get(0.0) for _ in range(3)]
     assert [s.index if s is not None else None for s in got] == [3, 4, None]
+
+
+def test_the_queue_holds_more_until_the_run_has_settled() -> None:
+    # The first frame starts its track from the hull, longer than a frame period: the sets
+    # that come meanwhile wait, up to ``settling``; once the run has settled and taken them
+    # down below the capacity, the queue holds two again, and stays so.
+    queue = DroppingQueue(capacity=2, settling=6)
+    for k in range(8):
+        queue.put(FrameSet(k, (), (k,)))
+    assert queue.dropped == 2 and queue.capacity == 6
+    first = queue.get(0.0)
+    assert first is not None and first.index == 2
+    queue.settle()  # the first frame is out, but 5 sets still wait: not yet
+    assert queue.capacity == 6
+    for _ in range(4):
+        queue.get(0.0)
+    assert len(queue) == 1 and queue.capacity == 2
+    for k in range(8, 12):
+        queue.put(FrameSet(k, (), (k,)))
+    queue.settle()  # falling behind later does not bring the larger queue back
+    assert queue.dropped == 5 and queue.capacity == 2 and len(queue) == 2
 
 
 # --- sources, settings, addresses --------------------------------------------------------------
