@@ -327,6 +327,13 @@ class _StartsHere:
         return track
 
 
+def _rendered(directory: Path, *, frames: int, seed: int) -> tuple[Session, Any, list[str]]:
+    """A random shape rendered into ``directory``: its session, model and camera names."""
+    render_session(directory, shape="random", frames=frames, seed=seed, progress=False, jobs=1)
+    session = load_session(directory)
+    return session, build_model(session), [c.name for c in session.cameras]
+
+
 def _same(a: FrameResult, b: FrameResult) -> bool:
     assert a.centerline_mm is not None and b.centerline_mm is not None
     return bool(np.array_equal(a.centerline_mm, b.centerline_mm)) and a.suspect_reason == b.suspect_reason
@@ -339,10 +346,7 @@ def test_a_lost_track_started_elsewhere_takes_over_as_process_has_it_once_caught
     # whose track is lost keeps the lost track's fit, flagged, the frames after go on from
     # it, and the started track follows them until it has caught up (three frames here); from
     # then on the frames are a waiting track's (process's), to the bit.
-    render_session(tmp_path, shape="random", frames=20, seed=4, progress=False, jobs=1)
-    session = load_session(tmp_path)
-    model = build_model(session)
-    names = [c.name for c in session.cameras]
+    session, model, names = _rendered(tmp_path, frames=20, seed=4)
     frames = decode_frames(session.video_paths, range(20))
     losing = {"now": False}
 
@@ -374,10 +378,7 @@ def test_a_frame_lost_again_from_a_lost_fit_waits_for_the_started_track(tmp_path
     # (started again from the hull there), and from the lost fits kept at 10 and 30 again
     # at 20 and 40: those frames wait for the tracks started at 10 and 30 instead of going
     # on from a fit that is no guide, and are process's.
-    render_session(tmp_path, shape="random", frames=60, seed=4, progress=False, jobs=1)
-    session = load_session(tmp_path)
-    model = build_model(session)
-    names = [c.name for c in session.cameras]
+    session, model, names = _rendered(tmp_path, frames=60, seed=4)
     frames = decode_frames(session.video_paths, range(0, 60, 10))
     waiting = Tracker(model, names, images=False)
     waited = [waiting.step(i, images).result for i, images in frames]
@@ -403,10 +404,7 @@ def test_a_tracker_with_starts_elsewhere_starts_each_segments_track_where_proces
     # 87 for the segment at 90); a tracker with starts elsewhere starts one there too, and
     # once it has caught up (taken over at 91 here) its frames are process's, whatever its
     # own track was before (here one started at frame 80).
-    render_session(tmp_path, shape="random", frames=96, seed=5, progress=False, jobs=1)
-    session = load_session(tmp_path)
-    model = build_model(session)
-    names = [c.name for c in session.cameras]
+    session, model, names = _rendered(tmp_path, frames=96, seed=5)
     processed = [o.result for o in process_range(model, session.video_paths, names, 80, 96, images=False)]
     starts = _StartsHere(model, lag=3)  # caught up with frame 90
     tracker = Tracker(model, names, images=False, restarts=starts)
