@@ -77,7 +77,7 @@ SUSPECT_PLOT = "plots/suspect"
 
 @dataclass
 class _Series:
-    """Per-frame scalars, kept until the end and sent as columns."""
+    """Per-frame scalars, kept until they are sent as columns (with the other rows)."""
 
     frames: list[int] = field(default_factory=list)
     times_ns: list[int] = field(default_factory=list)
@@ -167,7 +167,7 @@ class RerunRecorder:
     cameras : the session's cameras, in the order of FrameResult.iou and the media.
     workspace : the carving box, drawn once.
     live : send what was written, plots included, every LIVE_SEND_S (a viewer is
-        watching); otherwise rows go out 100 frames at a time and the plots at the end.
+        watching); otherwise rows and plots go out 100 frames at a time.
     """
 
     def __init__(
@@ -303,7 +303,10 @@ class RerunRecorder:
             self._series = _Series()
             self._sent_at = time.monotonic()
         elif self._columns.full():
+            # The plots go with them: held to the end, they grew a long live run's memory.
             self._columns.send(self._rec)
+            self._send_series(self._series)
+            self._series = _Series()
 
     def _scalars(self, result: FrameResult) -> dict[str, float]:
         values: dict[str, float] = {

@@ -27,6 +27,7 @@ from ..errors import OutputError
 from ..reconstruct.frame_task import FrameOutput
 from ..reconstruct.quality import SUSPECT_SMOOTHED_MM, is_doubtful, off_smoothed, reaches_walls
 from ..session.folder import Session
+from .frame_log import FrameLog
 from .interrupts import deferred_signals
 from .output_target import OutputTarget, output_error
 from .smoothing import smooth_centerlines
@@ -160,10 +161,9 @@ class Writers:
         self._viewer_stream: Any = None
         self.viewer: RerunRecorder | None = None
         self._stalled = False  # the Rerun writer did not finish within its bound
-        self.frames: list[int] = []
-        self.times_ns: list[int] = []
-        self.curves: list[NDArray[np.float64] | None] = []
-        self.metrics: list[bytes] = []  # each frame's metrics message, as written to the MCAP
+        # Each frame's index, time, curve and metrics message (as written to the MCAP), for
+        # the finish: on disk, so that a long live run's memory stays flat.
+        self.log = FrameLog()
         self.counts = {"ok": 0, "empty": 0}
         self.failed: list[tuple[int, str]] = []
         self.doubtful: list[int] = []
@@ -232,17 +232,13 @@ class Writers:
         if time_ns is None:
             time_ns = self.session.timestamp_ns(result.index)
         try:
-            self.metrics.append(
-                self.mcap.write_frame(result, time_ns, jpegs=out.jpegs, extra_metrics=extra_metrics)
-            )
+            metrics = self.mcap.write_frame(result, time_ns, jpegs=out.jpegs, extra_metrics=extra_metrics)
         except OSError as exc:
             raise output_error(self.target.out_dir, exc) from None
         self.rerun.write_frame(result, time_ns, jpegs=out.jpegs, silhouettes_png=out.silhouettes_png)
         if self.viewer is not None:
             self.viewer.write_frame(result, time_ns, jpegs=out.jpegs, silhouettes_png=out.silhouettes_png)
-        self.frames.append(result.index)
-        self.times_ns.append(time_ns)
-        self.curves.append(result.centerline_mm if result.status == "ok" else None)
+        self.log.add(result.index, time_ns, result.centerline_mm if result.status == "ok" else None, metrics)
         if result.status == "failed":
             self.failed.append((result.index, result.reason))
         else:
@@ -256,23 +252,9 @@ class Writers:
             if reaches_walls(result.points_mm, self.session.settings.workspace, curve[0]):
                 self.at_walls.append(result.index)
 
-    def _stacked(self) -> NDArray[np.float64] | None:
-        """(F, N, 3) mm: the frames' curves, NaN rows where a frame has none; None where
-        they differ in length (or there are none)."""
-        lengths = {len(c) for c in self.curves if c is not None}
-        if len(lengths) != 1:
-            return None
-        (n,) = lengths
-        stacked = np.full((len(self.curves), n, 3), np.nan)
-        for row, curve in enumerate(self.curves):
-            if curve is not None:
-                stacked[row] = curve
-        return stacked
-
     def _smoothed(self, stacked: NDArray[np.float64]) -> NDArray[np.float64] | None:
-        start_ns = self.times_ns[0]
-        times_s = (np.asarray(self.times_ns, dtype=np.int64) - start_ns).astype(np.float64) * 1e-9
-        return _smooth(stacked, times_s)
+        times_ns = np.asarray(self.log.times_ns, dtype=np.int64)
+        return _smooth(stacked, (times_ns - times_ns[0]).astype(np.float64) * 1e-9)
 
     def _flag_off_smoothed(self, stacked: NDArray[np.float64], smoothed: NDArray[np.float64]) -> None:
         """The frames whose curves lie far from the smoothed ones
@@ -281,11 +263,11 @@ class Writers:
         gaps = off_smoothed(stacked, smoothed)
         already = {frame for frame, _ in self.suspect}
         for row in np.flatnonzero(gaps > SUSPECT_SMOOTHED_MM):
-            frame, time_ns = self.frames[row], self.times_ns[row]
+            frame, time_ns = self.log.frames[row], self.log.times_ns[row]
             if frame in already:
                 continue
             reason = f"{gaps[row]:.1f} mm from the smoothed curve"
-            figures = json.loads(self.metrics[row]) | {"suspect": True, "suspect_reason": reason}
+            figures = json.loads(self.log.metrics(int(row))) | {"suspect": True, "suspect_reason": reason}
             self.mcap.write_metrics(json.dumps(figures, allow_nan=False).encode(), time_ns)
             self.rerun.mark_suspect(frame, time_ns)
             if self.viewer is not None:
@@ -301,15 +283,17 @@ class Writers:
             raise output_error(self.target.out_dir, exc) from None
 
     def _finish(self) -> None:
-        wanted = self.frames and self.session.settings.centerline.smooth
-        stacked = self._stacked() if wanted else None
+        wanted = len(self.log) and self.session.settings.centerline.smooth
+        stacked = self.log.stacked_curves() if wanted else None
         smoothed = self._smoothed(stacked) if stacked is not None else None
         if stacked is not None and smoothed is not None:
             self._flag_off_smoothed(stacked, smoothed)
-            self.mcap.write_smoothed(smoothed, self.times_ns)
-            self.rerun.write_smoothed(smoothed, self.frames, self.times_ns)
+            frames, times_ns = list(self.log.frames), list(self.log.times_ns)
+            self.mcap.write_smoothed(smoothed, times_ns)
+            self.rerun.write_smoothed(smoothed, frames, times_ns)
             if self.viewer is not None:
-                self.viewer.write_smoothed(smoothed, self.frames, self.times_ns)
+                self.viewer.write_smoothed(smoothed, frames, times_ns)
+        self.log.close()
         self.mcap.finish()
         assert self._mcap_file is not None
         self._mcap_file.flush()
@@ -359,6 +343,7 @@ class Writers:
 
     def abort(self) -> None:
         """Close everything and remove the temporary files; finished outputs are untouched."""
+        self.log.close()
         with contextlib.suppress(Exception):
             if self._mcap_file is not None:
                 self._mcap_file.close()
@@ -383,7 +368,7 @@ class Writers:
                 self.target.partial(path).unlink()
 
     def summary(self, wall_s: float) -> RunSummary:
-        n = len(self.frames)
+        n = len(self.log)
         return RunSummary(
             frames_ok=self.counts.get("ok", 0),
             frames_empty=self.counts.get("empty", 0),

@@ -380,3 +380,27 @@ def test_the_viewer_draws_the_tip_axes_in_their_colours(viewer: Any) -> None:
     colors = series_colors([c.name for c in rig_cameras()])
     for axis in "xyz":
         assert _pixels_of_hue(png, colors[f"plots/tip/{axis}"]) > 30, axis
+
+
+def test_plots_go_out_in_batches_and_a_frame_flagged_after_its_batch_reads_back_once(tmp_path: Path) -> None:
+    # A run's plots are sent with the other rows, 100 frames at a time (held to the end,
+    # they grew a long live run's memory); a frame flagged after its batch went out gets a
+    # row of its own, which a reader takes over the first.
+    n_frames, late = 150, 10
+    path = tmp_path / "long.rrd"
+    cams = rig_cameras()
+    stream = rr.RecordingStream(application_id="pipeline", recording_id=uuid.uuid4())
+    stream.set_log_time_enabled(False)
+    stream.save(path, default_blueprint=default_blueprint(cams, Workspace(), fps=FPS))
+    recorder = RerunRecorder(stream, cams, Workspace())
+    for i in range(n_frames):
+        recorder.write_frame(_result(i), T0_NS + i * DT_NS, jpegs=None, silhouettes_png=None)
+        assert len(recorder._series.frames) == (i + 1) % 100  # sent with each batch of rows
+    recorder.mark_suspect(late, T0_NS + late * DT_NS)
+    recorder.finish()
+    stream.flush()
+    stream.disconnect()
+    table = _table(path, "/plots/suspect")
+    frames, values = _column(table, "frame"), _column(table, "Scalars:scalars")
+    assert frames == list(range(n_frames))
+    assert [v[0] for v in values] == [1.0 if i == late else 0.0 for i in range(n_frames)]
