@@ -163,7 +163,7 @@ class Writers:
         self._stalled = False  # the Rerun writer did not finish within its bound
         # Each frame's index, time, curve and metrics message (as written to the MCAP), for
         # the finish: on disk, so that a long live run's memory stays flat.
-        self.log = FrameLog()
+        self.log = FrameLog(target.out_dir)
         self.counts = {"ok": 0, "empty": 0}
         self.failed: list[tuple[int, str]] = []
         self.doubtful: list[int] = []
@@ -231,14 +231,15 @@ class Writers:
             result = dataclasses.replace(result, suspect_reason=why)
         if time_ns is None:
             time_ns = self.session.timestamp_ns(result.index)
+        curve = result.centerline_mm if result.status == "ok" else None
         try:
             metrics = self.mcap.write_frame(result, time_ns, jpegs=out.jpegs, extra_metrics=extra_metrics)
+            self.log.add(result.index, time_ns, curve, metrics)
         except OSError as exc:
             raise output_error(self.target.out_dir, exc) from None
         self.rerun.write_frame(result, time_ns, jpegs=out.jpegs, silhouettes_png=out.silhouettes_png)
         if self.viewer is not None:
             self.viewer.write_frame(result, time_ns, jpegs=out.jpegs, silhouettes_png=out.silhouettes_png)
-        self.log.add(result.index, time_ns, result.centerline_mm if result.status == "ok" else None, metrics)
         if result.status == "failed":
             self.failed.append((result.index, result.reason))
         else:
@@ -247,8 +248,7 @@ class Writers:
             self.doubtful.append(result.index)
         if result.status == "ok" and result.suspect:
             self.suspect.append((result.index, result.suspect_reason))
-        curve = result.centerline_mm
-        if result.status == "ok" and curve is not None and len(curve):
+        if curve is not None and len(curve):
             if reaches_walls(result.points_mm, self.session.settings.workspace, curve[0]):
                 self.at_walls.append(result.index)
 
