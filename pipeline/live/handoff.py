@@ -33,7 +33,7 @@ class DroppingQueue:
     def __init__(self, capacity: int = QUEUE_SETS, *, settling: int = SETTLING_SETS) -> None:
         self._items: deque[FrameSet] = deque()
         self._capacity, self._settling = capacity, max(settling, capacity)
-        self._settled = self._settle_asked = False
+        self._settled = False
         self._ready = threading.Condition()
         self.dropped = 0
 
@@ -51,9 +51,9 @@ class DroppingQueue:
         return self._capacity if self._settled else self._settling
 
     def settle(self) -> None:
-        """The run is under way: once fewer sets wait than the capacity, hold only that many."""
+        """A frame is out (called after each): once fewer sets wait than the capacity, the
+        run has settled, and the queue holds only that many from then on."""
         with self._ready:
-            self._settle_asked = True
             self._settled = self._settled or len(self._items) < self._capacity
 
     def get(self, timeout_s: float) -> FrameSet | None:
@@ -61,10 +61,7 @@ class DroppingQueue:
         with self._ready:
             if not self._items:
                 self._ready.wait(timeout_s)
-            item = self._items.popleft() if self._items else None
-            if self._settle_asked and len(self._items) < self._capacity:
-                self._settled = True
-            return item
+            return self._items.popleft() if self._items else None
 
     def __len__(self) -> int:
         with self._ready:

@@ -2,11 +2,10 @@
 
 One reader thread per camera (:mod:`.capture`) stamps frames on arrival; the
 matcher (:mod:`.sync`) pairs them into frame-sets; a short queue (:mod:`.handoff`)
-hands those to this thread, which reconstructs each with the tracked core of
-``process`` (:class:`pipeline.reconstruct.frame_task.Tracker`; tracks started from the hull
-after the first frame run in a process of their own, :mod:`.restarts`) and writes it at
-once to the MCAP
-and Rerun writers of ``process`` (the Rerun stream also to a viewer, the MCAP's
+hands those to this thread, which reconstructs each with the tracked core of ``process``
+(:class:`pipeline.reconstruct.frame_task.Tracker`; tracks started from the hull after the
+first frame run in a process of their own, :mod:`.restarts`) and writes it at once to the
+MCAP and Rerun writers of ``process`` (the Rerun stream also to a viewer, the MCAP's
 messages also to a Foxglove server). The run stops at Ctrl-C, SIGTERM or SIGHUP,
 after ``duration_s``, or at the end of a replay; the recordings are then finished
 and renamed into place as ``process`` does, holding every frame written.

@@ -253,21 +253,19 @@ class Tracker:
             # track gives dropped frames, not a run of wrong ones).
             self._take_over(restarts.caught_up(lambda: True))
             result, masks = fitted(restart_here=True)
-        if restarts is None:
-            pass
-        elif restarts.under_way:
-            restarts.follow(index, images)
-        elif result.lost:
-            if restarts.start(index, images, self._track):
+        if restarts is not None:
+            if restarts.under_way:
+                restarts.follow(index, images)
+            elif result.lost and restarts.start(index, images, self._track):
                 started = restarts.caught_up(self._may_wait)
                 if started is not None:  # the frame as process has it (its silhouettes are these)
                     self._track, result = started[:-1], started[-1]
-        elif starts_next_track(index):
-            # Where process starts its next segment's track (from the hull, WARMUP_FRAMES
-            # before the segment), one starts here too, and takes over once caught up: a
-            # wrong course that no lost-track test catches is forgotten as in process, and
-            # from the take-over on the frames are process's.
-            restarts.start(index, images, ())
+            elif starts_next_track(index):
+                # Where process starts its next segment's track (from the hull, WARMUP_FRAMES
+                # before the segment), one starts here too, and takes over once caught up: a
+                # wrong course that no lost-track test catches is forgotten as in process,
+                # and from the take-over on the frames are process's.
+                restarts.start(index, images, ())
         self._track = [*self._track, result][-LENGTH_FRAMES:]
         return frame_output(result, masks, list(images), self._images, None)
 

@@ -30,7 +30,6 @@ class FrameLog:
         self._files: tuple[IO[bytes], IO[bytes]] | None = None  # curves, metrics
         self._points = 0  # samples per curve, from the first curve (0: none yet)
         self._uneven = False  # curves of more than one length: no stack of them
-        self._has_curve = bytearray()
         self._metric_ends = array("q")
 
     def _opened(self) -> tuple[IO[bytes], IO[bytes]]:
@@ -55,10 +54,9 @@ class FrameLog:
         if curve_mm is not None and not self._points:
             self._points = len(curve_mm)
             # Frames before the first curve had none: their rows of NaN, now that N is known.
-            curves.write(np.full((len(self._has_curve), self._points, 3), np.nan).tobytes())
+            curves.write(np.full((len(self.frames) - 1, self._points, 3), np.nan).tobytes())
         if curve_mm is not None and len(curve_mm) != self._points:
             self._uneven = True
-        self._has_curve.append(curve_mm is not None)
         if self._points and not self._uneven:
             row = np.full((self._points, 3), np.nan) if curve_mm is None else curve_mm
             curves.write(np.ascontiguousarray(row, dtype=np.float64).tobytes())

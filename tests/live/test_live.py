@@ -116,6 +116,7 @@ def test_the_queue_holds_more_until_the_run_has_settled() -> None:
     assert queue.capacity == 6
     for _ in range(4):
         queue.get(0.0)
+        queue.settle()
     assert len(queue) == 1 and queue.capacity == 2
     for k in range(8, 12):
         queue.put(FrameSet(k, (), (k,)))
