@@ -156,6 +156,29 @@ def frame_output(
     return FrameOutput(dataclasses.replace(result, timings_s=timings), jpegs, pngs)
 
 
+# A live frame whose track is lost keeps the lost fit (flagged) where its start from the
+# hull cannot be waited for; after this many lost fits running, the next lost frame waits
+# for it however long that takes. Replaying the loop of `synth --shape loop --seed 7
+# --arrangement ninety --radius-mm 7 --tip round` on this 2-core machine (2026-12-04,
+# frame-sets dropped of 900; mean error against the truth, `process` 0.267 mm):
+# - every lost-again frame waiting: 107-129 dropped (three replays);
+# - 2 lost fits kept: 50-87 dropped, mean 0.258-0.273 mm (three replays);
+# - lost fits kept without limit: 8-54 dropped (seven replays), but mean up to 0.440 mm,
+#   p95 2.1 mm, where a run of lost fits went astray; and where the tube moves 5-10 mm a
+#   frame (tests/live's UDP session, on a loaded machine) almost every frame kept one.
+LOST_FITS_KEPT = 2
+
+
+def _lost_run(track: Sequence[FrameResult]) -> int:
+    """How many of ``track``'s last results, running, kept a lost track's fit."""
+    run = 0
+    for result in reversed(track):
+        if not result.lost:
+            break
+        run += 1
+    return run
+
+
 class Restarts(Protocol):
     """Where a :class:`Tracker` starts tracks (from the hull) and follows them until they
     catch up, away from its own thread (a live run's
@@ -207,9 +230,10 @@ class Tracker:
     frame-set would be dropped for it), and a start that comes in time gives the frame
     ``process``'s result. Otherwise the frame keeps the lost track's fit, flagged
     suspect, the frames go on from it, and the started track follows them there until it
-    has caught up, when it takes over; a frame lost again from the lost track's fit waits
-    for the started track and, lost from it too, for its own start. A track also starts
-    where ``process`` starts each segment's.
+    has caught up, when it takes over. A frame lost again from the lost track's fit waits
+    for the started track as long as the first did, and after ``LOST_FITS_KEPT`` lost
+    fits running, as long as it takes. A track also starts where ``process`` starts each
+    segment's.
     """
 
     def __init__(
@@ -246,13 +270,21 @@ class Tracker:
             return one_frame(index, list(images), self._model, self._names, fit, self._problems)
 
         result, masks = fitted(restart_here=restarts is None)
-        if restarts is not None and result.lost and self._track and self._track[-1].lost:
-            # Lost again from a lost track's fit, which is no guide: this frame waits for the
-            # started track and is fitted from it as process fits it, started again here if
-            # lost (as many frame-sets are dropped as that takes: a tube too fast for its
-            # track gives dropped frames, not a run of wrong ones).
-            self._take_over(restarts.caught_up(lambda: True))
-            result, masks = fitted(restart_here=True)
+        lost_before = _lost_run(self._track)
+        if restarts is not None and result.lost and lost_before:
+            # Lost again from a lost track's fit, which is a poor guide: this frame waits for
+            # the started track, and is fitted from it as process fits it (started again here
+            # if lost from it too). The wait is held to the queue's room while the lost fits
+            # are few (a frame late by a start from the hull, 150-500 ms, costs as many
+            # dropped frame-sets); beyond, the frame waits as long as it takes, and sets
+            # are dropped (a tube too fast for its track gives dropped frames, not a run of
+            # wrong ones).
+            if lost_before < LOST_FITS_KEPT:
+                if self._take_over(restarts.caught_up(self._may_wait)):
+                    result, masks = fitted(restart_here=True)
+            else:
+                self._take_over(restarts.caught_up(lambda: True))
+                result, masks = fitted(restart_here=True)
         if restarts is not None:
             if restarts.under_way:
                 restarts.follow(index, images)

@@ -12,7 +12,7 @@ import pytest
 
 from pipeline.reconstruct import frame as frame_module
 from pipeline.reconstruct.frame_result import FrameResult
-from pipeline.reconstruct.frame_task import Tracker, decode_frames, process_range
+from pipeline.reconstruct.frame_task import LOST_FITS_KEPT, Tracker, decode_frames, process_range
 from pipeline.reconstruct.model import build_model
 from pipeline.reconstruct.tracking import (
     LENGTH_FRAMES,
@@ -295,6 +295,7 @@ class _StartsHere:
         self.track: list[FrameResult] = []
         self.results: list[FrameResult] = []
         self.pending = 0
+        self.waited = 0  # looks at which the frame could wait (and was given the track)
 
     @property
     def under_way(self) -> bool:
@@ -320,9 +321,11 @@ class _StartsHere:
     def caught_up(self, may_wait: Any) -> list[FrameResult] | None:
         if not self.results:
             return None
-        if self.pending > 0 and not may_wait():
-            self.pending -= 1
-            return None
+        if self.pending > 0:
+            if not may_wait():
+                self.pending -= 1
+                return None
+            self.waited += 1
         track, self.results = [*self.before, *self.results][-LENGTH_FRAMES:], []
         return track
 
@@ -373,23 +376,39 @@ def test_a_lost_track_started_elsewhere_takes_over_as_process_has_it_once_caught
     assert [r.index for r in went_on if not _same(r, waited[r.index])] == [10, 11, 12]
 
 
-def test_a_frame_lost_again_from_a_lost_fit_waits_for_the_started_track(tmp_path: Path) -> None:
+def test_a_frame_lost_again_from_a_lost_fit_takes_the_started_track_once_it_is_there(tmp_path: Path) -> None:
     # Fitted every tenth frame, this random shape's track is lost at frames 10, 30 and 40
     # (started again from the hull there), and from the lost fits kept at 10 and 30 again
-    # at 20 and 40: those frames wait for the tracks started at 10 and 30 instead of going
-    # on from a fit that is no guide, and are process's.
+    # at 20 and 40.
     session, model, names = _rendered(tmp_path, frames=60, seed=4)
     frames = decode_frames(session.video_paths, range(0, 60, 10))
     waiting = Tracker(model, names, images=False)
     waited = [waiting.step(i, images).result for i, images in frames]
     assert [r.index for r in waited if not r.tracked] == [0, 10, 30, 40]
 
+    # The tracks started at 10 and 30 have caught up by 20 and 40: those frames are fitted
+    # from them, as process fits them, not from a fit that is a poor guide.
     starts = _StartsHere(model, lag=2)
     elsewhere = Tracker(model, names, images=False, restarts=starts)  # never waits at the loss
     went_on = [elsewhere.step(i, images).result for i, images in frames]
     assert starts.started == [10, 30]
     assert [r.index for r in went_on if r.lost and "its track was lost here" in r.suspect_reason] == [10, 30]
     assert [r.index for r, w in zip(went_on, waited, strict=True) if not _same(r, w)] == [10, 30]
+    assert starts.waited == 0
+
+    # The track started at 10 has not caught up by 20: frame 20 keeps its fit, flagged as
+    # 10's was, without waiting (no frame-set could). Frame 30, lost after LOST_FITS_KEPT
+    # lost fits, waits for the started track however long that takes, and is process's
+    # (started again from the hull, as process has it). Frame 40, lost in process too,
+    # starts the next track and cannot wait for it either.
+    assert LOST_FITS_KEPT == 2
+    slow = _StartsHere(model, lag=6)
+    tracker = Tracker(model, names, images=False, restarts=slow)
+    late = [tracker.step(i, images).result for i, images in frames]
+    assert slow.started == [10, 40] and slow.waited == 1
+    flagged = [r.index for r in late if r.lost and "its track was lost here" in r.suspect_reason]
+    assert flagged == [10, 20, 40, 50]
+    assert [r.index for r, w in zip(late, waited, strict=True) if not _same(r, w)] == [10, 20, 40, 50]
 
     # A start that comes while the frame can wait for it gives the frame process's result.
     patient = Tracker(model, names, images=False, restarts=_StartsHere(model, lag=2), may_wait=lambda: True)

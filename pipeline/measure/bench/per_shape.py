@@ -35,11 +35,13 @@ class BenchShape:
     name : the row's name, e.g. "loop".
     directory : the session's directory name under the recordings folder.
     synth_args : the ``pipeline synth`` options that render it (none: the demo).
+    live : whether it is also replayed live (the demo always is).
     """
 
     name: str
     directory: str
     synth_args: tuple[str, ...] = ()
+    live: bool = False
 
     def describe(self, session_dir: Path) -> str:
         """The command that renders it into ``session_dir`` (900 frames, as the bench does)."""
@@ -47,16 +49,23 @@ class BenchShape:
 
 
 DEMO_SHAPE = BenchShape("bend_rotate (demo)", "demo")
-# A loop, whose tip lies against its stem (the costliest frames the cascade fits), and a
+# A loop, whose tip lies against its stem (the costliest frames the cascade fits); a
 # random shape with a round end from the synthetic variety (random_shapes: curvature and
-# twist drawn from the seed, sometimes a loop). Both 320x240, three cameras, 6 mm tube:
-# the conditions the speed targets are set for.
+# twist drawn from the seed, sometimes a loop); and a thicker loop with a round end seen by
+# the other rig, whose track is lost more often than the first's. All 320x240, three
+# cameras: the conditions the speed targets are set for. The loops are replayed live too.
 SHAPES = (
-    BenchShape("loop", "bench-loop", ("--shape", "loop")),
+    BenchShape("loop", "bench-loop", ("--shape", "loop"), live=True),
     BenchShape(
         "random, round end (seed 1)",
         "bench-random-round",
         ("--shape", "random", "--tip", "round", "--seed", "1"),
+    ),
+    BenchShape(
+        "loop, r 7 mm, round end, ninety rig (seed 7)",
+        "bench-loop-round",
+        ("--shape", "loop", "--seed", "7", "--arrangement", "ninety", "--radius-mm", "7", "--tip", "round"),
+        live=True,
     ),
 )
 

@@ -202,11 +202,11 @@ def run_bench(
 def _live_runs(
     demo_dir: Path, shapes: Sequence[BenchShape], tmp: Path, *, frames: int, fps: float
 ) -> list[LiveRun]:
-    """The demo, and the loop if among ``shapes``, replayed live for ``frames`` frames and
-    compared with what ``process`` recorded of them above."""
+    """The demo, and those of ``shapes`` marked live, replayed live for ``frames`` frames
+    and compared with what ``process`` recorded of them above."""
     sessions = [(DEMO_SHAPE.name, demo_dir, tmp / "out" / f"{demo_dir.resolve().name}.mcap")]
     for shape in shapes:
-        if shape.name == "loop":
+        if shape.live:
             out = tmp / "shapes" / shape.directory / "out" / f"{shape.directory}.mcap"
             sessions.append((shape.name, demo_dir.parent / shape.directory, out))
     runs = []
