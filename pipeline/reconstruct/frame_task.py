@@ -161,11 +161,12 @@ def frame_output(
 # for it however long that takes. Replaying the loop of `synth --shape loop --seed 7
 # --arrangement ninety --radius-mm 7 --tip round` on this 2-core machine (2026-12-04,
 # frame-sets dropped of 900; mean error against the truth, `process` 0.267 mm):
-# - every lost-again frame waiting: 107-129 dropped (three replays);
+# - every lost-again frame waiting: 116 and 129 dropped (two replays);
 # - 2 lost fits kept: 50-87 dropped, mean 0.258-0.273 mm (three replays);
-# - lost fits kept without limit: 8-54 dropped (seven replays), but mean up to 0.440 mm,
-#   p95 2.1 mm, where a run of lost fits went astray; and where the tube moves 5-10 mm a
-#   frame (tests/live's UDP session, on a loaded machine) almost every frame kept one.
+# - lost fits kept without limit: 8-54 dropped (seven replays, five of them with the
+#   restart worker at a lower priority), but mean up to 0.440 mm, p95 2.1 mm, where a run
+#   of lost fits went astray; and where the tube moves 5-10 mm a frame (tests/live's UDP
+#   session, on a loaded machine) almost every frame kept one.
 LOST_FITS_KEPT = 2
 
 
@@ -275,9 +276,9 @@ class Tracker:
             # Lost again from a lost track's fit, which is a poor guide: this frame waits for
             # the started track, and is fitted from it as process fits it (started again here
             # if lost from it too). The wait is held to the queue's room while the lost fits
-            # are few (a frame late by a start from the hull, 150-500 ms, costs as many
-            # dropped frame-sets); beyond, the frame waits as long as it takes, and sets
-            # are dropped (a tube too fast for its track gives dropped frames, not a run of
+            # are few (a frame that waits out a start from the hull, 150-500 ms, drops 5-15
+            # frame-sets); beyond, the frame waits as long as it takes, and sets are
+            # dropped (a tube too fast for its track gives dropped frames, not a run of
             # wrong ones).
             if lost_before < LOST_FITS_KEPT:
                 if self._take_over(restarts.caught_up(self._may_wait)):
