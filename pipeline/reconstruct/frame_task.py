@@ -271,20 +271,18 @@ class Tracker:
             return one_frame(index, list(images), self._model, self._names, fit, self._problems)
 
         result, masks = fitted(restart_here=restarts is None)
-        lost_before = _lost_run(self._track)
-        if restarts is not None and result.lost and lost_before:
+        lost_before = _lost_run(self._track) if restarts is not None and result.lost else 0
+        if restarts is not None and lost_before:
             # Lost again from a lost track's fit, which is a poor guide: this frame waits for
             # the started track, and is fitted from it as process fits it (started again here
-            # if lost from it too). The wait is held to the queue's room while the lost fits
-            # are few (a frame that waits out a start from the hull, 150-500 ms, drops 5-15
-            # frame-sets); beyond, the frame waits as long as it takes, and sets are
-            # dropped (a tube too fast for its track gives dropped frames, not a run of
-            # wrong ones).
-            if lost_before < LOST_FITS_KEPT:
-                if self._take_over(restarts.caught_up(self._may_wait)):
-                    result, masks = fitted(restart_here=True)
-            else:
-                self._take_over(restarts.caught_up(lambda: True))
+            # if lost from it too, or if no started track is left to take). The wait is held
+            # to the queue's room while the lost fits are few (a frame that waits out a start
+            # from the hull, 150-500 ms, drops 5-15 frame-sets); beyond, the frame waits as
+            # long as it takes, and sets are dropped (a tube too fast for its track gives
+            # dropped frames, not a run of wrong ones).
+            waits_out = lost_before >= LOST_FITS_KEPT
+            taken = self._take_over(restarts.caught_up((lambda: True) if waits_out else self._may_wait))
+            if taken or waits_out:
                 result, masks = fitted(restart_here=True)
         if restarts is not None:
             if restarts.under_way:
