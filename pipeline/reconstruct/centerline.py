@@ -29,7 +29,8 @@ for the tip's), the tip is then bent to the pixels
 (:func:`pipeline.reconstruct.tip_bend.bend_tip_to_pixels`), the stem under it fitted
 again now that the tip is known (:func:`pipeline.reconstruct.tube_fit.refit_body`; also
 from the stem bridged where it lies near the tip, which the tip's edges
-pulled towards it), and the tip bent again against that stem. A tip lying
+pulled towards it), and the tip, now near its place, fitted again against that stem
+(:func:`pipeline.reconstruct.tip_bend.refine_tip_to_pixels`). A tip lying
 on its stem has no readings of its own, so the tip where the curve's own
 course takes it (:func:`pipeline.reconstruct.tip_bend.continue_on_circle`) is bent too;
 these last hypotheses are compared by how their tubes match the grey levels
@@ -58,7 +59,7 @@ from .ordering import March, march_hull
 from .quality import tube_mask
 from .side_readings import centre_across
 from .spline import Centerline, robust_track, smooth_curve
-from .tip_bend import bend_tip_to_pixels, tip_meets_tube
+from .tip_bend import BEND_SPANS_RADII, bend_tip_to_pixels, refine_tip_to_pixels, tip_meets_tube
 from .tube_drawing import coverage_mismatch, pixel_coverages
 from .tube_fit import TubeFit, fit_tube, refit_body, trim_unexplained_tail
 from .tube_scores import MISFIT, passes_through_itself, ranked_score, worst_misfit
@@ -76,6 +77,8 @@ _COAST_BACK_RADII = 8.0
 # 0.320 with 5 %; average median tip 0.753 / 0.748 / 0.743 / 0.750 mm; and
 # the 12-frame r 9 ninety loop's median tip 0.65 / 0.74 / 0.65 / 0.65 mm.
 _COVERAGE_MARGIN = 0.02
+# The spans (radii) the tips under the refitted stems are fitted over: the bend's.
+_REFIT_SPANS_RADII = BEND_SPANS_RADII
 
 
 def fit_centerline(
@@ -184,7 +187,7 @@ def fit_centerline(
         # was fitted while the tip was misplaced, and the tip's edges pulled
         # it too: with the tip placed, the stem under it is read again (the
         # views where the tip's tube touches it are now known, see
-        # pipeline.reconstruct.tube_fit.refit_body), and the tip bent again against it.
+        # pipeline.reconstruct.tube_fit.refit_body), and the tip fitted again against it.
         radius = best.radius_mm
         # The grey levels read as coverage once for every bend and comparison.
         coverages = pixel_coverages(contrasts, masks)
@@ -213,7 +216,7 @@ def fit_centerline(
         # refitted both as it is and bridged there, and the tube that explains
         # the silhouettes better is kept (bridging a stem that does bend there
         # loses its bend, where the readings near the tip are dropped); the tip
-        # is then bent again against it. Measured on the 150-frame r 9 loop:
+        # is then fitted again against it. Measured on the 150-frame r 9 loop:
         # 0.405 / 1.308 / 0.833 mm mean / p95 / median tip without the bridge,
         # 0.372 / 1.133 / 0.867 with it.
         stems = [bent]
@@ -238,11 +241,34 @@ def fit_centerline(
                 ranked_score(replace(best, points_mm=r), cameras, masks) for r in refits[: len(stems)]
             ]
             first = int(np.argmax(standings))
+
         # Measured (12-frame r 9 ninety loop; 150 frames of it): the second
         # bend takes mean / p95 / median tip / length from 0.44 / 1.61 / 2.11 /
         # 1.10 to 0.40 / 1.30 / 1.92 / 0.86 (0.43 / 1.47 / 1.90 / 1.05 to 0.42
         # / 1.42 / 1.77 / 0.94), for ~25 ms more on such a frame.
-        bents = [bend(refit) for refit in refits]
+        # The tips under the refitted stems are near their place (the first bend put
+        # them there): fitted by Gauss-Newton (refine_tip_to_pixels), not searched for.
+        # Frames started from the hull (2026-12-04), the refitted stems' tips searched
+        # against fitted: 192 frames of 16 loops (`synth --shape loop`, seeds 1-8, r 5-9,
+        # both rigs, every fifth of 60 frames) 231 -> 180 ms a start, mean 0.230 -> 0.219
+        # mm, mean tip 0.90 -> 0.74 mm, frames more than 2 mm off 14 -> 11; 280 frames of
+        # 28 drawn cases (`draw_cases(7100, 14)` and 7101, 30 frames, every third, the
+        # true tube end) 60 -> 55 ms, mean 0.631 -> 0.624 mm, frames off 71 -> 70. Their
+        # continuations (continue_tip) fitted too: 140 ms a start on the loops, but 12
+        # frames off instead of 7 (seeds 1-4).
+        def fit_tip(axis_mm: FloatArray) -> FloatArray:
+            return refine_tip_to_pixels(
+                axis_mm,
+                cameras,
+                masks,
+                contrasts,
+                radius,
+                spans_radii=_REFIT_SPANS_RADII,
+                rejects=lambda axis: self_intersects(axis, radius),
+                cap=cap,
+            )
+
+        bents = [fit_tip(refit) for refit in refits]
         if len(bents) > 1:
             # With their tips bent, the hypotheses are compared by how they
             # match the grey levels (pipeline.reconstruct.tube_drawing.coverage_mismatch): the

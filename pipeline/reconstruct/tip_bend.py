@@ -59,7 +59,7 @@ _log = logging.getLogger(__name__)
 # from a tip far off leave a local minimum: r 7 oblique loop mean / p95 /
 # length 0.34 / 0.68 mm / 0.66 % -> 0.24 / 0.64 / 0.22, others unchanged
 # (a radius limit of 2 instead of 1.5 changed nothing but for the worse).
-_BEND_SPANS_RADII = (4.0, 2.0, 1.0)
+BEND_SPANS_RADII = (4.0, 2.0, 1.0)
 _BEND_STEPS_MM = (8.0, 4.0, 2.0, 1.0, 0.5, 0.25)
 # The tip is moved at most this many radii across or along: farther, it is
 # another hypothesis of where the tube goes, not a correction of the fit.
@@ -134,7 +134,7 @@ def bend_tip_to_pixels(
     contrasts: Sequence[NDArray[np.float32]],
     radius_mm: float,
     *,
-    spans_radii: Sequence[float] = _BEND_SPANS_RADII,
+    spans_radii: Sequence[float] = BEND_SPANS_RADII,
     steps_mm: Sequence[float] = _BEND_STEPS_MM,
     rejects: Callable[[FloatArray], bool] | None = None,
     coverages: Sequence[NDArray[np.float32]] | None = None,
@@ -483,7 +483,7 @@ def tip_meets_tube(
     cameras: Sequence[Camera],
     radius_mm: float,
     *,
-    span_radii: float = _BEND_SPANS_RADII[0],
+    span_radii: float = BEND_SPANS_RADII[0],
     min_views: int = _MIN_MEETING_VIEWS,
 ) -> bool:
     """Whether, in at least ``min_views`` views, the tube's last ``span_radii``

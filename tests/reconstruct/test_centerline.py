@@ -547,12 +547,12 @@ def _displaced_tip(
 ) -> tuple[FloatArray, FloatArray]:
     """(the true axis, the same with its tip bent ``across`` (2,) mm and ``longer`` mm as the
     tip bends are), both (64, 3) mm."""
-    from pipeline.reconstruct.tip_bend import _BEND_SPANS_RADII, _bend_end
+    from pipeline.reconstruct.tip_bend import BEND_SPANS_RADII, _bend_end
     from pipeline.reconstruct.tube_tip import end_frame
 
     truth = resample_polyline(curve_mm, 64)
     arc = polyline_arclength(truth)
-    start = arc[-1] - _BEND_SPANS_RADII[0] * RADIUS
+    start = arc[-1] - BEND_SPANS_RADII[0] * RADIUS
     ahead = end_frame(truth, arc, at_mm=float(arc[-1]), span_mm=24.0)
     return truth, _bend_end(truth, arc, start, np.array(across), longer, ahead)
 

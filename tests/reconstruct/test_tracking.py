@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from pipeline.measure.evaluate import centerline_distances
 from pipeline.reconstruct import frame as frame_module
 from pipeline.reconstruct.frame_result import FrameResult
 from pipeline.reconstruct.frame_task import LOST_FITS_KEPT, Tracker, decode_frames, process_range
@@ -147,34 +148,38 @@ def test_a_track_whose_last_frame_has_no_curve_is_lost() -> None:
 
 def _tracked_with_losses(
     session: Session, frames: range, monkeypatch: pytest.MonkeyPatch
-) -> tuple[list[FrameResult], list[str]]:
-    """``frames`` of ``session`` tracked one after the other: their results, and why the
-    track was lost at each frame after the first ("" where it held)."""
-    losses: list[str] = []
+) -> tuple[list[FrameResult], list[TrackedFit]]:
+    """``frames`` of ``session`` tracked one after the other: their results, and the first
+    fit of each frame after the first (its ``lost`` says why the track was lost there,
+    "" where it held)."""
+    fits: list[TrackedFit] = []
 
     def recorded(*args: Any, **kwargs: Any) -> TrackedFit:
         fit = track_tube(*args, **kwargs)
-        losses.append(fit.lost)
+        fits.append(fit)
         return fit
 
     monkeypatch.setattr(frame_module, "track_tube", recorded)
     tracker = Tracker(build_model(session), [c.name for c in session.cameras], images=False)
     results, held = [], []
     for n, (i, images) in enumerate(decode_frames(session.video_paths, frames)):
-        first = len(losses)
+        first = len(fits)
         results.append(tracker.step(i, images).result)
         if n > 0:  # a frame's first fit, where there is a track, is its prediction's
-            held.append(losses[first])
+            held.append(fits[first])
     return results, held
 
 
 @pytest.mark.parametrize("seed", [1, 3])
-def test_a_track_over_spacer_disks_is_not_lost_for_them(
+def test_a_track_over_spacer_disks_is_lost_only_where_it_is_off_the_tube(
     tmp_path: Path, seed: int, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # Disks, which the tube drawn does not have, leave about 1 % of every silhouette
-    # unexplained: the track is judged beyond what its frames usually leave, not lost
-    # (and started again from the hull) wherever a view's share crosses 1 %.
+    # unexplained: a frame is judged against what its track's frames usually leave, so a
+    # track on the tube holds where a view's share crosses 1 %, and a track is lost for a
+    # silhouette left unexplained only where its fit has left the tube. Over such sessions
+    # of seeds 0-7 (24 frames, 2026-12-04) tracks were lost for it 3 times, 6 times
+    # judged on 1 % alone.
     render_session(
         tmp_path,
         shape="random",
@@ -185,10 +190,15 @@ def test_a_track_over_spacer_disks_is_not_lost_for_them(
         jobs=1,
     )
     session = load_session(tmp_path)
+    truth = np.load(tmp_path / "ground_truth.npz")["centerlines"]
     results, held = _tracked_with_losses(session, range(24), monkeypatch)
-    assert max(max(r.misfits) for r in results) > 0.01  # the disks' share does cross 1 %
-    assert "leaves part of a silhouette unexplained" not in held
-    assert sum(not r.tracked for r in results) <= 2
+    kept = [fit for fit in held if not fit.lost]
+    assert sum(fit.misfit > 0.01 for fit in kept) >= 3  # held where the disks' share crosses 1 %
+    for index, fit in enumerate(held, start=1):
+        if fit.lost == "leaves part of a silhouette unexplained":
+            assert fit.curve is not None
+            assert centerline_distances(fit.curve.points_mm, truth[index]).max() > 2.0
+    assert sum(not r.tracked for r in results) <= 3
 
 
 def _tracked_tip_errors(case: Case, directory: Path, frames: int) -> list[float]:
@@ -235,7 +245,7 @@ def test_a_track_that_falls_behind_its_tube_is_given_more_rounds_not_lost(
     # more than LOST_JUMP_RADII is still started again (15, 20 and 35 here).
     render_session(tmp_path, shape="random", frames=60, seed=4, progress=False, jobs=1)
     results, held = _tracked_with_losses(load_session(tmp_path), range(0, 60, 5), monkeypatch)
-    assert "leaves part of a silhouette unexplained" not in held
+    assert "leaves part of a silhouette unexplained" not in [fit.lost for fit in held]
     assert sum(not r.tracked for r in results) <= 4
 
 
