@@ -259,7 +259,7 @@ def fit_centerline(
         # (`accuracy_table --draw 97`, 103, 109 and 115, 8 cases of 90 frames each; same
         # day): the mean error averaged over the 32 sessions 0.352 mm either way, frames
         # more than 2 mm off 561 -> 586 (one session's 36 -> 67), good frames flagged 201
-        # -> 84 (two close calls of the tube's end no longer close). A track's course
+        # -> 84 (a close call of the tube's end no longer close). A track's course
         # depends on its start: of draw 2's ten sessions (150 frames) two came out worse,
         # a tapered loop 0.23 -> 0.30 mm (its track went astray for 16 frames) and a
         # two-camera shape 2.18 -> 2.34 mm, and the other eight within 0.02 mm.
