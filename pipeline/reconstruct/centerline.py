@@ -77,8 +77,6 @@ _COAST_BACK_RADII = 8.0
 # 0.320 with 5 %; average median tip 0.753 / 0.748 / 0.743 / 0.750 mm; and
 # the 12-frame r 9 ninety loop's median tip 0.65 / 0.74 / 0.65 / 0.65 mm.
 _COVERAGE_MARGIN = 0.02
-# The spans (radii) the tips under the refitted stems are fitted over: the bend's.
-_REFIT_SPANS_RADII = BEND_SPANS_RADII
 
 
 def fit_centerline(
@@ -242,27 +240,27 @@ def fit_centerline(
             ]
             first = int(np.argmax(standings))
 
-        # Measured (12-frame r 9 ninety loop; 150 frames of it): the second
-        # bend takes mean / p95 / median tip / length from 0.44 / 1.61 / 2.11 /
-        # 1.10 to 0.40 / 1.30 / 1.92 / 0.86 (0.43 / 1.47 / 1.90 / 1.05 to 0.42
-        # / 1.42 / 1.77 / 0.94), for ~25 ms more on such a frame.
         # The tips under the refitted stems are near their place (the first bend put
-        # them there): fitted by Gauss-Newton (refine_tip_to_pixels), not searched for.
-        # Frames started from the hull (2026-12-04), the refitted stems' tips searched
-        # against fitted: 192 frames of 16 loops (`synth --shape loop`, seeds 1-8, r 5-9,
-        # both rigs, every fifth of 60 frames) 231 -> 180 ms a start, mean 0.230 -> 0.219
-        # mm, mean tip 0.90 -> 0.74 mm, frames more than 2 mm off 14 -> 11; 280 frames of
-        # 28 drawn cases (`draw_cases(7100, 14)` and 7101, 30 frames, every third, the
-        # true tube end) 60 -> 55 ms, mean 0.631 -> 0.624 mm, frames off 71 -> 70. Their
+        # them there): they are fitted by Gauss-Newton over the bend's spans
+        # (refine_tip_to_pixels), not searched for. Placing the tip again under the
+        # refitted stem (12-frame r 9 ninety loop, and 150 frames of it; searched for):
+        # mean / p95 / median tip / length 0.44 / 1.61 / 2.11 / 1.10 -> 0.40 / 1.30 /
+        # 1.92 / 0.86 (0.43 / 1.47 / 1.90 / 1.05 -> 0.42 / 1.42 / 1.77 / 0.94). Frames
+        # started from the hull (2026-12-04), these tips searched for against fitted:
+        # 192 frames of 16 loops (`synth --shape loop`, seeds 1-8, r 5-9, both rigs,
+        # every fifth of 60 frames) 231 -> 180 ms a start, mean 0.230 -> 0.219 mm, mean
+        # tip 0.90 -> 0.74 mm, frames more than 2 mm off 14 -> 11; 280 frames of 28
+        # drawn cases (`draw_cases(7100, 14)` and 7101, 30 frames, every third, the true
+        # tube end) 60 -> 55 ms, mean 0.631 -> 0.624 mm, frames off 71 -> 70. Their
         # continuations (continue_tip) fitted too: 140 ms a start on the loops, but 12
         # frames off instead of 7 (seeds 1-4). Whole sessions tracked from such starts
         # (`accuracy_table --draw 97`, 103, 109 and 115, 8 cases of 90 frames each; same
         # day): the mean error averaged over the 32 sessions 0.352 mm either way, frames
-        # more than 2 mm off 561 -> 586 (one session's 36 -> 67), good frames flagged 201
-        # -> 84 (a close call of the tube's end no longer close). A track's course
-        # depends on its start: of draw 2's ten sessions (150 frames) two came out worse,
-        # a tapered loop 0.23 -> 0.30 mm (its track went astray for 16 frames) and a
-        # two-camera shape 2.18 -> 2.34 mm, and the other eight within 0.02 mm.
+        # more than 2 mm off 561 -> 586 (one session's 36 -> 67), good frames flagged
+        # 201 -> 84 (a close call of the tube's end no longer close). A track's course
+        # depends on its start: of draw 2's ten sessions (150 frames) two came out
+        # worse, a tapered loop 0.23 -> 0.30 mm (its track went astray for 16 frames)
+        # and a two-camera shape 2.18 -> 2.34 mm, and the other eight within 0.02 mm.
         def fit_tip(axis_mm: FloatArray) -> FloatArray:
             return refine_tip_to_pixels(
                 axis_mm,
@@ -270,7 +268,7 @@ def fit_centerline(
                 masks,
                 contrasts,
                 radius,
-                spans_radii=_REFIT_SPANS_RADII,
+                spans_radii=BEND_SPANS_RADII,
                 rejects=lambda axis: self_intersects(axis, radius),
                 cap=cap,
             )

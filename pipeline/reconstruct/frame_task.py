@@ -275,11 +275,12 @@ class Tracker:
         if restarts is not None and lost_before:
             # Lost again from a lost track's fit, which is a poor guide: this frame waits for
             # the started track, and is fitted from it as process fits it (started again here
-            # if lost from it too, or if no started track is left to take). The wait is held
-            # to the queue's room while the lost fits are few (a frame that waits out a start
-            # from the hull, 150-500 ms, drops 5-15 frame-sets); beyond, the frame waits as
-            # long as it takes, and sets are dropped (a tube too fast for its track gives
-            # dropped frames, not a run of wrong ones).
+            # if lost from it too). The wait is held to the queue's room while the lost fits
+            # are few (a frame that waits out a start from the hull, 150-500 ms, drops 5-15
+            # frame-sets), and a frame it does not give keeps its own fit; beyond, the frame
+            # waits as long as it takes, started again here if no started track is left, and
+            # sets are dropped (a tube too fast for its track gives dropped frames, not a run
+            # of wrong ones).
             waits_out = lost_before >= LOST_FITS_KEPT
             taken = self._take_over(restarts.caught_up((lambda: True) if waits_out else self._may_wait))
             if taken or waits_out:

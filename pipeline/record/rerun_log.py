@@ -303,7 +303,7 @@ class RerunRecorder:
             self._series = _Series()
             self._sent_at = time.monotonic()
         elif self._columns.full():
-            # The plots go with them: held to the end, they grew a long live run's memory.
+            # The plots go with them, so that a long live run's memory stays flat.
             self._columns.send(self._rec)
             self._send_series(self._series)
             self._series = _Series()

@@ -383,9 +383,9 @@ def test_the_viewer_draws_the_tip_axes_in_their_colours(viewer: Any) -> None:
 
 
 def test_plots_go_out_in_batches_and_a_frame_flagged_after_its_batch_reads_back_once(tmp_path: Path) -> None:
-    # A run's plots are sent with the other rows, 100 frames at a time (held to the end,
-    # they grew a long live run's memory); a frame flagged after its batch went out gets a
-    # row of its own, which a reader takes over the first.
+    # A run's plots are sent with the other rows, 100 frames at a time (so that a long
+    # live run's memory stays flat); a frame flagged after its batch went out gets a row
+    # of its own, which a reader takes over the first.
     n_frames, late = 150, 10
     path = tmp_path / "long.rrd"
     cams = rig_cameras()
