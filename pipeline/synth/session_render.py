@@ -179,8 +179,8 @@ def _validate(
     if shape not in (*SHAPES, RANDOM_SHAPE):
         names = ", ".join((*SHAPES, RANDOM_SHAPE))
         raise PipelineError(f"unknown synthetic shape {shape!r}; use one of {names}")
-    if frames < 1:
-        raise PipelineError(f"--frames must be at least 1, got {frames}")
+    if not 1 <= frames <= MAX_FRAMES:
+        raise PipelineError(f"--frames must be in [1, {MAX_FRAMES}] (an hour at 30 fps), got {frames}")
     if polarity not in ("dark", "bright"):
         raise PipelineError(f"polarity must be 'dark' or 'bright', got {polarity!r}")
     if not 0 < radius_mm <= 20:
@@ -201,6 +201,22 @@ def _validate(
         raise PipelineError(f"image size must be one of {sizes}, got {options.size[0]}x{options.size[1]}")
     if not 0.0 <= options.calib_error_deg <= 2.0:
         raise PipelineError(f"--calib-error must be in [0, 2] degrees, got {options.calib_error_deg}")
+
+
+# The longest session rendered: an hour at 30 fps (its ground truth alone is ~1 GB).
+MAX_FRAMES = 108_000
+
+
+def _check_out_dir(out_dir: Path) -> None:
+    """A session is rendered into a new or empty directory, or over an earlier render (it
+    holds ground_truth.npz): never over a folder of the user's own files."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise PipelineError(f"{out_dir}: is a file; give synth a directory to write the session in")
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not (out_dir / "ground_truth.npz").is_file():
+        raise PipelineError(
+            f"{out_dir}: holds files and is not a synthetic session (no ground_truth.npz); "
+            "give synth a new or empty directory"
+        )
 
 
 def _profile(options: SceneOptions, radius_mm: float) -> RadiusProfile:
@@ -255,7 +271,8 @@ def render_session(
 
     Parameters
     ----------
-    out_dir : the session directory to write (created; existing files are replaced).
+    out_dir : the session directory to write: created, or empty, or an earlier render
+        (whose files are replaced); PipelineError for a folder of other files.
     shape : one of pipeline.synth.names.SHAPES, or RANDOM_SHAPE (drawn from ``seed``).
     frames : number of frames (30 fps).
     seed : background textures, sensor noise, and for the random shape, the shape.
@@ -268,6 +285,7 @@ def render_session(
     """
     _validate(shape, frames, polarity, radius_mm, arrangement, length_mm, options)
     out_dir = Path(out_dir)
+    _check_out_dir(out_dir)
     cameras = make_rig(arrangement, size=options.size, cameras=options.cameras)
     profile = _profile(options, radius_mm)
     centerlines, length = session_centerlines(

@@ -32,6 +32,10 @@ from .session_render import (
 from .shapes import PERIOD_FRAMES, shape_centerlines
 
 RADIUS_RANGE_MM = (4.0, 8.0)
+# Spacer disks: one every so many mm, of so many times the tube's radius, so thick (mm).
+DISK_SPACING_RANGE_MM = (12.0, 36.0)
+DISK_RATIO_RANGE = (1.3, 2.0)
+DISK_THICKNESS_RANGE_MM = (1.0, 4.0)
 # Half of the draws are random shapes, the other half the named ones in turn.
 _SHAPE_ROUND = (RANDOM_SHAPE,) * len(SHAPES) + SHAPES
 
@@ -53,6 +57,27 @@ class Case:
     size: tuple[int, int] = (320, 240)
     # The calibration.toml's error (pipeline.synth.calib_error); the videos use the true cameras.
     calib_error_deg: float = 0.0
+    # Profile "disks": their spacing (mm), radius over the tube's, and thickness (mm).
+    disk_spacing_mm: float = 20.0
+    disk_ratio: float = 1.5
+    disk_thickness_mm: float = 2.0
+
+    @property
+    def profile_text(self) -> str:
+        """The profile's name, with the disks' spacing, radius ratio and thickness."""
+        if self.profile != "disks":
+            return self.profile
+        return f"disks{self.disk_spacing_mm:g}x{self.disk_ratio:g}t{self.disk_thickness_mm:g}"
+
+    def radius_profile(self) -> RadiusProfile:
+        """The tube's :class:`RadiusProfile`."""
+        return RadiusProfile(
+            self.profile,
+            self.radius_mm,
+            disk_spacing_mm=self.disk_spacing_mm,
+            disk_ratio=self.disk_ratio,
+            disk_thickness_mm=self.disk_thickness_mm,
+        )
 
     @property
     def scene(self) -> list[str]:
@@ -65,7 +90,7 @@ class Case:
         flags = "".join(f"-{f}" for f in self.scene)
         bright = "-bright" if self.polarity == "bright" else ""
         return (
-            f"{self.shape}-{self.tip}-{self.profile}-{self.arrangement}-{self.cameras}cam-"
+            f"{self.shape}-{self.tip}-{self.profile_text}-{self.arrangement}-{self.cameras}cam-"
             f"r{self.radius_mm:g}-{self.size[0]}x{self.size[1]}{bright}{flags}-s{self.seed}"
             + (f"-calib{self.calib_error_deg:g}" if self.calib_error_deg else "")
         )
@@ -73,16 +98,25 @@ class Case:
     def describe(self) -> str:
         """One line for a table: shape, end, profile, rig and scene."""
         return (
-            f"{self.shape} (seed {self.seed}), {self.tip} tip, {self.profile}, r {self.radius_mm:g} mm, "
+            f"{self.shape} (seed {self.seed}), {self.tip} tip, {self._profile_words()}, "
+            f"r {self.radius_mm:g} mm, "
             f"{self.arrangement} {self.cameras} cameras, {self.size[0]}x{self.size[1]}, {self.polarity}"
             + "".join(f", {f}" for f in self.scene)
             + (f", calibration {self.calib_error_deg:g} deg off" if self.calib_error_deg else "")
         )
 
+    def _profile_words(self) -> str:
+        if self.profile != "disks":
+            return self.profile
+        return (
+            f"disks (every {self.disk_spacing_mm:g} mm, {self.disk_ratio:g}x, "
+            f"{self.disk_thickness_mm:g} mm thick)"
+        )
+
     def options(self) -> SceneOptions:
         return SceneOptions(
             tip=self.tip,
-            profile=self.profile,
+            profile=self.radius_profile(),
             cameras=self.cameras,
             size=self.size,
             distractor=self.distractor,
@@ -113,7 +147,7 @@ def _named_shape_fits(case: Case) -> bool:
     the renderer checks every frame it renders, and the views too (the workspace lies
     inside every view)."""
     lines = _cycle(case.shape)
-    profile = RadiusProfile(case.profile, case.radius_mm)
+    profile = case.radius_profile()
     radii = radius_along(profile, np.linspace(0.0, 250.0, CENTERLINE_POINTS))
     disks = disks_of(profile, 250.0)
     widest = max(float(radii.max()), 0.0 if disks is None else disks.radius_mm)
@@ -150,6 +184,8 @@ def draw_cases(seed: int, n: int, *, size: tuple[int, int] = (320, 240)) -> list
         radius = float(np.round(rng.uniform(*RADIUS_RANGE_MM) * 2.0) / 2.0)  # 0.5 mm steps
         case_seed = int(rng.integers(1_000_000))
         options = {key: values[i] for key, values in columns.items()}
+        if options["profile"] == "disks":
+            options.update(_disks(seed, i))
         case = Case(**options, radius_mm=radius, seed=case_seed, size=size)
         while case.shape != RANDOM_SHAPE and not _named_shape_fits(case):
             if case.radius_mm <= RADIUS_RANGE_MM[0]:
@@ -157,6 +193,17 @@ def draw_cases(seed: int, n: int, *, size: tuple[int, int] = (320, 240)) -> list
             case = Case(**{**options, "radius_mm": case.radius_mm - 0.5, "seed": case_seed, "size": size})
         cases.append(case)
     return cases
+
+
+def _disks(seed: int, index: int) -> dict[str, float]:
+    """Case ``index`` of draw ``seed``'s spacer disks, from a generator of their own (the
+    draw's other options do not depend on them)."""
+    rng = np.random.default_rng([seed, 0xD15C, index])
+    return {
+        "disk_spacing_mm": float(np.round(rng.uniform(*DISK_SPACING_RANGE_MM) * 2.0) / 2.0),
+        "disk_ratio": float(np.round(rng.uniform(*DISK_RATIO_RANGE), 2)),
+        "disk_thickness_mm": float(np.round(rng.uniform(*DISK_THICKNESS_RANGE_MM) * 2.0) / 2.0),
+    }
 
 
 def render_case(case: Case, out_dir: Path, frames: int, *, progress: bool = False, jobs: int = -1) -> Path:

@@ -44,7 +44,7 @@ from pipeline.synth.session_render import (
     session_centerlines,
 )
 from pipeline.synth.shapes import Segment, centerline, shape_centerlines
-from pipeline.synth.variety import draw_cases, render_case
+from pipeline.synth.variety import Case, draw_cases, render_case
 
 FRAMES = 12
 RADIUS_MM = 6.0
@@ -440,8 +440,22 @@ def test_bright_ninety_session(tmp_path: Path) -> None:
 def test_bad_arguments_raise_pipeline_errors(tmp_path: Path) -> None:
     with pytest.raises(PipelineError, match="unknown synthetic shape 'spiral'"):
         render_session(tmp_path, shape="spiral", frames=2, progress=False)
-    with pytest.raises(PipelineError, match="--frames must be at least 1"):
+    with pytest.raises(PipelineError, match=r"--frames must be in \[1, 108000\]"):
         render_session(tmp_path, frames=0, progress=False)
+    with pytest.raises(PipelineError, match="an hour at 30 fps"):
+        render_session(tmp_path, frames=10**9, progress=False)
+
+
+def test_synth_renders_into_a_new_or_empty_folder_or_over_a_render_only(tmp_path: Path) -> None:
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "calibration.toml").write_text("my own cameras\n")
+    with pytest.raises(PipelineError, match="is not a synthetic session"):
+        render_session(mine, frames=2, progress=False)
+    assert (mine / "calibration.toml").read_text() == "my own cameras\n"
+    render_session(tmp_path / "new", frames=2, progress=False, jobs=1)
+    render_session(tmp_path / "new", frames=3, progress=False, jobs=1)  # over its own render
+    assert len(np.load(tmp_path / "new" / "ground_truth.npz")["centerlines"]) == 3
     with pytest.raises(PipelineError, match="unknown arrangement"):
         render_session(tmp_path, frames=2, arrangement="square", progress=False)
 
@@ -824,6 +838,38 @@ def test_render_case_writes_what_the_case_says(tmp_path: Path) -> None:
     assert (int(gt["distractor_camera"]) >= 0) == case.distractor
     assert load_settings(tmp_path / "session.toml").silhouette.polarity == case.polarity
     assert float(gt["calib_error_deg"]) == 0.0
+
+
+def test_drawn_spacer_disks_vary_and_are_rendered_as_drawn(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cases = draw_cases(3, 40)
+    disks = [c for c in cases if c.profile == "disks"]
+    assert len({(c.disk_spacing_mm, c.disk_ratio, c.disk_thickness_mm) for c in disks}) == len(disks) > 3
+    assert all(12.0 <= c.disk_spacing_mm <= 36.0 and 1.3 <= c.disk_ratio <= 2.0 for c in disks)
+    # The disks are drawn apart from the rest: with other disks, every other option of
+    # every case is the same (but the radius of a named shape that wider disks would take
+    # out of the workspace, drawn thinner to fit).
+    import pipeline.synth.variety as variety
+
+    monkeypatch.setattr(variety, "_disks", lambda seed, index: {"disk_spacing_mm": 50.0})
+    others = draw_cases(3, 40)
+
+    def rest(case: Case) -> Case:
+        return dataclasses.replace(
+            case, radius_mm=0.0, disk_spacing_mm=0.0, disk_ratio=0.0, disk_thickness_mm=0.0
+        )
+
+    assert [rest(c) for c in others] == [rest(c) for c in cases]
+    assert [c.disk_spacing_mm for c in others if c.profile == "disks"] == [50.0] * len(disks)
+    monkeypatch.undo()
+    case = disks[0]
+    render_case(case, tmp_path, 2)
+    gt = np.load(tmp_path / "ground_truth.npz")
+    assert str(gt["profile"]) == "disks"
+    np.testing.assert_allclose(np.diff(gt["disk_arc_mm"]), case.disk_spacing_mm)
+    assert float(gt["disk_radius_mm"]) == pytest.approx(case.disk_ratio * case.radius_mm)
+    assert float(gt["disk_thickness_mm"]) == case.disk_thickness_mm
 
 
 def test_a_drawn_case_with_a_calibration_error_says_so_and_renders_it(tmp_path: Path) -> None:
