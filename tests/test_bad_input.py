@@ -421,3 +421,89 @@ def test_a_server_that_is_not_a_scheduler_is_an_error_not_a_hang(
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert f"cannot reach the Dask scheduler at {address} (no answer within 1 s)" in line
     assert not out.exists()
+
+
+# --- inputs that are not files, outputs over inputs -----------------------------------
+
+
+@pytest.mark.parametrize("name", ["calibration.toml", "session.toml"])
+def test_a_named_pipe_for_a_toml_file_is_refused_not_waited_on(
+    session: Path, name: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (session / name).unlink(missing_ok=True)
+    os.mkfifo(session / name)  # a read would block until something wrote to it
+    assert_rejected(session, capsys, name, "not a regular file")
+
+
+def test_arrays_nested_too_deeply_in_the_calibration(
+    session: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with open(session / "calibration.toml", "a") as f:
+        f.write("\n[deep]\nvalue = " + "[" * 100_000 + "]" * 100_000 + "\n")
+    assert_rejected(session, capsys, "calibration.toml", "nested too deeply")
+
+
+def test_a_rig_of_one_camera_is_refused(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    def one_camera(d: dict[str, Any]) -> None:
+        for key in [k for k in d if k.startswith("cam_") and k != "cam_0"]:
+            del d[key]
+
+    _edit_toml(session / "calibration.toml", one_camera)
+    for video in session.glob("cam[12].*"):
+        video.unlink()
+    assert_rejected(session, capsys, "calibration.toml", "1 camera", "two or more")
+
+
+@pytest.mark.parametrize("target", ["calibration.toml", "cam0.avi"])
+def test_the_json_summary_never_takes_the_place_of_an_input(
+    session: Path, target: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    before = (session / target).read_bytes()
+    out = session.parent / "out"
+    code = main(_process(session, out, "--json", str(session / target)))
+    err = capsys.readouterr().err
+    assert code == EXIT_BAD_INPUT and "is not a JSON summary" in err, err
+    assert (session / target).read_bytes() == before
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_the_json_summary_never_takes_the_place_of_the_recording(
+    session: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = session.parent / "out"
+    out.mkdir()
+    code = main(_process(session, out, "--json", str(out / "session.mcap")))
+    assert code == EXIT_BAD_INPUT and "is where this run writes a recording" in capsys.readouterr().err
+    assert not any(out.iterdir())
+
+
+def test_a_view_that_is_all_silhouette_fails_its_frames_at_once(
+    session: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # A black picture in one camera: every pixel passes a dark tube's threshold.
+    video = next(session.glob("cam1.*"))
+    n_frames = load_session(session).frame_count
+    write_video(video, [np.zeros((240, 320), np.uint8)] * n_frames)
+    out = session.parent / "out"
+    code = main(_process(session, out))
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert "camera 'cam1' sees 100 % of its image as tube" in err and "polarity and threshold" in err
+
+
+@pytest.mark.parametrize("kind", ["folder", "video"])
+def test_calibrate_checks_its_output_before_calibrating(
+    tmp_path: Path, kind: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "boards").mkdir()  # no images: calibrating would fail, later
+    target = tmp_path / "out"
+    if kind == "folder":
+        target.mkdir()
+    else:
+        target.write_bytes(b"\x00\x00\x00\x18ftypmp42")
+    code = main(["calibrate", str(tmp_path / "boards"), "-o", str(target)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == EXIT_BAD_INPUT and len(err) == 1, err
+    assert ("is a folder" if kind == "folder" else "is not a calibration") in err[0]
+    if kind == "video":
+        assert target.read_bytes() == b"\x00\x00\x00\x18ftypmp42"

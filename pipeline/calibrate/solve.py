@@ -27,13 +27,14 @@ points marked unseen (-1, -1) inside a seen view.
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import CalibrationError
+from ..errors import CalibrationError, OutputError
 from ..geometry.camera import Camera
 from ..session.calibration_io import write_calibration
 from .boards import Board, load_board
@@ -83,6 +84,8 @@ def calibrate_directory(
     calib_dir = Path(calib_dir)
     if not calib_dir.is_dir():
         raise CalibrationError(f"{calib_dir}: not a folder; expected CALIB_DIR/<camera>/intrinsics/*.png")
+    output = Path(output)
+    check_output(output)
     the_board = load_board(calib_dir, board=board, square_mm=square_mm, charuco=charuco)
     views = detect_directory(calib_dir, the_board)
     result = calibrate_views(views, the_board, shared_intrinsics=shared_intrinsics)
@@ -104,12 +107,38 @@ def calibrate_directory(
         "images": {c.name: sum(e.camera == c.name for e in result.image_errors) for c in result.cameras},
         "dropped": result.dropped,
     }
-    output = Path(output)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    write_calibration(output, result.cameras, metadata)
+    partial = output.with_name(f".{output.name}.partial")
+    try:
+        output.parent.mkdir(parents=True, exist_ok=True)
+        write_calibration(partial, result.cameras, metadata)
+        partial.replace(output)
+    except OSError as exc:
+        partial.unlink(missing_ok=True)
+        raise OutputError(f"{output}: cannot write the calibration ({exc.strerror or exc})") from None
     report = Path(report_dir) if report_dir is not None else output.parent
     result.report_files = write_report(result, views, report)
     return result
+
+
+def check_output(output: Path) -> None:
+    """Before calibrating: ``output`` can be written (its folder exists or can be made, and
+    is writable) and takes the place of no file but an earlier calibration (a TOML file)."""
+    if output.is_dir():
+        raise OutputError(f"{output}: is a folder; give -o a file name, e.g. {output / 'calibration.toml'}")
+    if output.exists():
+        from ..session.toml_file import load_toml
+
+        try:
+            load_toml(output)
+        except (OSError, ValueError):
+            raise OutputError(f"{output}: exists and is not a calibration; give -o a new file name") from None
+    folder = output.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir() or not os.access(folder, os.W_OK):
+        raise OutputError(
+            f"{output}: cannot be written in {folder}; give -o a file in a folder you can write to"
+        )
 
 
 def calibrate_views(views: list[View], board: Board, *, shared_intrinsics: bool = False) -> CalibrationResult:

@@ -64,6 +64,8 @@ def cmd_process(args: argparse.Namespace) -> int:
         from ..session.folder import load_session
 
         session = load_session(args.video_dir)
+        if args.json not in (None, "-"):
+            _check_json_path(Path(args.json), _recordings(Path(args.out), session.name))
         summary = process_session(
             session,
             out_dir=args.out,
@@ -95,6 +97,8 @@ def cmd_live(args: argparse.Namespace) -> int:
     if args.rig_dir is None and replay is None:
         args.usage_error("give RIG_DIR, or --replay SESSION_DIR")
     rig, sources = open_rig(args.rig_dir, replay)
+    if args.json not in (None, "-"):
+        _check_json_path(Path(args.json), _recordings(Path(args.out), rig.name))
     foxglove = None if args.foxglove is None else parse_host_port(args.foxglove or DEFAULT_FOXGLOVE)
     viewer_url = viewer_from_choice(args.viewer or [])
     summary = run_live(
@@ -120,14 +124,39 @@ def _rig_dir_after_viewer(args: argparse.Namespace) -> None:
         args.rig_dir, args.viewer = Path(words[-1]), words[:take]
 
 
-def _check_json_path(path: Path) -> None:
-    """Before the run: the JSON summary can be written to ``path`` (its folder exists)."""
+def _check_json_path(path: Path, outputs: tuple[Path, ...] = ()) -> None:
+    """Before the run: the JSON summary can be written to ``path`` (its folder exists and is
+    writable) without taking the place of a file that is not a JSON summary (a video, a
+    calibration, a recording) or of one of the run's ``outputs``."""
     if path.is_dir():
         raise OutputError(f"{path}: is a directory; give --json a file name (or - for stdout)")
     if not path.parent.is_dir():
         raise OutputError(
             f"{path}: folder {path.parent} does not exist; give --json a file in an existing one"
         )
+    if any(path.resolve() == out.resolve() for out in outputs):
+        raise OutputError(f"{path}: is where this run writes a recording; give --json another file name")
+    if path.exists() and not _holds_json(path):
+        raise OutputError(
+            f"{path}: exists and is not a JSON summary; give --json a new file name (or - for stdout)"
+        )
+    if not os.access(path if path.exists() else path.parent, os.W_OK):
+        raise OutputError(f"{path}: cannot be written; give --json a file in a folder you can write to")
+
+
+def _holds_json(path: Path) -> bool:
+    """Whether the file at ``path`` is empty or starts as a JSON object does."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(64).lstrip()
+    except OSError:
+        return False
+    return not head or head.startswith(b"{")
+
+
+def _recordings(out_dir: Path, name: str) -> tuple[Path, ...]:
+    """The files a run named ``name`` writes into ``out_dir``."""
+    return tuple(out_dir / f"{name}{suffix}" for suffix in (".mcap", ".rrd", ".calibration.toml"))
 
 
 def cmd_synth(args: argparse.Namespace) -> int:

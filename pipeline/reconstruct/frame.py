@@ -43,6 +43,9 @@ from .tube_scores import radius_from_silhouettes
 # Fewer occupied voxels than this cannot hold a tube: the frame is "failed"
 # (something was seen, but no curve can come of it).
 MIN_VOXELS = 8
+# A view whose silhouette holds more than this share of the image shows no tube: a thin
+# manipulator covers about 1 % of a view at the rigs' distances, a close-up 10-20 %.
+MAX_SILHOUETTE_SHARE = 0.5
 # Radius used to start the search when neither session.toml nor the silhouettes give one (mm).
 _FALLBACK_RADIUS_MM = 6.0
 
@@ -140,6 +143,17 @@ def reconstruct_from_silhouettes(
                 index=index,
                 status="empty",
                 reason=f"nothing seen by camera {cam.name!r}",
+                timings_s=timings,
+            )
+        share = float(np.count_nonzero(mask)) / mask.size
+        if share > MAX_SILHOUETTE_SHARE:
+            # A view that is mostly silhouette (a dark or covered lens, a threshold on the
+            # wrong side of the scene) has a hull of the whole workspace in it, which takes
+            # minutes to search and holds no tube.
+            return FrameResult.failed(
+                index,
+                f"camera {cam.name!r} sees {100 * share:.0f} % of its image as tube; check its "
+                "picture, and [silhouette] polarity and threshold in session.toml",
                 timings_s=timings,
             )
     points = voxel_centers_mm(model.settings.workspace, carve(model.grid, masks))

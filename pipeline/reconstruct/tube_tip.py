@@ -92,6 +92,8 @@ def refit_tip(
     line = path(u)
     end = path(np.array([lead]))[0]
     end_dir = path(np.array([lead + 0.5]))[0] - path(np.array([lead - 0.5]))[0]
+    if not np.linalg.norm(end_dir) > 0:
+        return pts  # no direction at the end (a curve collapsed to a point): none to read along
     end_dir /= np.linalg.norm(end_dir)
     # Parts of the tube away from the end can lie across the end line in a view
     # (a loop's tip coming back to its stem): that view's reading is skipped.

@@ -19,10 +19,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import PipelineError, SessionError, SettingsError, VideoError
+from ..errors import CalibrationError, PipelineError, SessionError, SettingsError, VideoError
 from ..geometry.camera import Camera
 from .calibration_io import read_calibration
 from .settings import LAST_TIMESTAMP, SessionInfo, Settings, load_settings
+from .toml_file import require_regular_file
 from .video import VIDEO_EXTENSIONS, VideoInfo, probe_video
 
 log = logging.getLogger(__name__)
@@ -73,7 +74,7 @@ def load_session(directory: Path | str) -> Session:
     for name in ("session.toml", "calibration.toml"):
         _check_not_dangling(directory / name)
     settings = load_settings(directory / "session.toml")
-    cameras = read_calibration(directory / "calibration.toml")
+    cameras = _rig_cameras(directory / "calibration.toml")
     videos = _find_videos(directory, [c.name for c in cameras])
     infos = [probe_video(videos[c.name]) for c in cameras]
     for cam, info in zip(cameras, infos, strict=True):
@@ -131,7 +132,7 @@ def load_rig(directory: Path | str) -> Session:
     for name in ("session.toml", "calibration.toml"):
         _check_not_dangling(directory / name)
     settings = load_settings(directory / "session.toml")
-    cameras = read_calibration(directory / "calibration.toml")
+    cameras = _rig_cameras(directory / "calibration.toml")
     names = [c.name for c in cameras]
     for camera, _ in settings.live.sources:
         if camera not in names:
@@ -165,6 +166,18 @@ def _with_start_time(settings: Settings, infos: list[VideoInfo]) -> Settings:
     start = min(stamps)
     log.debug("session start %s: the videos' creation time", start.isoformat())
     return dataclasses.replace(settings, session=dataclasses.replace(settings.session, start_time=start))
+
+
+def _rig_cameras(path: Path) -> list[Camera]:
+    """The cameras of calibration.toml at ``path``: two or more, since a tube's shape is
+    where the views' silhouettes meet (one view leaves its depth unknown)."""
+    cameras = read_calibration(path)
+    if len(cameras) < 2:
+        raise CalibrationError(
+            f"{path}: holds {len(cameras)} camera; a session needs two or more cameras (three "
+            "are better), each with a table here and a video"
+        )
+    return cameras
 
 
 def _find_videos(directory: Path, names: list[str]) -> dict[str, Path]:
@@ -241,6 +254,12 @@ def _read_grey_8bit(path: Path) -> NDArray[np.uint8]:
     A 16-bit image is taken as 8-bit values when none exceeds 255, and scaled from the
     full 16-bit range otherwise.
     """
+    try:
+        require_regular_file(path)
+    except OSError:
+        raise SessionError(
+            f"{path}: is not a regular file; save the image as an 8-bit greyscale PNG"
+        ) from None
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise SessionError(f"{path}: cannot be read as an image; save it as an 8-bit greyscale PNG")
