@@ -218,4 +218,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     report = evaluate_recording(args.recording, args.ground_truth)
     print(report.to_json() if args.json else format_report(report))
+    if not report.complete:
+        print(
+            f"warning: {args.recording} ends before its footer (its run was stopped while writing): "
+            f"the figures are of the {report.frames} frames it holds; process the session again "
+            "for all of them",
+            file=sys.stderr,
+        )
+        return EXIT_FRAMES_FAILED
     return EXIT_OK

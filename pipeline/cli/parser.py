@@ -22,6 +22,18 @@ from .commands import (
 PROG = "pipeline"
 
 
+
+def _jobs(text: str) -> int:
+    """--jobs: a count of workers (1, 2, ...) or, as joblib counts them, -1 for one per
+    core, -2 for all cores but one, and so on; 0 is neither."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value == 0:
+        raise argparse.ArgumentTypeError("0 workers cannot run; give 1 or more, or -1 for one per core")
+    return value
+
 def _frame_range(text: str) -> tuple[int, int | None]:
     """START:STOP -> (START, STOP): frames START <= i < STOP; either may be left out."""
     start, sep, stop = text.partition(":")
@@ -98,7 +110,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     p.add_argument(
         "-j",
         "--jobs",
-        type=int,
+        type=_jobs,
         default=-1,
         help="parallel workers; -1 = one per core (default), -2 = all cores but one",
     )

@@ -81,6 +81,8 @@ class EvaluationReport:
         "" when the recording does not say.
     tube_end : the tube end the recording's fit assumed, and how it was chosen; "" when
         the recording does not say.
+    complete : False where the recording ended before its footer (a run killed while
+        writing): the figures are those of the frames it holds.
     """
 
     label: str
@@ -102,6 +104,7 @@ class EvaluationReport:
     smoothed: EvaluationReport | None = None
     cameras: str = ""
     tube_end: str = ""
+    complete: bool = True
 
     @property
     def frames_off(self) -> int:
@@ -320,6 +323,10 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
         raise EvaluationError(f"{file}: not a readable .npz file ({exc})") from None
     if centerlines.ndim != 3 or centerlines.shape[2] != 3:
         raise EvaluationError(f"{file}: 'centerlines' has shape {centerlines.shape}, expected (F, M, 3)")
+    if not np.isfinite(centerlines).all():
+        raise EvaluationError(
+            f"{file}: 'centerlines' holds non-finite values; render the session again (pipeline synth)"
+        )
     return centerlines, timestamps
 
 
@@ -378,6 +385,7 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
         good_flagged=len(suspect - off - set(report.failed_indices)),
         cameras=rec.cameras,
         tube_end=rec.tube_end,
+        complete=rec.complete,
     )
     if rec.smoothed_centerlines_m is not None:
         smoothed = evaluate_centerlines(

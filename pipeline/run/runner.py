@@ -247,6 +247,8 @@ def _process_session(
         log.warning(
             "--jobs %d is more than the %d cores available; using %d", jobs, available_cores(), n_jobs
         )
+    elif jobs < -available_cores():
+        log.warning("--jobs %d leaves none of the %d cores; using 1", jobs, available_cores())
     target = prepare_outputs(out_dir, session.name, force)
     failed = True
     try:

@@ -274,6 +274,33 @@ def test_cli_evaluate_prints_the_table_and_json(
     assert json.loads(capsys.readouterr().out)["failed_indices"] == [5]
 
 
+def test_a_truncated_recording_is_evaluated_as_far_as_it_goes_and_says_so(
+    partial_run: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from pipeline.cli import EXIT_FRAMES_FAILED, main
+
+    recording, session_dir = partial_run
+    whole = evaluate_recording(recording, session_dir)
+    assert whole.complete
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(recording.read_bytes()[: recording.stat().st_size - 64])  # the footer lost
+    assert main(["evaluate", str(cut), str(session_dir)]) == EXIT_FRAMES_FAILED
+    err = capsys.readouterr().err
+    assert "ends before its footer" in err and "cut.mcap" in err
+    assert not evaluate_recording(cut, session_dir).complete
+
+
+def test_a_ground_truth_with_non_finite_centrelines_is_a_user_error(
+    partial_run: tuple[Path, Path], tmp_path: Path
+) -> None:
+    recording, _ = partial_run
+    truth = np.stack([rod_truth(i) for i in range(RUN_FRAMES)])
+    truth[3, 0, 0] = np.nan
+    np.savez(tmp_path / "nan.npz", centerlines=truth)
+    with pytest.raises(EvaluationError, match="holds non-finite values"):
+        evaluate_recording(recording, tmp_path / "nan.npz")
+
+
 def test_recording_beyond_the_truth_is_a_user_error(partial_run: tuple[Path, Path], tmp_path: Path) -> None:
     recording, _ = partial_run
     np.savez(tmp_path / "short.npz", centerlines=np.stack([rod_truth(0)] * 4))

@@ -691,6 +691,20 @@ def test_jobs_beyond_the_cores_are_capped_with_a_note(
         summary = _run(session, tmp_path / "out", jobs=1000, backend="threading")
     assert summary.frames_ok == 2
     assert f"--jobs 1000 is more than the {cores} cores available; using {cores}" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        summary = _run(session, tmp_path / "out2", jobs=-100, backend="threading")
+    assert summary.frames_ok == 2
+    assert f"--jobs -100 leaves none of the {cores} cores; using 1" in caplog.text
+
+
+def test_no_workers_at_all_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    from pipeline.cli import EXIT_BAD_INPUT, main
+
+    with pytest.raises(SystemExit) as stopped:  # argparse's usage error
+        main(["process", "anywhere", "--jobs", "0"])
+    assert stopped.value.code == EXIT_BAD_INPUT
+    assert "0 workers cannot run" in capsys.readouterr().err
 
 
 # --- a signal at any moment -------------------------------------------------------------------
