@@ -507,3 +507,10 @@ def test_calibrate_checks_its_output_before_calibrating(
     assert ("is a folder" if kind == "folder" else "is not a calibration") in err[0]
     if kind == "video":
         assert target.read_bytes() == b"\x00\x00\x00\x18ftypmp42"
+
+
+def test_a_folder_in_place_of_a_video_is_named(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    video = next(session.glob("cam1.*"))
+    video.unlink()
+    video.mkdir()
+    assert_rejected(session, capsys, video.name, "is not a regular file", "video file")

@@ -22,7 +22,6 @@ from .commands import (
 PROG = "pipeline"
 
 
-
 def _jobs(text: str) -> int:
     """--jobs: a count of workers (1, 2, ...) or, as joblib counts them, -1 for one per
     core, -2 for all cores but one, and so on; 0 is neither."""
@@ -33,6 +32,7 @@ def _jobs(text: str) -> int:
     if value == 0:
         raise argparse.ArgumentTypeError("0 workers cannot run; give 1 or more, or -1 for one per core")
     return value
+
 
 def _frame_range(text: str) -> tuple[int, int | None]:
     """START:STOP -> (START, STOP): frames START <= i < STOP; either may be left out."""

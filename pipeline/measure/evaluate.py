@@ -349,6 +349,8 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
     from ..record.load import load_recording
 
     recording = Path(recording)
+    if recording.is_dir():
+        raise EvaluationError(f"{recording}: is a folder; give the recording's .mcap file in it")
     if not recording.is_file():
         raise EvaluationError(f"recording {recording} does not exist; run `python -m pipeline process` first")
     truth_mm, truth_times = load_ground_truth(ground_truth)

@@ -66,7 +66,9 @@ def _array(source: str, where: str, value: Any, shape: tuple[int, ...]) -> np.nd
     if arr.shape != shape:
         raise CalibrationError(f"{source}: {where} has shape {arr.shape}, expected {shape}")
     if not np.all(np.isfinite(arr)):
-        raise CalibrationError(f"{source}: {where} holds a non-finite number")
+        raise CalibrationError(
+            f"{source}: {where} holds a non-finite number (nan or inf); calibrate the camera again"
+        )
     return arr
 
 
@@ -77,7 +79,9 @@ def _camera(source: str, key: str, table: Any) -> Camera:
         raise CalibrationError(f"{source}: {label} must be a table")
     missing = [k for k in REQUIRED_KEYS if k not in table]
     if missing:
-        raise CalibrationError(f"{source}: {label} is missing key(s) {', '.join(missing)}")
+        raise CalibrationError(
+            f"{source}: {label} is missing key(s) {', '.join(missing)}; docs/input.md shows a camera's table"
+        )
     name = table["name"]
     if not isinstance(name, str) or not name:
         raise CalibrationError(f"{source}: {label} name must be a non-empty string")

@@ -200,6 +200,11 @@ def _find_videos(directory: Path, names: list[str]) -> dict[str, Path]:
         found[path.stem] = path
     for name in names:
         if name not in found:
+            for path in sorted(directory.glob(f"{name}.*")):
+                if path.suffix.lower() in VIDEO_EXTENSIONS:  # there, but a folder, pipe or device
+                    raise SessionError(
+                        f"{path}: is not a regular file; put camera {name!r}'s video file there"
+                    )
             raise SessionError(
                 f"{directory}: camera {name!r} in calibration.toml has no video ({name}.mp4, .avi or .mkv)"
             )
@@ -241,7 +246,7 @@ def _background(directory: Path, cam: Camera) -> NDArray[np.uint8] | None:
     if (image.shape[1], image.shape[0]) != cam.size_px:
         raise SessionError(
             f"{path}: is {image.shape[1]}x{image.shape[0]} but camera {cam.name!r} is "
-            f"{cam.size_px[0]}x{cam.size_px[1]}"
+            f"{cam.size_px[0]}x{cam.size_px[1]}; save the background at the camera's size"
         )
     return np.ascontiguousarray(image, dtype=np.uint8)
 

@@ -290,6 +290,12 @@ def test_a_truncated_recording_is_evaluated_as_far_as_it_goes_and_says_so(
     assert not evaluate_recording(cut, session_dir).complete
 
 
+def test_a_folder_given_as_the_recording_is_named(partial_run: tuple[Path, Path]) -> None:
+    recording, session_dir = partial_run
+    with pytest.raises(EvaluationError, match=r"is a folder; give the recording's \.mcap file"):
+        evaluate_recording(recording.parent, session_dir)
+
+
 def test_a_ground_truth_with_non_finite_centrelines_is_a_user_error(
     partial_run: tuple[Path, Path], tmp_path: Path
 ) -> None:
