@@ -131,6 +131,14 @@ def _reflection(d: dict[str, Any]) -> None:
     d["cam_1"]["rotation"] = [[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
 
 
+def _skewed_matrix(d: dict[str, Any]) -> None:
+    d["cam_1"]["matrix"][0][1] = 5.0
+
+
+def _fisheye(d: dict[str, Any]) -> None:
+    d["cam_1"]["fisheye"] = True  # as anipose writes a fisheye calibration
+
+
 def _text_size(d: dict[str, Any]) -> None:
     d["cam_1"]["size"] = ["320", "240"]
 
@@ -151,6 +159,8 @@ def _duplicate_name(d: dict[str, Any]) -> None:
         (_negative_focal, ("cam1", "matrix", "fx, fy > 0")),
         (_sheared_rotation, ("cam1", "rotation", "not a rotation")),
         (_reflection, ("cam1", "rotation", "not a rotation")),
+        (_skewed_matrix, ("cam1", "skew", "calibrate with zero skew")),
+        (_fisheye, ("cam1", "fisheye", "standard lens model")),
         (_text_size, ("cam1", "size")),
         (_duplicate_name, ("'cam0'", "more than once")),
     ],

@@ -330,6 +330,14 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
     return centerlines, timestamps
 
 
+def _truth_session(ground_truth: Path) -> str:
+    """The session a ground truth belongs to: its folder's name (the session directory given,
+    or the one holding ground_truth.npz); "" for a file of another name."""
+    if ground_truth.is_dir():
+        return ground_truth.resolve().name
+    return ground_truth.resolve().parent.name if ground_truth.name == "ground_truth.npz" else ""
+
+
 def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> EvaluationReport:
     """Evaluate an MCAP recording against a synthetic session's ground truth.
 
@@ -363,6 +371,15 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
         raise EvaluationError(
             f"{recording}: frame {int(outside[0])} is beyond the ground truth's {len(truth_mm)} frames; "
             "is this the ground truth of the same session?"
+        )
+    truth_session = _truth_session(Path(ground_truth))
+    if rec.session and truth_session and rec.session != truth_session:
+        log.warning(
+            "%s is a recording of session %r, the ground truth that of %r: compare a recording "
+            "with its own session's ground truth",
+            recording,
+            rec.session,
+            truth_session,
         )
     truth = truth_mm[indices]
     if truth_times is not None and len(truth_times) == len(truth_mm):

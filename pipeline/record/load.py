@@ -69,6 +69,7 @@ class Recording:
         (the refinement's summary line); "" when the file does not say.
     tube_end : the tube end the fit assumed, "flat" or "round", and how it was chosen
         (the summary's "tube end" line); "" when the file does not say.
+    session : the name of the session recorded (its folder's); "" when the file does not say.
     """
 
     path: Path
@@ -83,6 +84,7 @@ class Recording:
     complete: bool
     cameras: str = ""
     tube_end: str = ""
+    session: str = ""
 
     def __len__(self) -> int:
         return len(self.frame_indices)
@@ -317,4 +319,5 @@ def _assemble(
         complete=complete,
         cameras=metadata.get("cameras_used", ""),
         tube_end=metadata.get("tube_end", ""),
+        session=metadata.get("session", ""),
     )

@@ -93,11 +93,23 @@ def _camera(source: str, key: str, table: Any) -> Camera:
         or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)
     ):
         raise CalibrationError(f"{source}: {where} size must be [width, height] positive integers")
+    if table.get("fisheye") is True:
+        raise CalibrationError(
+            f"{source}: {where} is a fisheye calibration, which this pipeline does not model; "
+            "calibrate the camera with the standard lens model (fisheye = false)"
+        )
     matrix = _array(source, f"{where} matrix", table["matrix"], (3, 3))
     fx, fy = matrix[0, 0], matrix[1, 1]
     if fx <= 0 or fy <= 0 or not np.allclose(matrix[2], [0, 0, 1]) or matrix[1, 0] != 0:
         raise CalibrationError(
             f"{source}: {where} matrix must be [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0"
+        )
+    if abs(matrix[0, 1]) > _MAX_SKEW * fx:
+        # OpenCV's projection (and so every view's here) ignores a skew term: the pixels
+        # would be off by it times y.
+        raise CalibrationError(
+            f"{source}: {where} matrix has a skew term ({matrix[0, 1]:g}) that OpenCV's projection "
+            "ignores; calibrate with zero skew"
         )
     dist = np.asarray(table["distortions"], dtype=object).ravel()
     if len(dist) not in (4, 5, 8, 12, 14):
@@ -113,6 +125,11 @@ def _camera(source: str, key: str, table: Any) -> Camera:
         rotation=rotation,
         translation_mm=translation,
     )
+
+
+# A matrix[0][1] (skew) beyond this fraction of fx is refused: below it, its effect is a
+# thousandth of a pixel per thousand pixels of image height.
+_MAX_SKEW = 1e-6
 
 
 def _rotation(source: str, where: str, value: Any) -> np.ndarray:

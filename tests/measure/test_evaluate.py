@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -288,6 +289,21 @@ def test_a_truncated_recording_is_evaluated_as_far_as_it_goes_and_says_so(
     err = capsys.readouterr().err
     assert "ends before its footer" in err and "cut.mcap" in err
     assert not evaluate_recording(cut, session_dir).complete
+
+
+def test_another_sessions_ground_truth_is_warned_of(
+    partial_run: tuple[Path, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    recording, session_dir = partial_run
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "ground_truth.npz").write_bytes((session_dir / "ground_truth.npz").read_bytes())
+    with caplog.at_level(logging.WARNING):
+        evaluate_recording(recording, session_dir)
+    assert "recording of session" not in caplog.text
+    with caplog.at_level(logging.WARNING):
+        evaluate_recording(recording, other)
+    assert "is a recording of session 'rod', the ground truth that of 'other'" in caplog.text
 
 
 def test_a_folder_given_as_the_recording_is_named(partial_run: tuple[Path, Path]) -> None:
