@@ -1,10 +1,10 @@
 """Seeded random draws of synthetic sessions covering the variety of real robots.
 
 A :class:`Case` holds every option of a session: shape (random or named), tube end,
-radius profile, rig, camera count, image size, distractor, flicker, polarity, radius
-and seed. :func:`draw_cases` draws them so that every option value comes up within a
-few draws (each option cycles through its values in shuffled rounds), and
-:func:`render_case` renders one.
+radius profile (with spacer disks: their spacing, size and thickness), rig, camera count,
+image size, distractor, flicker, polarity, radius and seed. :func:`draw_cases` draws them
+so that every option value comes up within a few draws (each option cycles through its
+values in shuffled rounds), and :func:`render_case` renders one.
 """
 
 from __future__ import annotations
