@@ -524,3 +524,17 @@ def test_a_folder_in_place_of_a_video_is_named(session: Path, capsys: pytest.Cap
     video.unlink()
     video.mkdir()
     assert_rejected(session, capsys, video.name, "is not a regular file", "video file")
+
+
+def test_a_declared_radius_far_from_the_tubes_is_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from pipeline.synth import render_session
+
+    render_session(tmp_path / "s", frames=3, radius_mm=6.0, progress=False, jobs=1)
+    _edit_toml(tmp_path / "s" / "session.toml", lambda d: d["manipulator"].update(radius_mm=60.0))
+    code = main(_process(tmp_path / "s", tmp_path / "out"))
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert "[manipulator] radius_mm = 60 mm, but the silhouettes show a tube of about" in err
+    assert "correct radius_mm in session.toml" in err

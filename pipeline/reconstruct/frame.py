@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from ..carve.hull import carve, voxel_centers_mm
 from ..carve.silhouette import extract_silhouette
-from ..geometry.camera import project_in_views
+from ..geometry.camera import Camera, project_in_views
 from .centerline import fit_centerline
 from .frame_result import FrameResult
 from .model import SessionModel
@@ -46,6 +46,11 @@ MIN_VOXELS = 8
 # A view whose silhouette holds more than this share of the image shows no tube: a thin
 # manipulator covers about 1 % of a view at the rigs' distances, a close-up 10-20 %.
 MAX_SILHOUETTE_SHARE = 0.5
+# session.toml's tube radius and the silhouettes' rough reading of it (area over perimeter)
+# must agree within this factor. On 62 rendered sessions (the draws of docs/accuracy.md, the
+# disk sessions of draws 2-133, the bench's; three frames each, 2026-12-04) they were at
+# most 2.1 times apart (a two-camera r 4.5 tube with 1.45x disks, beside a dark object).
+RADIUS_AGREEMENT = 4.0
 # Radius used to start the search when neither session.toml nor the silhouettes give one (mm).
 _FALLBACK_RADIUS_MM = 6.0
 
@@ -286,6 +291,7 @@ def _curve_and_quality(
             # again as a tracked frame would be; of that, the hull's own fit
             # and the lost track's, the one that leaves least of the
             # silhouettes unexplained.
+            _check_declared_radius(settings.manipulator.radius_mm, cameras, masks, pts)
             _, init = fit_centerline(
                 pts,
                 cameras,
@@ -357,6 +363,25 @@ def _curve_and_quality(
         suspect_reason=reason,
         timings_s=timings,
     )
+
+
+def _check_declared_radius(
+    radius_mm: float | None,
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    points_mm: NDArray[np.float64],
+) -> None:
+    """ValueError where session.toml's ``[manipulator] radius_mm`` is more than
+    ``RADIUS_AGREEMENT`` times off the silhouettes' rough reading of the tube's radius: the
+    fit then looks for the tube's edges in the wrong place and reads none."""
+    if not radius_mm:
+        return
+    seen = radius_from_silhouettes(cameras, masks, points_mm.mean(axis=0))
+    if np.isfinite(seen) and seen > 0 and not 1.0 / RADIUS_AGREEMENT <= radius_mm / seen <= RADIUS_AGREEMENT:
+        raise ValueError(
+            f"[manipulator] radius_mm = {radius_mm:g} mm, but the silhouettes show a tube of about "
+            f"{seen:.1f} mm; correct radius_mm in session.toml, or leave it out to take the silhouettes'"
+        )
 
 
 def _polyfit() -> Callable[..., Any]:
