@@ -538,3 +538,22 @@ def test_a_declared_radius_far_from_the_tubes_is_named(
     assert code == 1, err
     assert "[manipulator] radius_mm = 60 mm, but the silhouettes show a tube of about" in err
     assert "correct radius_mm in session.toml" in err
+
+
+def test_a_video_link_that_leads_back_to_itself_is_named(
+    session: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    video = next(session.glob("cam1.*"))
+    video.unlink()
+    video.symlink_to(video.name)
+    assert_rejected(session, capsys, video.name, "leads back to itself")
+
+
+def test_a_folder_in_place_of_the_runs_lock_is_named(
+    session: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = session.parent / "out"
+    (out / ".session.lock").mkdir(parents=True)
+    code = main(_process(session, out))
+    err = capsys.readouterr().err
+    assert code == EXIT_BAD_INPUT and ".session.lock: is a folder where a run keeps its lock" in err, err

@@ -338,7 +338,7 @@ def _carry_on(
     for _ in range(_CARRY_ON_ROUNDS):
         if worst_misfit(best, cameras, masks) <= MISFIT and not passes_through_itself(best):
             break
-        lost = _unexplained_points(points_mm, best, cameras, masks)
+        lost = _unexplained_points(points_mm, best, cameras, masks, radius_mm)
         # Fewer than half a radius of tube's worth of voxels is no tube.
         if len(lost) < 0.5 * np.pi * radius_mm**3 / voxel_mm**3:
             break
@@ -381,15 +381,21 @@ def _carry_on(
 
 
 def _unexplained_points(
-    points_mm: FloatArray, fit: TubeFit, cameras: Sequence[Camera], masks: Sequence[NDArray[np.bool_]]
+    points_mm: FloatArray,
+    fit: TubeFit,
+    cameras: Sequence[Camera],
+    masks: Sequence[NDArray[np.bool_]],
+    radius_mm: float,
 ) -> FloatArray:
     """(U, 3) hull points that project, in some view, onto silhouette pixels more
-    than a pixel away from the fitted tube's re-projection."""
+    than a pixel away from the fitted tube's re-projection (drawn at ``radius_mm`` where
+    the fit read no radius)."""
+    radius = fit.radius_mm if np.isfinite(fit.radius_mm) else radius_mm
     pts = np.asarray(points_mm, dtype=np.float64)
     lost = np.zeros(len(pts), dtype=bool)
     grow = np.ones((3, 3), np.uint8)
     for cam, mask in zip(cameras, masks, strict=True):
-        tube = cv2.dilate(tube_mask(cam, fit.points_mm, fit.radius_mm).view(np.uint8), grow).view(bool)
+        tube = cv2.dilate(tube_mask(cam, fit.points_mm, radius).view(np.uint8), grow).view(bool)
         free = mask & ~tube
         px = np.round(cam.project(pts)).astype(np.int64)
         h, w = mask.shape

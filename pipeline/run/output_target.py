@@ -60,6 +60,11 @@ class OutputTarget:
 
     def lock(self) -> None:
         """Take the session's lock in the folder, or raise OutputError if another run has it."""
+        if self._lock_path.is_dir():
+            raise OutputError(
+                f"{_display(self._lock_path)}: is a folder where a run keeps its lock; remove it, "
+                "or give this run another --out"
+            )
         while True:
             fd = os.open(self._lock_path, os.O_RDWR | os.O_CREAT, 0o644)
             try:

@@ -410,6 +410,8 @@ def _frame_span(session: Session, frames: tuple[int, int | None] | None) -> tupl
     if frames is None:
         return 0, n
     start, stop = frames
+    if stop is not None and stop > n and start < n:
+        log.warning("--frames %d:%d reaches past the session's %d frames; running to its end", start, stop, n)
     stop = n if stop is None else min(stop, n)
     if not 0 <= start < stop:
         raise SessionError(

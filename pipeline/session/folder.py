@@ -285,12 +285,22 @@ def _read_grey_8bit(path: Path) -> NDArray[np.uint8]:
 
 
 def _check_not_dangling(path: Path) -> None:
-    """A symbolic link to nothing is named as such, not taken for a missing file."""
-    if path.is_symlink() and not path.exists():
+    """A symbolic link to nothing, or into a loop of links, is named as such, not taken for
+    a missing file."""
+    if not path.is_symlink():
+        return
+    try:
+        path.resolve(strict=True)
+    except FileNotFoundError:
         raise SessionError(
             f"{path}: is a symbolic link to {os.readlink(path)}, which does not exist; "
             "fix the link or copy the file in"
-        )
+        ) from None
+    except (RuntimeError, OSError):  # Python 3.11 raises RuntimeError for a loop
+        raise SessionError(
+            f"{path}: is a symbolic link that leads back to itself ({os.readlink(path)}); "
+            "fix the link or copy the file in"
+        ) from None
 
 
 def check_utf8_path(path: Path, what_to_do: str, error: type[PipelineError] = SessionError) -> None:

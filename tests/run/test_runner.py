@@ -13,6 +13,7 @@ import functools
 import io
 import itertools
 import json
+import logging
 import os
 import re
 import subprocess
@@ -314,6 +315,22 @@ def test_frames_outside_the_session_are_refused(short_session: Path, tmp_path: P
             load_session(short_session), out_dir=tmp_path, frames=(12, 20), frame_fn=fixed_rod
         )
     assert list(tmp_path.iterdir()) == []
+
+
+def test_frames_past_the_end_run_to_it_with_a_note(
+    short_session: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    with caplog.at_level(logging.WARNING):
+        summary = runner.process_session(
+            load_session(short_session),
+            out_dir=tmp_path,
+            backend="threading",
+            progress=False,
+            frames=(8, 10**20),
+            frame_fn=fixed_rod,
+        )
+    assert summary.frames_total == 4
+    assert f"--frames 8:{10**20} reaches past the session's 12 frames; running to its end" in caplog.text
 
 
 def test_an_rrd_cut_short_is_not_given_its_final_name(short_session: Path, tmp_path: Path) -> None:
