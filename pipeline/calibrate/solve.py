@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 from ..errors import CalibrationError, OutputError
 from ..geometry.camera import Camera
 from ..session.calibration_io import write_calibration
+from ..session.toml_file import load_toml
 from .boards import Board, load_board
 from .result import CalibrationResult, ImageError
 from .views import WORLD, View, detect_directory
@@ -85,7 +86,7 @@ def calibrate_directory(
     if not calib_dir.is_dir():
         raise CalibrationError(f"{calib_dir}: not a folder; expected CALIB_DIR/<camera>/intrinsics/*.png")
     output = Path(output)
-    check_output(output)
+    _check_output(output)
     the_board = load_board(calib_dir, board=board, square_mm=square_mm, charuco=charuco)
     views = detect_directory(calib_dir, the_board)
     result = calibrate_views(views, the_board, shared_intrinsics=shared_intrinsics)
@@ -120,14 +121,12 @@ def calibrate_directory(
     return result
 
 
-def check_output(output: Path) -> None:
+def _check_output(output: Path) -> None:
     """Before calibrating: ``output`` can be written (its folder exists or can be made, and
     is writable) and takes the place of no file but an earlier calibration (a TOML file)."""
     if output.is_dir():
         raise OutputError(f"{output}: is a folder; give -o a file name, e.g. {output / 'calibration.toml'}")
     if output.exists():
-        from ..session.toml_file import load_toml
-
         try:
             load_toml(output)
         except (OSError, ValueError):

@@ -55,7 +55,9 @@ def cmd_process(args: argparse.Namespace) -> int:
 
     started_at = _process_started_at()
     if args.json not in (None, "-"):
-        _check_json_path(Path(args.json))
+        # A session is named after its folder (pipeline.session.folder.load_session).
+        name = Path(args.video_dir).resolve().name
+        _check_json_path(Path(args.json), _recordings(Path(args.out), name))
     # --scheduler names a Dask scheduler: it implies --backend dask (checked in main).
     backend = args.backend or ("dask" if args.scheduler else "loky")
     # The workers spawn and import while this process loads the session and model.
@@ -64,8 +66,6 @@ def cmd_process(args: argparse.Namespace) -> int:
         from ..session.folder import load_session
 
         session = load_session(args.video_dir)
-        if args.json not in (None, "-"):
-            _check_json_path(Path(args.json), _recordings(Path(args.out), session.name))
         summary = process_session(
             session,
             out_dir=args.out,
@@ -88,8 +88,6 @@ def cmd_live(args: argparse.Namespace) -> int:
     from ..live.sources import open_rig
     from ..live.stream import DEFAULT_FOXGLOVE, parse_host_port, viewer_from_choice
 
-    if args.json not in (None, "-"):
-        _check_json_path(Path(args.json))
     if args.duration is not None and not args.duration > 0:
         args.usage_error(f"--duration must be > 0 seconds, got {args.duration:g}")
     _rig_dir_after_viewer(args)

@@ -25,7 +25,8 @@ TIP_SHAPES = ("flat", "round", "auto")
 # A grid is refused when its per-session tables would not fit comfortably in memory.
 # A run holds more than the tables' estimate (WorkspaceSettings.estimated_bytes): with 2
 # workers at 1 mm voxels (`make bench`, 2026-12-04), 1.39 GB at its peak against 0.42 GB
-# estimated; a 0.38 mm grid, 7.6 GB estimated, took 17 GB.
+# estimated; during a run of a 0.38 mm grid, 7.6 GB estimated, the machine's memory in use
+# peaked at 17 GB.
 MAX_GRID_BYTES = 4 * 1024**3
 # Tube radii a real rig can have. Below 0.1 mm is metres typed for millimetres (every
 # frame then failed in OpenCV or asked for terabytes); above 100 mm no camera of the rig
