@@ -12,6 +12,7 @@ exact calibration is kept as it is.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -28,7 +29,7 @@ from ..geometry.polyline import resample_polyline
 from ..reconstruct.frame import frame_contrasts, reconstruct_with_silhouettes
 from ..reconstruct.frame_task import FrameMap, decode_frames, map_here
 from ..reconstruct.model import SessionModel
-from ..reconstruct.tip_shape import sample_frames
+from ..reconstruct.tip_shape import FrameTip, ReadTips, frame_tip, sample_frames
 from ..session.calibration_io import write_calibration
 from ..session.toml_file import load_toml
 from .adjust import Tube, adjust_cameras, aligned_by_images, resampled_tube
@@ -166,7 +167,7 @@ def sample_tubes(
     Held at the mount, which is known in the given rig's world only, each tube would
     bend near its base by the calibration's error; free, its base is where the views
     see it, which is what holds the refined rig to the mount (:mod:`.mount`)."""
-    return [tube for tube in map_frames(_sample_tube, frames, _base_free(model)) if tube is not None]
+    return [tube for tube, _ in map_frames(_sample, frames, _base_free(model)) if tube is not None]
 
 
 def refitter(
@@ -190,13 +191,18 @@ def _base_free(model: SessionModel) -> SessionModel:
     return dataclasses.replace(model, settings=dataclasses.replace(model.settings, manipulator=manipulator))
 
 
-def _sample_tube(index: int, images: Sequence[NDArray[np.uint8]], model: SessionModel) -> Tube | None:
-    """One frame's tube for :func:`sample_tubes` (``model``: its base free); None without a curve."""
+def _sample(
+    index: int, images: Sequence[NDArray[np.uint8]], model: SessionModel, *, tip: bool = False
+) -> tuple[Tube | None, FrameTip | None]:
+    """One frame's tube for :func:`sample_tubes` (``model``: its base free) and, with
+    ``tip``, its end read for the session's (:func:`pipeline.reconstruct.tip_shape.frame_tip`);
+    None for either without a curve."""
     result, masks = reconstruct_with_silhouettes(index, images, model)
     if result.status != "ok" or result.centerline_mm is None or not np.isfinite(result.radius_mm):
-        return None
+        return None, None
     contrasts = frame_contrasts(images, model)
-    return resampled_tube(result.centerline_mm, result.radii_mm, result.radius_mm, contrasts, masks)
+    tube = resampled_tube(result.centerline_mm, result.radii_mm, result.radius_mm, contrasts, masks)
+    return tube, frame_tip(result, masks, contrasts, model) if tip else None
 
 
 def distinct_poses(tubes: Sequence[Tube], *, apart_mm: float = _POSE_APART_MM) -> int:
@@ -276,26 +282,71 @@ def refined_cameras(
     start: int,
     stop: int,
     map_frames: FrameMap = map_here,
-) -> tuple[tuple[Camera, ...], Refinement | None]:
+) -> tuple[tuple[Camera, ...], Refinement | None, ReadTips | None]:
     """The cameras to reconstruct frames ``[start, stop)`` with, under the settings'
     ``[calibration] refine``, and the refinement's report (None when not asked for, or
     when too few frames show the tube to refine on). ``map_frames`` runs the sample
-    frames' reconstructions."""
+    frames' reconstructions.
+
+    Third, where the settings leave the tube's end to the frames (``[manipulator] tip =
+    "auto"``) and the given cameras are kept: the sample frames' ends, read on the same
+    reconstructions, for :func:`pipeline.reconstruct.tip_shape.with_session_tip` (their
+    bases are free, which moves a fit near its base, not at its end); else None."""
     mode = model.settings.calibration.refine
     if mode is False or model.settings.centerline.method != "fit":
-        return model.cameras, None
+        return model.cameras, None, None
     if len(model.cameras) < 3:
         # Each sample of a tube's sides is read once per view, across it: two views give
         # exactly the two numbers that place it, and nothing is left to tell the cameras by.
         reason = "two views of a tube's sides say nothing about the cameras; refining needs three or more"
-        return model.cameras, Refinement(False, 0, float("nan"), float("nan"), (), reason)
+        return model.cameras, Refinement(False, 0, float("nan"), float("nan"), (), reason), None
     started = time.perf_counter()
     frames = decode_frames(video_paths, sample_frames(start, stop, SAMPLE_FRAMES))
-    tubes = sample_tubes(model, frames, map_frames)
+    tubes, read = _sampled(model, frames, map_frames)
     if len(tubes) < 3:
-        return model.cameras, None
+        return model.cameras, None, read
     cameras, report = refine(model, tubes, mode, refitter(model, frames, map_frames))
-    return cameras, dataclasses.replace(report, seconds=time.perf_counter() - started)
+    report = dataclasses.replace(report, seconds=time.perf_counter() - started)
+    return cameras, report, read if cameras is model.cameras else None
+
+
+def sample_tips(
+    model: SessionModel,
+    video_paths: Sequence[Path],
+    start: int,
+    stop: int,
+    map_frames: FrameMap = map_here,
+) -> ReadTips | None:
+    """The tube ends :func:`refined_cameras` reads where it keeps the given cameras, read
+    the same way without refining: a run that keeps its cameras as given (a live replay)
+    then chooses the end as ``process`` does. None where it reads none (fewer than three
+    cameras, ``[calibration] refine = false``, the end set in session.toml)."""
+    if not _reads_tips(model):
+        return None
+    frames = decode_frames(video_paths, sample_frames(start, stop, SAMPLE_FRAMES))
+    return _sampled(model, frames, map_frames)[1]
+
+
+def _reads_tips(model: SessionModel) -> bool:
+    """Whether :func:`refined_cameras` reconstructs sample frames for ``model`` and reads
+    their ends (the end left to the frames, ``[manipulator] tip = "auto"``)."""
+    settings = model.settings
+    refines = settings.calibration.refine is not False and settings.centerline.method == "fit"
+    return refines and len(model.cameras) >= 3 and settings.manipulator.tip == "auto"
+
+
+def _sampled(
+    model: SessionModel, frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]], map_frames: FrameMap
+) -> tuple[list[Tube], ReadTips | None]:
+    """The tubes of ``frames`` (:func:`sample_tubes`) and, where ``model`` leaves its end to
+    the frames, their ends read on the same reconstructions (else None)."""
+    read_tip = _reads_tips(model)
+    samples = map_frames(functools.partial(_sample, tip=read_tip), frames, _base_free(model))
+    tubes = [tube for tube, _ in samples if tube is not None]
+    if not read_tip:
+        return tubes, None
+    tips = tuple(tip for _, tip in samples if tip is not None)
+    return tubes, ReadTips(tuple(index for index, _ in frames), tips)
 
 
 _SOURCE = "pipeline process: refined from the session's silhouettes"

@@ -170,9 +170,10 @@ def run_live(
 
 def _model(rig: Session, sources: Sequence[Source]) -> tuple[Any, str, str]:
     """The per-session model; a replay chooses its tube end from its videos, as ``process``
-    does. With it, why every frame's tip is in doubt ("" where it is not: see
+    does where it keeps the given cameras. With it, why every frame's tip is in doubt ("" where it is not: see
     :attr:`pipeline.reconstruct.tip_shape.TipChoice.doubt`), and the end assumed and how
     it was chosen (for the recordings' metadata)."""
+    from ..calibrate.refine import sample_tips
     from ..reconstruct.model import build_model
     from ..reconstruct.tip_shape import end_assumed, with_session_tip
 
@@ -188,7 +189,7 @@ def _model(rig: Session, sources: Sequence[Source]) -> tuple[Any, str, str]:
 
         paths = [Path(s.url) for s in sources]
         frames = min(probe_video(p).frame_count for p in paths)
-        model, choice = with_session_tip(model, paths, 0, frames)
+        model, choice = with_session_tip(model, paths, 0, frames, read=sample_tips(model, paths, 0, frames))
         return model, choice.doubt if choice is not None else "", end_assumed(model, choice)
     return model, "", end_assumed(model, None)
 

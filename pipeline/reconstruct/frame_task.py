@@ -35,12 +35,12 @@ Image = NDArray[np.uint8]
 # (frame index, grey images in camera order, model[, the track's last results]) ->
 # (result, silhouettes or None); the last argument only for a tracked process_range.
 FrameFunction = Callable[..., tuple[FrameResult, Sequence[Mask] | None]]
-# A session's sample frames, (index, grey images) each; a function of one of them and the
-# model; and what runs it on each of the frames and returns the results in order: map_here
-# in this process, or a run's workers (pipeline.run.workers.local_frame_map), for which the
-# function must be a module-level one.
-Frames = Sequence[tuple[int, Sequence[Image]]]
-PerFrame = Callable[[int, Sequence[Image], Any], Any]
+# A session's sample frames, (index, data) each: the frame's grey images, or what was read
+# of them; a function of one of them and the model; and what runs it on each of the frames
+# and returns the results in order: map_here in this process, or a run's workers
+# (pipeline.run.workers.local_frame_map), for which the function must be a module-level one.
+Frames = Sequence[tuple[int, Any]]
+PerFrame = Callable[[int, Any, Any], Any]
 FrameMap = Callable[[PerFrame, Frames, Any], list[Any]]
 
 

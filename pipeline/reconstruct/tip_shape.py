@@ -39,6 +39,7 @@ from numpy.typing import NDArray
 from ..geometry.camera import Camera
 from ..geometry.polyline import polyline_arclength
 from .frame import frame_contrasts, reconstruct_with_silhouettes
+from .frame_result import FrameResult
 from .frame_task import FrameMap, decode_frames, map_here
 from .model import SessionModel
 from .side_readings import read_sides
@@ -70,6 +71,10 @@ FloatArray = NDArray[np.float64]
 # two-camera tapered shape, good frames flagged 37 -> 0 and 72 -> 4), turned 2 two-camera
 # choices from wrong to right but still close, made none clear and wrong, left 5 close,
 # and cost 7-22 s a session. Left out: most close calls stay close.
+# Where the cameras' refinement reconstructs its 16 frames and keeps the given cameras, the
+# ends of those frames' fits take the first round's place (ReadTips; their bases are free):
+# on 22 three-camera sessions of `accuracy_table` draws 2, 97, 103, 109 and 115 (2026-12-04)
+# they chose as these ten did, and settled two of the three that these left close.
 SAMPLE_FRAMES = 10
 ROUNDS = 3
 # Where the mean vote lies within this many standard errors of 0, the choice is a close
@@ -244,8 +249,8 @@ class TipChoice:
 
 
 @dataclass(frozen=True)
-class _FrameTip:
-    """A frame's fitted tube and its views, kept for the comparison."""
+class FrameTip:
+    """A frame's fitted tube and its views, kept for the comparison (:func:`frame_tip`)."""
 
     axis_mm: FloatArray
     masks: list[NDArray[np.bool_]]
@@ -260,17 +265,31 @@ def sample_frames(start: int, stop: int, count: int = SAMPLE_FRAMES) -> list[int
     return sorted({int(i) for i in np.linspace(start, stop - 1, n).round()}) if n > 0 else []
 
 
-def sample_rounds(start: int, stop: int, rounds: int = ROUNDS) -> list[list[int]]:
+def sample_rounds(
+    start: int, stop: int, rounds: int = ROUNDS, *, first: Sequence[int] | None = None
+) -> list[list[int]]:
     """``rounds`` lists of frame indices over ``[start, stop)``, none in two: the first
-    ``SAMPLE_FRAMES`` spread evenly, each next one the frames halfway between all those
-    before it (10, 19, 37 frames read in all)."""
+    ``SAMPLE_FRAMES`` spread evenly (or ``first``, where those are read already), each
+    next one twice as many less one, spread evenly, but for those of the rounds before
+    (10, 19, 37 frames read in all)."""
     out: list[list[int]] = []
     count = SAMPLE_FRAMES
-    for _ in range(rounds):
+    for i in range(rounds):
         read = {index for frames in out for index in frames}
-        out.append(sorted(set(sample_frames(start, stop, count)) - read))
+        fresh = sorted(set(sample_frames(start, stop, count)) - read)
+        out.append(list(first) if i == 0 and first is not None else fresh)
         count = 2 * count - 1
     return out
+
+
+@dataclass(frozen=True)
+class ReadTips:
+    """Tube ends read already on some of the session's frames, by reconstructions made
+    for another purpose (the cameras' refinement, :mod:`pipeline.calibrate.refine`):
+    ``frames`` the frames read, ``tips`` those that showed a tip (:func:`frame_tip`)."""
+
+    frames: tuple[int, ...]
+    tips: tuple[FrameTip, ...]
 
 
 def choose_tip(
@@ -278,28 +297,31 @@ def choose_tip(
     frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
     map_frames: FrameMap = map_here,
     more: Sequence[Callable[[], Sequence[tuple[int, Sequence[NDArray[np.uint8]]]]]] = (),
+    known: Sequence[FrameTip] = (),
 ) -> TipChoice:
     """The end ("flat" or "round") that explains the tips of ``frames`` best.
 
     ``frames``: (index, per camera (H, W) uint8 grey image). Each is
     reconstructed from its hull (by ``map_frames``, see
     :data:`pipeline.reconstruct.frame_task.FrameMap`); frames without a curve, or whose
-    tip no view shows to either end's satisfaction, are skipped. ``more``: further
-    rounds of frames, each asked for only where those before it leave the choice a
-    close one; the choice is then made from all the frames read.
+    tip no view shows to either end's satisfaction, are skipped. ``known``: tips read
+    already, which vote with those of ``frames``. ``more``: further rounds of frames,
+    each asked for only where those before it leave the choice a close one; the choice
+    is then made from all the frames read.
     """
-    tips = [tip for tip in map_frames(_frame_tip, frames, model) if tip is not None]
-    choice = _choice(model, tips)
+    tips = list(known) + [tip for tip in map_frames(_frame_tip, frames, model) if tip is not None]
+    choice = _choice(model, tips, map_frames)
     for frames_of_round in more:
         if choice.clear:
             break
         tips += [tip for tip in map_frames(_frame_tip, frames_of_round(), model) if tip is not None]
-        choice = _choice(model, tips)
+        choice = _choice(model, tips, map_frames)
     return choice
 
 
-def _choice(model: SessionModel, tips: Sequence[_FrameTip]) -> TipChoice:
-    """The choice the frames' ``tips`` make (see :func:`choose_tip`)."""
+def _choice(model: SessionModel, tips: Sequence[FrameTip], map_frames: FrameMap = map_here) -> TipChoice:
+    """The choice the frames' ``tips`` make (see :func:`choose_tip`), their evidence
+    weighed by ``map_frames``."""
     if not tips:
         return TipChoice("flat", 0)
     # One radius for the session: the tube's end does not change, and each
@@ -308,23 +330,41 @@ def _choice(model: SessionModel, tips: Sequence[_FrameTip]) -> TipChoice:
     if not readings:
         return TipChoice("flat", 0)
     radius = float(np.median(readings))
-    evidence = [e for e in (frame_evidence(tip, model.cameras, radius) for tip in tips) if e.views]
+    evidence = [e for e in map_frames(_evidence, list(enumerate(tips)), (model.cameras, radius)) if e.views]
     if not evidence:
         return TipChoice("flat", 0, radius_mm=radius)
     return TipChoice.from_votes([e.vote for e in evidence], radius)
 
 
-def _frame_tip(index: int, images: Sequence[NDArray[np.uint8]], model: SessionModel) -> _FrameTip | None:
-    """The frame's fitted tube and its end's radius read from its pixels; None without a curve.
+def _evidence(_: int, tip: FrameTip, rig: tuple[Sequence[Camera], float]) -> FrameEvidence:
+    """:func:`frame_evidence` of one tip, for a :data:`FrameMap` (``rig``: the cameras and
+    the end's radius, mm)."""
+    cameras, radius_mm = rig
+    return frame_evidence(tip, cameras, radius_mm)
+
+
+def _frame_tip(index: int, images: Sequence[NDArray[np.uint8]], model: SessionModel) -> FrameTip | None:
+    """The frame reconstructed from its hull and its end read (:func:`frame_tip`); None without a curve."""
+    result, masks = reconstruct_with_silhouettes(index, images, model)
+    return frame_tip(result, masks, frame_contrasts(images, model), model)
+
+
+def frame_tip(
+    result: FrameResult,
+    masks: Sequence[NDArray[np.bool_]],
+    contrasts: Sequence[NDArray[np.float32]],
+    model: SessionModel,
+) -> FrameTip | None:
+    """A reconstructed frame's fitted tube and its end's radius read from its pixels
+    (``masks`` and ``contrasts``: per camera (H, W) silhouette and foreground contrast);
+    None without a curve.
 
     The band read is placed by the radius the side readings give the end (their lower
     quartile there: the tube's own), not the fit's radius along the tube, which spacer
     disks seen at an angle widen (a helix's to 1.28 times its 7.5 mm tube): a band as much
     longer reaches into the last disk's pixels."""
-    result, masks = reconstruct_with_silhouettes(index, images, model)
     if result.status != "ok" or result.centerline_mm is None or not np.isfinite(result.radius_mm):
         return None
-    contrasts = frame_contrasts(images, model)
     coverages = pixel_coverages(contrasts, masks)
     radii = result.radii_mm if result.radii_mm is not None else result.radius_mm
     sides = read_sides(result.centerline_mm, model.cameras, contrasts, radii, FIT_SPACING_MM)
@@ -332,7 +372,7 @@ def _frame_tip(index: int, images: Sequence[NDArray[np.uint8]], model: SessionMo
     readings = end_radius_readings(
         result.centerline_mm, model.cameras, coverages, band_radius_mm, radii_mm=result.radii_mm
     )
-    return _FrameTip(result.centerline_mm, masks, contrasts, coverages, tuple(readings))
+    return FrameTip(result.centerline_mm, list(masks), list(contrasts), coverages, tuple(readings))
 
 
 def end_radius_readings(
@@ -381,7 +421,7 @@ def end_radius_readings(
     return readings
 
 
-def frame_evidence(tip: _FrameTip, cameras: Sequence[Camera], radius_mm: float) -> FrameEvidence:
+def frame_evidence(tip: FrameTip, cameras: Sequence[Camera], radius_mm: float) -> FrameEvidence:
     """Each end's mismatch with one frame's pixels around its tip, the tip placed
     under each by :func:`pipeline.reconstruct.tip_bend.bend_tip_to_pixels` with the end's
     radius ``radius_mm`` and drawn at the radius near it that matches best
@@ -515,19 +555,33 @@ def end_assumed(model: SessionModel, choice: TipChoice | None) -> str:
 
 
 def with_session_tip(
-    model: SessionModel, video_paths: Sequence[Path], start: int, stop: int, map_frames: FrameMap = map_here
+    model: SessionModel,
+    video_paths: Sequence[Path],
+    start: int,
+    stop: int,
+    map_frames: FrameMap = map_here,
+    read: ReadTips | None = None,
 ) -> tuple[SessionModel, TipChoice | None]:
     """``model`` with its tube end settled: the settings' "flat" or "round" as they are;
     for "auto", the end :func:`choose_tip` finds on frames spread over ``[start, stop)``
-    of the videos (and that choice, for the summary)."""
+    of the videos (and that choice, for the summary). ``read``: tips read already with
+    ``model``'s cameras, which take the first round's place: the later rounds, where
+    asked for, read frames between them."""
     settings = model.settings
     if settings.manipulator.tip != "auto" or settings.centerline.method != "fit":
         return model, None
-    rounds = sample_rounds(start, stop)
+    known: Sequence[FrameTip] = ()
+    if read is None:
+        rounds = sample_rounds(start, stop)
+        first = decode_frames(video_paths, rounds[0])
+    else:
+        rounds = sample_rounds(start, stop, first=read.frames)
+        first, known = [], read.tips
     choice = choose_tip(
         model,
-        decode_frames(video_paths, rounds[0]),
+        first,
         map_frames,
         more=[functools.partial(decode_frames, video_paths, frames) for frames in rounds[1:]],
+        known=known,
     )
     return dataclasses.replace(model, tip=choice.tip), choice

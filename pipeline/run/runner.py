@@ -311,13 +311,15 @@ def _run_with(
 
                 model: Any = build_model(session)
                 # The sample frames that settle the cameras and the tube's end are
-                # reconstructed on the local workers, which would wait for them otherwise.
+                # reconstructed on the local workers, which would wait for them otherwise;
+                # where the given cameras are kept, the end is read on the cameras' frames.
                 frame_map = local_frame_map(n_jobs) if backend == "loky" else map_here
-                cameras, refinement = refined_cameras(model, session.video_paths, start, stop, frame_map)
+                paths = session.video_paths
+                cameras, refinement, tips = refined_cameras(model, paths, start, stop, frame_map)
                 if cameras is not session.cameras:
                     session = dataclasses.replace(session, cameras=cameras)
                     model = build_model(session)
-                model, choice = with_session_tip(model, session.video_paths, start, stop, frame_map)
+                model, choice = with_session_tip(model, paths, start, stop, frame_map, tips)
                 tip = end_assumed(model, choice)
                 doubt = choice.doubt if choice is not None else ""
             else:

@@ -253,10 +253,42 @@ def test_two_cameras_are_kept_and_the_summary_says_why(tmp_path: Path) -> None:
     )
     session = load_session(tmp_path / "two")
     model = build_model(session)
-    cameras, report = refined_cameras(model, session.video_paths, 0, 4)
+    cameras, report, _ = refined_cameras(model, session.video_paths, 0, 4)
     assert cameras is model.cameras
     assert report is not None and not report.applied
     assert "three or more" in report.describe()
+
+
+def test_the_tube_end_is_read_on_the_frames_of_cameras_kept(sessions: dict[float, Path]) -> None:
+    from pipeline.calibrate.refine import SAMPLE_FRAMES, refined_cameras, sample_tips
+    from pipeline.reconstruct.tip_shape import with_session_tip
+
+    session = load_session(sessions[0.0])
+    model = build_model(session)
+    assert model.settings.manipulator.tip == "auto"
+    cameras, report, read = refined_cameras(model, session.video_paths, 0, FRAMES)
+    assert cameras is model.cameras and report is not None and not report.applied
+    assert read is not None and list(read.frames) == sample_frames(0, FRAMES, SAMPLE_FRAMES)
+    assert 3 <= len(read.tips) <= len(read.frames)
+    # Read alone (a live replay keeps its cameras as given), the same frames and ends.
+    alone = sample_tips(model, session.video_paths, 0, FRAMES)
+    assert alone is not None and alone.frames == read.frames
+    for a, b in zip(alone.tips, read.tips, strict=True):
+        np.testing.assert_array_equal(a.axis_mm, b.axis_mm)
+    unrefined = replace(model.settings, calibration=replace(model.settings.calibration, refine=False))
+    assert sample_tips(replace(model, settings=unrefined), session.video_paths, 0, FRAMES) is None
+    settled, choice = with_session_tip(model, session.video_paths, 0, FRAMES, read=read)
+    # The synthetic tube's end is flat; the frames read vote, and none is read again.
+    assert choice is not None and settled.tip == choice.tip == "flat"
+    assert choice.frames <= len(read.tips) or not choice.clear
+    # Cameras refined see the frames otherwise: the end is left to be read with them.
+    moved = load_session(sessions[0.15])
+    off = build_model(moved)
+    calibration = replace(off.settings.calibration, refine=True)
+    forced = replace(off, settings=replace(off.settings, calibration=calibration))
+    cameras, report, read = refined_cameras(forced, moved.video_paths, 0, FRAMES)
+    assert report is not None and report.applied and cameras is not forced.cameras
+    assert read is None
 
 
 def test_the_sample_frames_on_two_workers_give_the_same_tubes(sessions: dict[float, Path]) -> None:

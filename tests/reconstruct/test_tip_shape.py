@@ -73,6 +73,16 @@ def test_each_round_of_frames_lies_halfway_between_those_before() -> None:
     assert sorted(i for frames in sample_rounds(10, 22) for i in frames) == list(range(10, 22))
 
 
+def test_frames_read_already_take_the_first_rounds_place() -> None:
+    read = sample_frames(0, 900, 16)
+    rounds = sample_rounds(0, 900, first=read)
+    assert rounds[0] == read
+    # Each later round: the frames its count spreads evenly, but for those read before.
+    assert rounds[1] == sorted(set(sample_frames(0, 900, 19)) - set(read))
+    assert rounds[2] == sorted(set(sample_frames(0, 900, 37)) - set(read) - set(rounds[1]))
+    assert rounds[1] and rounds[2]
+
+
 def test_the_recordings_say_how_the_end_was_come_to(sessions: dict[str, Path]) -> None:
     model = build_model(load_session(sessions["round"]))
     manipulator, centerline = model.settings.manipulator, model.settings.centerline
@@ -98,6 +108,20 @@ def test_the_end_that_explains_the_tips_is_chosen(sessions: dict[str, Path], tip
     choice = choose_tip(model, decode_frames(session.video_paths, sample_frames(0, FRAMES)))
     assert choice.tip == tip and choice.frames >= 4
     assert tip in choice.describe()
+
+
+def test_the_choice_on_two_workers_is_the_one_made_here(sessions: dict[str, Path]) -> None:
+    from pipeline.run.workers import local_frame_map, release_local_workers
+
+    session = load_session(sessions["round"])
+    model = build_model(session)
+    frames = decode_frames(session.video_paths, sample_frames(0, FRAMES))
+    here = choose_tip(model, frames)
+    try:
+        there = choose_tip(model, frames, local_frame_map(2))
+    finally:
+        release_local_workers()
+    assert there == here and here.frames >= 4
 
 
 def test_more_frames_are_read_only_where_the_first_leave_a_close_call(sessions: dict[str, Path]) -> None:
