@@ -268,6 +268,18 @@ def test_workspace_not_seen_by_a_camera(session: Path, capsys: pytest.CaptureFix
     assert_rejected(session, capsys, "does not see the workspace", "camera 'cam", "session.toml")
 
 
+def test_a_workspace_that_misses_the_tube_is_named(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Every camera sees the box and the rod, but the rod (x = 128 mm) stands beside the box.
+    (session / "session.toml").write_text(
+        "[workspace]\norigin_mm = [0.0, 0.0, 0.0]\nsize_mm = [100.0, 256.0, 256.0]\n"
+        '[manipulator]\nbase_mm = "auto"\n'
+    )
+    assert main(_process(session, session.parent / "out")) == 1
+    err = capsys.readouterr().err
+    assert "no tube in any frame" in err and "meet nowhere in the workspace box" in err, err
+    assert "origin_mm and size_mm" in err and "polarity" not in err
+
+
 def test_frames_outside_the_session(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = session.parent / "out"
     assert main([*_process(session, out), "--frames", "10:20"]) == EXIT_BAD_INPUT

@@ -21,7 +21,7 @@ from ..carve.hull import carve, voxel_centers_mm
 from ..carve.silhouette import extract_silhouette
 from ..geometry.camera import Camera, project_in_views
 from .centerline import fit_centerline
-from .frame_result import FrameResult
+from .frame_result import NO_SHARED_VOXEL, FrameResult
 from .model import SessionModel
 from .model import build_model as build_model  # re-exported: build the model, then reconstruct frames
 from .ordering import infer_base
@@ -167,7 +167,7 @@ def reconstruct_from_silhouettes(
         return FrameResult(
             index=index,
             status="empty",
-            reason="the silhouettes share no voxel of the workspace",
+            reason=NO_SHARED_VOXEL,
             timings_s=timings,
         )
     if len(points) < MIN_VOXELS:

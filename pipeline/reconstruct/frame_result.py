@@ -14,6 +14,11 @@ from numpy.typing import NDArray
 STATUSES = ("ok", "empty", "failed")
 
 
+# The reason of an "empty" frame whose every view saw something: the silhouettes' cones do
+# not meet inside the workspace box (a box that misses the tube, another rig's calibration).
+NO_SHARED_VOXEL = "the silhouettes share no voxel of the workspace"
+
+
 @dataclass(frozen=True, eq=False)
 class FrameResult:
     """One frame's reconstruction.

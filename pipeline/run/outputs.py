@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import OutputError
+from ..reconstruct.frame_result import NO_SHARED_VOXEL
 from ..reconstruct.frame_task import FrameOutput
 from ..reconstruct.quality import SUSPECT_SMOOTHED_MM, is_doubtful, off_smoothed, reaches_walls
 from ..session.folder import Session
@@ -165,6 +166,7 @@ class Writers:
         # the finish: on disk, so that a long live run's memory stays flat.
         self.log = FrameLog(target.out_dir)
         self.counts = {"ok": 0, "empty": 0}
+        self.empty_apart = 0  # empty frames whose every view saw something (NO_SHARED_VOXEL)
         self.failed: list[tuple[int, str]] = []
         self.doubtful: list[int] = []
         self.suspect: list[tuple[int, str]] = []
@@ -244,6 +246,8 @@ class Writers:
             self.failed.append((result.index, result.reason))
         else:
             self.counts[result.status] = self.counts.get(result.status, 0) + 1
+        if result.status == "empty" and result.reason == NO_SHARED_VOXEL:
+            self.empty_apart += 1
         if result.status == "ok" and is_doubtful(result.iou):
             self.doubtful.append(result.index)
         if result.status == "ok" and result.suspect:
@@ -373,6 +377,7 @@ class Writers:
             frames_ok=self.counts.get("ok", 0),
             frames_empty=self.counts.get("empty", 0),
             frames_failed=list(self.failed),
+            frames_empty_apart=self.empty_apart,
             wall_s=wall_s,
             fps=n / wall_s if wall_s > 0 else 0.0,
             outputs=[(p, p.stat().st_size) for p in (self.mcap_path, self.rrd_path)],

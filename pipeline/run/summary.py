@@ -44,6 +44,7 @@ class RunSummary:
     tip: str = ""
     cameras: str = ""
     camera_warnings: list[str] = field(default_factory=list)
+    frames_empty_apart: int = 0
 
     @property
     def frames_total(self) -> int:
@@ -95,7 +96,13 @@ class RunSummary:
                 "where the tube may go on out of sight and its curve end short: enlarge [workspace] "
                 "size_mm, or move origin_mm"
             )
-        if self.frames_ok == 0 and self.frames_empty:
+        if self.frames_ok == 0 and self.frames_empty == self.frames_empty_apart > 0:
+            out.append(
+                "  no tube in any frame: every camera sees a silhouette, but they meet nowhere in "
+                "the workspace box: check that [workspace] origin_mm and size_mm in session.toml "
+                "hold the tube, and that calibration.toml is this rig's"
+            )
+        elif self.frames_ok == 0 and self.frames_empty:
             out.append(
                 "  no tube in any frame: check [silhouette] polarity (dark or bright tube) and "
                 "threshold in session.toml"
