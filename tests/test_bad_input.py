@@ -210,6 +210,16 @@ def test_random_bytes_video(session: Path, capsys: pytest.CaptureFixture[str]) -
     assert_rejected(session, capsys, "cam0.mp4", "cannot be opened as a video")
 
 
+@pytest.mark.parametrize("kind", ["png", "jpg"])
+def test_a_still_image_as_a_video(session: Path, capsys: pytest.CaptureFixture[str], kind: str) -> None:
+    # FFmpeg opens it as a one-frame video at 25 fps: it is named for what it is.
+    ok, encoded = cv2.imencode(f".{kind}", rod_image(rig_cameras()[1]))
+    assert ok
+    (session / "cam1.avi").write_bytes(encoded.tobytes())
+    line = assert_rejected(session, capsys, "cam1.avi", "is a still", "image, not a video")
+    assert "fps" not in line
+
+
 def test_zero_byte_video(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (session / "cam2.avi").write_bytes(b"")
     assert_rejected(session, capsys, "cam2.avi", "cannot be opened as a video")

@@ -100,6 +100,9 @@ def probe_video(path: Path) -> VideoInfo:
                 f"{path}: cannot be opened as a video (empty, unreadable, copied half-way "
                 "or not a video); re-copy or re-export it"
             )
+        still = _still_image_kind(path)
+        if still:
+            raise VideoError(f"{path}: is a still {still} image, not a video; put the camera's video here")
         width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
         height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
         fps = float(cap.get(cv2.CAP_PROP_FPS))
@@ -120,6 +123,18 @@ def probe_video(path: Path) -> VideoInfo:
         frame_count=max(count, 1),
         creation_time=creation_time(path),
     )
+
+
+def _still_image_kind(path: Path) -> str:
+    """The kind of still image ("PNG", "JPEG", ...) that ``path`` holds under a video's name,
+    which FFmpeg opens as a one-frame "video" at 25 fps; "" for anything else."""
+    try:
+        with av.open(str(path)) as container:
+            name = container.format.name
+    except (av.error.FFmpegError, OSError):
+        return ""
+    # FFmpeg's demuxers of single images are all named "<kind>_pipe" (png_pipe, jpeg_pipe, ...).
+    return name.removesuffix("_pipe").upper() if name.endswith("_pipe") else ""
 
 
 def creation_time(path: Path) -> datetime | None:
