@@ -233,19 +233,19 @@ class TipChoice:
     def describe(self) -> str:
         if not self.frames:
             return f"{self.tip} (no frame showed a tip to choose by; set [manipulator] tip in session.toml)"
-        votes = (
-            f"mean vote {self.score:+.2f} +- {self.score_error:.2f} of +-1, "
-            f"end radius {self.radius_mm:.1f} mm"
-        )
+        if self.frames == 1:
+            tally = f"chosen from 1 frame, its vote {self.score:+.2f} of +-1"
+        else:
+            tally = (
+                f"chosen from {self.frames} frames, {self.favouring} of them for it, "
+                f"mean vote {self.score:+.2f} +- {self.score_error:.2f} of +-1"
+            )
         setting = (
             "[manipulator] tip in session.toml fixes it"
             if self.clear
             else "a close call: set [manipulator] tip in session.toml if you know the end"
         )
-        return (
-            f"{self.tip} (chosen from {self.frames} frames, {self.favouring} of them for it, "
-            f"{votes}; {setting})"
-        )
+        return f"{self.tip} ({tally}, end radius {self.radius_mm:.1f} mm; {setting})"
 
 
 @dataclass(frozen=True)

@@ -179,8 +179,10 @@ def test_the_mean_vote_chooses_and_a_close_call_is_said(seed: int) -> None:
             assert ("a close call" in choice.describe()) == (offset < CLEAR_T)
             # A close call puts every frame's tip in doubt (its reason, written with each frame).
             assert choice.doubt == ("" if offset > CLEAR_T else TIP_DOUBT)
-    # One vote is never clear, however strong; no vote is no frame.
-    assert not TipChoice.from_votes([0.9], 4.0).clear
+    # One vote is never clear, however strong, and has no spread to print; no vote is no frame.
+    one = TipChoice.from_votes([0.9], 4.0)
+    assert not one.clear
+    assert "chosen from 1 frame, its vote +0.90 of +-1" in one.describe() and "inf" not in one.describe()
     assert TipChoice.from_votes([], 4.0).frames == 0
     assert TipChoice.from_votes([], 4.0).doubt == TIP_DOUBT
 
