@@ -170,9 +170,9 @@ def run_live(
 
 def _model(rig: Session, sources: Sequence[Source]) -> tuple[Any, str, str]:
     """The per-session model; a replay chooses its tube end from its videos, as ``process``
-    does where it keeps the given cameras. With it, why every frame's tip is in doubt ("" where it is not: see
-    :attr:`pipeline.reconstruct.tip_shape.TipChoice.doubt`), and the end assumed and how
-    it was chosen (for the recordings' metadata)."""
+    does where it keeps the given cameras. With it, why every frame's tip is in doubt (""
+    where it is not: see :attr:`pipeline.reconstruct.tip_shape.TipChoice.doubt`), and the
+    end assumed and how it was chosen (for the recordings' metadata)."""
     from ..calibrate.refine import sample_tips
     from ..reconstruct.model import build_model
     from ..reconstruct.tip_shape import end_assumed, with_session_tip
