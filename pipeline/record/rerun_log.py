@@ -187,6 +187,11 @@ class RerunRecorder:
         self._sent_at = -math.inf
         self._statics_written = False
 
+    @property
+    def frames_waiting(self) -> int:
+        """How many written frames' plot rows wait for the next batch to be sent."""
+        return len(self._series.frames)
+
     def write_statics(self) -> None:
         """The world's axes, the workspace box and the cameras (all static)."""
         rec = self._rec

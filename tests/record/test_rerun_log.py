@@ -395,7 +395,7 @@ def test_plots_go_out_in_batches_and_a_frame_flagged_after_its_batch_reads_back_
     recorder = RerunRecorder(stream, cams, Workspace())
     for i in range(n_frames):
         recorder.write_frame(_result(i), T0_NS + i * DT_NS, jpegs=None, silhouettes_png=None)
-        assert len(recorder._series.frames) == (i + 1) % 100  # sent with each batch of rows
+        assert recorder.frames_waiting == (i + 1) % 100  # sent with each batch of rows
     recorder.mark_suspect(late, T0_NS + late * DT_NS)
     recorder.finish()
     stream.flush()
