@@ -25,7 +25,7 @@ from .frame_result import NO_SHARED_VOXEL, FrameResult
 from .model import SessionModel
 from .model import build_model as build_model  # re-exported: build the model, then reconstruct frames
 from .ordering import infer_base
-from .quality import suspect_reason, tube_figures
+from .quality import suspect_reason, tube_figures, tube_masks
 from .spline import smooth_curve
 from .tracking import (
     TrackedFit,
@@ -53,6 +53,9 @@ MAX_SILHOUETTE_SHARE = 0.5
 RADIUS_AGREEMENT = 4.0
 # Radius used to start the search when neither session.toml nor the silhouettes give one (mm).
 _FALLBACK_RADIUS_MM = 6.0
+# A tracked frame keeps the silhouette's blobs that its predicted tube, drawn this many
+# times as wide, reaches (near_the_track): two radii beyond the tube's edge on each side.
+TRACK_REACH_RADII = 3.0
 
 
 def frame_silhouettes(images: Sequence[NDArray[np.uint8]], model: SessionModel) -> list[NDArray[np.bool_]]:
@@ -229,6 +232,40 @@ def hull_supported(
     return out
 
 
+def near_the_track(
+    masks: Sequence[NDArray[np.bool_]],
+    cameras: Sequence[Camera],
+    predicted_mm: NDArray[np.float64],
+    radius_mm: float,
+) -> list[NDArray[np.bool_]]:
+    """Per camera, the (H, W) silhouette without the blobs that the track's predicted tube
+    (``predicted_mm``, (N, 3) mm, of radius ``radius_mm``), drawn ``TRACK_REACH_RADII``
+    times as wide, does not reach; a view whose blobs it reaches none of is kept whole.
+
+    With two views, a dark object in one view's background carves voxels where its
+    cone crosses the other view's silhouette of the tube, so :func:`hull_supported`
+    keeps it, and the tube drawn leaves it unexplained in every frame: the track was
+    lost at each. The tube moves little from one frame to the next, so its silhouette
+    lies along the prediction, and a blob away from it is not the tube's.
+    """
+    if not np.isfinite(radius_mm) or radius_mm <= 0:
+        return list(masks)
+    out: list[NDArray[np.bool_]] = []
+    wide: list[NDArray[np.bool_]] | None = None
+    for view, mask in enumerate(masks):
+        count, labels = cv2.connectedComponents(mask.view(np.uint8), connectivity=8)
+        if count <= 2:  # background and one blob: nothing to drop
+            out.append(mask)
+            continue
+        if wide is None:
+            wide = tube_masks(cameras, predicted_mm, TRACK_REACH_RADII * radius_mm)
+        hit = np.zeros(count, dtype=bool)
+        hit[labels[wide[view]]] = True
+        hit[0] = False  # the background
+        out.append(hit[labels] if hit.any() else mask)
+    return out
+
+
 def _curve_and_quality(
     index: int,
     images: Sequence[NDArray[np.uint8]],
@@ -263,6 +300,8 @@ def _curve_and_quality(
     else:
         contrasts = frame_contrasts(images, model)
         predicted = predict_axis(previous, index)
+        if predicted is not None:
+            masks = near_the_track(masks, cameras, predicted, previous[-1].radius_mm)
 
         def track(
             start_mm: NDArray[np.float64], radius_mm: float, radii_mm: NDArray[np.float64] | None

@@ -19,6 +19,7 @@ from pipeline.reconstruct.frame import (
     build_model,
     frame_silhouettes,
     hull_supported,
+    near_the_track,
     reconstruct_frame,
     reconstruct_from_silhouettes,
 )
@@ -171,6 +172,21 @@ def test_a_blob_no_other_view_confirms_is_not_the_tube(model: SessionModel, tube
     assert not kept[0][:21, :21].any()  # the object is dropped
     assert (kept[0] == (seen & ~_disc(seen.shape, (12, 12), 8))).all()  # everything else kept
     assert all((k == m).all() for k, m in zip(kept[1:], masks[1:], strict=True))
+
+
+def test_a_tracked_frame_keeps_the_blobs_along_its_prediction(model: SessionModel, tube: tuple) -> None:
+    curve, images = tube
+    masks = frame_silhouettes(images, model)
+    # A dark object in camera 0's corner, far from the tube: as two views' hull may keep it.
+    seen = masks[0] | _disc(masks[0].shape, (12, 12), 8)
+    kept = near_the_track([seen, *masks[1:]], model.cameras, curve, RADIUS)
+    assert (kept[0] == masks[0]).all()  # the object dropped, the tube's blob whole
+    assert all((k == m).all() for k, m in zip(kept[1:], masks[1:], strict=True))
+    # A prediction that reaches no blob of a view (a tube far from it) keeps the view
+    # whole; so does a prediction without a radius.
+    away = curve + np.array([0.0, 0.0, 400.0])
+    assert (near_the_track([seen], model.cameras[:1], away, RADIUS)[0] == seen).all()
+    assert (near_the_track([seen], model.cameras[:1], curve, float("nan"))[0] == seen).all()
 
 
 def _disc(shape: tuple[int, ...], centre: tuple[int, int], radius: int) -> np.ndarray:
