@@ -244,9 +244,9 @@ def near_the_track(
 
     With two views, a dark object in one view's background carves voxels where its
     cone crosses the other view's silhouette of the tube, so :func:`hull_supported`
-    keeps it, and the tube drawn leaves it unexplained in every frame: the track was
-    lost at each. The tube moves little from one frame to the next, so its silhouette
-    lies along the prediction, and a blob away from it is not the tube's.
+    keeps it; judged on it, the tube leaves it unexplained in every frame, and the track
+    would be called lost at each. The tube moves little from one frame to the next, so
+    its silhouette lies along the prediction, and a blob away from it is not the tube's.
     """
     if not np.isfinite(radius_mm) or radius_mm <= 0:
         return list(masks)
