@@ -54,7 +54,7 @@ RADIUS_AGREEMENT = 4.0
 # Radius used to start the search when neither session.toml nor the silhouettes give one (mm).
 _FALLBACK_RADIUS_MM = 6.0
 # A tracked frame keeps the silhouette's blobs that its predicted tube, drawn this many
-# times as wide, reaches (near_the_track): two radii beyond the tube's edge on each side.
+# times as wide, reaches (tube_blobs): two radii beyond the tube's edge on each side.
 TRACK_REACH_RADII = 3.0
 
 
@@ -180,10 +180,15 @@ def reconstruct_from_silhouettes(
             points_mm=points,
             timings_s=timings,
         )
-    # The fit and the quality figures see only what the hull supports (see hull_supported).
-    masks = hull_supported(masks, points, model)
+    # The fit and the quality figures see only the tube's blobs (see tube_blobs): those the
+    # hull supports, and where a track predicts this frame's tube, those along it.
+    predicted = predict_axis(previous, index) if model.settings.centerline.method == "fit" else None
+    radius = previous[-1].radius_mm if predicted is not None else float("nan")
+    masks = tube_blobs(masks, points, model, predicted, radius)
     try:
-        return _curve_and_quality(index, images, masks, points, model, timings, previous, restart_here)
+        return _curve_and_quality(
+            index, images, masks, points, model, timings, previous, predicted, restart_here
+        )
     except (ValueError, ArithmeticError, np.linalg.LinAlgError, cv2.error) as exc:
         # Numerical trouble with this frame's data (OpenCV's included: a drawing
         # asked for an impossible disc) is a failed frame, not a crash; on one line.
@@ -202,22 +207,37 @@ def hull_but_one_view(model: SessionModel, masks: Sequence[NDArray[np.bool_]]) -
     return voxel_centers_mm(model.settings.workspace, np.unique(np.concatenate(indices))).astype(np.float64)
 
 
-def hull_supported(
-    masks: Sequence[NDArray[np.bool_]], points_mm: NDArray[np.floating], model: SessionModel
+def tube_blobs(
+    masks: Sequence[NDArray[np.bool_]],
+    points_mm: NDArray[np.floating],
+    model: SessionModel,
+    predicted_mm: NDArray[np.float64] | None = None,
+    radius_mm: float = float("nan"),
 ) -> list[NDArray[np.bool_]]:
-    """Per camera, the (H, W) silhouette without the blobs no other view confirms.
+    """Per camera, the (H, W) silhouette without the blobs that are not the tube's.
 
-    A dark object in one view's background is silhouette there but carves no
-    voxel: the other views do not see it where it would have to be. The
-    tube's own silhouette is one blob (or a few, where it leaves the image)
-    that the occupied voxels ``points_mm`` ((P, 3), mm) project into; the
-    blobs none of them projects into are dropped. Whole blobs are kept, not
-    only the pixels near a voxel: a tube thinner than the voxels (a tapered
-    tip) carves few of them, but its silhouette is joined to the rest.
+    The hull's: a dark object in one view's background is silhouette there but carves
+    no voxel: the other views do not see it where it would have to be. The tube's own
+    silhouette is one blob (or a few, where it leaves the image) that the occupied
+    voxels ``points_mm`` ((P, 3), mm) project into; the blobs none of them projects into
+    are dropped. Whole blobs are kept, not only the pixels near a voxel: a tube thinner
+    than the voxels (a tapered tip) carves few of them, but its silhouette is joined to
+    the rest.
+
+    The track's: with two views, such an object carves voxels where its cone crosses
+    the other view's silhouette of the tube, and the hull keeps it; judged on it, the
+    tube leaves it unexplained in every frame, and the track would be called lost at
+    each. The tube moves little from one frame to the next, so its silhouette lies along
+    a track's prediction of it (``predicted_mm``, (N, 3) mm, of radius ``radius_mm``):
+    of the blobs the hull keeps, only those that the predicted tube, drawn
+    ``TRACK_REACH_RADII`` times as wide, reaches are kept (all of them where it reaches
+    none).
     """
     pts = np.asarray(points_mm, dtype=np.float64)
+    track = predicted_mm if np.isfinite(radius_mm) and radius_mm > 0 else None
+    wide: list[NDArray[np.bool_]] | None = None
     out = []
-    for mask, px in zip(masks, project_in_views(model.cameras, pts), strict=True):
+    for view, (mask, px) in enumerate(zip(masks, project_in_views(model.cameras, pts), strict=True)):
         count, labels = cv2.connectedComponents(mask.view(np.uint8), connectivity=8)
         if count <= 2:  # background and one blob: nothing to drop
             out.append(mask)
@@ -228,41 +248,14 @@ def hull_supported(
         hit = np.zeros(count, dtype=bool)
         hit[labels[ij[:, 1], ij[:, 0]]] = True
         hit[0] = False  # the background
+        if track is not None:
+            if wide is None:
+                wide = tube_masks(model.cameras, track, TRACK_REACH_RADII * radius_mm)
+            near = np.zeros(count, dtype=bool)
+            near[labels[wide[view]]] = True
+            if (hit & near).any():
+                hit &= near
         out.append(hit[labels])
-    return out
-
-
-def near_the_track(
-    masks: Sequence[NDArray[np.bool_]],
-    cameras: Sequence[Camera],
-    predicted_mm: NDArray[np.float64],
-    radius_mm: float,
-) -> list[NDArray[np.bool_]]:
-    """Per camera, the (H, W) silhouette without the blobs that the track's predicted tube
-    (``predicted_mm``, (N, 3) mm, of radius ``radius_mm``), drawn ``TRACK_REACH_RADII``
-    times as wide, does not reach; a view whose blobs it reaches none of is kept whole.
-
-    With two views, a dark object in one view's background carves voxels where its
-    cone crosses the other view's silhouette of the tube, so :func:`hull_supported`
-    keeps it; judged on it, the tube leaves it unexplained in every frame, and the track
-    would be called lost at each. The tube moves little from one frame to the next, so
-    its silhouette lies along the prediction, and a blob away from it is not the tube's.
-    """
-    if not np.isfinite(radius_mm) or radius_mm <= 0:
-        return list(masks)
-    out: list[NDArray[np.bool_]] = []
-    wide: list[NDArray[np.bool_]] | None = None
-    for view, mask in enumerate(masks):
-        count, labels = cv2.connectedComponents(mask.view(np.uint8), connectivity=8)
-        if count <= 2:  # background and one blob: nothing to drop
-            out.append(mask)
-            continue
-        if wide is None:
-            wide = tube_masks(cameras, predicted_mm, TRACK_REACH_RADII * radius_mm)
-        hit = np.zeros(count, dtype=bool)
-        hit[labels[wide[view]]] = True
-        hit[0] = False  # the background
-        out.append(hit[labels] if hit.any() else mask)
     return out
 
 
@@ -274,6 +267,7 @@ def _curve_and_quality(
     model: SessionModel,
     timings: dict[str, float],
     previous: Sequence[FrameResult],
+    predicted: NDArray[np.float64] | None,
     restart_here: bool = True,
 ) -> FrameResult:
     settings = model.settings
@@ -290,7 +284,6 @@ def _curve_and_quality(
         ws = settings.workspace
         base = infer_base(pts, np.asarray(ws.origin_mm), np.asarray(ws.size_mm), radius_mm=radius_guess)
     n_points = settings.centerline.points
-    predicted: NDArray[np.float64] | None = None
     tracked = False
     lost = ""
     if settings.centerline.method == "polyfit":
@@ -299,9 +292,6 @@ def _curve_and_quality(
         figures = None
     else:
         contrasts = frame_contrasts(images, model)
-        predicted = predict_axis(previous, index)
-        if predicted is not None:
-            masks = near_the_track(masks, cameras, predicted, previous[-1].radius_mm)
 
         def track(
             start_mm: NDArray[np.float64], radius_mm: float, radii_mm: NDArray[np.float64] | None

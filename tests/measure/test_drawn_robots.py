@@ -53,10 +53,10 @@ def test_the_tracked_model_on_drawn_robots(case: Case, tmp_path: Path) -> None:
 
 
 # Two cameras, a dark object in one view's background: its cone crosses the other view's
-# tube, so the hull keeps it, and before the track kept only the silhouette's blobs along
-# its prediction (pipeline.reconstruct.frame.near_the_track) every frame of these two
-# cases was fitted from the hull and flagged (90 of 90 and 79 of 90 good frames,
-# `accuracy_table --draw 131` and `--draw 137`, 2026-12-04); with it, 1 of 90 each.
+# tube, so the hull keeps it. Judged on every blob the hull keeps, every frame of these two
+# cases is fitted from the hull and flagged (90 of 90 and 79 of 90 good frames); kept to the
+# blobs along the track's prediction (pipeline.reconstruct.frame.tube_blobs), 1 of 90 each
+# (`accuracy_table --draw 131` and `--draw 137`, 2026-12-04).
 DARK_OBJECT_CASES = ((131, 4), (137, 2))  # (draw, index of its 8 cases)
 DARK_OBJECT_FRAMES = 90  # as drawn: a draw's motion spans its frames, faster in fewer
 

@@ -18,10 +18,9 @@ from pipeline.reconstruct.frame import (
     SessionModel,
     build_model,
     frame_silhouettes,
-    hull_supported,
-    near_the_track,
     reconstruct_frame,
     reconstruct_from_silhouettes,
+    tube_blobs,
 )
 from pipeline.reconstruct.frame_result import STATUSES
 from pipeline.session.folder import load_session
@@ -168,25 +167,38 @@ def test_a_blob_no_other_view_confirms_is_not_the_tube(model: SessionModel, tube
     ys, xs = np.nonzero(masks[0])
     spur = (int(xs[np.argmax(ys)]), int(ys.max()))
     cv2.line(seen.view(np.uint8), spur, (spur[0], min(spur[1] + 6, seen.shape[0] - 1)), 1, 1)
-    kept = hull_supported([seen, *masks[1:]], points, model)
+    kept = tube_blobs([seen, *masks[1:]], points, model)
     assert not kept[0][:21, :21].any()  # the object is dropped
     assert (kept[0] == (seen & ~_disc(seen.shape, (12, 12), 8))).all()  # everything else kept
     assert all((k == m).all() for k, m in zip(kept[1:], masks[1:], strict=True))
 
 
 def test_a_tracked_frame_keeps_the_blobs_along_its_prediction(model: SessionModel, tube: tuple) -> None:
+    from pipeline.carve.hull import carve, voxel_centers_mm
+
     curve, images = tube
     masks = frame_silhouettes(images, model)
-    # A dark object in camera 0's corner, far from the tube: as two views' hull may keep it.
-    seen = masks[0] | _disc(masks[0].shape, (12, 12), 8)
-    kept = near_the_track([seen, *masks[1:]], model.cameras, curve, RADIUS)
-    assert (kept[0] == masks[0]).all()  # the object dropped, the tube's blob whole
+    points = voxel_centers_mm(model.settings.workspace, carve(model.grid, masks))
+    # A dark object in camera 0, 80 mm from the tube, that a voxel confirms (as two
+    # views' hull may: its cone crosses the other view's tube).
+    ghost = curve[len(curve) // 2] + np.array([80.0, 0.0, 0.0])
+    u, v = np.round(model.cameras[0].project(ghost[None])[0]).astype(int)
+    assert 8 <= u < masks[0].shape[1] - 8 and 8 <= v < masks[0].shape[0] - 8
+    seen = masks[0] | _disc(masks[0].shape, (int(u), int(v)), 8)
+    assert not (masks[0] & _disc(masks[0].shape, (int(u), int(v)), 10)).any()
+    confirmed = np.vstack([points, ghost[None]])
+    views = [seen, *masks[1:]]
+    # The hull alone keeps it; along the track's prediction, it is dropped and the
+    # tube's blob kept whole.
+    assert (tube_blobs(views, confirmed, model)[0] == seen).all()
+    kept = tube_blobs(views, confirmed, model, curve, RADIUS)
+    assert (kept[0] == masks[0]).all()
     assert all((k == m).all() for k, m in zip(kept[1:], masks[1:], strict=True))
-    # A prediction that reaches no blob of a view (a tube far from it) keeps the view
-    # whole; so does a prediction without a radius.
+    # A prediction that reaches none of a view's blobs (a tube far from it) leaves the
+    # hull's; so does a prediction without a radius.
     away = curve + np.array([0.0, 0.0, 400.0])
-    assert (near_the_track([seen], model.cameras[:1], away, RADIUS)[0] == seen).all()
-    assert (near_the_track([seen], model.cameras[:1], curve, float("nan"))[0] == seen).all()
+    assert (tube_blobs(views, confirmed, model, away, RADIUS)[0] == seen).all()
+    assert (tube_blobs(views, confirmed, model, curve, float("nan"))[0] == seen).all()
 
 
 def _disc(shape: tuple[int, ...], centre: tuple[int, int], radius: int) -> np.ndarray:
