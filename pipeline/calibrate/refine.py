@@ -302,7 +302,7 @@ def refined_cameras(
         return model.cameras, Refinement(False, 0, float("nan"), float("nan"), (), reason), None
     started = time.perf_counter()
     frames = decode_frames(video_paths, sample_frames(start, stop, SAMPLE_FRAMES))
-    tubes, read = _sampled(model, frames, map_frames)
+    tubes, read = _sampled(model, frames, map_frames, read_tips=model.settings.manipulator.tip == "auto")
     if len(tubes) < 3:
         return model.cameras, None, read
     cameras, report = refine(model, tubes, mode, refitter(model, frames, map_frames))
@@ -324,7 +324,7 @@ def sample_tips(
     if not _reads_tips(model):
         return None
     frames = decode_frames(video_paths, sample_frames(start, stop, SAMPLE_FRAMES))
-    return _sampled(model, frames, map_frames)[1]
+    return _sampled(model, frames, map_frames, read_tips=True)[1]
 
 
 def _reads_tips(model: SessionModel) -> bool:
@@ -336,14 +336,17 @@ def _reads_tips(model: SessionModel) -> bool:
 
 
 def _sampled(
-    model: SessionModel, frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]], map_frames: FrameMap
+    model: SessionModel,
+    frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
+    map_frames: FrameMap,
+    *,
+    read_tips: bool,
 ) -> tuple[list[Tube], ReadTips | None]:
-    """The tubes of ``frames`` (:func:`sample_tubes`) and, where ``model`` leaves its end to
-    the frames, their ends read on the same reconstructions (else None)."""
-    read_tip = _reads_tips(model)
-    samples = map_frames(functools.partial(_sample, tip=read_tip), frames, _base_free(model))
+    """The tubes of ``frames`` (:func:`sample_tubes`) and, with ``read_tips``, their ends
+    read on the same reconstructions (else None)."""
+    samples = map_frames(functools.partial(_sample, tip=read_tips), frames, _base_free(model))
     tubes = [tube for tube, _ in samples if tube is not None]
-    if not read_tip:
+    if not read_tips:
         return tubes, None
     tips = tuple(tip for _, tip in samples if tip is not None)
     return tubes, ReadTips(tuple(index for index, _ in frames), tips)

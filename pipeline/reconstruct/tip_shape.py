@@ -275,9 +275,11 @@ def sample_rounds(
     out: list[list[int]] = []
     count = SAMPLE_FRAMES
     for i in range(rounds):
-        read = {index for frames in out for index in frames}
-        fresh = sorted(set(sample_frames(start, stop, count)) - read)
-        out.append(list(first) if i == 0 and first is not None else fresh)
+        if i == 0 and first is not None:
+            out.append(list(first))
+        else:
+            read = {index for frames in out for index in frames}
+            out.append(sorted(set(sample_frames(start, stop, count)) - read))
         count = 2 * count - 1
     return out
 
