@@ -234,8 +234,20 @@ def _end_stuck_pool(pool: _Pool) -> None:
     for process in pool.processes:
         with contextlib.suppress(Exception):
             wait([process.sentinel], timeout=max(0.0, deadline - time.monotonic()))
-    with contextlib.suppress(OSError):
-        pool.result_writer.close()
+    _close_before_the_manager(pool.result_writer)
+
+
+def _close_before_the_manager(connection: Any) -> None:
+    """Close this process's end of the results' pipe so that loky's manager thread, which
+    wakes on it and closes the same end as it tears the broken pool down, finds it closed.
+
+    ``Connection.close`` closes the descriptor before it forgets it: a manager woken in
+    between closed it a second time (OSError EBADF, a traceback from its thread on stderr).
+    """
+    handle, connection._handle = getattr(connection, "_handle", None), None
+    if handle is not None:
+        with contextlib.suppress(OSError):
+            os.close(handle)
 
 
 def _watch(stop: threading.Event) -> None:

@@ -169,3 +169,29 @@ def test_workers_exit_when_their_parent_is_killed() -> None:
     for p in alive:
         p.kill()
     assert not alive
+
+
+def test_the_stuck_pools_results_pipe_is_forgotten_before_it_is_closed(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # loky's manager thread wakes as the descriptor closes and closes the same end: it must
+    # find the connection closed already, not close the descriptor a second time (EBADF).
+    import multiprocessing
+
+    reader, writer = multiprocessing.Pipe(duplex=False)
+    handle_at_close: list[object] = []
+    real_close = os.close
+
+    def close(fd: int) -> None:
+        handle_at_close.append(writer._handle)  # type: ignore[attr-defined]
+        real_close(fd)
+
+    monkeypatch.setattr(workers.os, "close", close)
+    workers._close_before_the_manager(writer)
+    monkeypatch.undo()
+    assert handle_at_close == [None]
+    assert writer.closed
+    writer.close()  # the manager's close: nothing left to close
+    with pytest.raises(EOFError):
+        reader.recv_bytes()
+    reader.close()
