@@ -9,20 +9,26 @@ the renames are done, so that the pair is never split; further signals once the 
 ending are ignored, so that the clean-up it started completes (each step of it is
 bounded in time). Python drops an exception raised inside a garbage-collector callback
 or a ``__del__`` ("Exception ignored in ..."), where a signal can land too; a run's main
-loop therefore asks :func:`raise_if_interrupted` between its steps.
+loop therefore asks :func:`raise_if_interrupted` between its steps. Once a signal has
+ended the run, a library's thread that fails as the run tears its pool down under it
+(loky's manager thread on a pipe already closed) goes to the debug log, not to stderr
+as a traceback below the run's one line.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import signal
 import threading
 from collections.abc import Iterator
-from types import FrameType
+from types import FrameType, TracebackType
 
 INTERRUPT_SIGNALS: tuple[signal.Signals, ...] = tuple(
     getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
 )
+
+log = logging.getLogger(__name__)
 
 _installed = False  # signals_interrupt is active
 _interrupted = ""  # the signal turned into KeyboardInterrupt already ("": none)
@@ -67,12 +73,31 @@ def signals_interrupt() -> Iterator[None]:
         if signal.getsignal(sig) is not signal.SIG_IGN:
             previous[sig] = signal.signal(sig, _handler)
     _installed, _interrupted, _pending = True, "", None
+    thread_hook = threading.excepthook
+
+    def quiet_once_interrupted(args: threading.ExceptHookArgs) -> None:
+        if _interrupted and not _through_our_code(args.exc_traceback):
+            log.debug("%s failed as the run ended", args.thread, exc_info=args.exc_value)
+        else:
+            thread_hook(args)
+
+    threading.excepthook = quiet_once_interrupted
     try:
         yield
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        threading.excepthook = thread_hook
         _installed = False
+
+
+def _through_our_code(traceback: TracebackType | None) -> bool:
+    """Whether a failure's ``traceback`` passes through this project's code."""
+    while traceback is not None:
+        if str(traceback.tb_frame.f_globals.get("__name__", "")).startswith("pipeline"):
+            return True
+        traceback = traceback.tb_next
+    return False
 
 
 @contextlib.contextmanager

@@ -3,9 +3,11 @@ callback) still stops a run: the run's loop raises it again."""
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import sys
+import threading
 import time
 
 import pytest
@@ -31,3 +33,32 @@ def test_a_signal_dropped_inside_a_finaliser_is_raised_again(monkeypatch: pytest
         with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
             raise_if_interrupted()
     raise_if_interrupted()  # outside the policy: nothing
+
+
+class _LibraryThread(threading.Thread):
+    """A library's thread: its code is its own run(), not a target of this project's."""
+
+    def run(self) -> None:
+        raise OSError(9, "Bad file descriptor")
+
+
+def test_a_library_threads_failure_once_a_signal_ended_the_run_goes_to_the_debug_log(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    printed: list[str] = []
+    monkeypatch.setattr(threading, "excepthook", lambda args: printed.append(args.thread.name))
+    with signals_interrupt():
+        before = _LibraryThread(name="before the signal")
+        before.start()
+        before.join()
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1.0)  # the handler raises here
+        with caplog.at_level(logging.DEBUG, logger="pipeline.run.interrupts"):
+            # raise_if_interrupted raises again in a thread of the project's own.
+            ours = threading.Thread(target=raise_if_interrupted, name="ours")
+            for thread in (_LibraryThread(name="library"), ours):
+                thread.start()
+                thread.join()
+    assert printed == ["before the signal", "ours"]  # this project's own failures still show
+    assert [r.exc_info[1].errno for r in caplog.records if r.exc_info and r.exc_info[1]] == [9]
