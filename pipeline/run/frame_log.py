@@ -10,6 +10,7 @@ frame's curve and metrics message go to anonymous temporary files beside the out
 
 from __future__ import annotations
 
+import contextlib
 import tempfile
 from array import array
 from pathlib import Path
@@ -85,7 +86,9 @@ class FrameLog:
         return message
 
     def close(self) -> None:
+        """Close (and so remove) the files; each is closed even where another's close fails."""
         if self._files is not None:
-            for file in self._files:
-                file.close()
-            self._files = None
+            files, self._files = self._files, None
+            with contextlib.ExitStack() as stack:
+                for file in files:
+                    stack.callback(file.close)

@@ -346,8 +346,11 @@ class Writers:
         self.viewer = None
 
     def abort(self) -> None:
-        """Close everything and remove the temporary files; finished outputs are untouched."""
-        self.log.close()
+        """Close everything and remove the temporary files; finished outputs are untouched.
+        A failure to close (the full disk that ended the run fails the flushes too) does not
+        stop the removals."""
+        with contextlib.suppress(Exception):
+            self.log.close()
         with contextlib.suppress(Exception):
             if self._mcap_file is not None:
                 self._mcap_file.close()

@@ -302,6 +302,32 @@ def test_disk_full_is_a_clear_error_and_leaves_nothing(
     assert not out.exists()  # the run created it, and removes it with the rest
 
 
+class _FullDiskOnClose(_FullDisk):
+    """A full disk's temporary file: it takes nothing, and fails its flush on close too."""
+
+    def close(self) -> None:
+        self.real.close()
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def test_disk_full_for_the_frame_log_too_is_a_clear_error_and_leaves_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The disk fills while a frame is written: the run's own temporary files fail as they
+    # are closed, which must not stop the clean-up nor hide the first error.
+    from pipeline.run import frame_log
+
+    session = build_session(tmp_path / "take", frames=6)
+    real_temporary = frame_log.tempfile.TemporaryFile
+    monkeypatch.setattr(
+        frame_log.tempfile, "TemporaryFile", lambda **kw: _FullDiskOnClose(real_temporary(**kw), 0)
+    )
+    out = tmp_path / "out"
+    with pytest.raises(OutputError, match=r"disk full while writing the recordings; free space"):
+        _run(session, out)
+    assert not out.exists()
+
+
 def test_disk_full_at_rename_leaves_no_half_output(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     session = build_session(tmp_path / "take", frames=2)
 
