@@ -311,7 +311,8 @@ def draw_tube(
     bias = _CIRCLE_BIAS * (1 << DRAW_SHIFT)
     # Array methods (.round()), not np.round's wrapper: this runs for every
     # bend tried in every view.
-    radii = (focal * radius_mm / cam.to_camera(discs_mm)[:, 2] * one - bias).round()
+    # A disc narrower than the bias (a thin tube far away) is drawn as a point.
+    radii = np.maximum(focal * radius_mm / cam.to_camera(discs_mm)[:, 2] * one - bias, 0.0).round()
     centres = px[: len(discs_mm)].round().astype(np.int64)
     # What is drawn, in fixed point: x0, y0, x1, y1 (plain ints: few shapes).
     far = 1 << 62

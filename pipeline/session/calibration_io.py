@@ -104,6 +104,12 @@ def _camera(source: str, key: str, table: Any) -> Camera:
         raise CalibrationError(
             f"{source}: {where} matrix must be [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0"
         )
+    fov_deg = max(_field_of_view_deg(size[0], fx), _field_of_view_deg(size[1], fy))
+    if fov_deg > _MAX_FIELD_OF_VIEW_DEG:
+        raise CalibrationError(
+            f"{source}: {where} focal length fx {fx:g}, fy {fy:g} gives a {fov_deg:.0f}-degree field of "
+            f"view over {size[0]}x{size[1]} pixels: fx and fy are in pixels, not mm; check the calibration"
+        )
     if abs(matrix[0, 1]) > _MAX_SKEW * fx:
         # OpenCV's projection (and so every view's here) ignores a skew term: the pixels
         # would be off by it times y.
@@ -127,6 +133,15 @@ def _camera(source: str, key: str, table: Any) -> Camera:
     )
 
 
+def _field_of_view_deg(pixels: int, focal_px: float) -> float:
+    """The angle (degrees) that ``pixels`` across subtend at a focal length of ``focal_px``."""
+    return float(np.degrees(2.0 * np.arctan2(0.5 * pixels, focal_px)))
+
+
+# A pinhole camera with polynomial distortion describes lenses up to ~120 degrees; a
+# calibration that puts its field of view past this has a focal length in other units
+# (mm) or a broken matrix, and its cones swallow the whole workspace.
+_MAX_FIELD_OF_VIEW_DEG = 160.0
 # A matrix[0][1] (skew) beyond this fraction of fx is refused: below it, its effect is a
 # thousandth of a pixel per thousand pixels of image height.
 _MAX_SKEW = 1e-6

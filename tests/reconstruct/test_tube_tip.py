@@ -327,6 +327,17 @@ def test_draw_tube_box_holds_every_pixel_it_draws(seed: int) -> None:
     assert (x1 - x0) * (y1 - y0) < 0.5 * canvas.size
 
 
+def test_a_tube_thinner_than_the_drawings_bias_is_drawn_as_points() -> None:
+    # 0.002 mm seen from ~500 mm is a hundredth of a canvas pixel, less than the bias the
+    # discs are drawn smaller by: no negative radius reaches OpenCV.
+    cam = _pinhole(300.0)
+    axis = _arc(60.0, _plane(1), length_mm=30.0) - CENTRE
+    canvas = np.zeros((120 * SUPERSAMPLE, 160 * SUPERSAMPLE), np.uint8)
+    x0, y0, x1, y1 = draw_tube(canvas, cam, *tube_points(axis, 0.002, flat_end=False), 0.002, (0, 0))
+    assert x0 < x1 and y0 < y1
+    assert 0 < np.count_nonzero(canvas) < 0.01 * canvas.size
+
+
 def test_normals_are_orthonormal_to_the_direction() -> None:
     # Random directions and the axes themselves (where two components are 0).
     rng = np.random.default_rng(5)

@@ -88,6 +88,9 @@ def _set(table: str, key: str, value: Any) -> dict[str, Any]:
         (_set("cam_2", "matrix", [["300", 0, 160], [0, 300, 120], [0, 0, 1]]), ("matrix", "numbers")),
         (_set("cam_2", "matrix", [[300, 0, 160], [0, 300, 120], [0, 0, 2]]), ("matrix", "fx, fy > 0")),
         (_set("cam_2", "matrix", [[300, 0, 160], [0, 300, 120], [0, 0]]), ("matrix", "numbers")),
+        # A focal length in mm (8 mm), not pixels: a 174-degree view over 320 px.
+        (_set("cam_2", "matrix", [[8, 0, 160], [0, 8, 120], [0, 0, 1]]), ("174-degree", "in pixels, not mm")),
+        (_set("cam_2", "matrix", [[300, 0, 160], [0, 0.5, 120], [0, 0, 1]]), ("fy 0.5", "180-degree")),
         (_set("cam_2", "distortions", [0.1, 0.2, 0.3]), ("distortions", "4, 5, 8, 12 or 14")),
         (_set("cam_2", "distortions", [0.1, 0.2, 0.3, "0.4"]), ("distortions", "numbers")),
         (_set("cam_2", "rotation", [[1, 0], [0, 1]]), ("rotation", "shape")),
