@@ -191,11 +191,17 @@ def prepare_outputs(out_dir: Path, name: str, force: bool) -> OutputTarget:
     """Check, before any work, that the outputs can be written, and take the folder's lock
     for ``name``. Call :meth:`OutputTarget.release` when the run ends."""
     check_utf8_path(out_dir, "choose an --out path in UTF-8", OutputError)
-    for folder in (out_dir, *out_dir.parents):
-        if folder.exists() and not folder.is_dir():
-            where = "" if folder == out_dir else f" (in {out_dir})"
-            raise OutputError(f"{folder}: is a file, not a directory{where}; give --out a directory")
-    created = [f for f in (out_dir, *out_dir.parents) if not f.exists() and not f.is_symlink()][::-1]
+    try:
+        for folder in (out_dir, *out_dir.parents):
+            if folder.exists() and not folder.is_dir():
+                where = "" if folder == out_dir else f" (in {out_dir})"
+                raise OutputError(f"{folder}: is a file, not a directory{where}; give --out a directory")
+        created = [f for f in (out_dir, *out_dir.parents) if not f.exists() and not f.is_symlink()][::-1]
+    except PermissionError as exc:
+        raise OutputError(
+            f"{exc.filename or out_dir}: cannot be opened (permission denied); give --out a folder "
+            "this user can write in"
+        ) from None
     target = OutputTarget(out_dir, name, created)
     try:
         try:

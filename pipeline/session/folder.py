@@ -7,10 +7,13 @@ file or camera.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import errno
 import logging
 import math
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -62,7 +65,11 @@ class Session:
 
 def load_session(directory: Path | str) -> Session:
     """Read and validate ``directory``: calibration.toml, one video per camera, session.toml."""
-    directory = Path(directory)
+    with _readable(Path(directory), "session"):
+        return _load_session(Path(directory))
+
+
+def _load_session(directory: Path) -> Session:
     _check_not_dangling(directory)
     check_utf8_path(directory, "rename the folder (or move the session) to a UTF-8 path")
     if directory.is_file():
@@ -121,7 +128,11 @@ def load_rig(directory: Path | str) -> Session:
     The session it returns has no videos and no frames; its ``fps`` is nominal
     (:data:`LIVE_NOMINAL_FPS`) and its name the directory's.
     """
-    directory = Path(directory)
+    with _readable(Path(directory), "rig"):
+        return _load_rig(Path(directory))
+
+
+def _load_rig(directory: Path) -> Session:
     _check_not_dangling(directory)
     check_utf8_path(directory, "rename the folder (or move the rig) to a UTF-8 path")
     if not directory.is_dir():
@@ -267,6 +278,8 @@ def _read_grey_8bit(path: Path) -> NDArray[np.uint8]:
         ) from None
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
+        if not os.access(path, os.R_OK):  # OpenCV says nothing of why it read nothing
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
         raise SessionError(f"{path}: cannot be read as an image; save it as an 8-bit greyscale PNG")
     if raw.dtype == np.uint8:
         image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)  # OpenCV's own grey conversion, as before
@@ -282,6 +295,20 @@ def _read_grey_8bit(path: Path) -> NDArray[np.uint8]:
     if int(raw.max()) <= 255:
         return raw.astype(np.uint8)
     return np.round(raw / 257.0).astype(np.uint8)  # 65535 -> 255
+
+
+@contextlib.contextmanager
+def _readable(directory: Path, what: str) -> Iterator[None]:
+    """A file or folder of the ``what`` ("session", "rig") this user may not read is named,
+    with what to do, rather than failing the run as an internal error."""
+    try:
+        yield
+    except PermissionError as exc:
+        where = exc.filename or directory
+        raise SessionError(
+            f"{where}: cannot be read (permission denied); give this user read access to the "
+            f"{what} folder and its files, or copy them where it can read them"
+        ) from None
 
 
 def _check_not_dangling(path: Path) -> None:

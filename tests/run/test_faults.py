@@ -273,6 +273,24 @@ def test_output_path_under_a_file_is_an_error_before_any_work(tmp_path: Path) ->
         _run(session, tmp_path / "file")
 
 
+def test_output_path_in_a_folder_this_user_may_not_open_is_an_error_before_any_work(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    session = build_session(tmp_path / "take", frames=2)
+    closed = tmp_path / "closed"
+    closed.mkdir()
+    real_exists = Path.exists
+
+    def exists(self: Path) -> bool:  # what stat says of a path in a folder without x permission
+        if self.parent == closed:
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(self))
+        return real_exists(self)
+
+    monkeypatch.setattr(Path, "exists", exists)
+    with pytest.raises(OutputError, match=r"closed/out: cannot be opened \(permission denied\); give --out"):
+        _run(session, closed / "out")
+
+
 class _FullDisk:
     """A file object that accepts ``room`` bytes and then raises ENOSPC, like a full disk."""
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import shutil
+from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -165,4 +166,42 @@ def test_workspace_behind_a_camera_is_refused(session: Path) -> None:
         f"[manipulator]\nbase_mm = [{base}]\n"
     )
     with pytest.raises(SessionError, match="camera 'cam0' does not see the workspace"):
+        load_session(session)
+
+
+def test_a_folder_or_file_this_user_may_not_read_is_named(
+    session: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Permissions are simulated: a test run as root reads every file.
+    import errno
+    import os
+
+    from pipeline.session import folder
+
+    def denied(path: Path) -> PermissionError:
+        return PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
+
+    real_iterdir = Path.iterdir
+
+    def iterdir(self: Path) -> Iterator[Path]:
+        if self == session:
+            raise denied(self)
+        return real_iterdir(self)
+
+    with monkeypatch.context() as m:
+        m.setattr(Path, "iterdir", iterdir)
+        with pytest.raises(
+            SessionError, match=r"take_01: cannot be read \(permission denied\); give this user"
+        ):
+            load_session(session)
+    (session / "background").mkdir()
+    cv2.imwrite(str(session / "background" / "cam1.png"), np.full((240, 320), 150, np.uint8))
+    real_access = os.access
+    monkeypatch.setattr(
+        folder.cv2, "imread", lambda path, flags: None if "cam1" in path else cv2.imread(path, flags)
+    )
+    monkeypatch.setattr(
+        folder.os, "access", lambda path, mode: "cam1" not in str(path) and real_access(path, mode)
+    )
+    with pytest.raises(SessionError, match=r"background/cam1\.png: cannot be read \(permission denied\)"):
         load_session(session)
