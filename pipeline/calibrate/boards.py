@@ -151,9 +151,24 @@ def load_board(
             f"{calib_dir}: board {cols}x{rows} looks the same turned by 180 degrees; "
             "use a board with one odd and one even number of inner corners (e.g. 9x6)"
         )
-    if not isinstance(square, (int, float)) or square <= 0:
-        raise CalibrationError(f"{calib_dir}: square_mm must be a positive number, got {square!r}")
+    if not _plausible_square(square):
+        raise CalibrationError(
+            f"{calib_dir}: square_mm must be a finite size in mm, {_SQUARE_MM[0]:g} to {_SQUARE_MM[1]:g}, "
+            f"got {square!r}"
+        )
     return Board(int(cols), int(rows), float(square))
+
+
+# A board's square size (mm) is refused outside these bounds: a NaN, an infinity or a
+# size like 1e-300 made OpenCV's solvers fail after the boards had been detected.
+_SQUARE_MM = (0.01, 10000.0)
+
+
+def _plausible_square(square: object) -> bool:
+    """Whether ``square`` is a number (not a bool) within ``_SQUARE_MM``."""
+    if isinstance(square, bool) or not isinstance(square, (int, float)):
+        return False
+    return _SQUARE_MM[0] <= float(square) <= _SQUARE_MM[1]
 
 
 def _load_charuco(
@@ -175,11 +190,12 @@ def _load_charuco(
             "or pass --charuco COLSxROWS"
         )
     square = square_mm if square_mm is not None else doc.get("square_mm")
-    if not isinstance(square, (int, float)) or square <= 0:
+    if not _plausible_square(square):
         raise CalibrationError(
-            f"{calib_dir}: ChArUco square size unknown or not positive ({square!r}); "
-            f"write square_mm in {path.name} or pass --square-mm S"
+            f"{calib_dir}: ChArUco square size unknown or not a finite size in mm, {_SQUARE_MM[0]:g} to "
+            f"{_SQUARE_MM[1]:g} ({square!r}); write square_mm in {path.name} or pass --square-mm S"
         )
+    square = float(square)  # type: ignore[arg-type]
     # board.toml's marker size belongs to its square size: not kept when --square-mm overrides it.
     marker = doc["marker_mm"] if "marker_mm" in doc and square_mm is None else MARKER_RATIO * square
     if not isinstance(marker, (int, float)) or not 0 < marker < square:

@@ -170,6 +170,7 @@ class SceneOptions:
 def _validate(
     shape: str,
     frames: int,
+    seed: int,
     polarity: str,
     radius_mm: float,
     arrangement: str,
@@ -181,6 +182,8 @@ def _validate(
         raise PipelineError(f"unknown synthetic shape {shape!r}; use one of {names}")
     if not 1 <= frames <= MAX_FRAMES:
         raise PipelineError(f"--frames must be in [1, {MAX_FRAMES}] (an hour at 30 fps), got {frames}")
+    if seed < 0:
+        raise PipelineError(f"--seed must be 0 or more, got {seed}")
     if polarity not in ("dark", "bright"):
         raise PipelineError(f"polarity must be 'dark' or 'bright', got {polarity!r}")
     if not 0 < radius_mm <= 20:
@@ -217,6 +220,17 @@ def _check_out_dir(out_dir: Path) -> None:
             f"{out_dir}: holds files and is not a synthetic session (no ground_truth.npz); "
             "give synth a new or empty directory"
         )
+
+
+def _remove_earlier_views(out_dir: Path, names: set[str]) -> None:
+    """An earlier render's videos and backgrounds of cameras this rig has not (a render of
+    three cameras replaced by one of two): left there, they would be taken for the rig's."""
+    if not (out_dir / "ground_truth.npz").is_file():
+        return
+    log.info("%s: replacing the synthetic session rendered there before", out_dir)
+    for path in [*out_dir.glob("*.mp4"), *(out_dir / "background").glob("*.png")]:
+        if path.stem not in names:
+            path.unlink()
 
 
 def _profile(options: SceneOptions, radius_mm: float) -> RadiusProfile:
@@ -283,10 +297,11 @@ def render_session(
     progress : show a progress bar.
     jobs : worker processes (-1: one per core).
     """
-    _validate(shape, frames, polarity, radius_mm, arrangement, length_mm, options)
+    _validate(shape, frames, seed, polarity, radius_mm, arrangement, length_mm, options)
     out_dir = Path(out_dir)
     _check_out_dir(out_dir)
     cameras = make_rig(arrangement, size=options.size, cameras=options.cameras)
+    _remove_earlier_views(out_dir, {cam.name for cam in cameras})
     profile = _profile(options, radius_mm)
     centerlines, length = session_centerlines(
         shape, frames, seed=seed, length_mm=length_mm, profile=profile, tip=options.tip

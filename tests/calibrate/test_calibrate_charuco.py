@@ -116,6 +116,18 @@ def test_board_toml_and_flags(synth, tmp_path) -> None:
         load_board(tmp_path)
 
 
+@pytest.mark.parametrize("square", [float("nan"), float("inf"), 1e-300, -5.0, 0.0])
+def test_a_square_size_that_is_no_size_is_refused_before_any_detection(tmp_path: Path, square: float) -> None:
+    for flags in ({"board": (9, 6)}, {"charuco": (7, 5)}):
+        with pytest.raises(CalibrationError, match="square"):
+            load_board(tmp_path, square_mm=square, **flags)
+    (tmp_path / "board.toml").write_text(
+        f'type = "chessboard"\ninner_corners = [9, 6]\nsquare_mm = {square!r}\n'
+    )
+    with pytest.raises(CalibrationError, match=r"square_mm must be a finite size in mm, 0\.01 to 10000"):
+        load_board(tmp_path)
+
+
 def test_cli_synth_calib_board_option() -> None:
     args = build_parser().parse_args(["synth-calib", "out", "--board", "charuco"])
     assert args.board == "charuco"

@@ -444,6 +444,9 @@ def test_bad_arguments_raise_pipeline_errors(tmp_path: Path) -> None:
         render_session(tmp_path, frames=0, progress=False)
     with pytest.raises(PipelineError, match="an hour at 30 fps"):
         render_session(tmp_path, frames=10**9, progress=False)
+    with pytest.raises(PipelineError, match=r"--seed must be 0 or more, got -1"):
+        render_session(tmp_path / "seeded", frames=2, seed=-1, progress=False)
+    assert not (tmp_path / "seeded").exists()  # refused before anything is written
 
 
 def test_synth_renders_into_a_new_or_empty_folder_or_over_a_render_only(tmp_path: Path) -> None:
@@ -456,6 +459,10 @@ def test_synth_renders_into_a_new_or_empty_folder_or_over_a_render_only(tmp_path
     render_session(tmp_path / "new", frames=2, progress=False, jobs=1)
     render_session(tmp_path / "new", frames=3, progress=False, jobs=1)  # over its own render
     assert len(np.load(tmp_path / "new" / "ground_truth.npz")["centerlines"]) == 3
+    # Two cameras over three: the third camera's video and background go with the render.
+    render_session(tmp_path / "new", frames=2, progress=False, jobs=1, options=SceneOptions(cameras=2))
+    assert sorted(p.name for p in (tmp_path / "new").glob("*.mp4")) == ["cam0.mp4", "cam1.mp4"]
+    assert sorted(p.name for p in (tmp_path / "new" / "background").iterdir()) == ["cam0.png", "cam1.png"]
     with pytest.raises(PipelineError, match="unknown arrangement"):
         render_session(tmp_path, frames=2, arrangement="square", progress=False)
 
