@@ -58,6 +58,13 @@ class OutputTarget:
     def _backup(self, path: Path) -> Path:
         return path.with_name(f".{path.name}.{self.run}.old")
 
+    def file_names(self) -> list[str]:
+        """Every name the run may give a file in the folder: the outputs, their temporary
+        and backup names, the commit marker and the lock."""
+        paths = [*self.finals, *map(self.partial, self.finals), *map(self._backup, self.finals)]
+        paths += [marker_path(self.out_dir, self.name, self.run), self._lock_path]
+        return [p.name for p in paths]
+
     def lock(self) -> None:
         """Take the session's lock in the folder, or raise OutputError if another run has it."""
         if self._lock_path.is_dir():
@@ -203,6 +210,7 @@ def prepare_outputs(out_dir: Path, name: str, force: bool) -> OutputTarget:
             "this user can write in"
         ) from None
     target = OutputTarget(out_dir, name, created)
+    _check_name_lengths(target)
     try:
         try:
             out_dir.mkdir(parents=True, exist_ok=True)
@@ -224,6 +232,26 @@ def prepare_outputs(out_dir: Path, name: str, force: bool) -> OutputTarget:
         target.release(failed=True)
         raise
     return target
+
+
+def _check_name_lengths(target: OutputTarget) -> None:
+    """Every file name the run will use fits the file system's limit (``NAME_MAX``), checked
+    before any work: a session folder's name of 230 or more characters made the temporary
+    files' names too long once every frame had been processed."""
+    folder = target.out_dir
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        limit = os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):
+        limit = 255
+    longest = max(len(os.fsencode(name)) for name in target.file_names())
+    if longest > limit:
+        raise OutputError(
+            f"{target.name}: the session's name is too long for its output files' names "
+            f"({longest} bytes, the file system takes {limit}); rename the session folder "
+            f"to {len(os.fsencode(target.name)) - (longest - limit)} bytes or fewer"
+        )
 
 
 def output_error(out_dir: Path, exc: OSError) -> OutputError:

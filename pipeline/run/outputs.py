@@ -371,7 +371,7 @@ class Writers:
             with contextlib.suppress(Exception):
                 _within(RERUN_WAIT_S, self._viewer_stream.disconnect)
         for path in (self.mcap_path, self.rrd_path):
-            with contextlib.suppress(FileNotFoundError):
+            with contextlib.suppress(OSError):  # not there (never created) or not removable
                 self.target.partial(path).unlink()
 
     def summary(self, wall_s: float) -> RunSummary:

@@ -291,6 +291,18 @@ def test_output_path_in_a_folder_this_user_may_not_open_is_an_error_before_any_w
         _run(session, closed / "out")
 
 
+def test_a_session_name_too_long_for_the_output_files_is_refused_before_any_work(tmp_path: Path) -> None:
+    # 240 characters fit a folder's name, not ".<name>.mcap.<run>.partial" (255 bytes at most).
+    session = build_session(tmp_path / ("s" * 240), frames=2)
+    out = tmp_path / "out"
+    with pytest.raises(OutputError, match=r"name is too long for its output files' names \(26\d bytes"):
+        _run(session, out)
+    assert not out.exists()
+    shorter = session.rename(tmp_path / ("s" * 200))
+    _run(shorter, out)
+    assert (out / f"{shorter.name}.mcap").is_file()
+
+
 class _FullDisk:
     """A file object that accepts ``room`` bytes and then raises ENOSPC, like a full disk."""
 
