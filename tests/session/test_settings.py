@@ -93,6 +93,14 @@ def test_a_base_in_the_box_or_just_below_its_floor_is_accepted(base_mm: list[flo
         ({"manipulator": {"radius_mm": 0}}, ("radius_mm", "0.1-100", "millimetres")),
         ({"manipulator": {"radius_mm": 0.005}}, ("radius_mm", "0.1-100", "got 0.005")),
         ({"manipulator": {"radius_mm": 6000}}, ("radius_mm", "0.1-100", "got 6000")),
+        (
+            {"workspace": {"voxel_mm": 60}, "manipulator": {"radius_mm": 6}},
+            ("voxel_mm 60 is more than 3 times", "radius_mm 6", "at most 18"),
+        ),
+        (
+            {"workspace": {"voxel_mm": 100}, "manipulator": {"radius_mm": "auto"}},
+            ("voxel_mm 100", "fewer than 4 voxels", "256 mm", "at most 64"),
+        ),
         ({"session": {"start_time": "1969-12-31T23:59:59Z"}}, ("1969-12-31", "1970-01-01..2262")),
         ({"session": {"start_time": "2300-01-01T00:00:00Z"}}, ("start_time", "2300-01-01", "give a date")),
         ({"manipulator": {"base_mm": "middle"}}, ("base_mm", "list of 3 numbers")),
