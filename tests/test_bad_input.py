@@ -278,6 +278,28 @@ def test_workspace_not_seen_by_a_camera(session: Path, capsys: pytest.CaptureFix
     assert_rejected(session, capsys, "does not see the workspace", "camera 'cam", "session.toml")
 
 
+def test_a_smallest_blob_larger_than_the_images_is_refused(
+    session: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (session / "session.toml").write_text("[silhouette]\nmin_area_px = 1000000000\n")
+    assert_rejected(session, capsys, "session.toml", "min_area_px 1000000000", "320x240 = 76800 px")
+
+
+def test_a_camera_that_sees_nothing_in_any_frame_is_named(
+    session: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # cam1's video shows the scene without the rod (a camera pointed away, or a threshold on
+    # the wrong side of its scene): no frame has a tube, and that camera is why.
+    video = next(session.glob("cam1.*"))
+    write_video(video, [np.full((240, 320), 200, np.uint8)] * 3)
+    assert main(_process(session, session.parent / "out")) == 1
+    err = capsys.readouterr().err
+    assert (
+        "no tube in any frame: a camera sees no silhouette (camera 'cam1' in 3 of the 3 empty frames)" in err
+    )
+    assert "check its picture" in err
+
+
 def test_a_workspace_that_misses_the_tube_is_named(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
     # Every camera sees the box and the rod, but the rod (x = 128 mm) stands beside the box.
     (session / "session.toml").write_text(

@@ -21,7 +21,7 @@ from ..carve.hull import carve, voxel_centers_mm
 from ..carve.silhouette import extract_silhouette
 from ..geometry.camera import Camera, project_in_views
 from .centerline import fit_centerline
-from .frame_result import NO_SHARED_VOXEL, FrameResult
+from .frame_result import NO_SHARED_VOXEL, NOTHING_SEEN, FrameResult
 from .model import SessionModel
 from .model import build_model as build_model  # re-exported: build the model, then reconstruct frames
 from .ordering import infer_base
@@ -150,7 +150,7 @@ def reconstruct_from_silhouettes(
             return FrameResult(
                 index=index,
                 status="empty",
-                reason=f"nothing seen by camera {cam.name!r}",
+                reason=NOTHING_SEEN.format(name=cam.name),
                 timings_s=timings,
             )
         share = float(np.count_nonzero(mask)) / mask.size

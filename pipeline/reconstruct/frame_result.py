@@ -17,6 +17,16 @@ STATUSES = ("ok", "empty", "failed")
 # The reason of an "empty" frame whose every view saw something: the silhouettes' cones do
 # not meet inside the workspace box (a box that misses the tube, another rig's calibration).
 NO_SHARED_VOXEL = "the silhouettes share no voxel of the workspace"
+# The reason of an "empty" frame in which a camera sees no silhouette at all, naming it.
+NOTHING_SEEN = "nothing seen by camera {name!r}"
+
+
+def camera_seeing_nothing(reason: str) -> str | None:
+    """The camera an "empty" frame's ``reason`` (:data:`NOTHING_SEEN`) names, or None."""
+    head, _, tail = NOTHING_SEEN.partition("{name!r}")
+    if reason.startswith(head) and reason.endswith(tail) and len(reason) > len(head) + len(tail) + 1:
+        return reason[len(head) + 1 : len(reason) - len(tail) - 1]
+    return None
 
 
 @dataclass(frozen=True, eq=False)

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import OutputError
-from ..reconstruct.frame_result import NO_SHARED_VOXEL
+from ..reconstruct.frame_result import NO_SHARED_VOXEL, camera_seeing_nothing
 from ..reconstruct.frame_task import FrameOutput
 from ..reconstruct.quality import SUSPECT_SMOOTHED_MM, is_doubtful, off_smoothed, reaches_walls
 from ..session.folder import Session
@@ -167,6 +167,7 @@ class Writers:
         self.log = FrameLog(target.out_dir)
         self.counts = {"ok": 0, "empty": 0}
         self.empty_apart = 0  # empty frames whose every view saw something (NO_SHARED_VOXEL)
+        self.empty_unseen: dict[str, int] = {}  # camera -> empty frames in which it saw nothing
         self.failed: list[tuple[int, str]] = []
         self.doubtful: list[int] = []
         self.suspect: list[tuple[int, str]] = []
@@ -248,6 +249,9 @@ class Writers:
             self.counts[result.status] = self.counts.get(result.status, 0) + 1
         if result.status == "empty" and result.reason == NO_SHARED_VOXEL:
             self.empty_apart += 1
+        blind = camera_seeing_nothing(result.reason) if result.status == "empty" else None
+        if blind is not None:
+            self.empty_unseen[blind] = self.empty_unseen.get(blind, 0) + 1
         if result.status == "ok" and is_doubtful(result.iou):
             self.doubtful.append(result.index)
         if result.status == "ok" and result.suspect:
@@ -381,6 +385,7 @@ class Writers:
             frames_empty=self.counts.get("empty", 0),
             frames_failed=list(self.failed),
             frames_empty_apart=self.empty_apart,
+            frames_empty_unseen=dict(self.empty_unseen),
             wall_s=wall_s,
             fps=n / wall_s if wall_s > 0 else 0.0,
             outputs=[(p, p.stat().st_size) for p in (self.mcap_path, self.rrd_path)],

@@ -45,6 +45,8 @@ class RunSummary:
     cameras: str = ""
     camera_warnings: list[str] = field(default_factory=list)
     frames_empty_apart: int = 0
+    # camera -> empty frames in which it saw no silhouette at all
+    frames_empty_unseen: dict[str, int] = field(default_factory=dict)
 
     @property
     def frames_total(self) -> int:
@@ -101,6 +103,14 @@ class RunSummary:
                 "  no tube in any frame: every camera sees a silhouette, but they meet nowhere in "
                 "the workspace box: check that [workspace] origin_mm and size_mm in session.toml "
                 "hold the tube, and that calibration.toml is this rig's"
+            )
+        elif self.frames_ok == 0 and self.frames_empty and self.frames_empty_unseen:
+            blind = sorted(self.frames_empty_unseen.items(), key=lambda item: -item[1])
+            cameras = ", ".join(f"camera {name!r} in {count}" for name, count in blind)
+            out.append(
+                f"  no tube in any frame: a camera sees no silhouette ({cameras} of the "
+                f"{self.frames_empty} empty frames): check its picture, and [silhouette] polarity "
+                "(dark or bright tube) and threshold in session.toml"
             )
         elif self.frames_ok == 0 and self.frames_empty:
             out.append(

@@ -102,6 +102,7 @@ def _load_session(directory: Path) -> Session:
         )
     backgrounds = _backgrounds(directory, cameras, settings)
     _check_workspace_visible(cameras, settings)
+    _check_min_area(directory, cameras, settings)
     _check_last_timestamp(directory, settings, fps, min(counts))
     return Session(
         directory=directory,
@@ -153,6 +154,7 @@ def _load_rig(directory: Path) -> Session:
             )
     backgrounds = _backgrounds(directory, cameras, settings)
     _check_workspace_visible(cameras, settings)
+    _check_min_area(directory, cameras, settings)
     return Session(
         directory=directory,
         name=directory.resolve().name,
@@ -351,6 +353,19 @@ def _check_last_timestamp(directory: Path, settings: Settings, fps: float, frame
             f"frame at {end.isoformat()}, past 2262-04-11, the last time a nanosecond timestamp "
             "holds; give an earlier start_time"
         )
+
+
+def _check_min_area(directory: Path, cameras: list[Camera], settings: Settings) -> None:
+    """A smallest blob larger than a camera's whole image would remove every silhouette."""
+    area = settings.silhouette.min_area_px
+    for cam in cameras:
+        w, h = cam.size_px
+        if area > w * h:
+            raise SettingsError(
+                f"{directory / 'session.toml'}: [silhouette] min_area_px {area} is larger than camera "
+                f"{cam.name!r}'s whole image ({w}x{h} = {w * h} px): no silhouette would be kept; "
+                "give the smallest blob the tube can make (the default is 20)"
+            )
 
 
 def _check_workspace_visible(cameras: list[Camera], settings: Settings) -> None:
