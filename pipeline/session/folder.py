@@ -196,6 +196,8 @@ def _rig_cameras(path: Path) -> list[Camera]:
 def _find_videos(directory: Path, names: list[str]) -> dict[str, Path]:
     found: dict[str, Path] = {}
     for path in sorted(directory.iterdir()):
+        if path.name.startswith(".") and path.stem not in names:
+            continue  # hidden: a file manager's own (macOS's ._cam0.mp4), not a camera's video
         if path.suffix.lower() in VIDEO_EXTENSIONS:
             _check_not_dangling(path)
         if not path.is_file() or path.suffix.lower() not in VIDEO_EXTENSIONS:

@@ -115,6 +115,7 @@ def test_other_files_are_ignored(session: Path) -> None:
     (session / "notes.txt").write_text("camera 1 was bumped")
     (session / "ground_truth.npz").write_bytes(b"")
     (session / "cam0.avi.part").write_bytes(b"")
+    (session / "._cam0.mp4").write_bytes(b"\x00\x05\x16\x07")  # macOS's metadata beside a copied video
     assert len(load_session(session).cameras) == 3
 
 
