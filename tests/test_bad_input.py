@@ -22,7 +22,6 @@ import tomli_w
 from conftest import build_session, rig_cameras, rod_image, write_video
 
 from pipeline.cli import EXIT_BAD_INPUT, main
-from pipeline.errors import PipelineError
 from pipeline.session.folder import load_session
 
 
@@ -323,9 +322,12 @@ def test_frames_outside_the_session(session: Path, capsys: pytest.CaptureFixture
 # --- the CLI itself ----------------------------------------------------------------
 
 
-def test_debug_shows_the_exception(tmp_path: Path) -> None:
-    with pytest.raises(PipelineError, match="no such session directory"):
-        main(["--debug", *_process(tmp_path / "nowhere", tmp_path / "out")])
+def test_debug_shows_the_exception_and_keeps_the_exit_status(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["--debug", *_process(tmp_path / "nowhere", tmp_path / "out")]) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "Traceback" in err and err.rstrip().endswith("no such session directory")
 
 
 def test_subprocess_bad_input_is_one_line_without_traceback(session: Path) -> None:

@@ -79,16 +79,16 @@ def test_a_bug_is_one_line_and_exit_3_without_debug(
     assert "--debug" in err and err.count("\n") == 1
 
 
-def test_debug_lets_a_bug_through(monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("where", ["before", "after"])
+def test_debug_shows_a_bugs_traceback_with_the_same_exit_status(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], where: str
+) -> None:
+    # --debug may come before the subcommand or follow it.
     monkeypatch.setattr(cli_parser, "cmd_evaluate", _raising(ZeroDivisionError("division by zero")))
-    with pytest.raises(ZeroDivisionError):
-        main(["--debug", "evaluate", "r.mcap", "gt.npz"])
-
-
-def test_debug_may_follow_the_subcommand(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(cli_parser, "cmd_evaluate", _raising(ZeroDivisionError("division by zero")))
-    with pytest.raises(ZeroDivisionError):
-        main(["evaluate", "r.mcap", "gt.npz", "--debug"])
+    command = ["evaluate", "r.mcap", "gt.npz"]
+    assert main(["--debug", *command] if where == "before" else [*command, "--debug"]) == EXIT_INTERNAL_ERROR
+    err = capsys.readouterr().err
+    assert err.startswith("Traceback") and "internal error: ZeroDivisionError: division by zero" in err
 
 
 def test_version(capsys: pytest.CaptureFixture[str]) -> None:

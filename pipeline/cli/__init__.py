@@ -13,6 +13,7 @@ import argparse
 import logging
 import os
 import sys
+import traceback
 from collections.abc import Callable, Sequence
 
 from ..errors import Interrupted, PipelineError
@@ -74,13 +75,14 @@ def _main(argv: Sequence[str] | None, prog: str) -> int:
         return func(args)
     except PipelineError as exc:
         if args.debug:
-            raise
+            traceback.print_exc()
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except Exception as exc:
-        # Not the user's mistake: a bug. One line by default, the traceback with --debug.
+        # Not the user's mistake: a bug. One line by default, the traceback above it with
+        # --debug; the exit status is the same either way.
         if args.debug:
-            raise
+            traceback.print_exc()
         print(
             f"internal error: {type(exc).__name__}: {_one_line(exc)} "
             "(a bug: rerun with --debug for the traceback and report it)",
