@@ -322,6 +322,11 @@ def test_frames_outside_the_session(session: Path, capsys: pytest.CaptureFixture
 # --- the CLI itself ----------------------------------------------------------------
 
 
+def test_a_device_in_place_of_the_session_directory_is_named(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(_process(Path("/dev/null"), Path("/nonexistent/out"))) == EXIT_BAD_INPUT
+    assert "/dev/null: is not a directory (a device or pipe)" in capsys.readouterr().err
+
+
 def test_debug_shows_the_exception_and_keeps_the_exit_status(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -52,6 +52,26 @@ def test_bad_argument_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> No
     assert "START:STOP" in err and err.rstrip().endswith("(see pipeline process --help)")
 
 
+@pytest.mark.parametrize(
+    ("command", "argument"),
+    [
+        (["process", ""], "video_dir"),
+        (["process", "s", "--out", ""], "-o/--out"),
+        (["evaluate", "r.mcap", ""], "ground_truth"),
+        (["calibrate", "boards", "-o", ""], "-o/--output"),
+    ],
+)
+def test_an_empty_path_is_a_usage_error_not_the_current_folder(
+    capsys: pytest.CaptureFixture[str], command: list[str], argument: str
+) -> None:
+    # An unset shell variable ("$SESSION") gives an empty argument, which Path("") reads as ".".
+    with pytest.raises(SystemExit) as exit_info:
+        main(command)
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"argument {argument}: an empty path" in err
+
+
 def _raising(exc: BaseException) -> object:
     def command(args: argparse.Namespace) -> int:
         raise exc

@@ -47,6 +47,14 @@ def _frame_range(text: str) -> tuple[int, int | None]:
     return lo, hi
 
 
+def _path(text: str) -> Path:
+    """A path argument: an empty one (a shell variable left unset) is no path; Path("")
+    would be the current folder."""
+    if not text:
+        raise argparse.ArgumentTypeError("an empty path; give a file or folder")
+    return Path(text)
+
+
 def _board(text: str) -> tuple[int, int]:
     cols, sep, rows = text.lower().partition("x")
     if not sep or not cols.isdigit() or not rows.isdigit():
@@ -103,9 +111,9 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         "stderr). Exit 0: all frames ok or empty, some tube found; 1: some frames failed, or no "
         "tube in any frame; 2: bad input (nothing written).",
     )
-    p.add_argument("video_dir", type=Path, help="session directory: calibration.toml + one video per camera")
+    p.add_argument("video_dir", type=_path, help="session directory: calibration.toml + one video per camera")
     p.add_argument(
-        "-o", "--out", type=Path, default=Path("recordings"), help="output directory (default: recordings)"
+        "-o", "--out", type=_path, default=Path("recordings"), help="output directory (default: recordings)"
     )
     p.add_argument(
         "-j",
@@ -168,13 +176,13 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "rig_dir",
-        type=Path,
+        type=_path,
         nargs="?",
         help="rig directory: calibration.toml + session.toml with [live]; with --replay SESSION_DIR "
         "it may be left out (the session is its own rig)",
     )
     p.add_argument(
-        "-o", "--out", type=Path, default=Path("recordings"), help="output directory (default: recordings)"
+        "-o", "--out", type=_path, default=Path("recordings"), help="output directory (default: recordings)"
     )
     p.add_argument(
         "--viewer",
@@ -218,7 +226,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         description="Render a session directory (calibration.toml, one video per camera, session.toml, "
         "backgrounds) of a moving tube, plus OUT_DIR/ground_truth.npz.",
     )
-    p.add_argument("out_dir", type=Path, help="session directory to write")
+    p.add_argument("out_dir", type=_path, help="session directory to write")
     p.add_argument(
         "--shape",
         choices=(*SHAPES, RANDOM_SHAPE),
@@ -273,7 +281,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         description="Write OUT_DIR/<camera>/intrinsics/*.png, OUT_DIR/<camera>/world.png, "
         "OUT_DIR/board.toml and the true cameras as OUT_DIR/truth_calibration.toml.",
     )
-    p.add_argument("out_dir", type=Path)
+    p.add_argument("out_dir", type=_path)
     p.add_argument("--arrangement", choices=ARRANGEMENT_NAMES, default="oblique", help="camera placement")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
@@ -293,8 +301,8 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         "every camera into the world frame of the board in world.*, and write calibration.toml "
         "plus a report (error table, bar chart, world axes drawn on each world image).",
     )
-    p.add_argument("calib_dir", type=Path)
-    p.add_argument("-o", "--output", type=Path, required=True, help="calibration.toml to write")
+    p.add_argument("calib_dir", type=_path)
+    p.add_argument("-o", "--output", type=_path, required=True, help="calibration.toml to write")
     p.add_argument(
         "--board",
         type=_board,
@@ -322,8 +330,8 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         description="Compare the centrelines in RECORDING.mcap with GROUND_TRUTH.npz (or a session "
         "directory holding ground_truth.npz): centreline, tip, base and length errors, jitter.",
     )
-    p.add_argument("recording", type=Path)
-    p.add_argument("ground_truth", type=Path)
+    p.add_argument("recording", type=_path)
+    p.add_argument("ground_truth", type=_path)
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=cmd_evaluate)
     return parser

@@ -74,6 +74,8 @@ def _load_session(directory: Path) -> Session:
     check_utf8_path(directory, "rename the folder (or move the session) to a UTF-8 path")
     if directory.is_file():
         raise SessionError(f"{directory}: is a file; give the session directory that holds it")
+    if directory.exists() and not directory.is_dir():
+        raise SessionError(f"{directory}: is not a directory (a device or pipe); give the session directory")
     if not directory.is_dir():
         raise SessionError(f"{directory}: no such session directory")
     if not any(directory.iterdir()):
