@@ -96,7 +96,9 @@ class CameraReader:
         self.rate_fps: float | None = source.replay_fps  # the stream's declared rate, once open
         self.finished = threading.Event()  # a replay ended, or the reader stopped
         self.fault: str | None = None  # why the run must stop (set with ``finished``)
-        self._down = False  # an outage was reported and no frame has come since
+        # Why a replay's frames ended before its video did (damaged past them): "" where not.
+        self.cut_short = ""
+        self.down = False  # an outage was reported and no frame has come since
         self._thread = threading.Thread(target=self._run, name=f"camera-{source.camera}", daemon=True)
 
     def start(self) -> None:
@@ -120,13 +122,16 @@ class CameraReader:
                 if self._stop.is_set():
                     return
                 if self.source.is_replay:
-                    if why != "the stream ended":
+                    if why != "the stream ended" and not self.stats.frames:
                         self.fault = f"{self.source.describe()}: cannot be replayed ({why})"
+                    elif why != "the stream ended":
+                        # Damaged part-way: the frames before stand, as in ``process``.
+                        self.cut_short = why
                     return
                 if reported_at != self.stats.frames:  # a new outage, not the same one again
                     reported_at = self.stats.frames
                     self.stats.outages.append(why)
-                    self._down = True
+                    self.down = True
                     log.warning(
                         "%s: %s; the other cameras go on, retrying every %g s",
                         self.source.describe(),
@@ -183,8 +188,8 @@ class CameraReader:
             if wait_s > 0 and self._stop.wait(wait_s):
                 return
             arrived_ns = due_ns
-        if self._down:
-            self._down = False
+        if self.down:
+            self.down = False
             log.warning("%s: frames again", self.source.describe())
         self.stats.add(arrived_ns)
         self._deliver(CapturedFrame(self.camera, arrived_ns, image))

@@ -58,6 +58,9 @@ class LiveSummary:
     outages : per camera, why it stopped each time it did (retried).
     stopped_by : "a signal" (Ctrl-C, SIGTERM, SIGHUP), "--duration", "the end of the replay"
         or "the cameras ending".
+    delivered : per camera, frames it delivered.
+    down_at_end : per camera, whether it was still down (an outage not over) as the run ended.
+    cut_short : per replayed camera, why its frames ended before its video did ("" where not).
     """
 
     run: RunSummary
@@ -67,24 +70,54 @@ class LiveSummary:
     camera_fps: dict[str, float]
     outages: dict[str, list[str]] = field(default_factory=dict)
     stopped_by: str = ""
+    delivered: dict[str, int] = field(default_factory=dict)
+    down_at_end: dict[str, bool] = field(default_factory=dict)
+    cut_short: dict[str, str] = field(default_factory=dict)
 
     @property
     def exit_code(self) -> int:
-        return self.run.exit_code
+        """The run's; 1 at least where a camera delivered nothing or a replay ended short."""
+        silent = not all(self.delivered.values())
+        return max(self.run.exit_code, int(silent or bool(self.replay_lines())))
 
     def latency_ms(self, percentile: float) -> float:
         return float(np.percentile(self.latencies_ms, percentile)) if len(self.latencies_ms) else float("nan")
 
     def outage_lines(self) -> list[str]:
-        return [
-            f"  camera {name}: stopped {len(whys)} time(s), picked up again (first: {whys[0]})"
-            for name, whys in self.outages.items()
-            if whys
-        ]
+        lines = []
+        for name in dict.fromkeys([*self.delivered, *self.outages]):
+            whys = self.outages.get(name, [])
+            if not self.delivered.get(name, 1):
+                why = whys[0] if whys else "its source opened no stream before the run ended"
+                lines.append(
+                    f"  camera {name}: delivered no frame ({why}); check its source in [live] in "
+                    "session.toml, and that the camera is on or its stream is sent"
+                )
+            elif whys:
+                state = "down at the end" if self.down_at_end.get(name) else "picked up again"
+                lines.append(f"  camera {name}: stopped {len(whys)} time(s), {state} (first: {whys[0]})")
+        return lines
+
+    def replay_lines(self) -> list[str]:
+        """A replayed camera whose frames ended before the others' (its video cut short, or
+        damaged past them): the others' later frames had no set."""
+        if not self.delivered or not all(name in self.cut_short for name in self.delivered):
+            return []  # not a replay
+        most = max(self.delivered.values())
+        lines = []
+        for name, frames in self.delivered.items():
+            why = self.cut_short[name]
+            if frames < most or why:
+                ends = f"it is damaged there: {why}" if why else "its video ends there: cut short?"
+                lines.append(
+                    f"  camera {name}: its replay ended after {frames} of the {most} frames the others "
+                    f"gave ({ends}); the frames after had no set: re-export the video"
+                )
+        return lines
 
     def problem_lines(self) -> list[str]:
-        """The run's failure and warning lines, then the cameras that stopped."""
-        return self.run.problem_lines() + self.outage_lines()
+        """The run's failure and warning lines, then the cameras that stopped or ended short."""
+        return self.run.problem_lines() + self.outage_lines() + self.replay_lines()
 
     def live_lines(self) -> list[str]:
         rates = ", ".join(f"{name} {fps:.1f}" for name, fps in self.camera_fps.items())
@@ -101,7 +134,7 @@ class LiveSummary:
         and files."""
         lines = self.run.lines()
         at = next((i for i, line in enumerate(lines) if line.startswith("time:")), len(lines))
-        return lines[:at] + self.outage_lines() + self.live_lines() + lines[at:]
+        return lines[:at] + self.outage_lines() + self.replay_lines() + self.live_lines() + lines[at:]
 
     def to_dict(self) -> dict[str, Any]:
         """:meth:`RunSummary.to_dict` with the live figures under "live" (null where unknown)."""
@@ -280,6 +313,9 @@ def _run(
         camera_fps={n: r.stats.fps for n, r in zip(names, readers, strict=True)},
         outages={n: list(r.stats.outages) for n, r in zip(names, readers, strict=True)},
         stopped_by=stopped_by,
+        delivered={n: r.stats.frames for n, r in zip(names, readers, strict=True)},
+        down_at_end={n: r.down for n, r in zip(names, readers, strict=True)},
+        cut_short={n: r.cut_short for n, r in zip(names, readers, strict=True) if r.source.is_replay},
     )
 
 

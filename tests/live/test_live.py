@@ -8,6 +8,7 @@ test starts, and are stopped by a signal; each checks the recordings it leaves.
 from __future__ import annotations
 
 import base64
+import dataclasses
 import io
 import json
 import os
@@ -254,6 +255,28 @@ def _verify_rrd(path: Path) -> None:
         [str(RERUN), "rrd", "verify", str(path)], env=RERUN_ENV, capture_output=True, text=True
     )
     assert verify.returncode == 0, verify.stderr
+
+
+def test_a_replay_damaged_part_way_keeps_the_frames_before_and_says_why(
+    session: Path, tmp_path: Path
+) -> None:
+    from pipeline.live.capture import CameraReader
+
+    video = tmp_path / "cam1.mp4"
+    data = bytearray((session / "cam1.mp4").read_bytes())
+    at = int(0.6 * len(data))
+    data[at : at + 2000] = np.random.default_rng(0).bytes(2000)
+    video.write_bytes(bytes(data))
+    delivered: list[CapturedFrame] = []
+    source = Source("cam1", str(video), replay_fps=300.0)  # paced ten times faster: a quick test
+    reader = CameraReader(
+        1, source, (320, 240), delivered.append, threading.Event(), start_ns=time.monotonic_ns()
+    )
+    reader.start()
+    assert reader.finished.wait(60)
+    # Not a fault that stops the run: the frames before the damage stand, and why it ended is kept.
+    assert reader.fault is None and 0 < len(delivered) < FRAMES
+    assert "Invalid data" in reader.cut_short
 
 
 @pytest.mark.slow
@@ -687,6 +710,49 @@ def test_the_summary_gives_latency_drops_rates_and_outages() -> None:
     assert data["live"]["latency_ms"] == {"p50": 30.0, "p99": pytest.approx(49.6)}
     assert data["live"]["camera_fps"] == {"cam0": 30.0, "cam1": None}
     assert data["live"]["frames_dropped"] == 3 and data["exit_code"] == 0
+
+
+def test_the_summary_names_a_camera_that_delivered_nothing_or_whose_replay_ended_short() -> None:
+    from pipeline.run.summary import RunSummary
+
+    run = RunSummary(frames_ok=21, frames_empty=0, frames_failed=[], wall_s=2.0, fps=10.0)
+    common = {
+        "run": run,
+        "latencies_ms": np.array([10.0]),
+        "dropped": 0,
+        "stopped_by": "the end of the replay",
+    }
+    names = ("cam0", "cam1", "cam2")
+    short = LiveSummary(
+        **common,
+        unmatched={"cam0": 19, "cam1": 0, "cam2": 19},
+        camera_fps=dict.fromkeys(names, 30.0),
+        delivered={"cam0": 40, "cam1": 21, "cam2": 40},
+        cut_short={"cam0": "", "cam1": "", "cam2": ""},
+    )
+    (line,) = short.problem_lines()
+    assert line.startswith("  camera cam1: its replay ended after 21 of the 40 frames the others gave")
+    assert "cut short?" in line and short.exit_code == 1
+    damaged = dataclasses.replace(short, cut_short={"cam0": "", "cam1": "Invalid data", "cam2": ""})
+    assert "it is damaged there: Invalid data" in damaged.problem_lines()[0]
+    whole = dataclasses.replace(short, delivered=dict.fromkeys(names, 40))
+    assert whole.problem_lines() == [] and whole.exit_code == 0
+    silent = LiveSummary(
+        **common,
+        unmatched=dict.fromkeys(names, 0),
+        camera_fps=dict.fromkeys(names, float("nan")),
+        outages={"cam0": ["No such file or directory"], "cam1": [], "cam2": ["Connection refused"]},
+        delivered={"cam0": 0, "cam1": 0, "cam2": 12},
+        down_at_end={"cam2": True},
+    )
+    assert silent.problem_lines() == [
+        "  camera cam0: delivered no frame (No such file or directory); check its source in [live] in "
+        "session.toml, and that the camera is on or its stream is sent",
+        "  camera cam1: delivered no frame (its source opened no stream before the run ended); check its "
+        "source in [live] in session.toml, and that the camera is on or its stream is sent",
+        "  camera cam2: stopped 1 time(s), down at the end (first: Connection refused)",
+    ]
+    assert silent.exit_code == 1
 
 
 def test_a_camera_whose_frames_do_not_fit_its_calibration_stops_the_run_named(session: Path) -> None:
