@@ -13,11 +13,13 @@ place here that converts the recording's metres to millimetres.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
 import math
 import zipfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,6 +31,10 @@ from ..errors import EvaluationError
 from ..geometry.polyline import polyline_arclength
 
 log = logging.getLogger(__name__)
+
+# A true centreline farther than this from the world origin (mm) is no workspace's: the
+# distances to it overflow, and every figure came out empty.
+MAX_TRUTH_MM = 1e6
 
 FloatArray = NDArray[np.float64]
 
@@ -327,6 +333,12 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
         raise EvaluationError(
             f"{file}: 'centerlines' holds non-finite values; render the session again (pipeline synth)"
         )
+    farthest = float(np.abs(centerlines).max()) if centerlines.size else 0.0
+    if farthest > MAX_TRUTH_MM:
+        raise EvaluationError(
+            f"{file}: 'centerlines' reach {farthest:.3g} mm from the origin, beyond any workspace "
+            f"({MAX_TRUTH_MM:g} mm); is this a ground truth in millimetres? render the session again"
+        )
     return centerlines, timestamps
 
 
@@ -336,6 +348,23 @@ def _truth_session(ground_truth: Path) -> str:
     if ground_truth.is_dir():
         return ground_truth.resolve().name
     return ground_truth.resolve().parent.name if ground_truth.name == "ground_truth.npz" else ""
+
+
+@contextlib.contextmanager
+def _held_warnings(logger: str) -> Iterator[list[logging.LogRecord]]:
+    """The records ``logger`` emits inside the block, held back (for the caller to emit or
+    to fold into its one line of error)."""
+    held: list[logging.LogRecord] = []
+
+    def hold(record: logging.LogRecord) -> bool:
+        held.append(record)
+        return False
+
+    logging.getLogger(logger).addFilter(hold)
+    try:
+        yield held
+    finally:
+        logging.getLogger(logger).removeFilter(hold)
 
 
 def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> EvaluationReport:
@@ -362,10 +391,14 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
     if not recording.is_file():
         raise EvaluationError(f"recording {recording} does not exist; run `python -m pipeline process` first")
     truth_mm, truth_times = load_ground_truth(ground_truth)
-    rec = load_recording(recording)
+    with _held_warnings("pipeline.record.load") as held:
+        rec = load_recording(recording)
     indices = np.asarray(rec.frame_indices, dtype=np.int64).reshape(-1)
     if len(indices) == 0:
-        raise EvaluationError(f"{recording}: the recording holds no frames")
+        why = "" if rec.complete else " (cut short or damaged before its first frame: the run did not finish)"
+        raise EvaluationError(f"{recording}: the recording holds no frames{why}")
+    for record in held:  # a recording cut short after some frames: said, and evaluated
+        logging.getLogger(record.name).handle(record)
     outside = indices[(indices < 0) | (indices >= len(truth_mm))]
     if len(outside):
         raise EvaluationError(

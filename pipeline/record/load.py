@@ -198,8 +198,8 @@ def load_recording(path: Path | str) -> Recording:
         with path.open("rb") as f:
             if f.read(len(_RRD_MAGIC)) == _RRD_MAGIC:
                 raise RecordingError(
-                    f"{path}: is a Rerun recording (open it in the Rerun viewer); give load_recording "
-                    "the .mcap written beside it"
+                    f"{path}: is a Rerun recording (open it in the Rerun viewer); read the .mcap "
+                    "written beside it"
                 )
             f.seek(0)
             return _read(f, path)
@@ -253,11 +253,16 @@ def _read(stream: Any, path: Path) -> Recording:
             why = " ".join(str(exc).split()) or type(exc).__name__
             raise RecordingError(f"{path}: not a readable MCAP recording ({why})") from None
         if metrics:
-            log.warning("%s: truncated or damaged after frame %d; read what precedes it", path, max(metrics))
+            log.warning(
+                "%s: truncated or damaged after frame %d (the run did not finish); read what precedes it",
+                path,
+                max(metrics),
+            )
         else:
-            log.warning("%s: truncated or damaged before its first frame", path)
-    if not complete:
-        log.warning("%s: no footer (the run did not finish); %d frames read", path, len(metrics))
+            log.warning("%s: truncated or damaged before its first frame (the run did not finish)", path)
+    else:
+        if not complete:
+            log.warning("%s: no footer (the run did not finish); %d frames read", path, len(metrics))
     return _assemble(path, metadata, metrics, points, curves, smoothed, complete)
 
 

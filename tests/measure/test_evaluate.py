@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from pipeline.errors import EvaluationError
+from pipeline.errors import EvaluationError, RecordingError
 from pipeline.measure.evaluate import (
     TARGETS,
     EvaluationReport,
@@ -321,6 +321,33 @@ def test_a_ground_truth_with_non_finite_centrelines_is_a_user_error(
     np.savez(tmp_path / "nan.npz", centerlines=truth)
     with pytest.raises(EvaluationError, match="holds non-finite values"):
         evaluate_recording(recording, tmp_path / "nan.npz")
+
+
+def test_a_ground_truth_far_beyond_any_workspace_is_a_user_error(
+    partial_run: tuple[Path, Path], tmp_path: Path
+) -> None:
+    # Finite, but 1e300 mm: the distances to it overflow, and every figure would be empty.
+    recording, _ = partial_run
+    truth = np.stack([rod_truth(i) for i in range(RUN_FRAMES)]) * 1e300
+    np.savez(tmp_path / "far.npz", centerlines=truth)
+    with pytest.raises(EvaluationError, match=r"'centerlines' reach .*e\+30\d mm from the origin"):
+        evaluate_recording(recording, tmp_path / "far.npz")
+
+
+def test_a_recording_cut_before_its_first_frame_is_one_line(
+    partial_run: tuple[Path, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    recording, session_dir = partial_run
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(recording.read_bytes()[:600])  # the header and metadata, no frame
+    with caplog.at_level(logging.WARNING), pytest.raises(EvaluationError) as info:
+        evaluate_recording(cut, session_dir)
+    assert "holds no frames (cut short or damaged before its first frame" in str(info.value)
+    assert not caplog.records  # the reason is in the error's line, not in a warning above it
+    rrd = tmp_path / "run.rrd"
+    rrd.write_bytes(b"RRF2" + bytes(60))
+    with pytest.raises(RecordingError, match=r"is a Rerun recording .*; read the \.mcap written beside it"):
+        evaluate_recording(rrd, session_dir)
 
 
 def test_recording_beyond_the_truth_is_a_user_error(partial_run: tuple[Path, Path], tmp_path: Path) -> None:
