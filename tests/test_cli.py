@@ -252,6 +252,10 @@ def test_json_to_a_missing_folder_fails_before_the_run(
     assert fake.kwargs == {}  # never started
     err = capsys.readouterr().err
     assert err.startswith("error: ") and "does not exist" in err and err.count("\n") == 1
+    (tmp_path / "file").write_text("a file, not a folder")
+    assert main(["process", "s", "--json", str(tmp_path / "file" / "summary.json")]) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "file is a file, not a folder; give --json a file in a folder" in err and err.count("\n") == 1
 
 
 def test_interrupt_exits_130(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:

@@ -128,6 +128,8 @@ def _check_json_path(path: Path, outputs: tuple[Path, ...] = ()) -> None:
     calibration, a recording) or of one of the run's ``outputs``."""
     if path.is_dir():
         raise OutputError(f"{path}: is a directory; give --json a file name (or - for stdout)")
+    if path.parent.exists() and not path.parent.is_dir():
+        raise OutputError(f"{path}: {path.parent} is a file, not a folder; give --json a file in a folder")
     if not path.parent.is_dir():
         raise OutputError(
             f"{path}: folder {path.parent} does not exist; give --json a file in an existing one"

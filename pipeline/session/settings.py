@@ -225,6 +225,10 @@ def _convert(source: str, section: str, key: str, value: Any) -> Any:
     name = f"[{section}] {key}"
     if key in ("base_mm", "radius_mm") and value == "auto":
         return None  # inferred from the data (see centerline / quality)
+    if key == "base_mm" and isinstance(value, str):
+        raise SettingsError(f'{source}: {name} must be a list of 3 numbers or "auto", got {_short(value)}')
+    if key == "radius_mm" and isinstance(value, str):
+        raise SettingsError(f'{source}: {name} must be a number (mm) or "auto", got {_short(value)}')
     if key in ("origin_mm", "size_mm", "base_mm"):
         return _vector3(source, name, value)
     if key in ("voxel_mm", "radius_mm"):
