@@ -146,6 +146,10 @@ def _duplicate_name(d: dict[str, Any]) -> None:
     d["cam_1"]["name"] = "cam0"
 
 
+def _copied_table(d: dict[str, Any]) -> None:
+    d["cam_1"] = {**d["cam_0"], "name": "cam1"}  # cam0's table pasted, only renamed
+
+
 @pytest.mark.parametrize(
     ("edit", "needles"),
     [
@@ -162,6 +166,7 @@ def _duplicate_name(d: dict[str, Any]) -> None:
         (_fisheye, ("cam1", "fisheye", "standard lens model")),
         (_text_size, ("cam1", "size")),
         (_duplicate_name, ("'cam0'", "more than once")),
+        (_copied_table, ("cameras 'cam0' and 'cam1' stand at the same place", "copied")),
     ],
     ids=lambda v: v.__name__.strip("_") if callable(v) else "",
 )
@@ -176,6 +181,13 @@ def test_bad_camera_table(
 
 
 # --- videos against the calibration ------------------------------------------------
+
+
+def test_one_cameras_video_copied_under_anothers_name(
+    session: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    shutil.copy(session / "cam0.avi", session / "cam2.avi")
+    assert_rejected(session, capsys, "cam2.avi", "is the same file as cam0.avi")
 
 
 def test_video_without_calibration_entry(session: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -50,7 +50,20 @@ def cameras_from_dict(data: dict[str, Any], *, source: str = "calibration.toml")
     dupes = sorted({n for n in names if names.count(n) > 1})
     if dupes:
         raise CalibrationError(f"{source}: camera name {dupes[0]!r} appears more than once")
+    for i, a in enumerate(cameras):
+        for b in cameras[i + 1 :]:
+            if np.linalg.norm(a.center_mm - b.center_mm) < _SAME_PLACE_MM:
+                raise CalibrationError(
+                    f"{source}: cameras {a.name!r} and {b.name!r} stand at the same place "
+                    f"({np.linalg.norm(a.center_mm - b.center_mm):.2g} mm apart): one camera's table "
+                    "was copied from the other's; give each camera its own calibration"
+                )
     return cameras
+
+
+# Two cameras' centres closer than this (mm) are one camera twice: a table copied over
+# another. Two views from one place see the same silhouette, and their cones do not meet.
+_SAME_PLACE_MM = 1.0
 
 
 def _array(source: str, where: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import errno
+import hashlib
 import logging
 import math
 import os
@@ -85,6 +86,7 @@ def _load_session(directory: Path) -> Session:
     settings = load_settings(directory / "session.toml")
     cameras = _rig_cameras(directory / "calibration.toml")
     videos = _find_videos(directory, [c.name for c in cameras])
+    _check_distinct_videos(list(videos.values()))
     infos = [probe_video(videos[c.name]) for c in cameras]
     for cam, info in zip(cameras, infos, strict=True):
         if (info.width, info.height) != cam.size_px:
@@ -226,6 +228,25 @@ def _find_videos(directory: Path, names: list[str]) -> dict[str, Path]:
                 f"{directory}: camera {name!r} in calibration.toml has no video ({name}.mp4, .avi or .mkv)"
             )
     return found
+
+
+def _check_distinct_videos(paths: list[Path]) -> None:
+    """Two cameras' videos with the same bytes are one camera's video copied: its silhouette
+    in two views whose cones do not meet there."""
+    by_size: dict[int, list[Path]] = {}
+    for path in paths:
+        by_size.setdefault(path.stat().st_size, []).append(path)
+    for same_size in by_size.values():
+        digests: dict[str, Path] = {}
+        for path in same_size if len(same_size) > 1 else ():
+            with path.open("rb") as f:
+                digest = hashlib.file_digest(f, "sha256").hexdigest()
+            if digest in digests:
+                raise SessionError(
+                    f"{path}: is the same file as {digests[digest].name}: one camera's video was "
+                    "copied under the other's name; put each camera's own video there"
+                )
+            digests[digest] = path
 
 
 def _common_fps(infos: list[VideoInfo]) -> float:
