@@ -34,6 +34,7 @@ from ..session.calibration_io import write_calibration
 from ..session.toml_file import load_toml
 from .adjust import Tube, adjust_cameras, aligned_by_images, resampled_tube
 from .mount import CHECK_BASE, mount_shift, moved_to_mount
+from .video_order import check_video_order
 
 FloatArray = NDArray[np.float64]
 
@@ -292,6 +293,10 @@ def refined_cameras(
     "auto"``) and the given cameras are kept: the sample frames' ends, read on the same
     reconstructions, for :func:`pipeline.reconstruct.tip_shape.with_session_tip` (their
     bases are free, which moves a fit near its base, not at its end); else None."""
+    started = time.perf_counter()
+    frames = decode_frames(video_paths, sample_frames(start, stop, SAMPLE_FRAMES))
+    # Videos in other cameras' places would be taken for cameras that moved: named first.
+    check_video_order(model, frames, video_paths)
     mode = model.settings.calibration.refine
     if mode is False or model.settings.centerline.method != "fit":
         return model.cameras, None, None
@@ -300,8 +305,6 @@ def refined_cameras(
         # exactly the two numbers that place it, and nothing is left to tell the cameras by.
         reason = "two views of a tube's sides say nothing about the cameras; refining needs three or more"
         return model.cameras, Refinement(False, 0, float("nan"), float("nan"), (), reason), None
-    started = time.perf_counter()
-    frames = decode_frames(video_paths, sample_frames(start, stop, SAMPLE_FRAMES))
     tubes, read = _sampled(model, frames, map_frames, read_tips=model.settings.manipulator.tip == "auto")
     if len(tubes) < 3:
         return model.cameras, None, read

@@ -1,0 +1,99 @@
+"""Whether each video is its camera's: the silhouettes' cones meet in one tube only so.
+
+Two videos swapped (or two names swapped in calibration.toml) give each camera another
+camera's view. The cones of such silhouettes still meet here and there, and a run made
+of them reported every camera as moved since its calibration. Told apart by the hull:
+with each view where it belongs, the voxels every view sees re-project onto the whole of
+each silhouette; a view in another camera's place leaves much of its silhouette (and
+the others') unexplained. On a rendered three-camera session (`pipeline synth`, ten
+frames; 2026-12-04) the videos as named explained all of every silhouette (median over
+the frames of the least explained view's share: 1.00), the five other orders 0.58-0.88;
+with two videos swapped, the order that undoes the swap explained 1.00.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from ..carve.hull import carve, voxel_centers_mm
+from ..errors import SessionError
+from ..reconstruct.frame import frame_silhouettes
+from ..reconstruct.model import SessionModel
+
+# Below this share (median over the frames) the videos as named leave too much of a
+# silhouette unexplained to be taken as they are, and the other orders are tried ...
+EXPLAINED_AS_NAMED = 0.95
+# ... and an order that explains this much more, and at least SWAPPED_EXPLAINS, is the
+# videos' own: the run stops and names it. A view with a dark object in its background
+# leaves that object unexplained in every order alike.
+SWAP_MARGIN = 0.1
+SWAPPED_EXPLAINS = 0.9
+# Orders are tried for rigs of up to this many cameras (4! = 24 orders).
+MAX_CAMERAS = 4
+
+
+def explained_share(model: SessionModel, masks: Sequence[NDArray[np.bool_]]) -> float:
+    """The least share, over the views, of a view's silhouette pixels (``masks``, per
+    camera (H, W) bool) onto which a voxel of their hull projects (within a pixel); 0 for a
+    view without silhouette."""
+    points = voxel_centers_mm(model.settings.workspace, carve(model.grid, masks)).astype(np.float64)
+    least = 1.0
+    for cam, mask in zip(model.cameras, masks, strict=True):
+        seen = int(np.count_nonzero(mask))
+        if not seen:
+            return 0.0
+        marks = np.zeros(mask.shape, np.uint8)
+        if len(points):
+            px = np.round(cam.project(points)).astype(np.int64)
+            h, w = mask.shape
+            inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+            marks[px[inside, 1], px[inside, 0]] = 1
+        hit = cv2.dilate(marks, np.ones((3, 3), np.uint8)) > 0
+        least = min(least, float(np.count_nonzero(mask & hit)) / seen)
+    return least
+
+
+def check_video_order(
+    model: SessionModel,
+    frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
+    video_paths: Sequence[Path],
+) -> None:
+    """SessionError naming the videos where another order of them (``frames``: (index, per
+    camera grey image), in calibration order; ``video_paths`` in the same order) explains
+    the silhouettes clearly better than the order they are named in; nothing otherwise."""
+    cameras = len(model.cameras)
+    if not frames or not 2 <= cameras <= MAX_CAMERAS:
+        return
+    masks = [frame_silhouettes(images, model) for _, images in frames]
+    if not any(all(m.any() for m in frame) for frame in masks):
+        return  # no frame in which every view sees something: nothing to tell orders by
+
+    def share(order: tuple[int, ...]) -> float:
+        return float(np.median([explained_share(model, [frame[k] for k in order]) for frame in masks]))
+
+    named = tuple(range(cameras))
+    as_named = share(named)
+    if as_named >= EXPLAINED_AS_NAMED:
+        return
+    best, best_share = max(
+        ((order, share(order)) for order in itertools.permutations(named) if order != named),
+        key=lambda item: item[1],
+    )
+    if best_share < max(SWAPPED_EXPLAINS, as_named + SWAP_MARGIN):
+        return
+    moves = ", ".join(
+        f"{video_paths[k].name} looks like {model.cameras[i].name}'s view"
+        for i, k in enumerate(best)
+        if k != i
+    )
+    raise SessionError(
+        f"{video_paths[0].parent}: the videos do not match their cameras in calibration.toml: {moves} "
+        f"(their silhouettes meet in one tube so: {100 * best_share:.0f} % of them explained, against "
+        f"{100 * as_named:.0f} % as named); rename the videos, or the cameras in calibration.toml"
+    )

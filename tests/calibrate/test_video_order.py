@@ -1,0 +1,57 @@
+"""Videos in other cameras' places are named before any work: the hull tells them apart."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pipeline.calibrate.video_order import check_video_order
+from pipeline.errors import SessionError
+from pipeline.reconstruct.frame import build_model
+from pipeline.reconstruct.frame_task import decode_frames
+from pipeline.session.folder import load_session
+from pipeline.synth import render_session
+from pipeline.synth.session_render import SceneOptions
+
+
+@pytest.fixture(scope="module", params=[(1, "oblique"), (2, "ninety")], ids=["seed1-oblique", "seed2-ninety"])
+def session(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    seed, arrangement = request.param
+    directory = tmp_path_factory.mktemp("order") / "take"
+    options = SceneOptions(distractor=False)
+    render_session(
+        directory,
+        shape="random",
+        frames=6,
+        seed=seed,
+        arrangement=arrangement,
+        options=options,
+        progress=False,
+        jobs=1,
+    )
+    return directory
+
+
+def _check(directory: Path) -> None:
+    session = load_session(directory)
+    frames = decode_frames(session.video_paths, range(session.frame_count))
+    check_video_order(build_model(session), frames, session.video_paths)
+
+
+def test_videos_as_their_cameras_pass(session: Path) -> None:
+    _check(session)
+
+
+def test_two_videos_swapped_are_named(session: Path, tmp_path: Path) -> None:
+    swapped = tmp_path / "take"
+    swapped.mkdir()
+    for item in session.iterdir():
+        name = {"cam1.mp4": "cam2.mp4", "cam2.mp4": "cam1.mp4"}.get(item.name, item.name)
+        (swapped / name).symlink_to(item)
+    with pytest.raises(SessionError) as info:
+        _check(swapped)
+    message = str(info.value)
+    assert "the videos do not match their cameras in calibration.toml" in message
+    assert "cam2.mp4 looks like cam1's view" in message and "cam1.mp4 looks like cam2's view" in message
+    assert "cam0.mp4" not in message
