@@ -237,8 +237,10 @@ def _check_distinct_videos(paths: list[Path]) -> None:
     for path in paths:
         by_size.setdefault(path.stat().st_size, []).append(path)
     for same_size in by_size.values():
+        if len(same_size) < 2:
+            continue
         digests: dict[str, Path] = {}
-        for path in same_size if len(same_size) > 1 else ():
+        for path in same_size:
             with path.open("rb") as f:
                 digest = hashlib.file_digest(f, "sha256").hexdigest()
             if digest in digests:
