@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import logging
 from collections.abc import Sequence
 from pathlib import Path
@@ -68,7 +69,8 @@ def write_report(result: CalibrationResult, views: Sequence[View], out_dir: Path
         # only if the world frame is where the user meant it.
         cv2.drawFrameAxes(image, cam.matrix, cam.distortions, cam.rotation, cam.translation_mm, length, 2)
         path = out_dir / f"world_axes_{cam.name}.png"
-        cv2.imwrite(str(path), image)
+        if not cv2.imwrite(str(path), image):  # OpenCV returns False (a full disk), raises nothing
+            raise OSError(errno.EIO, f"{path.name} could not be written")
         files.append(path)
     for e in result.outliers:
         log.warning("%s: mean re-projection error %.3f px stands out (--drop-outliers)", e.source, e.mean_px)

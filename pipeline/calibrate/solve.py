@@ -117,7 +117,13 @@ def calibrate_directory(
         partial.unlink(missing_ok=True)
         raise OutputError(f"{output}: cannot write the calibration ({exc.strerror or exc})") from None
     report = Path(report_dir) if report_dir is not None else output.parent
-    result.report_files = write_report(result, views, report)
+    try:
+        result.report_files = write_report(result, views, report)
+    except OSError as exc:
+        raise OutputError(
+            f"{report}: wrote {output}, but not its report pictures ({exc.strerror or exc}); free space "
+            "or give -o a folder with room for them"
+        ) from None
     return result
 
 

@@ -229,3 +229,18 @@ def test_reconstruction_with_calibrated_cameras(synth, tmp_path) -> None:
         errors[session_dir.name] = report.mean_mm
     # The target: at most 0.2 mm worse in mean centreline error.
     assert errors["calibrated"] <= errors["true"] + 0.2, errors
+
+
+def test_report_pictures_that_cannot_be_written_are_an_error_after_the_calibration(
+    small_rig, tmp_path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # OpenCV says False, not an exception, when it cannot write (a full disk): the run said
+    # "wrote world_axes_cam0.png" of a file that was not there.
+    from pipeline.calibrate import report
+    from pipeline.errors import OutputError
+
+    root = _copy(small_rig, tmp_path)
+    monkeypatch.setattr(report.cv2, "imwrite", lambda path, image: False)
+    with pytest.raises(OutputError, match=r"wrote .*c\.toml, but not its report pictures"):
+        calibrate_directory(root, tmp_path / "c.toml")
+    assert read_calibration(tmp_path / "c.toml")  # the calibration itself is whole
