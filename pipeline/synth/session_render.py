@@ -8,8 +8,10 @@ chunks; the parent writes them in order to one mp4v video per camera.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import io
 import logging
+import shutil
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -310,67 +312,80 @@ def render_session(
     disks = disks_of(profile, length)
     check_poses(centerlines, radii, cameras, tip=options.tip, disks=disks)
 
+    created = not out_dir.exists()
     try:
-        (out_dir / "background").mkdir(parents=True, exist_ok=True)
+        try:
+            (out_dir / "background").mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise PipelineError(f"{out_dir}: cannot create the session directory: {exc.strerror}") from None
+        if options.calib_error_deg:
+            given = perturbed_rig(cameras, options.calib_error_deg, seed=seed)
+            source = f"pipeline synth (true cameras with a {options.calib_error_deg:g} deg calibration error)"
+        else:
+            given, source = cameras, "pipeline synth (true cameras)"
+        (out_dir / "calibration.toml").write_bytes(
+            tomli_w.dumps(
+                calibration_document(given, metadata={"source": source, "arrangement": arrangement})
+            ).encode()
+        )
+        (out_dir / "session.toml").write_bytes(
+            tomli_w.dumps(session_document(polarity=polarity, radius_mm=radius_mm)).encode()
+        )
+        backgrounds = [
+            background_texture(cam.width, cam.height, seed=seed, camera_index=i)
+            for i, cam in enumerate(cameras)
+        ]
+        blob = None
+        if options.distractor:
+            widest = max(float(radii.max()), 0.0 if disks is None else disks.radius_mm)
+            blob = place_distractor(cameras, centerlines, widest, seed=seed)
+            backgrounds[blob.camera_index] = paint_distractor(backgrounds[blob.camera_index], blob)
+        for cam, bg in zip(cameras, backgrounds, strict=True):
+            grey = 255.0 - bg if polarity == "bright" else bg
+            cv2.imwrite(str(out_dir / "background" / f"{cam.name}.png"), np.rint(grey).astype(np.uint8))
+        gains = flicker_gains(seed, frames) if options.flicker else np.ones(frames)
+        write_npz_deterministic(
+            out_dir / "ground_truth.npz",
+            {
+                "centerlines": centerlines,
+                "timestamps_s": np.arange(frames) / FPS,
+                "radius_mm": np.float64(radius_mm),
+                "base_mm": BASE_MM,
+                "shape": np.str_(shape),
+                "fps": np.float64(FPS),
+                "camera_names": np.array([c.name for c in cameras]),
+                "K": np.stack([c.K for c in cameras]),
+                "dist": np.stack([c.dist for c in cameras]),
+                "R": np.stack([c.R for c in cameras]),
+                "t": np.stack([c.t for c in cameras]),
+                "image_size": np.array([cameras[0].width, cameras[0].height]),
+                "tip": np.str_(options.tip),
+                "profile": np.str_(profile.kind),
+                "radius_profile_mm": np.broadcast_to(radii, (frames, CENTERLINE_POINTS)),
+                "length_mm": np.float64(length),
+                "disk_arc_mm": np.zeros(0) if disks is None else disks.arc_mm,
+                "disk_radius_mm": np.float64(0.0 if disks is None else disks.radius_mm),
+                "disk_thickness_mm": np.float64(0.0 if disks is None else disks.thickness_mm),
+                "distractor_camera": np.int64(-1 if blob is None else blob.camera_index),
+                "flicker_gain": gains,
+                "calib_error_deg": np.float64(options.calib_error_deg),
+            },
+        )
+        # Named shapes with the original options pass the plain radius, exactly as before.
+        uniform = profile.kind == "uniform"
+        look = Look(radius_mm if uniform else radii, options.tip, disks, backgrounds, polarity, seed, gains)
+        _write_videos(out_dir, cameras, centerlines, look, progress, jobs)
+        log.info("wrote synthetic session %s (%s, %d frames)", out_dir, shape, frames)
     except OSError as exc:
-        raise PipelineError(f"{out_dir}: cannot create the session directory: {exc.strerror}") from None
-    if options.calib_error_deg:
-        given = perturbed_rig(cameras, options.calib_error_deg, seed=seed)
-        source = f"pipeline synth (true cameras with a {options.calib_error_deg:g} deg calibration error)"
-    else:
-        given, source = cameras, "pipeline synth (true cameras)"
-    (out_dir / "calibration.toml").write_bytes(
-        tomli_w.dumps(
-            calibration_document(given, metadata={"source": source, "arrangement": arrangement})
-        ).encode()
-    )
-    (out_dir / "session.toml").write_bytes(
-        tomli_w.dumps(session_document(polarity=polarity, radius_mm=radius_mm)).encode()
-    )
-    backgrounds = [
-        background_texture(cam.width, cam.height, seed=seed, camera_index=i) for i, cam in enumerate(cameras)
-    ]
-    blob = None
-    if options.distractor:
-        widest = max(float(radii.max()), 0.0 if disks is None else disks.radius_mm)
-        blob = place_distractor(cameras, centerlines, widest, seed=seed)
-        backgrounds[blob.camera_index] = paint_distractor(backgrounds[blob.camera_index], blob)
-    for cam, bg in zip(cameras, backgrounds, strict=True):
-        grey = 255.0 - bg if polarity == "bright" else bg
-        cv2.imwrite(str(out_dir / "background" / f"{cam.name}.png"), np.rint(grey).astype(np.uint8))
-    gains = flicker_gains(seed, frames) if options.flicker else np.ones(frames)
-    write_npz_deterministic(
-        out_dir / "ground_truth.npz",
-        {
-            "centerlines": centerlines,
-            "timestamps_s": np.arange(frames) / FPS,
-            "radius_mm": np.float64(radius_mm),
-            "base_mm": BASE_MM,
-            "shape": np.str_(shape),
-            "fps": np.float64(FPS),
-            "camera_names": np.array([c.name for c in cameras]),
-            "K": np.stack([c.K for c in cameras]),
-            "dist": np.stack([c.dist for c in cameras]),
-            "R": np.stack([c.R for c in cameras]),
-            "t": np.stack([c.t for c in cameras]),
-            "image_size": np.array([cameras[0].width, cameras[0].height]),
-            "tip": np.str_(options.tip),
-            "profile": np.str_(profile.kind),
-            "radius_profile_mm": np.broadcast_to(radii, (frames, CENTERLINE_POINTS)),
-            "length_mm": np.float64(length),
-            "disk_arc_mm": np.zeros(0) if disks is None else disks.arc_mm,
-            "disk_radius_mm": np.float64(0.0 if disks is None else disks.radius_mm),
-            "disk_thickness_mm": np.float64(0.0 if disks is None else disks.thickness_mm),
-            "distractor_camera": np.int64(-1 if blob is None else blob.camera_index),
-            "flicker_gain": gains,
-            "calib_error_deg": np.float64(options.calib_error_deg),
-        },
-    )
-    # Named shapes with the original options pass the plain radius, exactly as before.
-    uniform = profile.kind == "uniform"
-    look = Look(radius_mm if uniform else radii, options.tip, disks, backgrounds, polarity, seed, gains)
-    _write_videos(out_dir, cameras, centerlines, look, progress, jobs)
-    log.info("wrote synthetic session %s (%s, %d frames)", out_dir, shape, frames)
+        # A full disk or a folder that turned read-only: a render into a new folder leaves
+        # nothing; one over an earlier render leaves it incomplete, and says so.
+        if created:
+            shutil.rmtree(out_dir, ignore_errors=True)
+        left = "nothing written" if created else "the session there is incomplete: render it again"
+        raise PipelineError(
+            f"{out_dir}: cannot write the session ({exc.strerror or exc}); {left}, after freeing space "
+            "or in another directory"
+        ) from None
 
 
 def _write_videos(
@@ -413,3 +428,11 @@ def _write_videos(
     finally:
         for writer in writers:
             writer.release()
+    # OpenCV's writer says nothing when the disk fills: a video cut short is found by reading it.
+    for cam in cameras:
+        path = out_dir / f"{cam.name}.mp4"
+        capture = cv2.VideoCapture(str(path))
+        written = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) if capture.isOpened() else 0
+        capture.release()
+        if written != frames:
+            raise OSError(errno.EIO, f"{path.name} holds {written} of its {frames} frames (a full disk?)")

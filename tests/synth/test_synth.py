@@ -903,3 +903,44 @@ def test_bad_variety_options_raise_pipeline_errors(tmp_path: Path) -> None:
 
 def test_the_arrangements_the_command_line_offers_are_the_rigs_placements() -> None:
     assert ARRANGEMENT_NAMES == tuple(ARRANGEMENTS)
+
+
+def test_a_full_disk_leaves_no_half_made_session(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import errno
+    import os
+
+    from pipeline.synth import session_render
+
+    def full(*args: object, **kwargs: object) -> None:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    with monkeypatch.context() as m:
+        m.setattr(session_render, "write_npz_deterministic", full)
+        with pytest.raises(
+            PipelineError, match=r"new: cannot write the session \(No space left on device\); nothing"
+        ):
+            render_session(tmp_path / "new", frames=2, progress=False, jobs=1)
+    assert not (tmp_path / "new").exists()
+
+    real_writer = cv2.VideoWriter
+
+    class LosingFrames:
+        """OpenCV's writer on a full disk: it takes every frame and writes none, silently."""
+
+        fourcc = real_writer.fourcc
+
+        def __init__(self, path: str, *args: object) -> None:
+            self.real = real_writer(path, *args)
+            self.lose = path.endswith("cam2.mp4")
+
+        def write(self, image: np.ndarray) -> None:
+            if not self.lose:
+                self.real.write(image)
+
+        def __getattr__(self, name: str) -> object:
+            return getattr(self.real, name)
+
+    monkeypatch.setattr(session_render.cv2, "VideoWriter", LosingFrames)
+    with pytest.raises(PipelineError, match=r"cam2\.mp4 holds 0 of its 2 frames \(a full disk\?\)"):
+        render_session(tmp_path / "new", frames=2, progress=False, jobs=1)
+    assert not (tmp_path / "new").exists()
