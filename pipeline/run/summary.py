@@ -104,7 +104,7 @@ class RunSummary:
                 "the workspace box: check that [workspace] origin_mm and size_mm in session.toml "
                 "hold the tube, and that calibration.toml is this rig's"
             )
-        elif self.frames_ok == 0 and self.frames_empty and self.frames_empty_unseen:
+        elif self.frames_ok == 0 and 2 * sum(self.frames_empty_unseen.values()) >= self.frames_empty > 0:
             blind = sorted(self.frames_empty_unseen.items(), key=lambda item: -item[1])
             cameras = ", ".join(f"camera {name!r} in {count}" for name, count in blind)
             out.append(
