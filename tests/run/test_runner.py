@@ -507,6 +507,14 @@ def test_the_summary_names_doubtful_frames_and_a_run_without_any_tube() -> None:
     empty = runner.RunSummary(frames_ok=0, frames_empty=5, frames_failed=[], wall_s=1.0, fps=5.0)
     assert any("no tube in any frame" in line and "polarity" in line for line in empty.problem_lines())
     assert empty.exit_code == 1  # nothing found is not a success
+    # A camera that saw nothing leads the line where it explains most of the empty frames.
+    blind = runner.RunSummary(
+        frames_ok=0, frames_empty=6, frames_failed=[], wall_s=1.0, fps=6.0, frames_empty_unseen={"cam1": 4}
+    )
+    assert any("(camera 'cam1' in 4 of the 6 empty frames)" in line for line in blind.problem_lines())
+    few = dataclasses.replace(blind, frames_empty_unseen={"cam1": 2})
+    assert not any("cam1" in line for line in few.problem_lines())
+    assert any("no tube in any frame: check [silhouette] polarity" in line for line in few.problem_lines())
     assert not any("doubtful" in line or "no tube" in line for line in doubtful.lines()[:1])
     walls = runner.RunSummary(
         frames_ok=9, frames_empty=0, frames_failed=[], wall_s=1.0, fps=9.0, frames_at_walls=[0, 1, 5]
