@@ -1,5 +1,7 @@
 import atexit
+import contextlib
 import os
+import signal
 import sys
 import threading
 
@@ -15,10 +17,16 @@ def _exit(code: int) -> None:
     the exit handlers (joblib's temporary folders, logging), the streams flushed."""
     # threading._shutdown is what the interpreter itself calls first at exit; joining the
     # threads without its hooks would wait forever on a pool's manager thread.
+    # The run is over: a signal now (Ctrl-C just as it ends) has nothing left to stop, and
+    # raised in threading's shutdown it printed a traceback.
+    for name in ("SIGINT", "SIGTERM", "SIGHUP"):
+        if hasattr(signal, name):
+            signal.signal(getattr(signal, name), signal.SIG_IGN)
     threading._shutdown()  # type: ignore[attr-defined]
     atexit._run_exitfuncs()
-    sys.stdout.flush()
-    sys.stderr.flush()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError, AttributeError):  # closed by the reader
+            stream.flush()
     os._exit(code)
 
 

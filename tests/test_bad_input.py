@@ -5,6 +5,7 @@ Each test copies one small valid session and breaks exactly one thing in it.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import socket
@@ -365,6 +366,39 @@ def test_subprocess_bad_input_is_one_line_without_traceback(session: Path) -> No
     assert proc.stderr.strip().splitlines() == [proc.stderr.strip()], proc.stderr
     assert proc.stderr.startswith("error: ") and "cam1.mp4" in proc.stderr
     assert not out.exists()
+
+
+@pytest.mark.parametrize("stdout", ["full", "closed", "json-to-dev-stdout"])
+def test_a_stdout_that_takes_nothing_costs_the_summary_not_the_run(session: Path, stdout: str) -> None:
+    # `> /dev/full` (no room), `>&-` (closed by the caller) and `--json /dev/stdout` into a pipe
+    # (read and waited on for good, once): the run's outputs and exit status stand.
+    out = session.parent / "out"
+    command = [sys.executable, "-m", "pipeline", *_process(session, out)]
+    options: dict[str, Any] = {"stderr": subprocess.PIPE, "text": True, "timeout": 120, "check": False}
+    if stdout == "full":
+        with open("/dev/full", "w") as full:
+            proc = subprocess.run(command, stdout=full, **options)
+    elif stdout == "closed":
+        proc = subprocess.run(command, preexec_fn=lambda: os.close(1), **options)
+    else:
+        proc = subprocess.run([*command, "--json", "/dev/stdout"], stdout=subprocess.PIPE, **options)
+        assert json.loads(proc.stdout)["exit_code"] == 0
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr and "internal error" not in proc.stderr
+    assert (out / "session.mcap").is_file() and (out / "session.rrd").is_file()
+
+
+def test_a_current_directory_that_no_longer_exists_is_named(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def gone() -> str:
+        raise FileNotFoundError(2, "No such file or directory")
+
+    monkeypatch.setattr(os, "getcwd", gone)
+    assert main(["process", "/nowhere"]) == EXIT_BAD_INPUT
+    assert (
+        capsys.readouterr().err == "error: the current directory no longer exists; cd to a folder that does\n"
+    )
 
 
 # --- settings a real rig cannot have ----------------------------------------------------

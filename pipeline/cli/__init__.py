@@ -35,6 +35,13 @@ log = logging.getLogger("pipeline")
 
 
 def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
+    _open_closed_std_streams()
+    try:
+        os.getcwd()
+    except FileNotFoundError:
+        # Worker processes start in it (loky asks for it): every run would fail there.
+        print("error: the current directory no longer exists; cd to a folder that does", file=sys.stderr)
+        return EXIT_BAD_INPUT
     # SIGINT, SIGTERM and SIGHUP end the run the same way wherever they land: exit 130, one line.
     with signals_interrupt():
         try:
@@ -43,6 +50,19 @@ def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
             message = str(exc) if isinstance(exc, Interrupted) else "interrupted; nothing written"
             print(message, file=sys.stderr)
             return 130
+
+
+def _open_closed_std_streams() -> None:
+    """A standard stream the caller closed (``>&-``) is opened on the null device: Python
+    leaves it None, and the first print (or a worker process inheriting the descriptor)
+    failed. What goes to it is dropped, as a closed stream asks."""
+    for fd, name in ((1, "stdout"), (2, "stderr")):
+        if getattr(sys, name) is None:
+            null = os.open(os.devnull, os.O_WRONLY)
+            if null != fd:
+                os.dup2(null, fd)
+                os.close(null)
+            setattr(sys, name, open(fd, "w", encoding="utf-8", errors="replace", closefd=False))
 
 
 def _main(argv: Sequence[str] | None, prog: str) -> int:

@@ -8,7 +8,7 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 from ..errors import OutputError
 
@@ -34,15 +34,31 @@ def _process_started_at() -> float:
     return time.perf_counter() - max(0.0, age_s)
 
 
+def say(text: str, stream: TextIO | None = None) -> None:
+    """Print ``text`` to ``stream`` (stdout by default). Stdout closed by its reader (``| head``)
+    or unable to take more (``> /dev/full``) loses what is printed to it, not the run: the
+    outputs are written by then, and the exit status stays the run's."""
+    stream = sys.stdout if stream is None else stream
+    try:
+        print(text, file=stream, flush=True)
+    except (BrokenPipeError, OSError, ValueError):
+        if stream is not sys.stdout:
+            raise
+        # Later prints (and the flush at exit) go to the null device.
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, sys.stdout.fileno())
+        os.close(null)
+
+
 def _report(summary: Any, json_to: str | None) -> None:
     """Print a run's summary: the failures and warnings to stderr, where scripts and logs look
     for them, the rest to stdout unless stdout carries the JSON summary (``json_to`` "-");
     the JSON summary to ``json_to`` if given."""
     problems = set(summary.problem_lines())
     for line in summary.lines():
-        print(line, file=sys.stderr if line in problems or json_to == "-" else sys.stdout)
+        say(line, sys.stderr if line in problems or json_to == "-" else sys.stdout)
     if json_to == "-":
-        print(json.dumps(summary.to_dict(), indent=2))
+        say(json.dumps(summary.to_dict(), indent=2))
     elif json_to is not None:
         try:
             Path(json_to).write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
@@ -54,6 +70,7 @@ def cmd_process(args: argparse.Namespace) -> int:
     from ..run.workers import started_early
 
     started_at = _process_started_at()
+    args.json = _json_target(args.json)
     if args.json not in (None, "-"):
         # A session is named after its folder (pipeline.session.folder.load_session).
         name = Path(args.video_dir).resolve().name
@@ -95,6 +112,7 @@ def cmd_live(args: argparse.Namespace) -> int:
     if args.rig_dir is None and replay is None:
         args.usage_error("give RIG_DIR, or --replay SESSION_DIR")
     rig, sources = open_rig(args.rig_dir, replay)
+    args.json = _json_target(args.json)
     if args.json not in (None, "-"):
         _check_json_path(Path(args.json), _recordings(Path(args.out), rig.name))
     foxglove = None if args.foxglove is None else parse_host_port(args.foxglove or DEFAULT_FOXGLOVE)
@@ -122,12 +140,26 @@ def _rig_dir_after_viewer(args: argparse.Namespace) -> None:
         args.rig_dir, args.viewer = Path(words[-1]), words[:take]
 
 
+def _json_target(text: str | None) -> str | None:
+    """``--json``'s argument, with a path that is this process's stdout (``/dev/stdout``)
+    taken as "-": opened as a file, a pipe there was read and waited on for good."""
+    if text in (None, "-"):
+        return text
+    try:
+        here, out = os.stat(text), os.fstat(sys.stdout.fileno())
+    except (OSError, ValueError):
+        return text
+    return "-" if (here.st_dev, here.st_ino) == (out.st_dev, out.st_ino) else text
+
+
 def _check_json_path(path: Path, outputs: tuple[Path, ...] = ()) -> None:
     """Before the run: the JSON summary can be written to ``path`` (its folder exists and is
     writable) without taking the place of a file that is not a JSON summary (a video, a
     calibration, a recording) or of one of the run's ``outputs``."""
     if path.is_dir():
         raise OutputError(f"{path}: is a directory; give --json a file name (or - for stdout)")
+    if path.exists() and not path.is_file():
+        raise OutputError(f"{path}: is not a regular file (a pipe or device); give --json a file name (or -)")
     if path.parent.exists() and not path.parent.is_dir():
         raise OutputError(f"{path}: {path.parent} is a file, not a folder; give --json a file in a folder")
     if not path.parent.is_dir():
@@ -208,8 +240,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         shared_intrinsics=args.shared_intrinsics,
         drop_outliers=args.drop_outliers,
     )
-    print(format_table(result))
-    print(f"wrote {args.output}; pictures: {', '.join(str(p) for p in result.report_files)}")
+    say(format_table(result))
+    say(f"wrote {args.output}; pictures: {', '.join(str(p) for p in result.report_files)}")
     return EXIT_OK
 
 
@@ -217,7 +249,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from ..measure.evaluate import evaluate_recording, format_report
 
     report = evaluate_recording(args.recording, args.ground_truth)
-    print(report.to_json() if args.json else format_report(report))
+    say(report.to_json() if args.json else format_report(report))
     if not report.complete:
         print(
             f"warning: {args.recording} ends before its footer (its run was stopped while writing): "

@@ -34,6 +34,7 @@ _installed = False  # signals_interrupt is active
 _interrupted = ""  # the signal turned into KeyboardInterrupt already ("": none)
 _deferring = 0  # depth of deferred_signals blocks
 _pending: int | None = None  # a signal received while deferring
+_complete = False  # the run's outputs are in place (outputs_in_place)
 
 
 def _interrupt(signum: int) -> None:
@@ -51,6 +52,8 @@ def raise_if_interrupted() -> None:
 
 def _handler(signum: int, frame: FrameType | None) -> None:
     global _pending
+    if _complete:
+        return
     if _deferring:
         _pending = _pending or signum
     elif not _interrupted:
@@ -64,7 +67,7 @@ def signals_interrupt() -> Iterator[None]:
     A signal the process was started with ignored (``nohup``, a background job's SIGINT)
     stays ignored: the user asked for that. Nested blocks share the outermost one's policy.
     """
-    global _installed, _interrupted, _pending
+    global _installed, _interrupted, _pending, _complete
     if _installed or threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -72,7 +75,7 @@ def signals_interrupt() -> Iterator[None]:
     for sig in INTERRUPT_SIGNALS:
         if signal.getsignal(sig) is not signal.SIG_IGN:
             previous[sig] = signal.signal(sig, _handler)
-    _installed, _interrupted, _pending = True, "", None
+    _installed, _interrupted, _pending, _complete = True, "", None, False
     thread_hook = threading.excepthook
 
     def quiet_once_interrupted(args: threading.ExceptHookArgs) -> None:
@@ -88,7 +91,7 @@ def signals_interrupt() -> Iterator[None]:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         threading.excepthook = thread_hook
-        _installed = False
+        _installed, _complete = False, False
 
 
 def _through_our_code(traceback: TracebackType | None) -> bool:
@@ -98,6 +101,16 @@ def _through_our_code(traceback: TracebackType | None) -> bool:
             return True
         traceback = traceback.tb_next
     return False
+
+
+def outputs_in_place() -> None:
+    """The run's outputs are renamed into place: a signal from now on (one held while they
+    were, or Ctrl-C as the run prints its summary) has nothing left to stop, and is
+    ignored, so that the run ends as it would have, summary and exit status included. A
+    run interrupted then said "interrupted; nothing written" of outputs that were."""
+    global _complete, _pending
+    if _installed:
+        _complete, _pending = True, None
 
 
 @contextlib.contextmanager

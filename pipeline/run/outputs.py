@@ -29,7 +29,7 @@ from ..reconstruct.frame_task import FrameOutput
 from ..reconstruct.quality import SUSPECT_SMOOTHED_MM, is_doubtful, off_smoothed, reaches_walls
 from ..session.folder import Session
 from .frame_log import FrameLog
-from .interrupts import deferred_signals
+from .interrupts import deferred_signals, outputs_in_place
 from .output_target import OutputTarget, output_error
 from .smoothing import smooth_centerlines
 from .summary import RunSummary
@@ -334,6 +334,7 @@ class Writers:
         with deferred_signals():  # a signal between the two renames would split the pair
             self.target.commit()
             self.committed = True
+            outputs_in_place()
 
     def _close_viewer(self) -> None:
         """Send the viewer what it has not got yet, within VIEWER_FLUSH_S: a viewer that went

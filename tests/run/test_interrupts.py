@@ -62,3 +62,21 @@ def test_a_library_threads_failure_once_a_signal_ended_the_run_goes_to_the_debug
                 thread.join()
     assert printed == ["before the signal", "ours"]  # this project's own failures still show
     assert [r.exc_info[1].errno for r in caplog.records if r.exc_info and r.exc_info[1]] == [9]
+
+
+def test_a_signal_once_the_outputs_are_in_place_is_ignored() -> None:
+    # Ctrl-C as a run renames its outputs into place (held till the renames are done), or as
+    # it prints its summary: the outputs are written, and the run ends as it would have.
+    from pipeline.run.interrupts import deferred_signals, outputs_in_place
+
+    with signals_interrupt():
+        with deferred_signals():
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.2)  # held
+            outputs_in_place()  # the renames done: the held signal is dropped
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.2)
+        raise_if_interrupted()  # nothing was raised, and nothing is pending
+    with pytest.raises(KeyboardInterrupt), signals_interrupt():  # the next run's policy is whole again
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(1.0)
