@@ -342,7 +342,14 @@ def shared_with_local_workers(obj: T) -> Iterator[T]:
     _remove_dead_runs_models(folder)
     with tempfile.TemporaryDirectory(prefix=f"{_MODEL_PREFIX}{os.getpid()}-", dir=folder) as tmp:
         path = Path(tmp) / "model.joblib"
-        joblib.dump(obj, path)
+        try:
+            joblib.dump(obj, path)
+        except OSError as exc:
+            where = f"JOBLIB_TEMP_FOLDER={folder}" if "JOBLIB_TEMP_FOLDER" in os.environ else tmp
+            raise SettingsError(
+                f"{where}: cannot hold the session's model for the workers ({exc.strerror or exc}); "
+                "free space there, or set JOBLIB_TEMP_FOLDER to a folder with room"
+            ) from None
         yield joblib.load(path, mmap_mode="r")
 
 

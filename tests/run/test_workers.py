@@ -125,6 +125,24 @@ def test_a_missing_joblib_temp_folder_is_named(tmp_path: Path, monkeypatch: pyte
             pass
 
 
+def test_a_joblib_temp_folder_without_room_is_named(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import errno
+
+    import joblib
+
+    def full(obj: object, path: object) -> None:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setenv("JOBLIB_TEMP_FOLDER", str(tmp_path))
+    monkeypatch.setattr(joblib, "dump", full)
+    with pytest.raises(
+        SettingsError, match=r"JOBLIB_TEMP_FOLDER=.*: cannot hold the session's model .*No space"
+    ):
+        with workers.shared_with_local_workers({"a": np.zeros(3)}):
+            pass
+    assert not list(tmp_path.iterdir())  # its folder for the model removed
+
+
 def test_the_shared_model_of_a_killed_run_is_removed_by_the_next(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
