@@ -77,7 +77,10 @@ class LiveSummary:
     @property
     def exit_code(self) -> int:
         """The run's; 1 at least where a camera delivered nothing or a replay ended short."""
-        silent = not all(self.delivered.values())
+        silent = any(
+            not n and (self.outages.get(name) or name not in self.cut_short)
+            for name, n in self.delivered.items()
+        )
         return max(self.run.exit_code, int(silent or bool(self.replay_lines())))
 
     def latency_ms(self, percentile: float) -> float:
@@ -85,8 +88,12 @@ class LiveSummary:
 
     def outage_lines(self) -> list[str]:
         lines = []
+        if not self.run.frames_total and self.stopped_by in ("--duration", "a signal"):
+            lines.append(f"  no frame-set arrived before the run was stopped by {self.stopped_by}")
         for name in dict.fromkeys([*self.delivered, *self.outages]):
             whys = self.outages.get(name, [])
+            if not whys and name in self.cut_short:
+                continue  # a replay stopped before its first frame: nothing wrong with it
             if not self.delivered.get(name, 1):
                 why = whys[0] if whys else "its source opened no stream before the run ended"
                 lines.append(
@@ -103,6 +110,8 @@ class LiveSummary:
         damaged past them): the others' later frames had no set."""
         if not self.delivered or not all(name in self.cut_short for name in self.delivered):
             return []  # not a replay
+        if self.stopped_by != "the end of the replay":
+            return []  # stopped before the videos' ends: they are not known to end short
         most = max(self.delivered.values())
         lines = []
         for name, frames in self.delivered.items():

@@ -737,6 +737,15 @@ def test_the_summary_names_a_camera_that_delivered_nothing_or_whose_replay_ended
     assert "it is damaged there: Invalid data" in damaged.problem_lines()[0]
     whole = dataclasses.replace(short, delivered=dict.fromkeys(names, 40))
     assert whole.problem_lines() == [] and whole.exit_code == 0
+    # Stopped by --duration before the replay's first frame: not the videos' fault.
+    none = RunSummary(frames_ok=0, frames_empty=0, frames_failed=[], wall_s=0.1, fps=0.0)
+    early = dataclasses.replace(
+        short, run=none, stopped_by="--duration", delivered={"cam0": 1, "cam1": 0, "cam2": 0}
+    )
+    assert early.problem_lines() == ["  no frame-set arrived before the run was stopped by --duration"]
+    assert early.exit_code == 1  # no tube in any frame, as for process
+    stopped = dataclasses.replace(short, stopped_by="--duration")  # the others' later frames were not due yet
+    assert stopped.problem_lines() == []
     silent = LiveSummary(
         **common,
         unmatched=dict.fromkeys(names, 0),
