@@ -24,7 +24,7 @@ from joblib import Parallel, delayed
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from ..errors import PipelineError
+from ..errors import Interrupted, PipelineError
 from .calib_error import perturbed_rig
 from .distractor import paint_distractor, place_distractor
 from .images import background_texture, flicker_gains, render_frame, threshold_for
@@ -224,6 +224,15 @@ def _check_out_dir(out_dir: Path) -> None:
         )
 
 
+def _left(out_dir: Path, created: bool) -> str:
+    """What a render that stopped part-way leaves: nothing, where it made the folder (it is
+    removed), else an earlier render partly replaced."""
+    if created:
+        shutil.rmtree(out_dir, ignore_errors=True)
+        return "nothing written"
+    return f"the session in {out_dir} is incomplete: render it again"
+
+
 def _remove_earlier_views(out_dir: Path, names: set[str]) -> None:
     """An earlier render's videos and backgrounds of cameras this rig has not (a render of
     three cameras replaced by one of two): left there, they would be taken for the rig's."""
@@ -379,13 +388,12 @@ def render_session(
     except OSError as exc:
         # A full disk or a folder that turned read-only: a render into a new folder leaves
         # nothing; one over an earlier render leaves it incomplete, and says so.
-        if created:
-            shutil.rmtree(out_dir, ignore_errors=True)
-        left = "nothing written" if created else "the session there is incomplete: render it again"
         raise PipelineError(
-            f"{out_dir}: cannot write the session ({exc.strerror or exc}); {left}, after freeing space "
-            "or in another directory"
+            f"{out_dir}: cannot write the session ({exc.strerror or exc}); {_left(out_dir, created)}, after "
+            "freeing space or in another directory"
         ) from None
+    except KeyboardInterrupt:
+        raise Interrupted(f"interrupted; {_left(out_dir, created)}") from None
 
 
 def _write_videos(

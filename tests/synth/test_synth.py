@@ -944,3 +944,22 @@ def test_a_full_disk_leaves_no_half_made_session(tmp_path: Path, monkeypatch: py
     with pytest.raises(PipelineError, match=r"cam2\.mp4 holds 0 of its 2 frames \(a full disk\?\)"):
         render_session(tmp_path / "new", frames=2, progress=False, jobs=1)
     assert not (tmp_path / "new").exists()
+
+
+def test_an_interrupted_render_leaves_no_half_made_session_or_says_so(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pipeline.errors import Interrupted
+    from pipeline.synth import session_render
+
+    render_session(tmp_path / "earlier", frames=2, progress=False, jobs=1)
+
+    def interrupted(*args: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(session_render, "_write_videos", interrupted)
+    with pytest.raises(Interrupted, match=r"^interrupted; nothing written$"):
+        render_session(tmp_path / "new", frames=2, progress=False, jobs=1)
+    assert not (tmp_path / "new").exists()
+    with pytest.raises(Interrupted, match=r"earlier is incomplete: render it again"):
+        render_session(tmp_path / "earlier", frames=2, progress=False, jobs=1)
