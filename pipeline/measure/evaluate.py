@@ -387,6 +387,11 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
 
     recording = Path(recording)
     if recording.is_dir():
+        if Path(ground_truth).suffix == ".mcap":
+            raise EvaluationError(
+                f"{recording}: is a folder and {ground_truth} a recording: give the recording first, "
+                "then the ground truth (evaluate RECORDING.mcap GROUND_TRUTH)"
+            )
         raise EvaluationError(f"{recording}: is a folder; give the recording's .mcap file in it")
     if not recording.is_file():
         raise EvaluationError(f"recording {recording} does not exist; run `python -m pipeline process` first")

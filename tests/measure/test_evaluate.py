@@ -310,6 +310,10 @@ def test_a_folder_given_as_the_recording_is_named(partial_run: tuple[Path, Path]
     recording, session_dir = partial_run
     with pytest.raises(EvaluationError, match=r"is a folder; give the recording's \.mcap file"):
         evaluate_recording(recording.parent, session_dir)
+    with pytest.raises(
+        EvaluationError, match=r"a recording: give the recording first, then the ground truth"
+    ):
+        evaluate_recording(session_dir, recording)  # the two the other way round
 
 
 def test_a_ground_truth_with_non_finite_centrelines_is_a_user_error(
