@@ -72,6 +72,21 @@ def test_an_empty_path_is_a_usage_error_not_the_current_folder(
     assert err.count("\n") == 1 and f"argument {argument}: an empty path" in err
 
 
+def test_json_before_the_session_folder_takes_stdout_not_the_folder(tmp_path: Path) -> None:
+    from pipeline.cli.parser import with_json_before_a_folder
+
+    session, out = tmp_path / "take", tmp_path / "out"
+    session.mkdir()
+    out.mkdir()
+    # `process -o out --json take`: argparse gave --json the session and missed the session.
+    assert with_json_before_a_folder(["process", "-o", str(out), "--json", str(session)]) == [
+        "process", "-o", str(out), "--json=-", str(session)
+    ]  # fmt: skip
+    # Beside the session, a folder after --json is a mistaken FILE, left for its own message.
+    words = ["process", str(session), "--json", str(out)]
+    assert with_json_before_a_folder(words) == words
+
+
 def _raising(exc: BaseException) -> object:
     def command(args: argparse.Namespace) -> int:
         raise exc

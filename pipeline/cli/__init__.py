@@ -19,7 +19,7 @@ from collections.abc import Callable, Sequence
 from ..errors import Interrupted, PipelineError
 from ..run.interrupts import signals_interrupt
 from .commands import EXIT_BAD_INPUT, EXIT_FRAMES_FAILED, EXIT_INTERNAL_ERROR, EXIT_OK
-from .parser import PROG, build_parser, with_negative_frames
+from .parser import PROG, build_parser, with_json_before_a_folder, with_negative_frames
 
 __all__ = [
     "EXIT_BAD_INPUT",
@@ -67,7 +67,9 @@ def _open_closed_std_streams() -> None:
 
 def _main(argv: Sequence[str] | None, prog: str) -> int:
     parser = build_parser(prog)
-    args = parser.parse_args(with_negative_frames(sys.argv[1:] if argv is None else argv))
+    args = parser.parse_args(
+        with_json_before_a_folder(with_negative_frames(sys.argv[1:] if argv is None else argv))
+    )
     if getattr(args, "scheduler", None) and args.backend not in (None, "dask"):
         args.usage_error(f"--scheduler runs on a Dask cluster: drop --backend {args.backend}, or use dask")
     handler = logging.StreamHandler()

@@ -337,6 +337,24 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     return parser
 
 
+def with_json_before_a_folder(argv: Sequence[str]) -> list[str]:
+    """``--json SESSION_DIR`` as ``--json=- SESSION_DIR``: argparse gives --json (whose
+    FILE is optional) the folder that was meant as the session, then says the session is
+    missing. A JSON summary is never written to a folder."""
+    out = list(argv)
+    # The folders given, but for the output's: where the folder after --json is the only
+    # one, it is the session (or rig); beside another, it is a mistaken FILE, named later.
+    folders = [
+        i
+        for i, word in enumerate(out)
+        if Path(word).is_dir() and (i == 0 or out[i - 1] not in ("-o", "--out"))
+    ]
+    for i, arg in enumerate(out[:-1]):
+        if arg == "--json" and folders == [i + 1]:
+            out[i] = "--json=-"
+    return out
+
+
 def with_negative_frames(argv: Sequence[str]) -> list[str]:
     """``--frames -5:10`` as ``--frames=-5:10``: argparse takes a value that starts with "-"
     for an option and says "expected one argument"; joined, _frame_range names the mistake."""
