@@ -214,6 +214,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         radius_mm=args.radius_mm,
         arrangement=args.arrangement,
         options=options,
+        progress=sys.stderr.isatty(),  # a bar's redraws fill a log file with lines
     )
     return EXIT_OK
 
@@ -222,7 +223,11 @@ def cmd_synth_calib(args: argparse.Namespace) -> int:
     from ..synth import render_calibration_views
 
     render_calibration_views(
-        args.out_dir, arrangement=args.arrangement, seed=args.seed, board_type=args.board
+        args.out_dir,
+        arrangement=args.arrangement,
+        seed=args.seed,
+        board_type=args.board,
+        progress=sys.stderr.isatty(),
     )
     return EXIT_OK
 

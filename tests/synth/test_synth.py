@@ -963,3 +963,20 @@ def test_an_interrupted_render_leaves_no_half_made_session_or_says_so(
     assert not (tmp_path / "new").exists()
     with pytest.raises(Interrupted, match=r"earlier is incomplete: render it again"):
         render_session(tmp_path / "earlier", frames=2, progress=False, jobs=1)
+
+
+def test_synth_draws_no_progress_bar_into_a_log(tmp_path: Path) -> None:
+    # stderr a file or a pipe, not a terminal: a bar's redraws would fill it with lines.
+    import subprocess
+    import sys
+
+    proc = subprocess.run(
+        [sys.executable, "-m", "pipeline", "synth", str(tmp_path / "s"), "--frames", "2"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "\r" not in proc.stderr and "rendering" not in proc.stderr
+    assert proc.stderr.strip().endswith("(bend_rotate, 2 frames)")
