@@ -18,7 +18,7 @@ def _exit(code: int) -> None:
     # threading._shutdown is what the interpreter itself calls first at exit; joining the
     # threads without its hooks would wait forever on a pool's manager thread.
     # The run is over: a signal now (Ctrl-C just as it ends) has nothing left to stop, and
-    # raised in threading's shutdown it printed a traceback.
+    # raised inside threading's shutdown it would print a traceback.
     for name in ("SIGINT", "SIGTERM", "SIGHUP"):
         if hasattr(signal, name):
             signal.signal(getattr(signal, name), signal.SIG_IGN)

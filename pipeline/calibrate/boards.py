@@ -159,8 +159,8 @@ def load_board(
     return Board(int(cols), int(rows), float(square))
 
 
-# A board's square size (mm) is refused outside these bounds: a NaN, an infinity or a
-# size like 1e-300 made OpenCV's solvers fail after the boards had been detected.
+# A board's square size (mm) is refused outside these bounds before any detection: OpenCV's
+# solvers fail on a NaN, an infinity or a size like 1e-300, once the boards are detected.
 _SQUARE_MM = (0.01, 10000.0)
 
 

@@ -1,8 +1,8 @@
 """Whether each video is its camera's: the silhouettes' cones meet in one tube only so.
 
 Two videos swapped (or two names swapped in calibration.toml) give each camera another
-camera's view. The cones of such silhouettes still meet here and there, and a run made
-of them reported every camera as moved since its calibration. Told apart by the hull:
+camera's view. The cones of such silhouettes still meet here and there, and a run of
+them would take every camera for one that moved since its calibration. Told apart by the hull:
 with each view where it belongs, the voxels every view sees re-project onto the whole of
 each silhouette; a view in another camera's place leaves much of its silhouette (and
 the others') unexplained. On a rendered three-camera session (`pipeline synth`, ten
@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from ..carve.hull import carve, voxel_centers_mm
 from ..errors import SessionError
+from ..geometry.camera import project_in_views
 from ..reconstruct.frame import frame_silhouettes
 from ..reconstruct.model import SessionModel
 
@@ -44,22 +45,22 @@ MAX_CAMERAS = 4
 
 def explained_share(model: SessionModel, masks: Sequence[NDArray[np.bool_]]) -> float:
     """The least share, over the views, of a view's silhouette pixels (``masks``, per
-    camera (H, W) bool) onto which a voxel of their hull projects (within a pixel); 0 for a
-    view without silhouette."""
+    camera (H, W) bool) onto which a voxel of their hull projects (within a pixel); 0 where a
+    view has no silhouette or the views' cones share no voxel."""
+    if not all(mask.any() for mask in masks):
+        return 0.0
     points = voxel_centers_mm(model.settings.workspace, carve(model.grid, masks)).astype(np.float64)
+    if not len(points):
+        return 0.0
+    pixels = np.round(project_in_views(model.cameras, points)).astype(np.int64)  # (C, P, 2)
     least = 1.0
-    for cam, mask in zip(model.cameras, masks, strict=True):
-        seen = int(np.count_nonzero(mask))
-        if not seen:
-            return 0.0
+    for mask, px in zip(masks, pixels, strict=True):
+        h, w = mask.shape
+        inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
         marks = np.zeros(mask.shape, np.uint8)
-        if len(points):
-            px = np.round(cam.project(points)).astype(np.int64)
-            h, w = mask.shape
-            inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-            marks[px[inside, 1], px[inside, 0]] = 1
+        marks[px[inside, 1], px[inside, 0]] = 1
         hit = cv2.dilate(marks, np.ones((3, 3), np.uint8)) > 0
-        least = min(least, float(np.count_nonzero(mask & hit)) / seen)
+        least = min(least, float(np.count_nonzero(mask & hit)) / float(np.count_nonzero(mask)))
     return least
 
 

@@ -41,7 +41,7 @@ def say(text: str, stream: TextIO | None = None) -> None:
     stream = sys.stdout if stream is None else stream
     try:
         print(text, file=stream, flush=True)
-    except (BrokenPipeError, OSError, ValueError):
+    except (OSError, ValueError):  # BrokenPipeError among the former, a closed stream the latter
         if stream is not sys.stdout:
             raise
         # Later prints (and the flush at exit) go to the null device.
@@ -142,7 +142,7 @@ def _rig_dir_after_viewer(args: argparse.Namespace) -> None:
 
 def _json_target(text: str | None) -> str | None:
     """``--json``'s argument, with a path that is this process's stdout (``/dev/stdout``)
-    taken as "-": opened as a file, a pipe there was read and waited on for good."""
+    taken as "-": opened as a file, a pipe there would be read, and waited on for good."""
     if text in (None, "-"):
         return text
     try:

@@ -106,8 +106,8 @@ def _through_our_code(traceback: TracebackType | None) -> bool:
 def outputs_in_place() -> None:
     """The run's outputs are renamed into place: a signal from now on (one held while they
     were, or Ctrl-C as the run prints its summary) has nothing left to stop, and is
-    ignored, so that the run ends as it would have, summary and exit status included. A
-    run interrupted then said "interrupted; nothing written" of outputs that were."""
+    ignored, so that the run ends as it would have, summary and exit status included
+    (an interrupt's "interrupted; nothing written" would be untrue by then)."""
     global _complete, _pending
     if _installed:
         _complete, _pending = True, None

@@ -236,8 +236,8 @@ def prepare_outputs(out_dir: Path, name: str, force: bool) -> OutputTarget:
 
 def _check_name_lengths(target: OutputTarget) -> None:
     """Every file name the run will use fits the file system's limit (``NAME_MAX``), checked
-    before any work: a session folder's name of 230 or more characters made the temporary
-    files' names too long once every frame had been processed."""
+    before any work: a session folder's name of 230 characters or more leaves no room for
+    the temporary files' suffixes, which are needed only once every frame is processed."""
     folder = target.out_dir
     while not folder.exists() and folder != folder.parent:
         folder = folder.parent

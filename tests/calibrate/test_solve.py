@@ -234,8 +234,8 @@ def test_reconstruction_with_calibrated_cameras(synth, tmp_path) -> None:
 def test_report_pictures_that_cannot_be_written_are_an_error_after_the_calibration(
     small_rig, tmp_path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    # OpenCV says False, not an exception, when it cannot write (a full disk): the run said
-    # "wrote world_axes_cam0.png" of a file that was not there.
+    # OpenCV says False, not an exception, when it cannot write (a full disk): a picture it
+    # did not write must not be listed as written.
     from pipeline.calibrate import report
     from pipeline.errors import OutputError
 

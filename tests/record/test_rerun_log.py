@@ -361,8 +361,8 @@ def test_the_viewer_opens_on_the_frame_timeline(viewer: Any) -> None:
 
 def test_the_viewer_draws_the_curves_and_tip_in_the_default_3d_view(viewer: Any, tmp_path: Path) -> None:
     # Nothing fails to draw once the viewer has taken in the whole file: a view may report
-    # for a moment after loading ends (seen once in CI: images before their cameras'
-    # pinholes), and a report that lasts 10 s is the layout's.
+    # for a moment after loading ends (images taken in before their cameras' pinholes), and
+    # a report that lasts 10 s is the layout's.
     deadline = time.monotonic() + 10.0
     while True:
         default_3d = {v.name: v for v in viewer.get_state().views}[LEGEND_3D]
