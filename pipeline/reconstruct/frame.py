@@ -151,6 +151,7 @@ def reconstruct_from_silhouettes(
                 index=index,
                 status="empty",
                 reason=NOTHING_SEEN.format(name=cam.name),
+                unseen_by=cam.name,
                 timings_s=timings,
             )
         share = float(np.count_nonzero(mask)) / mask.size

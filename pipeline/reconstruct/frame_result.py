@@ -21,14 +21,6 @@ NO_SHARED_VOXEL = "the silhouettes share no voxel of the workspace"
 NOTHING_SEEN = "nothing seen by camera {name!r}"
 
 
-def camera_seeing_nothing(reason: str) -> str | None:
-    """The camera an "empty" frame's ``reason`` (:data:`NOTHING_SEEN`) names, or None."""
-    head, _, tail = NOTHING_SEEN.partition("{name!r}")
-    if reason.startswith(head) and reason.endswith(tail) and len(reason) > len(head) + len(tail) + 1:
-        return reason[len(head) + 1 : len(reason) - len(tail) - 1]
-    return None
-
-
 @dataclass(frozen=True, eq=False)
 class FrameResult:
     """One frame's reconstruction.
@@ -38,6 +30,8 @@ class FrameResult:
     index : frame index in the session (0-based).
     status : "ok", "empty" (nothing to reconstruct) or "failed" (see ``reason``).
     reason : why the frame is empty or failed; "" when ok.
+    unseen_by : the camera whose view holds no silhouette, for an "empty" frame
+        (:data:`NOTHING_SEEN`); "" otherwise.
     points_mm : (P, 3) float32 occupied voxel centres, world frame, mm.
     centerline_mm : (N, 3) float64 curve ordered base -> tip, uniform in arc
         length, world frame, mm; None unless status is "ok".
@@ -64,6 +58,7 @@ class FrameResult:
     index: int
     status: str
     reason: str = ""
+    unseen_by: str = ""
     points_mm: NDArray[np.float32] = field(default_factory=lambda: np.zeros((0, 3), np.float32))
     centerline_mm: NDArray[np.float64] | None = None
     tangents: NDArray[np.float64] | None = None

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import OutputError
-from ..reconstruct.frame_result import NO_SHARED_VOXEL, camera_seeing_nothing
+from ..reconstruct.frame_result import NO_SHARED_VOXEL
 from ..reconstruct.frame_task import FrameOutput
 from ..reconstruct.quality import SUSPECT_SMOOTHED_MM, is_doubtful, off_smoothed, reaches_walls
 from ..session.folder import Session
@@ -249,9 +249,8 @@ class Writers:
             self.counts[result.status] = self.counts.get(result.status, 0) + 1
         if result.status == "empty" and result.reason == NO_SHARED_VOXEL:
             self.empty_apart += 1
-        blind = camera_seeing_nothing(result.reason) if result.status == "empty" else None
-        if blind is not None:
-            self.empty_unseen[blind] = self.empty_unseen.get(blind, 0) + 1
+        if result.status == "empty" and result.unseen_by:
+            self.empty_unseen[result.unseen_by] = self.empty_unseen.get(result.unseen_by, 0) + 1
         if result.status == "ok" and is_doubtful(result.iou):
             self.doubtful.append(result.index)
         if result.status == "ok" and result.suspect:

@@ -105,7 +105,7 @@ def test_nothing_in_view_is_empty(model: SessionModel) -> None:
     images = [np.full((240, 320), 170, np.uint8) for _ in range(3)]
     result = reconstruct_frame(3, images, model)
     assert result.status == "empty"
-    assert result.index == 3 and "'cam0'" in result.reason
+    assert result.index == 3 and "'cam0'" in result.reason and result.unseen_by == "cam0"
     assert result.centerline_mm is None and np.isnan(result.length_mm)
 
 
@@ -115,7 +115,7 @@ def test_silhouettes_that_share_no_voxel_are_empty(model: SessionModel) -> None:
     masks[0][:10, :10] = masks[1][-10:, :10] = masks[2][:10, -10:] = True
     images = [np.full((240, 320), 170, np.uint8) for _ in range(3)]
     result = reconstruct_from_silhouettes(4, images, masks, model)
-    assert result.status == "empty" and "no voxel" in result.reason
+    assert result.status == "empty" and "no voxel" in result.reason and result.unseen_by == ""
 
 
 def test_an_undecodable_image_fails_naming_the_camera(model: SessionModel, tube: tuple) -> None:
