@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from ..errors import CalibrationError, PipelineError, SessionError, SettingsError, VideoError
 from ..geometry.camera import Camera
 from .calibration_io import read_calibration
-from .settings import LAST_TIMESTAMP, SessionInfo, Settings, load_settings
+from .settings import LAST_TIMESTAMP, SessionInfo, Settings, describe, load_settings
 from .toml_file import require_regular_file
 from .video import VIDEO_EXTENSIONS, VideoInfo, probe_video
 
@@ -108,6 +108,14 @@ def _load_session(directory: Path) -> Session:
     _check_workspace_visible(cameras, settings)
     _check_min_area(directory, cameras, settings)
     _check_last_timestamp(directory, settings, fps, min(counts))
+    # Said once the session is known to be usable: a refused one gets its one error line.
+    if not (directory / "session.toml").exists():
+        log.warning(
+            "session.toml not found in %s: using the default settings (%s); write a session.toml "
+            "if this rig differs",
+            directory,
+            describe(settings),
+        )
     return Session(
         directory=directory,
         name=directory.resolve().name,

@@ -206,3 +206,21 @@ def test_a_folder_or_file_this_user_may_not_read_is_named(
     )
     with pytest.raises(SessionError, match=r"background/cam1\.png: cannot be read \(permission denied\)"):
         load_session(session)
+
+
+def test_missing_session_toml_is_a_note_naming_the_folder_and_the_defaults(
+    session: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    with caplog.at_level(logging.WARNING, logger="pipeline.session.folder"):
+        s = load_session(session)
+    assert s.settings.manipulator.radius_mm == 6.0  # the defaults, and the run goes on
+    [note] = [r.getMessage() for r in caplog.records]
+    assert note.startswith(f"session.toml not found in {session}: using the default settings (")
+    assert "2 mm voxels" in note and "threshold 60" in note and "radius 6 mm" in note
+
+
+def test_a_session_toml_given_brings_no_note(session: Path, caplog: pytest.LogCaptureFixture) -> None:
+    (session / "session.toml").write_text("[silhouette]\nthreshold = 92\n")
+    with caplog.at_level(logging.WARNING, logger="pipeline.session.folder"):
+        load_session(session)
+    assert not caplog.records
