@@ -111,6 +111,17 @@ def test_videos_of_different_lengths_warn_with_each_count(
     assert "cam0: 5, cam1: 3, cam2: 4" in caplog.text and "3 common frames" in caplog.text
 
 
+def test_a_video_much_shorter_than_the_others_is_a_problem_naming_it(tmp_path: Path) -> None:
+    # 2 frames short of 20 is within what cameras started by hand leave; 8 short is not.
+    session = build_session(tmp_path / "s", frame_counts={"cam0": 20, "cam1": 12, "cam2": 18}, frames=2)
+    s = load_session(session)
+    assert s.frame_count == 12
+    assert s.problems == (
+        f"{session / 'cam1.avi'} has 12 frames, the others 18-20: only the first 12 frames were "
+        "processed; check the recording",
+    )
+
+
 def test_other_files_are_ignored(session: Path) -> None:
     (session / "notes.txt").write_text("camera 1 was bumped")
     (session / "ground_truth.npz").write_bytes(b"")
