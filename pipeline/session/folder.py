@@ -118,6 +118,9 @@ def _load_session(directory: Path) -> Session:
     _check_min_area(directory, cameras, settings)
     _check_last_timestamp(directory, settings, fps, min(counts))
     # Said once the session is known to be usable: a refused one gets its one error line.
+    for info in infos:
+        for note in info.notes:
+            log.warning("%s", note)
     if not (directory / "session.toml").exists():
         log.warning(
             "session.toml not found in %s: using the default settings (%s); write a session.toml "
@@ -293,6 +296,12 @@ def _common_fps(infos: list[VideoInfo]) -> float:
     fps = infos[0].fps
     for info in infos[1:]:
         if not math.isclose(info.fps, fps, rel_tol=FPS_TOLERANCE):
+            if infos[0].variable_rate or info.variable_rate:  # an average rate is no camera's rate
+                odd, other = (infos[0], info) if infos[0].variable_rate else (info, infos[0])
+                raise VideoError(
+                    f"{odd.path}: has a variable frame rate ({odd.variable_rate}; {odd.fps:g} fps "
+                    f"on average), {other.path.name} {other.fps:g} fps; re-export it at a constant rate"
+                )
             raise VideoError(
                 f"{info.path}: {info.fps:g} fps but {infos[0].path.name} has {fps:g} fps; "
                 "record all cameras at the same rate"

@@ -235,3 +235,29 @@ def test_a_session_toml_given_brings_no_note(session: Path, caplog: pytest.LogCa
     with caplog.at_level(logging.WARNING, logger="pipeline.session.folder"):
         load_session(session)
     assert not caplog.records
+
+
+def test_a_video_with_a_rotation_tag_is_read_as_stored_and_named(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    import av
+
+    session = build_session(tmp_path / "s", frames=3, ext=".mp4", settings={})
+    stored = session / "cam0.mp4"
+    tagged = tmp_path / "tagged.mp4"
+    with av.open(str(stored)) as src, av.open(str(tagged), "w") as out:
+        stream = out.add_stream_from_template(src.streams.video[0])
+        stream.set_display_rotation(90)  # as a phone held upright writes it
+        for packet in src.demux(src.streams.video[0]):
+            if packet.dts is not None:
+                packet.stream = stream
+                out.mux(packet)
+    tagged.replace(stored)
+    with caplog.at_level(logging.WARNING, logger="pipeline.session.folder"):
+        s = load_session(session)
+    # The size check and the reader see the frames as stored: the calibration's 320x240.
+    assert s.frame_count == 3
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{stored}: carries a 270-degree rotation tag that is not applied; the calibration must be "
+        "of the frames as stored (320x240)"
+    ]
