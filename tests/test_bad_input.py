@@ -616,6 +616,22 @@ def test_calibrate_checks_its_output_before_calibrating(
         assert target.read_bytes() == b"\x00\x00\x00\x18ftypmp42"
 
 
+def test_calibrate_keeps_an_existing_calibration_without_force(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "boards").mkdir()  # no images: calibrating would fail, later
+    target = tmp_path / "calibration.toml"
+    target.write_text('[cam_0]\nname = "cam0"\n')
+    code = main(["calibrate", str(tmp_path / "boards"), "-o", str(target)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == EXIT_BAD_INPUT and err == [f"error: {target}: already exists; use --force to replace it"]
+    assert target.read_text() == '[cam_0]\nname = "cam0"\n'
+    # With --force the output is taken, and the run goes on to the (here empty) board images.
+    code = main(["calibrate", str(tmp_path / "boards"), "-o", str(target), "--force"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == EXIT_BAD_INPUT and len(err) == 1 and "already exists" not in err[0], err
+
+
 def test_a_folder_in_place_of_a_video_is_named(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
     video = next(session.glob("cam1.*"))
     video.unlink()

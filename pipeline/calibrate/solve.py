@@ -66,6 +66,7 @@ def calibrate_directory(
     shared_intrinsics: bool = False,
     drop_outliers: bool = False,
     report_dir: Path | None = None,
+    force: bool = False,
 ) -> CalibrationResult:
     """Calibrate every camera of ``calib_dir`` and write ``output`` (calibration.toml) and a report.
 
@@ -79,6 +80,7 @@ def calibrate_directory(
     shared_intrinsics : one K and distortion for all cameras (identical cameras).
     drop_outliers : drop the images whose error stands out (see ``calibrate_report``) and recalibrate.
     report_dir : where the pictures go; default: next to ``output``.
+    force : replace an existing calibration at ``output`` (checked before any detection).
     """
     from .report import find_outliers, write_report
 
@@ -86,7 +88,7 @@ def calibrate_directory(
     if not calib_dir.is_dir():
         raise CalibrationError(f"{calib_dir}: not a folder; expected CALIB_DIR/<camera>/intrinsics/*.png")
     output = Path(output)
-    _check_output(output)
+    _check_output(output, force=force)
     the_board = load_board(calib_dir, board=board, square_mm=square_mm, charuco=charuco)
     views = detect_directory(calib_dir, the_board)
     result = calibrate_views(views, the_board, shared_intrinsics=shared_intrinsics)
@@ -127,9 +129,10 @@ def calibrate_directory(
     return result
 
 
-def _check_output(output: Path) -> None:
+def _check_output(output: Path, *, force: bool) -> None:
     """Before calibrating: ``output`` can be written (its folder exists or can be made, and
-    is writable) and takes the place of no file but an earlier calibration (a TOML file)."""
+    is writable) and takes the place of no file but an earlier calibration (a TOML file),
+    and of that only with ``force``."""
     if output.is_dir():
         raise OutputError(f"{output}: is a folder; give -o a file name, e.g. {output / 'calibration.toml'}")
     if output.exists():
@@ -137,6 +140,8 @@ def _check_output(output: Path) -> None:
             load_toml(output)
         except (OSError, ValueError):
             raise OutputError(f"{output}: exists and is not a calibration; give -o a new file name") from None
+        if not force:
+            raise OutputError(f"{output}: already exists; use --force to replace it")
     folder = output.parent
     while not folder.exists() and folder != folder.parent:
         folder = folder.parent

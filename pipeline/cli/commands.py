@@ -244,6 +244,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         charuco=args.charuco,
         shared_intrinsics=args.shared_intrinsics,
         drop_outliers=args.drop_outliers,
+        force=args.force,
     )
     say(format_table(result))
     say(f"wrote {args.output}; pictures: {', '.join(str(p) for p in result.report_files)}")

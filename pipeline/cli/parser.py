@@ -321,6 +321,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     p.add_argument(
         "--drop-outliers", action="store_true", help="drop views whose error stands out, and recalibrate"
     )
+    p.add_argument("--force", action="store_true", help="replace an existing calibration file at -o")
     p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser(

@@ -8,7 +8,8 @@ first frame run in a process of their own, :mod:`.restarts`) and writes it at on
 MCAP and Rerun writers of ``process`` (the Rerun stream also to a viewer, the MCAP's
 messages also to a Foxglove server). The run stops at Ctrl-C, SIGTERM or SIGHUP,
 after ``duration_s``, or at the end of a replay; the recordings are then finished
-and renamed into place as ``process`` does, holding every frame written.
+and renamed into place as ``process`` does, holding every frame written. A run that
+no frame-set reached writes nothing.
 """
 
 from __future__ import annotations
@@ -88,8 +89,12 @@ class LiveSummary:
 
     def outage_lines(self) -> list[str]:
         lines = []
-        if not self.run.frames_total and self.stopped_by in ("--duration", "a signal"):
-            lines.append(f"  no frame-set arrived before the run was stopped by {self.stopped_by}")
+        if not self.run.frames_total:
+            when = f" before the run was stopped by {self.stopped_by}"
+            lines.append(
+                f"  no frame-set arrived{when if self.stopped_by in ('--duration', 'a signal') else ''}; "
+                "nothing written"
+            )
         for name in dict.fromkeys([*self.delivered, *self.outages]):
             whys = self.outages.get(name, [])
             if not whys and name in self.cut_short:
@@ -198,15 +203,18 @@ def run_live(
     OutputError, SettingsError : before any frame, as ``process``.
     SessionError : a camera's frames do not fit its calibration, or a replay cannot be
         read; nothing is left behind.
+
+    A run that no frame-set reached writes no recording (its summary lists no output,
+    and exits 1), and removes the folders it made for them.
     """
     with signals_interrupt():
         target = prepare_outputs(Path(out_dir), rig.name, force)
-        failed = True
+        written = False
         try:
             summary = _run(rig, sources, target, viewer_url, foxglove, duration_s, images, queue_sets)
-            failed = False
+            written = bool(summary.run.outputs)
         finally:
-            target.release(failed=failed)
+            target.release(failed=not written)
     return summary
 
 
@@ -300,7 +308,10 @@ def _run(
         try:
             with deferred_signals():  # from here a signal waits for the recordings to be complete
                 _stop_readers(stop, readers)
-                writer.finish()
+                if latencies:  # one per frame-set written
+                    writer.finish()
+                else:  # an empty recording would only stand in the way of the next run's
+                    writer.abort()
         except KeyboardInterrupt:
             if not writer.committed:
                 raise

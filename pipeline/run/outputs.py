@@ -379,7 +379,10 @@ class Writers:
                 self.target.partial(path).unlink()
 
     def summary(self, wall_s: float) -> RunSummary:
+        """The run's summary; its outputs are the recordings once they are in place (none
+        after :meth:`abort`)."""
         n = len(self.log)
+        written = (self.mcap_path, self.rrd_path) if self.committed else ()
         return RunSummary(
             frames_ok=self.counts.get("ok", 0),
             frames_empty=self.counts.get("empty", 0),
@@ -388,7 +391,7 @@ class Writers:
             frames_empty_unseen=dict(self.empty_unseen),
             wall_s=wall_s,
             fps=n / wall_s if wall_s > 0 else 0.0,
-            outputs=[(p, p.stat().st_size) for p in (self.mcap_path, self.rrd_path)],
+            outputs=[(p, p.stat().st_size) for p in written],
             frames_doubtful=list(self.doubtful),
             frames_at_walls=list(self.at_walls),
             frames_suspect=list(self.suspect),

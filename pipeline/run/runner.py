@@ -403,6 +403,7 @@ def _run_with(
         tip=tip,
         cameras=refinement.describe() if refinement is not None else "",
         camera_warnings=refinement.warnings() if refinement is not None else [],
+        session_problems=list(session.problems),
         outputs=summary.outputs + written,
     )
 

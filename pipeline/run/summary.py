@@ -29,7 +29,10 @@ class RunSummary:
     tip : the tube end the fit assumed, and how it was chosen ("" when not told).
     cameras : the cameras reconstructed with, given or refined, and why ("" when not told).
     camera_warnings : a line per camera that seems to have moved since its calibration.
-    exit_code : 0 when every frame is ok or empty, 1 when some failed or none holds a tube.
+    session_problems : a line per problem of the session's videos that the run went on
+        with (``Session.problems``: a video much shorter than the others).
+    exit_code : 0 when every frame is ok or empty, 1 when some failed, none holds a tube,
+        or the session has problems.
     """
 
     frames_ok: int
@@ -44,6 +47,7 @@ class RunSummary:
     tip: str = ""
     cameras: str = ""
     camera_warnings: list[str] = field(default_factory=list)
+    session_problems: list[str] = field(default_factory=list)
     frames_empty_apart: int = 0
     # camera -> empty frames in which it saw no silhouette at all
     frames_empty_unseen: dict[str, int] = field(default_factory=dict)
@@ -54,8 +58,9 @@ class RunSummary:
 
     @property
     def exit_code(self) -> int:
-        # A run that found no tube anywhere produced nothing to analyse: not a success.
-        return 1 if self.frames_failed or self.frames_ok == 0 else 0
+        # A run that found no tube anywhere produced nothing to analyse, and one that left a
+        # video's frames out (a video much shorter than the others) not all: not a success.
+        return 1 if self.frames_failed or self.frames_ok == 0 or self.session_problems else 0
 
     def lines(self) -> list[str]:
         """The closing summary, one line per fact; :meth:`problem_lines` among them."""
@@ -76,7 +81,8 @@ class RunSummary:
     def problem_lines(self) -> list[str]:
         """The summary's failure and warning lines: failed frames, suspect frames, doubtful
         frames, frames at the walls, no tube found."""
-        out = [f"  failed {span}: {reason}" for span, reason in compress_failures(self.frames_failed)]
+        out = [f"  {line}" for line in self.session_problems]
+        out += [f"  failed {span}: {reason}" for span, reason in compress_failures(self.frames_failed)]
         out += [f"  {line}" for line in self.camera_warnings]
         if self.frames_suspect:
             first, why = self.frames_suspect[0]

@@ -26,13 +26,18 @@ from numpy.typing import NDArray
 from ..errors import CalibrationError, PipelineError, SessionError, SettingsError, VideoError
 from ..geometry.camera import Camera
 from .calibration_io import read_calibration
-from .settings import LAST_TIMESTAMP, SessionInfo, Settings, load_settings
+from .settings import LAST_TIMESTAMP, SessionInfo, Settings, describe, load_settings
 from .toml_file import require_regular_file
 from .video import VIDEO_EXTENSIONS, VideoInfo, probe_video
 
 log = logging.getLogger(__name__)
 
 FPS_TOLERANCE = 1e-3
+# Cameras started by hand stop a few frames apart: a video shorter than the longest by at
+# most this many frames, or this fraction of the longest, is processed with a warning; a
+# shorter one (a camera that stopped, a file cut short) is a problem the run ends with.
+SHORT_VIDEO_FRAMES = 2
+SHORT_VIDEO_FRACTION = 0.1
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 # SessionInfo's default, this very object, stands for "session.toml gives no start_time":
 # one given as 1970-01-01 is a different object and is kept.
@@ -45,6 +50,8 @@ class Session:
 
     cameras[i], video_paths[i] and backgrounds[i] belong together.
     ``frame_count`` is the number of frames common to all videos.
+    ``problems`` are what does not stop a run but ends it with exit status 1 (a video much
+    shorter than the others), one line each, naming the file.
     """
 
     directory: Path
@@ -56,6 +63,7 @@ class Session:
     fps: float
     frame_count: int
     frame_counts: tuple[int, ...]
+    problems: tuple[str, ...] = ()
 
     def timestamp_ns(self, index: int) -> int:
         """Frame ``index``'s time: start_time + index / fps, in ns since the Unix epoch."""
@@ -98,7 +106,8 @@ def _load_session(directory: Path) -> Session:
     fps = _common_fps(infos)
     settings = _with_start_time(settings, infos)
     counts = tuple(i.frame_count for i in infos)
-    if len(set(counts)) > 1:
+    problems = short_videos([i.path for i in infos], counts)
+    if len(set(counts)) > 1 and not problems:
         log.warning(
             "videos differ in length (%s); processing the %d common frames",
             ", ".join(f"{c.name}: {n}" for c, n in zip(cameras, counts, strict=True)),
@@ -108,6 +117,17 @@ def _load_session(directory: Path) -> Session:
     _check_workspace_visible(cameras, settings)
     _check_min_area(directory, cameras, settings)
     _check_last_timestamp(directory, settings, fps, min(counts))
+    # Said once the session is known to be usable: a refused one gets its one error line.
+    for info in infos:
+        for note in info.notes:
+            log.warning("%s", note)
+    if not (directory / "session.toml").exists():
+        log.warning(
+            "session.toml not found in %s: using the default settings (%s); write a session.toml "
+            "if this rig differs",
+            directory,
+            describe(settings),
+        )
     return Session(
         directory=directory,
         name=directory.resolve().name,
@@ -118,7 +138,28 @@ def _load_session(directory: Path) -> Session:
         fps=fps,
         frame_count=min(counts),
         frame_counts=counts,
+        problems=tuple(problems),
     )
+
+
+def short_videos(paths: list[Path], counts: tuple[int, ...]) -> list[str]:
+    """A line for each video whose frame count (``counts[i]`` of ``paths[i]``) falls short of
+    the longest by more than SHORT_VIDEO_FRAMES and SHORT_VIDEO_FRACTION of it: only the
+    frames every video has are processed."""
+    longest, common = max(counts), min(counts)
+    allowed = max(SHORT_VIDEO_FRAMES, SHORT_VIDEO_FRACTION * longest)
+    lines = []
+    for i, (path, count) in enumerate(zip(paths, counts, strict=True)):
+        if longest - count <= allowed:
+            continue
+        others = [n for j, n in enumerate(counts) if j != i]
+        shown = f"{min(others)}" if min(others) == max(others) else f"{min(others)}-{max(others)}"
+        first = "the first frame was" if common == 1 else f"the first {common} frames were"
+        lines.append(
+            f"{path} has {count} frame{'' if count == 1 else 's'}, the others {shown}: only "
+            f"{first} processed; check the recording"
+        )
+    return lines
 
 
 # A live rig's nominal frame rate, until its cameras say (the layout plays the ``frame``
@@ -255,6 +296,12 @@ def _common_fps(infos: list[VideoInfo]) -> float:
     fps = infos[0].fps
     for info in infos[1:]:
         if not math.isclose(info.fps, fps, rel_tol=FPS_TOLERANCE):
+            if infos[0].variable_rate or info.variable_rate:  # an average rate is no camera's rate
+                odd, other = (infos[0], info) if infos[0].variable_rate else (info, infos[0])
+                raise VideoError(
+                    f"{odd.path}: has a variable frame rate ({odd.variable_rate}; {odd.fps:g} fps "
+                    f"on average), {other.path.name} {other.fps:g} fps; re-export it at a constant rate"
+                )
             raise VideoError(
                 f"{info.path}: {info.fps:g} fps but {infos[0].path.name} has {fps:g} fps; "
                 "record all cameras at the same rate"

@@ -141,6 +141,20 @@ _SECTIONS: dict[str, type] = {
 }
 
 
+def describe(settings: Settings) -> str:
+    """The settings that decide a reconstruction, on one line: the workspace box, the
+    silhouette threshold, the manipulator's base, radius and tip."""
+    ws, sil, man = settings.workspace, settings.silhouette, settings.manipulator
+    base = "auto" if man.base_mm is None else f"({', '.join(f'{v:g}' for v in man.base_mm)}) mm"
+    radius = "auto" if man.radius_mm is None else f"{man.radius_mm:g} mm"
+    return (
+        f"workspace {'x'.join(f'{v:g}' for v in ws.size_mm)} mm from "
+        f"({', '.join(f'{v:g}' for v in ws.origin_mm)}), {ws.voxel_mm:g} mm voxels; "
+        f"silhouette {sil.method} {sil.threshold}, {sil.polarity} tube; "
+        f"base {base}, radius {radius}, tip {man.tip}"
+    )
+
+
 def load_settings(path: Path | None) -> Settings:
     """Read session.toml (None or a missing file gives the defaults) and validate it."""
     if path is None or not path.exists():

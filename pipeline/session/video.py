@@ -34,6 +34,13 @@ log = logging.getLogger(__name__)
 _CHUNK_HEADER_BYTES = 8
 # H.264 and HEVC show a frame at most 16 frames after it is decoded.
 _MAX_REORDER_FRAMES = 16
+# A video whose frame intervals stray from their median by more than this fraction of it
+# has a variable frame rate (a phone's, a screen recording's): its frames are numbered at
+# its average rate, so a frame may land on a neighbour's index.
+VFR_TOLERANCE = 0.1
+# The frame timestamps looked at for it (a minute at 30 fps): the container's index where it
+# has one, else the first packets demuxed; nothing is decoded.
+VFR_FRAMES = 1800
 
 # A damaged or half-copied video is reported by us, once, naming the file; OpenCV's and
 # FFmpeg's own lines ("moov atom not found", "overread 8") would bury that message and
@@ -81,7 +88,9 @@ def show_ffmpeg_messages() -> None:
 @dataclass(frozen=True)
 class VideoInfo:
     """``creation_time``: when the container says the recording was made (timezone-aware),
-    or None where it does not say."""
+    or None where it does not say. ``variable_rate``: how its frame intervals vary ("" for
+    a constant rate). ``notes``: what the reader does not follow (a rotation tag, a second
+    video stream, a variable rate), a line each naming the file."""
 
     path: Path
     width: int
@@ -89,6 +98,8 @@ class VideoInfo:
     fps: float
     frame_count: int
     creation_time: datetime | None = None
+    variable_rate: str = ""
+    notes: tuple[str, ...] = ()
 
 
 def probe_video(path: Path) -> VideoInfo:
@@ -103,6 +114,9 @@ def probe_video(path: Path) -> VideoInfo:
         still = _still_image_kind(path)
         if still:
             raise VideoError(f"{path}: is a still {still} image, not a video; put the camera's video here")
+        # The frames as stored, which the reader (PyAV) gives: not turned by a rotation tag.
+        cap.set(cv2.CAP_PROP_ORIENTATION_AUTO, 0)
+        rotation_deg = float(cap.get(cv2.CAP_PROP_ORIENTATION_META) or 0.0)
         width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
         height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
         fps = float(cap.get(cv2.CAP_PROP_FPS))
@@ -115,6 +129,22 @@ def probe_video(path: Path) -> VideoInfo:
     finally:
         cap.release()
     count = _counted_frames(path) or count
+    notes = []
+    if rotation_deg % 360:
+        notes.append(
+            f"{path}: carries a {rotation_deg % 360:g}-degree rotation tag that is not applied; the "
+            f"calibration must be of the frames as stored ({width}x{height})"
+        )
+    streams, stamps_s = _video_streams(path)
+    if streams > 1:
+        notes.append(f"{path}: holds {streams} video streams; the first ({width}x{height}) is read")
+    variable = describe_variable_rate(stamps_s)
+    if variable:
+        notes.append(
+            f"{path}: has a variable frame rate ({variable}); frame i is taken as the one at "
+            f"i / {fps:g} s, its average rate: re-export it at a constant rate if its frames "
+            "look out of step with the other cameras'"
+        )
     return VideoInfo(
         path=Path(path),
         width=width,
@@ -122,6 +152,50 @@ def probe_video(path: Path) -> VideoInfo:
         fps=fps,
         frame_count=max(count, 1),
         creation_time=creation_time(path),
+        variable_rate=variable,
+        notes=tuple(notes),
+    )
+
+
+def _video_streams(path: Path) -> tuple[int, NDArray[np.float64]]:
+    """The number of video streams in ``path``, and the first one's frame timestamps (s,
+    ascending, at most VFR_FRAMES): from the container's index where it has an entry per
+    frame (MP4, AVI; nothing is read), else from the first packets demuxed (Matroska)."""
+    try:
+        with av.open(str(path)) as container:
+            streams = container.streams.video
+            if not streams:
+                return 0, np.zeros(0)
+            stream = streams[0]
+            time_base = float(stream.time_base or Fraction(1, 1000))
+            entries = stream.index_entries
+            ticks: list[int] = []
+            if 0 < len(entries) == stream.frames:
+                ticks = [entries[k].timestamp for k in range(min(len(entries), VFR_FRAMES))]
+            else:
+                for packet in container.demux(stream):
+                    if packet.pts is not None:
+                        ticks.append(packet.pts)
+                    if len(ticks) >= VFR_FRAMES:
+                        break
+            return len(streams), np.sort(np.asarray(ticks, dtype=np.float64)) * time_base
+    except (av.error.FFmpegError, OSError):
+        return 0, np.zeros(0)
+
+
+def describe_variable_rate(stamps_s: NDArray[np.float64]) -> str:
+    """How the intervals between frame timestamps ``stamps_s`` ((N,) float64 s, ascending)
+    vary ("frames 20.0-46.7 ms apart, median 33.3 ms"), where one strays from their median
+    by more than VFR_TOLERANCE of it; "" for a constant rate (or too few frames to tell)."""
+    intervals = np.diff(stamps_s)
+    if len(intervals) < 2:
+        return ""
+    median = float(np.median(intervals))
+    if not median > 0 or np.abs(intervals - median).max() <= VFR_TOLERANCE * median:
+        return ""
+    return (
+        f"frames {intervals.min() * 1e3:.1f}-{intervals.max() * 1e3:.1f} ms apart, "
+        f"median {median * 1e3:.1f} ms"
     )
 
 

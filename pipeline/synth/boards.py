@@ -43,6 +43,7 @@ import tomli_w
 from numpy.typing import NDArray
 from tqdm import tqdm
 
+from .out_dir import check_out_dir
 from .rig import WORKSPACE_CENTER_MM, SynthCamera, calibration_document, make_rig
 
 log = logging.getLogger(__name__)
@@ -83,6 +84,8 @@ SHARED_SETS: dict[str, tuple[tuple[tuple[int, ...], int], ...]] = {
     "ninety": (((0, 1), 8), ((1, 2), 8)),
 }
 WORLD_CAMERAS: dict[str, tuple[int, ...]] = {"oblique": (0, 1, 2), "ninety": (0, 1)}
+# The true cameras, written last: the mark of a folder this module rendered into.
+TRUTH_FILE = "truth_calibration.toml"
 
 
 def render_calibration_views(
@@ -100,7 +103,9 @@ def render_calibration_views(
 
     Parameters
     ----------
-    out_dir : folder to write (created); layout in the module docstring.
+    out_dir : folder to write: created, or empty, or an earlier render (it holds
+        truth_calibration.toml; its files are replaced); PipelineError for a folder of
+        other files. Layout in the module docstring.
     arrangement : "oblique" or "ninety" (see ``pipeline.synth.rig``).
     seed : seeds the board poses and the noise; a fixed seed gives identical files.
     board_type : "chessboard" or "charuco" (4x4 markers of 0.75 square, CHARUCO_DICTIONARY;
@@ -134,6 +139,13 @@ def render_calibration_views(
         raise ValueError(f"board_type {board_type!r}: use 'chessboard' or 'charuco'")
     partial = texture is not None
     out_dir = Path(out_dir)
+    check_out_dir(
+        out_dir,
+        command="synth-calib",
+        contents="the board images",
+        marker=TRUTH_FILE,
+        kind="an earlier synth-calib output",
+    )
     rng = np.random.default_rng(seed)
     cams = make_rig(arrangement)
     rays = [_camera_rays(cam) for cam in cams]
@@ -162,7 +174,7 @@ def render_calibration_views(
 
     (out_dir / "board.toml").write_text(tomli_w.dumps({**board_doc, "square_mm": float(square_mm)}))
     truth = calibration_document(cams, metadata={"source": "synth-calib", "arrangement": arrangement})
-    (out_dir / "truth_calibration.toml").write_text(tomli_w.dumps(truth))
+    (out_dir / TRUTH_FILE).write_text(tomli_w.dumps(truth))
     log.info("wrote %d calibration images to %s", len(jobs), out_dir)
 
 

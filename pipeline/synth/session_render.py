@@ -29,6 +29,7 @@ from .calib_error import perturbed_rig
 from .distractor import paint_distractor, place_distractor
 from .images import background_texture, flicker_gains, render_frame, threshold_for
 from .names import IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
+from .out_dir import check_out_dir
 from .poses import out_of_view, outside_box, self_contact
 from .radius_profiles import Disks, RadiusProfile, disks_of, radius_along
 from .random_shapes import draw_shape, shape_at
@@ -215,13 +216,13 @@ MAX_FRAMES = 108_000
 def _check_out_dir(out_dir: Path) -> None:
     """A session is rendered into a new or empty directory, or over an earlier render (it
     holds ground_truth.npz): never over a folder of the user's own files."""
-    if out_dir.exists() and not out_dir.is_dir():
-        raise PipelineError(f"{out_dir}: is a file; give synth a directory to write the session in")
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not (out_dir / "ground_truth.npz").is_file():
-        raise PipelineError(
-            f"{out_dir}: holds files and is not a synthetic session (no ground_truth.npz); "
-            "give synth a new or empty directory"
-        )
+    check_out_dir(
+        out_dir,
+        command="synth",
+        contents="the session",
+        marker="ground_truth.npz",
+        kind="a synthetic session",
+    )
 
 
 def _left(out_dir: Path, created: bool) -> str:

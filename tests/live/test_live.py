@@ -627,8 +627,18 @@ def test_a_camera_that_does_not_answer_is_reported_and_the_run_still_stops_clean
     for k in range(3):
         assert any(f"camera 'cam{k}' (tcp://127.0.0.1:{ports[k]})" in r.message for r in caplog.records)
         assert len(summary.outages[f"cam{k}"]) == 1  # the same outage, reported once
-    live = pipeline.load_recording(tmp_path / "out" / "rig.mcap")
-    assert live.complete and len(live) == 0
+    # No frame-set: no recording, no temporary file, and not the folder made for them.
+    assert summary.run.outputs == [] and not (tmp_path / "out").exists()
+    assert summary.problem_lines()[0] == (
+        "  no frame-set arrived before the run was stopped by --duration; nothing written"
+    )
+    # Into a folder holding an earlier recording, even with force: it stays as it was.
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "rig.mcap").write_bytes(b"earlier")
+    summary = run_live(rig, sources, out_dir=tmp_path / "out", duration_s=0.5, force=True)
+    assert summary.run.outputs == [] and summary.exit_code == 1
+    assert [p.name for p in (tmp_path / "out").iterdir()] == ["rig.mcap"]
+    assert (tmp_path / "out" / "rig.mcap").read_bytes() == b"earlier"
 
 
 @pytest.mark.slow
@@ -742,7 +752,9 @@ def test_the_summary_names_a_camera_that_delivered_nothing_or_whose_replay_ended
     early = dataclasses.replace(
         short, run=none, stopped_by="--duration", delivered={"cam0": 1, "cam1": 0, "cam2": 0}
     )
-    assert early.problem_lines() == ["  no frame-set arrived before the run was stopped by --duration"]
+    assert early.problem_lines() == [
+        "  no frame-set arrived before the run was stopped by --duration; nothing written"
+    ]
     assert early.exit_code == 1  # no tube in any frame, as for process
     stopped = dataclasses.replace(short, stopped_by="--duration")  # the others' later frames were not due yet
     assert stopped.problem_lines() == []

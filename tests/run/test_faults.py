@@ -162,6 +162,20 @@ def _cli_process(session: Path, out: Path) -> int:
     return main(["process", str(session), "--out", str(out), "--jobs", "1", "--no-images"])
 
 
+def test_a_video_much_shorter_than_the_others_is_named_and_ends_the_run_with_status_1(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    session = build_session(tmp_path / "short", frame_counts={"cam1": 1}, frames=8, settings=COARSE)
+    assert _cli_process(session, tmp_path / "out") == EXIT_FRAMES_FAILED
+    captured = capsys.readouterr()
+    assert "1 processed, 1 ok" in captured.out
+    assert (
+        f"  {session / 'cam1.avi'} has 1 frame, the others 8: only the first frame was processed; "
+        "check the recording"
+    ) in captured.err.splitlines()
+    assert load_recording(tmp_path / "out" / "short.mcap").centerlines_m.shape[0] == 1
+
+
 def test_manipulator_out_of_view_is_empty_not_a_crash(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

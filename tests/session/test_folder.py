@@ -111,6 +111,17 @@ def test_videos_of_different_lengths_warn_with_each_count(
     assert "cam0: 5, cam1: 3, cam2: 4" in caplog.text and "3 common frames" in caplog.text
 
 
+def test_a_video_much_shorter_than_the_others_is_a_problem_naming_it(tmp_path: Path) -> None:
+    # 2 frames short of 20 is within what cameras started by hand leave; 8 short is not.
+    session = build_session(tmp_path / "s", frame_counts={"cam0": 20, "cam1": 12, "cam2": 18}, frames=2)
+    s = load_session(session)
+    assert s.frame_count == 12
+    assert s.problems == (
+        f"{session / 'cam1.avi'} has 12 frames, the others 18-20: only the first 12 frames were "
+        "processed; check the recording",
+    )
+
+
 def test_other_files_are_ignored(session: Path) -> None:
     (session / "notes.txt").write_text("camera 1 was bumped")
     (session / "ground_truth.npz").write_bytes(b"")
@@ -206,3 +217,47 @@ def test_a_folder_or_file_this_user_may_not_read_is_named(
     )
     with pytest.raises(SessionError, match=r"background/cam1\.png: cannot be read \(permission denied\)"):
         load_session(session)
+
+
+def test_missing_session_toml_is_a_note_naming_the_folder_and_the_defaults(
+    session: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    with caplog.at_level(logging.WARNING, logger="pipeline.session.folder"):
+        s = load_session(session)
+    assert s.settings.manipulator.radius_mm == 6.0  # the defaults, and the run goes on
+    [note] = [r.getMessage() for r in caplog.records]
+    assert note.startswith(f"session.toml not found in {session}: using the default settings (")
+    assert "2 mm voxels" in note and "threshold 60" in note and "radius 6 mm" in note
+
+
+def test_a_session_toml_given_brings_no_note(session: Path, caplog: pytest.LogCaptureFixture) -> None:
+    (session / "session.toml").write_text("[silhouette]\nthreshold = 92\n")
+    with caplog.at_level(logging.WARNING, logger="pipeline.session.folder"):
+        load_session(session)
+    assert not caplog.records
+
+
+def test_a_video_with_a_rotation_tag_is_read_as_stored_and_named(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    import av
+
+    session = build_session(tmp_path / "s", frames=3, ext=".mp4", settings={})
+    stored = session / "cam0.mp4"
+    tagged = tmp_path / "tagged.mp4"
+    with av.open(str(stored)) as src, av.open(str(tagged), "w") as out:
+        stream = out.add_stream_from_template(src.streams.video[0])
+        stream.set_display_rotation(90)  # as a phone held upright writes it
+        for packet in src.demux(src.streams.video[0]):
+            if packet.dts is not None:
+                packet.stream = stream
+                out.mux(packet)
+    tagged.replace(stored)
+    with caplog.at_level(logging.WARNING, logger="pipeline.session.folder"):
+        s = load_session(session)
+    # The size check and the reader see the frames as stored: the calibration's 320x240.
+    assert s.frame_count == 3
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{stored}: carries a 270-degree rotation tag that is not applied; the calibration must be "
+        "of the frames as stored (320x240)"
+    ]

@@ -306,3 +306,80 @@ def test_a_creation_time_that_is_no_date_is_ignored(tmp_path: Path) -> None:
     with av.open(str(odd)) as container:
         assert container.metadata["creation_time"] == "last tuesday"
     assert video.creation_time(odd) is None
+
+
+# --- what the reader does not follow: rotation tags, second streams, variable rates ----------
+
+
+def _encode(
+    path: Path,
+    *,
+    rotation: int | None = None,
+    second_stream: bool = False,
+    intervals: tuple[int, ...] = (1,),
+    frames: int = 12,
+) -> Path:
+    """An MPEG-4 video of ``frames`` 64x48 frames whose intervals cycle through
+    ``intervals`` (in 1/30 s, the encoder's time base), with a display rotation and a
+    second (32x24) video stream if asked."""
+    from fractions import Fraction
+
+    with av.open(str(path), "w") as out:
+        streams = []
+        for width, height in [(64, 48), (32, 24)][: 2 if second_stream else 1]:
+            stream = out.add_stream("mpeg4", rate=30)
+            stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
+            streams.append(stream)
+        if rotation is not None:
+            streams[0].set_display_rotation(rotation)
+        t = 0
+        for i in range(frames):
+            for stream in streams:
+                frame = av.VideoFrame.from_ndarray(
+                    np.full((stream.height, stream.width, 3), 10 * i, np.uint8), format="bgr24"
+                )
+                frame.pts, frame.time_base = t, Fraction(1, 30)
+                out.mux(stream.encode(frame))
+            t += intervals[i % len(intervals)]
+        for stream in streams:
+            out.mux(stream.encode())
+    return path
+
+
+def test_a_rotation_tag_is_named_and_the_frames_are_sized_as_stored(tmp_path: Path) -> None:
+    info = video.probe_video(_encode(tmp_path / "cam0.mp4", rotation=90))
+    # The frames are read as stored (64x48), not turned as a player would show them.
+    assert (info.width, info.height) == (64, 48)
+    # 90 degrees counter-clockwise is the "rotate" tag's 270 (clockwise, as phones write it).
+    assert info.notes == (
+        f"{tmp_path / 'cam0.mp4'}: carries a 270-degree rotation tag that is not applied; the "
+        "calibration must be of the frames as stored (64x48)",
+    )
+    assert video.probe_video(_encode(tmp_path / "plain.mp4")).notes == ()
+
+
+def test_a_second_video_stream_is_named_and_the_first_is_read(tmp_path: Path) -> None:
+    info = video.probe_video(_encode(tmp_path / "cam1.mp4", second_stream=True))
+    assert info.notes == (f"{tmp_path / 'cam1.mp4'}: holds 2 video streams; the first (64x48) is read",)
+    assert (info.width, info.height) == (64, 48)
+
+
+def test_a_variable_frame_rate_is_named_with_its_intervals_and_the_rate_used(tmp_path: Path) -> None:
+    # A frame now and then twice as long after the last: a camera that drops frames, or a phone's.
+    info = video.probe_video(_encode(tmp_path / "cam2.mp4", intervals=(1, 1, 2)))
+    (note,) = info.notes
+    assert note.startswith(
+        f"{tmp_path / 'cam2.mp4'}: has a variable frame rate (frames 33.3-66.7 ms apart, median 33.3 ms)"
+    )
+    assert f"i / {info.fps:g} s, its average rate" in note and info.variable_rate
+
+
+def test_describe_variable_rate_against_the_median_interval() -> None:
+    steady = np.arange(10) / 30.0
+    assert video.describe_variable_rate(steady) == ""
+    assert video.describe_variable_rate(steady[:2]) == ""  # one interval: nothing to compare
+    # A camera's own jitter (a millisecond in 33) is a constant rate.
+    assert video.describe_variable_rate(steady + np.tile([0.0, 0.001], 5)) == ""
+    # One interval 20 % long: more than VFR_TOLERANCE (10 %) of the median.
+    stretched = np.concatenate([steady[:5], steady[5:] + 0.2 / 30.0])
+    assert video.describe_variable_rate(stretched) == "frames 33.3-40.0 ms apart, median 33.3 ms"

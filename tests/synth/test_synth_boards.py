@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from pipeline.cli import EXIT_BAD_INPUT, main
 from pipeline.synth.boards import _camera_rays, _render, _rotation, render_calibration_views
 from pipeline.synth.rig import SynthCamera, make_rig
 
@@ -106,3 +107,23 @@ def test_fixed_seed_gives_identical_images(ninety, tmp_path) -> None:
 def test_symmetric_board_is_refused(tmp_path) -> None:
     with pytest.raises(ValueError, match="cols \\+ rows must be odd"):
         render_calibration_views(tmp_path, board=(8, 6), progress=False)
+
+
+def test_synth_calib_writes_into_a_new_or_empty_folder_or_over_its_own_render_only(
+    ninety, tmp_path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("my notes\n")
+    assert main(["synth-calib", str(mine)]) == EXIT_BAD_INPUT
+    assert capsys.readouterr().err.splitlines() == [
+        f"error: {mine}: holds files and is not an earlier synth-calib output (no "
+        "truth_calibration.toml); give synth-calib a new or empty directory"
+    ]
+    assert [p.name for p in mine.iterdir()] == ["notes.txt"]
+    assert main(["synth-calib", str(mine / "notes.txt")]) == EXIT_BAD_INPUT
+    assert "notes.txt: is a file; give synth-calib a directory" in capsys.readouterr().err
+    # Over its own render (it holds truth_calibration.toml): the same files again.
+    before = {p: p.read_bytes() for p in ninety.rglob("*.png")}
+    render_calibration_views(ninety, arrangement="ninety", seed=1, views=4, progress=False)
+    assert {p: p.read_bytes() for p in ninety.rglob("*.png")} == before
