@@ -101,7 +101,8 @@ def build_session(
     ext : video container, ".avi" (MJPG) or ".mp4" (mp4v).
     cameras : calibration to write and render with; the oblique synthetic rig by default.
     empty_frames : frame indices where the rod is out of view (plain grey images).
-    settings : session.toml contents; no session.toml when None.
+    settings : session.toml contents; None writes an empty one (the default settings,
+        without the note a session missing its session.toml gets).
     """
     directory.mkdir(parents=True, exist_ok=True)
     cams = cameras if cameras is not None else rig_cameras()
@@ -111,8 +112,7 @@ def build_session(
         rate = fps[cam.name] if isinstance(fps, dict) else fps
         images = [rod_image(cam, visible=i not in empty_frames) for i in range(n)]
         write_video(directory / f"{cam.name}{ext}", images, fps=rate)
-    if settings is not None:
-        (directory / "session.toml").write_text(tomli_w.dumps(settings))
+    (directory / "session.toml").write_text(tomli_w.dumps(settings or {}))
     return directory
 
 

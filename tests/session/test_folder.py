@@ -222,6 +222,7 @@ def test_a_folder_or_file_this_user_may_not_read_is_named(
 def test_missing_session_toml_is_a_note_naming_the_folder_and_the_defaults(
     session: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
+    (session / "session.toml").unlink()
     with caplog.at_level(logging.WARNING, logger="pipeline.session.folder"):
         s = load_session(session)
     assert s.settings.manipulator.radius_mm == 6.0  # the defaults, and the run goes on
