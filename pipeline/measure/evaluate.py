@@ -251,6 +251,10 @@ def evaluate_centerlines(
         raise ValueError(f"expected (F, N, 3) and (F, M, 3) arrays, got {pred.shape} and {truth.shape}")
     if len(pred) != len(truth):
         raise ValueError(f"{len(pred)} predicted frames but {len(truth)} true frames")
+    if truth.shape[1] == 0:
+        raise ValueError(f"the true centrelines have no points (shape {truth.shape})")
+    if pred.shape[1] == 0:  # no curve in any frame: every frame failed, as NaN rows say
+        pred = np.full((len(pred), 1, 3), np.nan)
     frames = len(pred)
     index = np.arange(frames) if frame_indices is None else np.asarray(frame_indices).reshape(-1)
     ok: NDArray[np.bool_] = np.asarray(np.isfinite(pred).all(axis=(1, 2)) & (pred.shape[1] > 0))
@@ -319,7 +323,13 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
         with np.load(file) as data:
             if "centerlines" not in data:
                 raise EvaluationError(f"{file}: no 'centerlines' array; is this a synthetic ground truth?")
-            centerlines = np.asarray(data["centerlines"], dtype=np.float64)
+            raw = data["centerlines"]
+            if raw.dtype.kind not in "iuf":  # booleans, complex numbers, text, records
+                raise EvaluationError(
+                    f"{file}: 'centerlines' holds {raw.dtype} values, expected numbers (mm); "
+                    "render the session again (pipeline synth)"
+                )
+            centerlines = np.asarray(raw, dtype=np.float64)
             timestamps = (
                 np.asarray(data["timestamps_s"], dtype=np.float64).reshape(-1)
                 if "timestamps_s" in data
@@ -329,6 +339,11 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
         raise EvaluationError(f"{file}: not a readable .npz file ({exc})") from None
     if centerlines.ndim != 3 or centerlines.shape[2] != 3:
         raise EvaluationError(f"{file}: 'centerlines' has shape {centerlines.shape}, expected (F, M, 3)")
+    if 0 in centerlines.shape[:2]:
+        what = "frames" if len(centerlines) == 0 else "points"
+        raise EvaluationError(
+            f"{file}: 'centerlines' holds no {what} (shape {centerlines.shape}); render the session again"
+        )
     if not np.isfinite(centerlines).all():
         raise EvaluationError(
             f"{file}: 'centerlines' holds non-finite values; render the session again (pipeline synth)"
