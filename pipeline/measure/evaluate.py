@@ -310,6 +310,10 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
     """
     path = Path(path)
     file = path / "ground_truth.npz" if path.is_dir() else path
+    if file.exists() and not file.is_file():
+        raise EvaluationError(
+            f"{file}: is not a regular file (a pipe or device); give the ground_truth.npz file"
+        )
     if not file.is_file():
         where = f"{path} holds no ground_truth.npz" if path.is_dir() else f"{path} does not exist"
         raise EvaluationError(f"ground truth: {where}; give a ground_truth.npz or the session directory")
@@ -408,7 +412,7 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
                 "then the ground truth (evaluate RECORDING.mcap GROUND_TRUTH)"
             )
         raise EvaluationError(f"{recording}: is a folder; give the recording's .mcap file in it")
-    if not recording.is_file():
+    if not recording.exists():  # anything else there (a named pipe) is named by load_recording
         raise EvaluationError(f"recording {recording} does not exist; run `python -m pipeline process` first")
     truth_mm, truth_times = load_ground_truth(ground_truth)
     with _held_warnings("pipeline.record.load") as held:

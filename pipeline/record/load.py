@@ -36,6 +36,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from numpy.typing import NDArray
 
 from ..errors import RecordingError
+from ..session.toml_file import require_regular_file
 from .commit_marker import killed_commits
 from .mcap_log import (
     CENTERLINE_TOPIC,
@@ -198,6 +199,7 @@ def load_recording(path: Path | str) -> Recording:
             path.parent,
         )
     try:
+        require_regular_file(path)  # a named pipe would block the read until something wrote to it
         with path.open("rb") as f:
             if f.read(len(_RRD_MAGIC)) == _RRD_MAGIC:
                 raise RecordingError(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import os
 from pathlib import Path
 
 import numpy as np
@@ -424,3 +425,16 @@ def test_a_recording_without_any_curve_counts_every_frame_failed() -> None:
     report = evaluate_centerlines(np.zeros((4, 0, 3)), truth)
     assert report.failed_frames == 4 and report.failed_indices == (0, 1, 2, 3)
     assert np.isnan(report.mean_mm) and np.isnan(report.tip_jitter_mm)
+
+
+@pytest.mark.timeout(20)
+def test_a_named_pipe_is_refused_not_waited_on_nor_called_missing(
+    partial_run: tuple[Path, Path], tmp_path: Path
+) -> None:
+    recording, session_dir = partial_run
+    pipe = tmp_path / "pipe"
+    os.mkfifo(pipe)  # a read would block until something wrote to it
+    with pytest.raises(RecordingError, match=r"pipe: cannot read: is not a regular file"):
+        evaluate_recording(pipe, session_dir)
+    with pytest.raises(EvaluationError, match=r"pipe: is not a regular file"):
+        evaluate_recording(recording, pipe)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -260,3 +261,11 @@ def test_a_message_that_is_not_its_protobuf_is_read_as_damage(
     rec = pipeline.load_recording(damaged)
     assert not rec.complete and 0 < len(rec) <= 10
     assert "damaged.mcap: truncated or damaged after frame" in caplog.text
+
+
+@pytest.mark.timeout(20)
+def test_a_named_pipe_is_refused_not_waited_on(tmp_path: Path) -> None:
+    pipe = tmp_path / "run.mcap"
+    os.mkfifo(pipe)  # a read would block until something wrote to it
+    with pytest.raises(PipelineError, match=r"run\.mcap: cannot read: is not a regular file"):
+        pipeline.load_recording(pipe)
