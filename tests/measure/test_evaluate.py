@@ -6,6 +6,7 @@ import dataclasses
 import json
 import logging
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -438,3 +439,22 @@ def test_a_named_pipe_is_refused_not_waited_on_nor_called_missing(
         evaluate_recording(pipe, session_dir)
     with pytest.raises(EvaluationError, match=r"pipe: is not a regular file"):
         evaluate_recording(recording, pipe)
+
+
+@pytest.mark.parametrize("as_json", [False, True], ids=["table", "json"])
+def test_a_report_that_stdout_cannot_take_is_an_error_not_a_success(
+    partial_run: tuple[Path, Path],
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    as_json: bool,
+) -> None:
+    # `evaluate ... --json > report.json` on a full disk: the report is all the command makes.
+    from pipeline.cli import EXIT_BAD_INPUT, main
+
+    recording, session_dir = partial_run
+    with open("/dev/full", "w", encoding="utf-8") as full:
+        monkeypatch.setattr(sys, "stdout", full)
+        code = main(["evaluate", str(recording), str(session_dir), *(["--json"] if as_json else [])])
+    err = capsys.readouterr().err
+    assert code == EXIT_BAD_INPUT, err
+    assert err.startswith("error: stdout: cannot take the report of rod.mcap (No space left on device)"), err
