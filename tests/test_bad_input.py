@@ -68,6 +68,26 @@ def test_missing_video_dir(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     assert_rejected(tmp_path / "nowhere", capsys, "nowhere", "no such session directory")
 
 
+def test_a_missing_relative_session_says_where_it_was_looked_for(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # `make -C repo process VIDEO_DIR=s1`: a relative path is taken from the folder make runs in.
+    monkeypatch.chdir(tmp_path)
+    assert_rejected(Path("s1"), capsys, f"s1: no such session directory (looked for it in {tmp_path})")
+
+
+def test_a_tilde_the_shell_did_not_expand_is_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # zsh leaves `make process VIDEO_DIR=~/s1` as it is, and so does a quoted "~/s1".
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "s1").mkdir()
+    assert_rejected(
+        Path("~/s1"), capsys, f"~/s1: no such session directory (~ is not expanded here: give {tmp_path}/s1)"
+    )
+
+
 def test_empty_video_dir(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (tmp_path / "empty").mkdir()
     assert_rejected(tmp_path / "empty", capsys, "empty", "is empty")

@@ -44,10 +44,30 @@ def say(text: str, stream: TextIO | None = None) -> None:
     except (OSError, ValueError):  # BrokenPipeError among the former, a closed stream the latter
         if stream is not sys.stdout:
             raise
-        # Later prints (and the flush at exit) go to the null device.
-        null = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(null, sys.stdout.fileno())
-        os.close(null)
+        _drop_stdout()
+
+
+def say_result(text: str, what: str) -> None:
+    """Print ``text``, all that the command makes (``what``, for the message), to stdout. A
+    reader that closed it (``| head``) has taken what it wanted; a stdout that cannot take it
+    (``> /dev/full``, a full disk) is an OutputError: with exit status 0, a script would keep
+    an empty report."""
+    try:
+        print(text, flush=True)
+    except (BrokenPipeError, ValueError):  # closed by its reader, or closed in this process
+        _drop_stdout()
+    except OSError as exc:
+        _drop_stdout()  # else the flush at exit fails again, with a second message
+        raise OutputError(
+            f"stdout: cannot take {what} ({exc.strerror or exc}); free space, or send it elsewhere"
+        ) from None
+
+
+def _drop_stdout() -> None:
+    """Send later prints to stdout (and the flush at exit) to the null device."""
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, sys.stdout.fileno())
+    os.close(null)
 
 
 def _report(summary: Any, json_to: str | None) -> None:
@@ -255,7 +275,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from ..measure.evaluate import evaluate_recording, format_report
 
     report = evaluate_recording(args.recording, args.ground_truth)
-    say(report.to_json() if args.json else format_report(report))
+    say_result(
+        report.to_json() if args.json else format_report(report), f"the report of {args.recording.name}"
+    )
     if not report.complete:
         print(
             f"warning: {args.recording} ends before its footer (its run was stopped while writing): "

@@ -251,6 +251,10 @@ def evaluate_centerlines(
         raise ValueError(f"expected (F, N, 3) and (F, M, 3) arrays, got {pred.shape} and {truth.shape}")
     if len(pred) != len(truth):
         raise ValueError(f"{len(pred)} predicted frames but {len(truth)} true frames")
+    if truth.shape[1] == 0:
+        raise ValueError(f"the true centrelines have no points (shape {truth.shape})")
+    if pred.shape[1] == 0:  # no curve in any frame: every frame failed, as NaN rows say
+        pred = np.full((len(pred), 1, 3), np.nan)
     frames = len(pred)
     index = np.arange(frames) if frame_indices is None else np.asarray(frame_indices).reshape(-1)
     ok: NDArray[np.bool_] = np.asarray(np.isfinite(pred).all(axis=(1, 2)) & (pred.shape[1] > 0))
@@ -306,6 +310,10 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
     """
     path = Path(path)
     file = path / "ground_truth.npz" if path.is_dir() else path
+    if file.exists() and not file.is_file():
+        raise EvaluationError(
+            f"{file}: is not a regular file (a pipe or device); give the ground_truth.npz file"
+        )
     if not file.is_file():
         where = f"{path} holds no ground_truth.npz" if path.is_dir() else f"{path} does not exist"
         raise EvaluationError(f"ground truth: {where}; give a ground_truth.npz or the session directory")
@@ -319,7 +327,13 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
         with np.load(file) as data:
             if "centerlines" not in data:
                 raise EvaluationError(f"{file}: no 'centerlines' array; is this a synthetic ground truth?")
-            centerlines = np.asarray(data["centerlines"], dtype=np.float64)
+            raw = data["centerlines"]
+            if raw.dtype.kind not in "iuf":  # booleans, complex numbers, text, records
+                raise EvaluationError(
+                    f"{file}: 'centerlines' holds {raw.dtype} values, expected numbers (mm); "
+                    "render the session again (pipeline synth)"
+                )
+            centerlines = np.asarray(raw, dtype=np.float64)
             timestamps = (
                 np.asarray(data["timestamps_s"], dtype=np.float64).reshape(-1)
                 if "timestamps_s" in data
@@ -329,6 +343,11 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
         raise EvaluationError(f"{file}: not a readable .npz file ({exc})") from None
     if centerlines.ndim != 3 or centerlines.shape[2] != 3:
         raise EvaluationError(f"{file}: 'centerlines' has shape {centerlines.shape}, expected (F, M, 3)")
+    if 0 in centerlines.shape[:2]:
+        what = "frames" if len(centerlines) == 0 else "points"
+        raise EvaluationError(
+            f"{file}: 'centerlines' holds no {what} (shape {centerlines.shape}); render the session again"
+        )
     if not np.isfinite(centerlines).all():
         raise EvaluationError(
             f"{file}: 'centerlines' holds non-finite values; render the session again (pipeline synth)"
@@ -393,7 +412,7 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
                 "then the ground truth (evaluate RECORDING.mcap GROUND_TRUTH)"
             )
         raise EvaluationError(f"{recording}: is a folder; give the recording's .mcap file in it")
-    if not recording.is_file():
+    if not recording.exists():  # anything else there (a named pipe) is named by load_recording
         raise EvaluationError(f"recording {recording} does not exist; run `python -m pipeline process` first")
     truth_mm, truth_times = load_ground_truth(ground_truth)
     with _held_warnings("pipeline.record.load") as held:

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 import zstandard
+from google.protobuf.message import DecodeError
 from mcap.decoder import DecoderFactory as McapDecoderFactory
 from mcap.exceptions import McapError
 from mcap.records import Channel, Footer, Message, Metadata, Schema
@@ -35,6 +36,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from numpy.typing import NDArray
 
 from ..errors import RecordingError
+from ..session.toml_file import require_regular_file
 from .commit_marker import killed_commits
 from .mcap_log import (
     CENTERLINE_TOPIC,
@@ -166,9 +168,11 @@ def _column(values: list[Any]) -> NDArray[Any]:
     return np.array([np.nan if v is None else float(v) for v in values], dtype=np.float64)
 
 
-# What a truncated or torn file raises while its records are parsed.
+# What a truncated or torn file raises while its records are parsed (DecodeError: a
+# message whose bytes are not the protobuf its schema names).
 _TRUNCATION_ERRORS = (
     McapError,
+    DecodeError,
     CRCValidationError,
     zstandard.ZstdError,
     struct.error,
@@ -195,6 +199,7 @@ def load_recording(path: Path | str) -> Recording:
             path.parent,
         )
     try:
+        require_regular_file(path)  # a named pipe would block the read until something wrote to it
         with path.open("rb") as f:
             if f.read(len(_RRD_MAGIC)) == _RRD_MAGIC:
                 raise RecordingError(
@@ -233,8 +238,8 @@ def _read(stream: Any, path: Path) -> Recording:
                 channel = channels[record.channel_id]
                 topic = channel.topic
                 if topic == METRICS_TOPIC:
-                    data = json.loads(record.data)
-                    metrics[int(data["frame"])] = (record.log_time, data)
+                    frame, data = _frame_metrics(path, record.data)
+                    metrics[frame] = (record.log_time, data)
                     continue
                 if topic not in (POINTS_TOPIC, CENTERLINE_TOPIC, SMOOTHED_TOPIC):
                     continue
@@ -264,6 +269,36 @@ def _read(stream: Any, path: Path) -> Recording:
         if not complete:
             log.warning("%s: no footer (the run did not finish); %d frames read", path, len(metrics))
     return _assemble(path, metadata, metrics, points, curves, smoothed, complete)
+
+
+# Frame indices are int64 in the Recording's arrays.
+_MAX_FRAME = 2**63 - 1
+
+
+def _frame_metrics(path: Path, data: bytes) -> tuple[int, dict[str, Any]]:
+    """One ``/reconstruction/metrics`` message -> (frame index, metrics).
+
+    RecordingError where the message is JSON but not the pipeline's metrics (an object with
+    an integer ``frame`` and a string ``status``): another program's recording on the same
+    topic. JSON that does not parse raises ValueError, as the other damage does.
+    """
+    metrics = json.loads(data)
+    if not isinstance(metrics, dict):
+        reason = "not a JSON object"
+    elif (
+        not isinstance(frame := metrics.get("frame"), int)
+        or isinstance(frame, bool)
+        or not 0 <= frame <= _MAX_FRAME
+    ):
+        reason = f"no frame index: frame {str(frame)[:20]}"
+    elif not isinstance(metrics.get("status"), str):
+        reason = f"no status in frame {frame}"
+    else:
+        return frame, metrics
+    raise RecordingError(
+        f"{path}: {METRICS_TOPIC} holds a message that is not the pipeline's metrics ({reason}); "
+        "give a recording written by `pipeline process`"
+    )
 
 
 def _points_from_cloud(cloud: Any) -> NDArray[np.float32]:
@@ -304,7 +339,8 @@ def _assemble(
     frames = sorted(metrics)
     times = [metrics[i][0] for i in frames]
     lengths = {len(c) for c in curves.values() if c is not None}
-    n = max(lengths) if lengths else int(metadata.get("centerline_points", 0))
+    declared = metadata.get("centerline_points", "")
+    n = max(lengths) if lengths else int(declared) if declared.isdecimal() else 0
     if len(lengths) > 1:
         log.warning(
             "%s: centrelines of different lengths %s; shorter ones read as NaN", path, sorted(lengths)

@@ -86,7 +86,7 @@ def _load_session(directory: Path) -> Session:
     if directory.exists() and not directory.is_dir():
         raise SessionError(f"{directory}: is not a directory (a device or pipe); give the session directory")
     if not directory.is_dir():
-        raise SessionError(f"{directory}: no such session directory")
+        raise SessionError(f"{directory}: no such session directory{_where_looked(directory)}")
     if not any(directory.iterdir()):
         raise SessionError(f"{directory}: the session directory is empty")
     for name in ("session.toml", "calibration.toml"):
@@ -224,6 +224,25 @@ def _with_start_time(settings: Settings, infos: list[VideoInfo]) -> Settings:
     start = min(stamps)
     log.debug("session start %s: the videos' creation time", start.isoformat())
     return dataclasses.replace(settings, session=dataclasses.replace(settings.session, start_time=start))
+
+
+def _where_looked(directory: Path) -> str:
+    """Where a missing session ``directory`` was looked for, for its error message: a ``~``
+    no shell expanded (zsh in ``make process VIDEO_DIR=~/s``, or quoted), or the folder a
+    relative path is taken from (with ``make -C``, the repository's, not the caller's)."""
+    if directory.parts and directory.parts[0].startswith("~"):
+        try:
+            expanded = directory.expanduser()
+        except RuntimeError:  # ~name of no user on this machine
+            expanded = directory
+        if expanded != directory:
+            return f" (~ is not expanded here: give {expanded})"
+    if not directory.is_absolute():
+        try:
+            return f" (looked for it in {Path.cwd()})"
+        except OSError:  # the current directory was removed
+            return ""
+    return ""
 
 
 def _rig_cameras(path: Path) -> list[Camera]:

@@ -7,6 +7,7 @@ manipulator mounted at (128, 128, 0) mm.
 
 from __future__ import annotations
 
+import difflib
 import math
 import tomllib
 from dataclasses import dataclass, field, fields
@@ -207,8 +208,21 @@ def _check_keys(data: dict[str, Any], allowed: Any, source: str, where: str) -> 
     for key in data:
         if key not in allowed:
             raise SettingsError(
-                f"{source}: unknown key {where}{key!r}; allowed: {', '.join(sorted(allowed))}"
+                f"{source}: unknown key {where}{key!r}{_key_hint(key, allowed)}; "
+                f"allowed: {', '.join(sorted(allowed))}"
             )
+
+
+def _key_hint(key: str, allowed: Any) -> str:
+    """Where an unknown ``key`` belongs: the table it is a key of (a setting written above
+    its table's header, or under another table), else the allowed name nearest its spelling."""
+    homes = [f"[{name}]" for name, cls in _SECTIONS.items() if key in {f.name for f in fields(cls)}]
+    if len(homes) == 1:
+        return f" (a key of {homes[0]}: put it under {homes[0]})"
+    if homes:  # "method": a key of two tables
+        return f" (a key of {' and '.join(homes)}: put it under one of them)"
+    nearest = difflib.get_close_matches(key, sorted(allowed), n=1)
+    return f" (did you mean {nearest[0]!r}?)" if nearest else ""
 
 
 def _number(source: str, key: str, value: Any) -> float:

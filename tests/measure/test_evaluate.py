@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -397,3 +399,62 @@ def test_accuracy_table_is_markdown_with_ours_smoothed_and_polyfit() -> None:
     second = [cell.strip() for cell in lines[3].strip("|").split("|")]
     assert second[0] == "ninety-helix-r4 (unseen)" and second[11] == "-" and second[-1] == "-"
     assert json.loads(results_json(results))[1]["polyfit"] is None
+
+
+@pytest.mark.parametrize(
+    ("centerlines", "message"),
+    [
+        (np.zeros((0, 20, 3)), r"'centerlines' holds no frames"),
+        (np.zeros((RUN_FRAMES, 0, 3)), r"'centerlines' holds no points"),
+        (np.ones((RUN_FRAMES, 20, 3), dtype=bool), r"'centerlines' holds bool values"),
+        (np.ones((RUN_FRAMES, 20, 3), dtype=complex), r"'centerlines' holds complex128 values"),
+    ],
+    ids=["no-frames", "no-points", "bool", "complex"],
+)
+def test_a_ground_truth_without_usable_centrelines_is_named(
+    partial_run: tuple[Path, Path], tmp_path: Path, centerlines: NDArray[np.generic], message: str
+) -> None:
+    recording, _ = partial_run
+    np.savez(tmp_path / "odd.npz", centerlines=centerlines)
+    with pytest.raises(EvaluationError, match=rf"odd\.npz: {message}"):
+        evaluate_recording(recording, tmp_path / "odd.npz")
+
+
+def test_a_recording_without_any_curve_counts_every_frame_failed() -> None:
+    # N = 0: a recording that holds frames but no curve points.
+    truth = np.stack([line(20)] * 4)
+    report = evaluate_centerlines(np.zeros((4, 0, 3)), truth)
+    assert report.failed_frames == 4 and report.failed_indices == (0, 1, 2, 3)
+    assert np.isnan(report.mean_mm) and np.isnan(report.tip_jitter_mm)
+
+
+@pytest.mark.timeout(20)
+def test_a_named_pipe_is_refused_not_waited_on_nor_called_missing(
+    partial_run: tuple[Path, Path], tmp_path: Path
+) -> None:
+    recording, session_dir = partial_run
+    pipe = tmp_path / "pipe"
+    os.mkfifo(pipe)  # a read would block until something wrote to it
+    with pytest.raises(RecordingError, match=r"pipe: cannot read: is not a regular file"):
+        evaluate_recording(pipe, session_dir)
+    with pytest.raises(EvaluationError, match=r"pipe: is not a regular file"):
+        evaluate_recording(recording, pipe)
+
+
+@pytest.mark.parametrize("as_json", [False, True], ids=["table", "json"])
+def test_a_report_that_stdout_cannot_take_is_an_error_not_a_success(
+    partial_run: tuple[Path, Path],
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    as_json: bool,
+) -> None:
+    # `evaluate ... --json > report.json` on a full disk: the report is all the command makes.
+    from pipeline.cli import EXIT_BAD_INPUT, main
+
+    recording, session_dir = partial_run
+    with open("/dev/full", "w", encoding="utf-8") as full:
+        monkeypatch.setattr(sys, "stdout", full)
+        code = main(["evaluate", str(recording), str(session_dir), *(["--json"] if as_json else [])])
+    err = capsys.readouterr().err
+    assert code == EXIT_BAD_INPUT, err
+    assert err.startswith("error: stdout: cannot take the report of rod.mcap (No space left on device)"), err

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -185,3 +186,86 @@ def test_not_an_mcap_is_a_pipeline_error(tmp_path: Path) -> None:
         pipeline.load_recording(bad)
     with pytest.raises(PipelineError, match=r"missing\.mcap: cannot read"):
         pipeline.load_recording(tmp_path / "missing.mcap")
+
+
+def _mcap_with_metrics(path: Path, messages: list[bytes], metadata: dict[str, str] | None = None) -> Path:
+    """A valid MCAP whose metrics topic holds ``messages``, as another tool (or another
+    program's recording under the same topic name) would write it."""
+    from mcap.writer import Writer
+
+    with path.open("wb") as f:
+        writer = Writer(f)
+        writer.start()
+        schema = writer.register_schema(name="metrics", encoding="jsonschema", data=b"{}")
+        channel = writer.register_channel(
+            topic="/reconstruction/metrics", message_encoding="json", schema_id=schema
+        )
+        writer.add_metadata("pipeline", metadata or {})
+        for i, data in enumerate(messages):
+            writer.add_message(channel_id=channel, log_time=T0_NS + i, publish_time=T0_NS + i, data=data)
+        writer.finish()
+    return path
+
+
+@pytest.mark.parametrize(
+    ("message", "reason"),
+    [
+        (b'{"status": "ok"}', "no frame index"),
+        (b'{"frame": null, "status": "ok"}', "no frame index"),
+        (b'{"frame": 1.5, "status": "ok"}', "no frame index"),
+        (b'{"frame": 100000000000000000000000000000, "status": "ok"}', "no frame index"),
+        (b'{"frame": 0}', "no status"),
+        (b'{"frame": 0, "status": 5}', "no status"),
+        (b"[1, 2]", "not a JSON object"),
+    ],
+    ids=["no-frame", "null-frame", "float-frame", "huge-frame", "no-status", "int-status", "list"],
+)
+def test_metrics_that_are_not_the_pipelines_are_named(tmp_path: Path, message: bytes, reason: str) -> None:
+    path = _mcap_with_metrics(tmp_path / "other.mcap", [b'{"frame": 0, "status": "ok"}', message])
+    with pytest.raises(PipelineError, match=rf"other\.mcap: .*not the pipeline's metrics \({reason}"):
+        pipeline.load_recording(path)
+
+
+def test_a_centerline_length_in_the_metadata_that_is_not_a_number_is_ignored(tmp_path: Path) -> None:
+    path = _mcap_with_metrics(
+        tmp_path / "odd.mcap", [b'{"frame": 0, "status": "empty"}'], {"centerline_points": "many"}
+    )
+    rec = pipeline.load_recording(path)
+    assert rec.centerlines_m.shape == (1, 0, 3) and list(rec.statuses) == ["empty"]
+
+
+def test_a_message_that_is_not_its_protobuf_is_read_as_damage(
+    written: tuple[Path, list[FrameResult]], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    from mcap.writer import Writer
+
+    path, _ = written
+    damaged = tmp_path / "damaged.mcap"
+    with path.open("rb") as f, damaged.open("wb") as out:
+        writer = Writer(out)
+        writer.start()
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        for schema, channel, message in make_reader(f).iter_messages():
+            if schema is not None and schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schemas[schema.id] if schema else 0
+                )
+            data = message.data
+            if channel.topic == "/reconstruction/points" and message.log_time == T0_NS + 10 * DT_NS:
+                data = b"\xff\xff\xff\xff\x0f not a PointCloud"
+            writer.add_message(channels[channel.id], message.log_time, data, message.publish_time)
+        writer.finish()
+    rec = pipeline.load_recording(damaged)
+    assert not rec.complete and 0 < len(rec) <= 10
+    assert "damaged.mcap: truncated or damaged after frame" in caplog.text
+
+
+@pytest.mark.timeout(20)
+def test_a_named_pipe_is_refused_not_waited_on(tmp_path: Path) -> None:
+    pipe = tmp_path / "run.mcap"
+    os.mkfifo(pipe)  # a read would block until something wrote to it
+    with pytest.raises(PipelineError, match=r"run\.mcap: cannot read: is not a regular file"):
+        pipeline.load_recording(pipe)

@@ -115,6 +115,15 @@ def test_a_base_in_the_box_or_just_below_its_floor_is_accepted(base_mm: list[flo
             {"silhouete": {}},
             ("unknown key 'silhouete'", "centerline, live, manipulator, session, silhouette"),
         ),
+        ({"manipulator": {"radius": 6.0}}, ("[manipulator] 'radius' (did you mean 'radius_mm'?)",)),
+        ({"manipulater": {}}, ("unknown key 'manipulater' (did you mean 'manipulator'?)",)),
+        ({"threshold": 92}, ("unknown key 'threshold' (a key of [silhouette]: put it under [silhouette])",)),
+        ({"workspace": {"radius_mm": 6.0}}, ("[workspace] 'radius_mm' (a key of [manipulator]: put it",)),
+        ({"workspace": {"xyz": 1}}, ("unknown key [workspace] 'xyz'; allowed: origin_mm",)),
+        (
+            {"method": "otsu"},
+            ("'method' (a key of [silhouette] and [centerline]: put it under one of them)",),
+        ),
     ],
     ids=lambda v: "-".join(f"{k}:{v[k]}" for k in v) if isinstance(v, dict) else "",
 )
