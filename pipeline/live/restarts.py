@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from ..reconstruct.frame_result import FrameResult
 from ..reconstruct.tracking import LENGTH_FRAMES
+from ..run.interrupts import deferred_signals, signals_blocked_in_children
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +85,16 @@ class RestartWorker:
             initializer=_take_model,
             initargs=(model,),
         )
-        self._warm: Future[None] = self._pool.submit(_ready)
+        try:
+            # The worker is spawned here. A signal waits until its model is written to it
+            # whole (cut short, the worker fails reading it, with a traceback), and it starts
+            # with Ctrl-C and a hang-up blocked, which a terminal sends its whole group: the
+            # run handles them (the worker, still importing, would print a traceback).
+            with deferred_signals(), signals_blocked_in_children():
+                self._warm: Future[None] = self._pool.submit(_ready)
+        except BaseException:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            raise
         # The started track: the run's track before it, and its own frames, in order.
         self._before: list[FrameResult] = []
         self._frames: list[Future[FrameResult]] = []

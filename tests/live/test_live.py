@@ -250,6 +250,22 @@ def test_the_restart_worker_starts_a_track_and_follows_it_as_this_process_would(
         np.testing.assert_array_equal(a.centerline_mm, b.centerline_mm)
 
 
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads a process's signal mask in /proc")
+def test_the_restart_worker_leaves_ctrl_c_and_a_hang_up_to_the_run() -> None:
+    # A terminal's Ctrl-C reaches every process of its group: a worker still importing as it
+    # starts would print a traceback under the run's one line. It starts with them blocked.
+    worker = RestartWorker({})
+    try:
+        worker.wait_ready(60.0)
+        (pid,) = [process.pid for process in worker._pool._processes.values()]
+        status = Path(f"/proc/{pid}/status").read_text()
+        blocked = int(next(line for line in status.splitlines() if line.startswith("SigBlk:")).split()[1], 16)
+    finally:
+        worker.close()
+    for sig in (signal.SIGINT, signal.SIGHUP):
+        assert blocked & (1 << (sig - 1)), f"{sig.name} is not blocked in the restart worker"
+
+
 def _verify_rrd(path: Path) -> None:
     verify = subprocess.run(
         [str(RERUN), "rrd", "verify", str(path)], env=RERUN_ENV, capture_output=True, text=True
