@@ -34,7 +34,11 @@ def grpc_url(address: str) -> str:
     if "://" not in text:
         text = f"rerun+http://{text}/proxy"
     parts = urlsplit(text)
-    if parts.scheme not in ("rerun", "rerun+http", "rerun+https") or not parts.hostname or not parts.port:
+    try:
+        port = parts.port
+    except ValueError:  # not a number, or past 65535
+        port = None
+    if parts.scheme not in ("rerun", "rerun+http", "rerun+https") or not parts.hostname or not port:
         raise SettingsError(
             f"--viewer connect {address!r}: not a Rerun viewer address; give PORT, HOST:PORT or "
             "rerun+http://HOST:PORT/proxy"

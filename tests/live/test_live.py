@@ -174,6 +174,9 @@ def test_viewer_and_foxglove_addresses() -> None:
     assert grpc_url("rerun+http://10.0.0.2:9876/proxy") == "rerun+http://10.0.0.2:9876/proxy"
     with pytest.raises(SettingsError, match="not a Rerun viewer address"):
         grpc_url("http://rig")
+    for port in ("99999", "127.0.0.1:99999", "rig:x"):
+        with pytest.raises(SettingsError, match=f"--viewer connect '{port}': not a Rerun viewer address"):
+            grpc_url(port)
     assert parse_host_port("0.0.0.0:8766") == ("0.0.0.0", 8766)
     assert parse_host_port("8766") == ("127.0.0.1", 8766)
     with pytest.raises(SettingsError, match="expected HOST:PORT"):
