@@ -61,7 +61,7 @@ def rig_sources(rig: Session) -> list[Source]:
             f"{toml}: no [live] table; add one naming each camera's source "
             '(cam0 = "/dev/video0", cam1 = 1, cam2 = "udp://127.0.0.1:5002"), or use --replay SESSION_DIR'
         )
-    sources = []
+    sources: list[Source] = []
     for cam in rig.cameras:
         text = live.source(cam.name)
         if text is None:
@@ -69,7 +69,16 @@ def rig_sources(rig: Session) -> list[Source]:
                 f"{toml}: [live] gives no source for camera {cam.name!r}; add "
                 f'{cam.name} = "/dev/videoN" (or a device index, or a stream URL)'
             )
-        sources.append(parse_source(cam.name, text))
+        source = parse_source(cam.name, text)
+        other = next((s for s in sources if s.url == source.url), None)
+        if other is not None:
+            # The second reader would be refused (a device busy, a port in use) or steal
+            # half the frames: the run would go on short of a camera.
+            raise SettingsError(
+                f"{toml}: [live] gives cameras {other.camera!r} and {cam.name!r} the same source "
+                f"({source.url}); each camera needs a source of its own"
+            )
+        sources.append(source)
     return sources
 
 

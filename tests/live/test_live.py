@@ -166,6 +166,12 @@ def test_a_rig_whose_live_table_misses_or_misnames_a_camera_is_refused(tmp_path:
     rig = _rig(tmp_path / "c", session, None)
     with pytest.raises(SettingsError, match=r"no \[live\] table; add one naming each camera's source"):
         open_rig(rig, None)
+    # A device index and its path are the same device.
+    rig = _rig(tmp_path / "d", session, {"cam0": 0, "cam1": "udp://127.0.0.1:5002", "cam2": "/dev/video0"})
+    with pytest.raises(
+        SettingsError, match=r"\[live\] gives cameras 'cam0' and 'cam2' the same source \(/dev/video0\)"
+    ):
+        open_rig(rig, None)
 
 
 def test_viewer_and_foxglove_addresses() -> None:
