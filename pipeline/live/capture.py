@@ -11,6 +11,8 @@ it is due (when a camera would have delivered it), and ends with its last frame.
 from __future__ import annotations
 
 import logging
+import os
+import stat
 import threading
 import time
 from collections.abc import Callable
@@ -106,6 +108,27 @@ class CameraReader:
 
     def join(self, timeout_s: float) -> None:
         self._thread.join(timeout_s)
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def wake(self) -> None:
+        """Let a reader waiting to open a named pipe that nothing writes to see the stop.
+
+        FFmpeg opens a named pipe blocking, until a writer opens it too: no timeout reaches
+        it there. Opening the pipe's writing end and closing it at once ends that wait (the
+        stream is then empty, and the reader, seeing the stop, returns). Called after the
+        stop is set; a reader doing anything else is left alone.
+        """
+        if self.source.is_replay or not self._thread.is_alive():
+            return
+        try:
+            if stat.S_ISFIFO(os.stat(self.source.url).st_mode):
+                # Fails (ENXIO) where no reader has the pipe open: nothing waits on it then.
+                os.close(os.open(self.source.url, os.O_WRONLY | os.O_NONBLOCK))
+        except OSError:  # not a path, or no reader waiting on it
+            pass
 
     def _run(self) -> None:
         reported_at: int | None = None  # frames delivered when the last outage was reported

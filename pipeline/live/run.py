@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 POLL_S = 0.05
 # The restart worker gets this long to start before the cameras do (it takes ~1 s).
 RESTARTS_READY_S = 30.0
-# Readers blocked in a read get this long to notice the stop (their reads time out).
+# Readers blocked in a read get this long, together, to notice the stop (their reads time out).
 JOIN_S = 3.0
 
 
@@ -390,4 +390,9 @@ def _loop(
 def _stop_readers(stop: threading.Event, readers: Sequence[CameraReader]) -> None:
     stop.set()
     for reader in readers:
-        reader.join(JOIN_S)
+        reader.wake()
+    # One wait for all of them: readers that stay blocked (daemon threads) cost the run
+    # JOIN_S once, not once each.
+    deadline = time.monotonic() + JOIN_S
+    for reader in readers:
+        reader.join(max(0.0, deadline - time.monotonic()))

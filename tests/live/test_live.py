@@ -8,6 +8,7 @@ test starts, and are stopped by a signal; each checks the recordings it leaves.
 from __future__ import annotations
 
 import base64
+import contextlib
 import dataclasses
 import io
 import json
@@ -664,6 +665,28 @@ def test_a_camera_that_does_not_answer_is_reported_and_the_run_still_stops_clean
     assert summary.run.outputs == [] and summary.exit_code == 1
     assert [p.name for p in (tmp_path / "out").iterdir()] == ["rig.mcap"]
     assert (tmp_path / "out" / "rig.mcap").read_bytes() == b"earlier"
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes")
+def test_named_pipes_nothing_writes_to_end_with_the_run(session: Path, tmp_path: Path) -> None:
+    pipes = [tmp_path / f"cam{k}.pipe" for k in range(3)]
+    for pipe in pipes:
+        os.mkfifo(pipe)
+    rig_dir = _rig(tmp_path / "rig", session, {f"cam{k}": str(pipe) for k, pipe in enumerate(pipes)})
+    rig, sources = open_rig(rig_dir, None)
+    try:
+        summary = run_live(rig, sources, out_dir=tmp_path / "out", duration_s=0.5)
+        # Each reader waited to open its pipe: the run's stop reached it there, and it ended.
+        waiting = [t.name for t in threading.enumerate() if t.name.startswith("camera-cam")]
+    finally:
+        for pipe in pipes:  # a reader still waiting in its open (a failure above) is let go
+            with contextlib.suppress(OSError):
+                os.close(os.open(pipe, os.O_WRONLY | os.O_NONBLOCK))
+    assert waiting == []
+    assert summary.stopped_by == "--duration" and summary.exit_code == 1 and not (tmp_path / "out").exists()
+    lines = summary.problem_lines()
+    for k in range(3):
+        assert lines[k + 1].startswith(f"  camera cam{k}: delivered no frame (its source opened no stream")
 
 
 @pytest.mark.slow
