@@ -7,6 +7,7 @@ videos instead and plays them at their frame rate, as if they were cameras.
 
 from __future__ import annotations
 
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -70,6 +71,7 @@ def rig_sources(rig: Session) -> list[Source]:
                 f'{cam.name} = "/dev/videoN" (or a device index, or a stream URL)'
             )
         source = parse_source(cam.name, text)
+        _check_path(toml, source)
         other = next((s for s in sources if s.url == source.url), None)
         if other is not None:
             # The second reader would be refused (a device busy, a port in use) or steal
@@ -80,6 +82,27 @@ def rig_sources(rig: Session) -> list[Source]:
             )
         sources.append(source)
     return sources
+
+
+def _check_path(toml: Path, source: Source) -> None:
+    """Refuse a ``[live]`` path that is a folder or a regular file: no frames come from the
+    one, and the other is read as fast as it decodes (and again when it ends), its frames
+    matched with the other cameras' at random. A path not there (a camera unplugged, a pipe
+    not made yet) is left to the run, which retries it."""
+    if "://" in source.url:
+        return
+    try:
+        mode = Path(source.url).stat().st_mode
+    except OSError:
+        return
+    where = f"{toml}: [live] {source.camera} = {source.url!r}"
+    if stat.S_ISDIR(mode):
+        raise SettingsError(f"{where} is a folder; give a device (/dev/videoN), a stream URL or a named pipe")
+    if stat.S_ISREG(mode):
+        raise SettingsError(
+            f"{where} is a file, not a camera (a file is read as fast as it decodes, not as "
+            "it is filmed); to play a session's videos as cameras, use --replay SESSION_DIR"
+        )
 
 
 def replay_sources(rig: Session, replay: Session) -> list[Source]:

@@ -167,6 +167,16 @@ def test_a_rig_whose_live_table_misses_or_misnames_a_camera_is_refused(tmp_path:
     rig = _rig(tmp_path / "c", session, None)
     with pytest.raises(SettingsError, match=r"no \[live\] table; add one naming each camera's source"):
         open_rig(rig, None)
+    # A folder and a file are not cameras (a file is read as fast as it decodes).
+    rig = _rig(tmp_path / "e", session, {"cam0": str(tmp_path), "cam1": 1, "cam2": 2})
+    with pytest.raises(SettingsError, match=r"\[live\] cam0 = '.*' is a folder; give a device"):
+        open_rig(rig, None)
+    video = str(session / "cam1.mp4")
+    rig = _rig(tmp_path / "f", session, {"cam0": 0, "cam1": video, "cam2": 2})
+    with pytest.raises(
+        SettingsError, match=r"\[live\] cam1 = .*cam1.mp4. is a file, not a camera .*--replay"
+    ):
+        open_rig(rig, None)
     # A device index and its path are the same device.
     rig = _rig(tmp_path / "d", session, {"cam0": 0, "cam1": "udp://127.0.0.1:5002", "cam2": "/dev/video0"})
     with pytest.raises(
