@@ -176,7 +176,15 @@ class CameraReader:
             # first ones back and hand them over at once, stamped alike.
             options.update(LOW_DELAY_OPTIONS)
         timeout = None if self.source.is_replay else (OPEN_TIMEOUT_S, self._stall_s)
-        return av.open(self.source.url, format=self.source.format, options=options, timeout=timeout)
+        try:
+            return av.open(self.source.url, format=self.source.format, options=options, timeout=timeout)
+        except av.error.ProtocolNotFoundError:
+            # Never opens, however often it is tried: a typo (rtps://) or another program's URL.
+            scheme = self.source.url.partition(":")[0]
+            raise SourceFault(
+                f"{self.source.describe()}: FFmpeg reads no {scheme}: URLs; fix the camera's source "
+                "in [live] in session.toml (rtsp://, udp://, tcp://, http://, srt://, ...)"
+            ) from None
 
     def _read(self) -> None:
         container = self._open()

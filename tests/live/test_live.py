@@ -27,7 +27,7 @@ import pytest
 import tomli_w
 
 import pipeline
-from pipeline.errors import SettingsError
+from pipeline.errors import SessionError, SettingsError
 from pipeline.live.handoff import DroppingQueue
 from pipeline.live.restarts import RestartWorker
 from pipeline.live.run import LiveSummary, run_live
@@ -675,6 +675,17 @@ def test_a_camera_that_does_not_answer_is_reported_and_the_run_still_stops_clean
     assert summary.run.outputs == [] and summary.exit_code == 1
     assert [p.name for p in (tmp_path / "out").iterdir()] == ["rig.mcap"]
     assert (tmp_path / "out" / "rig.mcap").read_bytes() == b"earlier"
+
+
+def test_a_source_of_a_scheme_ffmpeg_does_not_read_stops_the_run_named(session: Path, tmp_path: Path) -> None:
+    # A typo for rtsp://: it would never open, however often it was tried.
+    live = {"cam0": f"tcp://127.0.0.1:{_free_port()}", "cam1": "rtps://127.0.0.1:1/x", "cam2": 2}
+    rig, sources = open_rig(_rig(tmp_path / "rig", session, live), None)
+    with pytest.raises(
+        SessionError, match=r"camera 'cam1' \(rtps://127.0.0.1:1/x\): FFmpeg reads no rtps: URLs"
+    ):
+        run_live(rig, sources, out_dir=tmp_path / "out", duration_s=30.0)
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes")
