@@ -54,6 +54,10 @@ MIN_COMMON_CORNERS = 6
 # residual and above CORNER_FLOOR_PX: the sector detector occasionally lands a
 # corner of a steeply tilted board a pixel off, which would pull the world frame.
 CORNER_FACTOR, CORNER_FLOOR_PX = 6.0, 0.4
+# A camera whose mean re-projection error exceeds this is unfit for use: calibrations of
+# sound images stay far below it (0.12 px on the real stereo rig, 0.02-0.03 px on renders),
+# while one image of another session, or a mirrored one, among them gives tens of pixels.
+MAX_CAMERA_MEAN_PX = 1.0
 
 
 def calibrate_directory(
@@ -101,6 +105,7 @@ def calibrate_directory(
         result.dropped = sorted(e.source for e in outliers if e.key != WORLD)
         outliers = find_outliers(result.image_errors)
     result.outliers = outliers
+    result.problems = _problems(result)
     metadata = {
         "source": "pipeline calibrate",
         "calib_dir": str(calib_dir),
@@ -109,6 +114,7 @@ def calibrate_directory(
         "mean_reprojection_error_px": result.camera_mean_px(),
         "images": {c.name: sum(e.camera == c.name for e in result.image_errors) for c in result.cameras},
         "dropped": result.dropped,
+        "problems": result.problems,
     }
     partial = output.with_name(f".{output.name}.partial")
     try:
@@ -127,6 +133,21 @@ def calibrate_directory(
             "or give -o a folder with room for them"
         ) from None
     return result
+
+
+def _problems(result: CalibrationResult) -> list[str]:
+    """A line per camera whose mean re-projection error exceeds MAX_CAMERA_MEAN_PX, with its worst image."""
+    lines = []
+    for name, mean in result.camera_mean_px().items():
+        if mean <= MAX_CAMERA_MEAN_PX:
+            continue
+        worst = max((e for e in result.image_errors if e.camera == name), key=lambda e: e.mean_px)
+        lines.append(
+            f"camera {name!r}: mean re-projection error {mean:.1f} px (above {MAX_CAMERA_MEAN_PX:g} px; "
+            f"worst {worst.source}, {worst.mean_px:.1f} px): the images do not fit one rig; look for an "
+            "image of another session or camera, a mirrored one, or a second world.*, and calibrate again"
+        )
+    return lines
 
 
 def _check_output(output: Path, *, force: bool) -> None:

@@ -244,3 +244,26 @@ def test_report_pictures_that_cannot_be_written_are_an_error_after_the_calibrati
     with pytest.raises(OutputError, match=r"wrote .*c\.toml, but not its report pictures"):
         calibrate_directory(root, tmp_path / "c.toml")
     assert read_calibration(tmp_path / "c.toml")  # the calibration itself is whole
+
+
+def test_a_calibration_whose_images_do_not_fit_one_rig_says_so_and_exits_1(
+    tmp_path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A mirrored world image is detected like any other; against the shared views it pulls
+    the cameras pixels off (about 7 px and 4 px here), which a single image's outlier flag
+    alone does not call unfit."""
+    from pipeline.cli import main
+
+    root = tmp_path / "calib"
+    render_calibration_views(root, arrangement="oblique", seed=3, views=6, progress=False)
+    shutil.rmtree(root / "cam2")
+    world = root / "cam1" / "world.png"
+    cv2.imwrite(str(world), cv2.flip(cv2.imread(str(world)), 1))
+    out = tmp_path / "c.toml"
+    code = main(["calibrate", str(root), "-o", str(out)])
+    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning: ")]
+    assert code == 1, warnings
+    assert any("camera 'cam1': mean re-projection error" in w and "do not fit one rig" in w for w in warnings)
+    # The calibration and its report are written whole, for the user to look at; it says it is unfit.
+    assert tomllib.loads(out.read_text())["metadata"]["problems"]
+    assert (tmp_path / "reprojection_errors.png").is_file()
