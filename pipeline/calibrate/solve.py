@@ -158,9 +158,11 @@ def _check_output(output: Path, *, force: bool) -> None:
         raise OutputError(f"{output}: is a folder; give -o a file name, e.g. {output / 'calibration.toml'}")
     if output.exists():
         try:
-            load_toml(output)
+            doc = load_toml(output)
         except (OSError, ValueError):
-            raise OutputError(f"{output}: exists and is not a calibration; give -o a new file name") from None
+            doc = {}
+        if not _is_calibration(doc):
+            raise OutputError(f"{output}: exists and is not a calibration; give -o a new file name")
         if not force:
             raise OutputError(f"{output}: already exists; use --force to replace it")
     folder = output.parent
@@ -170,6 +172,12 @@ def _check_output(output: Path, *, force: bool) -> None:
         raise OutputError(
             f"{output}: cannot be written in {folder}; give -o a file in a folder you can write to"
         )
+
+
+def _is_calibration(doc: dict[str, object]) -> bool:
+    """Whether a parsed TOML file is a calibration: it holds a camera table (``[cam_0]`` ...,
+    the aniposelib layout), as a session.toml or another program's settings do not."""
+    return any(key.startswith("cam_") and isinstance(value, dict) for key, value in doc.items())
 
 
 def calibrate_views(views: list[View], board: Board, *, shared_intrinsics: bool = False) -> CalibrationResult:
