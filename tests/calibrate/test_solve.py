@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import re
 import shutil
+import struct
 import tomllib
+import zlib
 from pathlib import Path
 
 import cv2
@@ -112,6 +115,53 @@ def test_inconsistent_image_sizes(small_rig, tmp_path) -> None:
     cv2.imwrite(str(path), cv2.resize(cv2.imread(str(path)), (640, 480)))
     with pytest.raises(CalibrationError, match="camera 'cam0': images of different sizes"):
         calibrate_directory(root, tmp_path / "c.toml")
+
+
+def _png_header_only(width: int, height: int) -> bytes:
+    """A whole PNG file (signature, IHDR, empty IDAT, IEND) announcing ``width`` x ``height`` grey pixels."""
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", b"") + chunk(b"IEND", b"")
+
+
+def _cut(path: Path, suffix: str) -> Path:
+    """``path`` saved as ``suffix`` and cut to half its bytes, in place of the original."""
+    image = cv2.imread(str(path))
+    path.unlink()
+    path = path.with_suffix(suffix)
+    cv2.imwrite(str(path), image)
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    return path
+
+
+@pytest.mark.parametrize(
+    ("damage", "needle"),
+    [
+        ("empty", "is empty (0 bytes)"),
+        ("cut png", "is cut short"),
+        ("cut jpeg", "is cut short"),
+        ("too many pixels", "more pixels than OpenCV decodes"),
+        ("dangling link", "is a symbolic link to /nowhere/03.png, which does not exist"),
+    ],
+)
+def test_an_image_that_cannot_be_read_whole_is_named(small_rig, tmp_path, damage: str, needle: str) -> None:
+    root = _copy(small_rig, tmp_path)
+    path = root / "cam1" / "intrinsics" / "03.png"
+    if damage == "empty":
+        path.write_bytes(b"")
+    elif damage.startswith("cut"):
+        path = _cut(path, ".png" if damage == "cut png" else ".jpg")
+    elif damage == "too many pixels":
+        path.write_bytes(_png_header_only(40000, 40000))
+    else:
+        path.unlink()
+        path.symlink_to("/nowhere/03.png")
+    with pytest.raises(CalibrationError, match=re.escape(f"{path}: ") + ".*" + re.escape(needle)):
+        calibrate_directory(root, tmp_path / "c.toml")
+    assert not (tmp_path / "c.toml").exists()
 
 
 def test_wrong_board_size_is_named(small_rig, tmp_path) -> None:
