@@ -82,7 +82,12 @@ _JPEG_END, _JPEG_TAIL = b"\xff\xd9", 4096  # some cameras write a few bytes afte
 
 
 def _read_grey(path: Path) -> NDArray[np.uint8]:
-    """The board image at ``path`` as (H, W) uint8 grey levels, or a CalibrationError saying why not."""
+    """The board image at ``path`` as (H, W) uint8 grey levels, or a CalibrationError saying why not.
+
+    A 16-bit (or floating-point) image is scaled so that its brightest pixel is 255: only
+    the board's contrast matters to the detector, and 8-bit values or a 10- or 12-bit
+    camera's stored in 16 bits would read near black scaled by 256, as OpenCV's grey read does.
+    """
     if path.is_symlink() and not path.exists():
         raise CalibrationError(
             f"{path}: is a symbolic link to {path.readlink()}, which does not exist; "
@@ -107,7 +112,7 @@ def _read_grey(path: Path) -> NDArray[np.uint8]:
             "or remove it"
         )
     try:
-        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
     except cv2.error as exc:
         why = "more pixels than OpenCV decodes, 2**30" if "MAX_IMAGE_PIXELS" in exc.err else exc.err
         raise CalibrationError(
@@ -115,6 +120,9 @@ def _read_grey(path: Path) -> NDArray[np.uint8]:
         ) from None
     if image is None:
         raise CalibrationError(f"{path}: cannot be read as an image; save it as a PNG or JPEG, or remove it")
+    if image.dtype != np.uint8:
+        top = float(image.max())
+        image = np.clip(image * (255.0 / top if top > 0 else 0.0), 0, 255).round()
     return np.asarray(image, dtype=np.uint8)
 
 

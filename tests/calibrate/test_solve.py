@@ -164,6 +164,16 @@ def test_an_image_that_cannot_be_read_whole_is_named(small_rig, tmp_path, damage
     assert not (tmp_path / "c.toml").exists()
 
 
+def test_16_bit_images_holding_8_bit_values_are_read_at_their_contrast(small_rig, tmp_path) -> None:
+    """Some tools save 8-bit (or 10- and 12-bit) grey levels in 16-bit PNGs: scaled by 256 they are black."""
+    root = _copy(small_rig, tmp_path)
+    for path in (root / "cam1").rglob("*.png"):
+        cv2.imwrite(str(path), cv2.imread(str(path), cv2.IMREAD_GRAYSCALE).astype(np.uint16))
+    result = calibrate_directory(root, tmp_path / "c.toml")
+    assert sum(e.camera == "cam1" for e in result.image_errors) == 7  # 6 intrinsics views and world.png
+    assert result.camera_mean_px()["cam1"] < 0.2
+
+
 def test_wrong_board_size_is_named(small_rig, tmp_path) -> None:
     # A sub-board is found in a few images at most: named as too few views, pointing at --board.
     with pytest.raises(CalibrationError, match=r"board (8x5 not found|found in only .*check --board)"):
