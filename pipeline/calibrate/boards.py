@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import CalibrationError
+from ..session.toml_file import load_toml
 
 log = logging.getLogger(__name__)
 
@@ -110,9 +111,13 @@ def load_board(
     doc: dict[str, object] = {}
     if path.is_file():
         try:
-            doc = tomllib.loads(path.read_text())
+            doc = load_toml(path)
         except tomllib.TOMLDecodeError as exc:
             raise CalibrationError(f"{path}: TOML syntax error: {exc}") from None
+        except UnicodeDecodeError:
+            raise CalibrationError(f"{path}: is not UTF-8 text; save it as UTF-8") from None
+        except OSError as exc:
+            raise CalibrationError(f"{path}: cannot read: {exc.strerror}") from None
     if charuco is not None:
         kind: object = "charuco"
     elif board is not None:
