@@ -149,3 +149,13 @@ def test_board_toml_in_another_encoding_is_named_or_read(
         return
     with pytest.raises(CalibrationError, match=re.escape(f"{path}: {needle}")):
         load_board(tmp_path)
+
+
+@pytest.mark.parametrize("rows", [201, 2**31])
+def test_a_board_larger_than_any_printed_one_is_refused_before_any_detection(
+    tmp_path: Path, rows: int
+) -> None:
+    with pytest.raises(
+        CalibrationError, match=rf"board 3x{rows} has more inner corners than a printed board"
+    ):
+        load_board(tmp_path, board=(3, rows), square_mm=20.0)
