@@ -55,11 +55,13 @@ class View:
 
 
 def camera_dirs(calib_dir: Path) -> list[Path]:
-    """Sub-folders of ``calib_dir`` that hold a camera's images, sorted by name."""
+    """Sub-folders of ``calib_dir`` that hold a camera's images (intrinsics/, world.* or
+    shared/: a camera seen through shared views alone is one too), sorted by name."""
     dirs = sorted(
         d
         for d in Path(calib_dir).iterdir()
-        if d.is_dir() and ((d / "intrinsics").is_dir() or _world_file(d) is not None)
+        if d.is_dir()
+        and ((d / "intrinsics").is_dir() or (d / "shared").is_dir() or _world_file(d) is not None)
     )
     if len(dirs) < 2:
         raise CalibrationError(

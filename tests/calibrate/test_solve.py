@@ -174,6 +174,17 @@ def test_16_bit_images_holding_8_bit_values_are_read_at_their_contrast(small_rig
     assert result.camera_mean_px()["cam1"] < 0.2
 
 
+def test_a_camera_with_shared_views_alone_is_calibrated(tmp_path) -> None:
+    """cam2 keeps only shared/ (no intrinsics/, no world.png): it is one of the rig's cameras."""
+    root = tmp_path / "calib"
+    render_calibration_views(root, arrangement="oblique", seed=0, views=6, progress=False)
+    shutil.rmtree(root / "cam2" / "intrinsics")
+    (root / "cam2" / "world.png").unlink()
+    result = calibrate_directory(root, tmp_path / "c.toml")
+    assert [c.name for c in result.cameras] == ["cam0", "cam1", "cam2"]
+    assert result.camera_mean_px()["cam2"] < 0.2
+
+
 def test_wrong_board_size_is_named(small_rig, tmp_path) -> None:
     # A sub-board is found in a few images at most: named as too few views, pointing at --board.
     with pytest.raises(CalibrationError, match=r"board (8x5 not found|found in only .*check --board)"):
