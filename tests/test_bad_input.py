@@ -618,22 +618,25 @@ def test_a_view_that_is_all_silhouette_fails_its_frames_at_once(
     assert "camera 'cam1' sees 100 % of its image as tube" in err and "polarity and threshold" in err
 
 
-@pytest.mark.parametrize("kind", ["folder", "video"])
+@pytest.mark.parametrize("kind", ["folder", "video", "session.toml"])
 def test_calibrate_checks_its_output_before_calibrating(
     tmp_path: Path, kind: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
     (tmp_path / "boards").mkdir()  # no images: calibrating would fail, later
     target = tmp_path / "out"
+    content = {"video": b"\x00\x00\x00\x18ftypmp42", "session.toml": b"[workspace]\nvoxel_mm = 2.0\n"}
     if kind == "folder":
         target.mkdir()
     else:
-        target.write_bytes(b"\x00\x00\x00\x18ftypmp42")
-    code = main(["calibrate", str(tmp_path / "boards"), "-o", str(target)])
+        target.write_bytes(content[kind])
+    # --force replaces an earlier calibration, never a file of another kind (a TOML file too).
+    code = main(["calibrate", str(tmp_path / "boards"), "-o", str(target), "--force"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == EXIT_BAD_INPUT and len(err) == 1, err
     assert ("is a folder" if kind == "folder" else "is not a calibration") in err[0]
-    if kind == "video":
-        assert target.read_bytes() == b"\x00\x00\x00\x18ftypmp42"
+    assert str(target) in err[0]
+    if kind != "folder":
+        assert target.read_bytes() == content[kind]
 
 
 def test_calibrate_keeps_an_existing_calibration_without_force(

@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import CalibrationError
+from ..session.toml_file import load_toml
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +38,9 @@ UPSAMPLE_BELOW_PX = ((25.0, 3), (40.0, 2))
 # ChArUco markers are decoded on the image up-sampled (cubic) to about this width:
 # at 320x240 a marker cell spans 1-3 px, which the decoder often misses natively.
 CHARUCO_UPSAMPLED_WIDTH = 1000
+# Inner corners a side beyond any printed chessboard: OpenCV's detector cannot take a
+# size past 2**31 at all, and searches long for a large one it will not find.
+MAX_INNER_CORNERS = 200
 MARKER_RATIO = 0.75  # default marker side / square side
 DEFAULT_DICTIONARY = "DICT_4X4_50"
 # Fewer ChArUco corners than this in a view: the view is not used (a pose from
@@ -110,9 +114,13 @@ def load_board(
     doc: dict[str, object] = {}
     if path.is_file():
         try:
-            doc = tomllib.loads(path.read_text())
+            doc = load_toml(path)
         except tomllib.TOMLDecodeError as exc:
             raise CalibrationError(f"{path}: TOML syntax error: {exc}") from None
+        except UnicodeDecodeError:
+            raise CalibrationError(f"{path}: is not UTF-8 text; save it as UTF-8") from None
+        except OSError as exc:
+            raise CalibrationError(f"{path}: cannot read: {exc.strerror}") from None
     if charuco is not None:
         kind: object = "charuco"
     elif board is not None:
@@ -144,6 +152,11 @@ def load_board(
     cols, rows = cols_rows
     if cols < 2 or rows < 2:
         raise CalibrationError(f"{calib_dir}: board {cols}x{rows} needs at least 2x2 inner corners")
+    if max(cols, rows) > MAX_INNER_CORNERS:
+        raise CalibrationError(
+            f"{calib_dir}: board {cols}x{rows} has more inner corners than a printed board "
+            f"(at most {MAX_INNER_CORNERS} a side); give the inner corners, e.g. --board 9x6"
+        )
     if (cols + rows) % 2 == 0:
         # Both corner squares at the ends of a diagonal then have the same colour:
         # a board turned by 180 degrees looks the same and the world frame is ambiguous.

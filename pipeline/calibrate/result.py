@@ -32,6 +32,7 @@ class CalibrationResult:
     dropped: list[str] = field(default_factory=list)
     outliers: list[ImageError] = field(default_factory=list)
     report_files: list[Path] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)  # one line each: why the cameras are unfit for use
 
     def camera_mean_px(self) -> dict[str, float]:
         """Per camera, the mean over its images of their mean re-projection error, px."""

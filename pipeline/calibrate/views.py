@@ -55,11 +55,13 @@ class View:
 
 
 def camera_dirs(calib_dir: Path) -> list[Path]:
-    """Sub-folders of ``calib_dir`` that hold a camera's images, sorted by name."""
+    """Sub-folders of ``calib_dir`` that hold a camera's images (intrinsics/, world.* or
+    shared/: a camera seen through shared views alone is one too), sorted by name."""
     dirs = sorted(
         d
         for d in Path(calib_dir).iterdir()
-        if d.is_dir() and ((d / "intrinsics").is_dir() or _world_file(d) is not None)
+        if d.is_dir()
+        and ((d / "intrinsics").is_dir() or (d / "shared").is_dir() or _world_file(d) is not None)
     )
     if len(dirs) < 2:
         raise CalibrationError(
@@ -74,10 +76,55 @@ def _world_file(cam_dir: Path) -> Path | None:
     return found[0] if found else None
 
 
+# The last bytes of a whole PNG (its IEND chunk) and the end-of-image marker of a JPEG:
+# a file cut short lacks them, and OpenCV decodes the part it has (the rest grey) with
+# only libpng's or libjpeg's own line on stderr.
+_PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+_JPEG_END, _JPEG_TAIL = b"\xff\xd9", 4096  # some cameras write a few bytes after the marker
+
+
 def _read_grey(path: Path) -> NDArray[np.uint8]:
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    """The board image at ``path`` as (H, W) uint8 grey levels, or a CalibrationError saying why not.
+
+    A 16-bit (or floating-point) image is scaled so that its brightest pixel is 255: only
+    the board's contrast matters to the detector, and 8-bit values or a 10- or 12-bit
+    camera's stored in 16 bits would read near black scaled by 256, as OpenCV's grey read does.
+    """
+    if path.is_symlink() and not path.exists():
+        raise CalibrationError(
+            f"{path}: is a symbolic link to {path.readlink()}, which does not exist; "
+            "fix the link or copy the image in"
+        )
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise CalibrationError(
+            f"{path}: cannot be read ({exc.strerror or exc}); copy the image in again or remove it"
+        ) from None
+    suffix = path.suffix.lower()
+    cut_png = suffix == ".png" and data.startswith(b"\x89PNG") and not data.endswith(_PNG_END)
+    cut_jpeg = (
+        suffix in (".jpg", ".jpeg") and data.startswith(b"\xff\xd8") and _JPEG_END not in data[-_JPEG_TAIL:]
+    )
+    if not data:
+        raise CalibrationError(f"{path}: is empty (0 bytes); copy the image in again or remove it")
+    if cut_png or cut_jpeg:
+        raise CalibrationError(
+            f"{path}: the image is cut short ({len(data)} bytes, copied half-way?); copy it in again "
+            "or remove it"
+        )
+    try:
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
+    except cv2.error as exc:
+        why = "more pixels than OpenCV decodes, 2**30" if "MAX_IMAGE_PIXELS" in exc.err else exc.err
+        raise CalibrationError(
+            f"{path}: cannot be decoded ({why}); save it as a PNG or JPEG at the camera's size"
+        ) from None
     if image is None:
-        raise CalibrationError(f"{path}: cannot read this image")
+        raise CalibrationError(f"{path}: cannot be read as an image; save it as a PNG or JPEG, or remove it")
+    if image.dtype != np.uint8:
+        top = float(image.max())
+        image = np.clip(image * (255.0 / top if top > 0 else 0.0), 0, 255).round()
     return np.asarray(image, dtype=np.uint8)
 
 

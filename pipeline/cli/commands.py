@@ -268,7 +268,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     )
     say(format_table(result))
     say(f"wrote {args.output}; pictures: {', '.join(str(p) for p in result.report_files)}")
-    return EXIT_OK
+    for line in result.problems:
+        print(f"warning: {line}", file=sys.stderr)
+    return EXIT_FRAMES_FAILED if result.problems else EXIT_OK
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:

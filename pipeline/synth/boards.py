@@ -43,6 +43,7 @@ import tomli_w
 from numpy.typing import NDArray
 from tqdm import tqdm
 
+from ..errors import PipelineError
 from .out_dir import check_out_dir
 from .rig import WORKSPACE_CENTER_MM, SynthCamera, calibration_document, make_rig
 
@@ -146,6 +147,13 @@ def render_calibration_views(
         marker=TRUTH_FILE,
         kind="an earlier synth-calib output",
     )
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PipelineError(
+            f"{out_dir}: cannot create the folder ({exc.strerror or exc}); give synth-calib a folder "
+            "you can write in"
+        ) from None
     rng = np.random.default_rng(seed)
     cams = make_rig(arrangement)
     rays = [_camera_rays(cam) for cam in cams]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 import tomllib
 from pathlib import Path
@@ -132,3 +133,29 @@ def test_cli_synth_calib_board_option() -> None:
     args = build_parser().parse_args(["synth-calib", "out", "--board", "charuco"])
     assert args.board == "charuco"
     assert build_parser().parse_args(["synth-calib", "out"]).board == "chessboard"
+
+
+@pytest.mark.parametrize(
+    ("encoding", "needle"), [("utf-16", "is not UTF-8 text; save it as UTF-8"), ("utf-8-sig", None)]
+)
+def test_board_toml_in_another_encoding_is_named_or_read(
+    tmp_path: Path, encoding: str, needle: str | None
+) -> None:
+    """Windows editors save UTF-16, or UTF-8 with a byte-order mark (read as UTF-8)."""
+    path = tmp_path / "board.toml"
+    path.write_text('type = "chessboard"\ninner_corners = [9, 6]\nsquare_mm = 20.0\n', encoding=encoding)
+    if needle is None:
+        assert load_board(tmp_path).describe() == "chessboard 9x6, 20 mm"
+        return
+    with pytest.raises(CalibrationError, match=re.escape(f"{path}: {needle}")):
+        load_board(tmp_path)
+
+
+@pytest.mark.parametrize("rows", [201, 2**31])
+def test_a_board_larger_than_any_printed_one_is_refused_before_any_detection(
+    tmp_path: Path, rows: int
+) -> None:
+    with pytest.raises(
+        CalibrationError, match=rf"board 3x{rows} has more inner corners than a printed board"
+    ):
+        load_board(tmp_path, board=(3, rows), square_mm=20.0)

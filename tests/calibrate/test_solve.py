@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import re
 import shutil
+import struct
 import tomllib
+import zlib
 from pathlib import Path
 
 import cv2
@@ -112,6 +115,74 @@ def test_inconsistent_image_sizes(small_rig, tmp_path) -> None:
     cv2.imwrite(str(path), cv2.resize(cv2.imread(str(path)), (640, 480)))
     with pytest.raises(CalibrationError, match="camera 'cam0': images of different sizes"):
         calibrate_directory(root, tmp_path / "c.toml")
+
+
+def _png_header_only(width: int, height: int) -> bytes:
+    """A whole PNG file (signature, IHDR, empty IDAT, IEND) announcing ``width`` x ``height`` grey pixels."""
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", b"") + chunk(b"IEND", b"")
+
+
+def _cut(path: Path, suffix: str) -> Path:
+    """``path`` saved as ``suffix`` and cut to half its bytes, in place of the original."""
+    image = cv2.imread(str(path))
+    path.unlink()
+    path = path.with_suffix(suffix)
+    cv2.imwrite(str(path), image)
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    return path
+
+
+@pytest.mark.parametrize(
+    ("damage", "needle"),
+    [
+        ("empty", "is empty (0 bytes)"),
+        ("cut png", "is cut short"),
+        ("cut jpeg", "is cut short"),
+        ("too many pixels", "more pixels than OpenCV decodes"),
+        ("dangling link", "is a symbolic link to /nowhere/03.png, which does not exist"),
+    ],
+)
+def test_an_image_that_cannot_be_read_whole_is_named(small_rig, tmp_path, damage: str, needle: str) -> None:
+    root = _copy(small_rig, tmp_path)
+    path = root / "cam1" / "intrinsics" / "03.png"
+    if damage == "empty":
+        path.write_bytes(b"")
+    elif damage.startswith("cut"):
+        path = _cut(path, ".png" if damage == "cut png" else ".jpg")
+    elif damage == "too many pixels":
+        path.write_bytes(_png_header_only(40000, 40000))
+    else:
+        path.unlink()
+        path.symlink_to("/nowhere/03.png")
+    with pytest.raises(CalibrationError, match=re.escape(f"{path}: ") + ".*" + re.escape(needle)):
+        calibrate_directory(root, tmp_path / "c.toml")
+    assert not (tmp_path / "c.toml").exists()
+
+
+def test_16_bit_images_holding_8_bit_values_are_read_at_their_contrast(small_rig, tmp_path) -> None:
+    """Some tools save 8-bit (or 10- and 12-bit) grey levels in 16-bit PNGs: scaled by 256 they are black."""
+    root = _copy(small_rig, tmp_path)
+    for path in (root / "cam1").rglob("*.png"):
+        cv2.imwrite(str(path), cv2.imread(str(path), cv2.IMREAD_GRAYSCALE).astype(np.uint16))
+    result = calibrate_directory(root, tmp_path / "c.toml")
+    assert sum(e.camera == "cam1" for e in result.image_errors) == 7  # 6 intrinsics views and world.png
+    assert result.camera_mean_px()["cam1"] < 0.2
+
+
+def test_a_camera_with_shared_views_alone_is_calibrated(tmp_path) -> None:
+    """cam2 keeps only shared/ (no intrinsics/, no world.png): it is one of the rig's cameras."""
+    root = tmp_path / "calib"
+    render_calibration_views(root, arrangement="oblique", seed=0, views=6, progress=False)
+    shutil.rmtree(root / "cam2" / "intrinsics")
+    (root / "cam2" / "world.png").unlink()
+    result = calibrate_directory(root, tmp_path / "c.toml")
+    assert [c.name for c in result.cameras] == ["cam0", "cam1", "cam2"]
+    assert result.camera_mean_px()["cam2"] < 0.2
 
 
 def test_wrong_board_size_is_named(small_rig, tmp_path) -> None:
@@ -244,3 +315,26 @@ def test_report_pictures_that_cannot_be_written_are_an_error_after_the_calibrati
     with pytest.raises(OutputError, match=r"wrote .*c\.toml, but not its report pictures"):
         calibrate_directory(root, tmp_path / "c.toml")
     assert read_calibration(tmp_path / "c.toml")  # the calibration itself is whole
+
+
+def test_a_calibration_whose_images_do_not_fit_one_rig_says_so_and_exits_1(
+    tmp_path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A mirrored world image is detected like any other; against the shared views it pulls
+    the cameras pixels off (about 7 px and 4 px here), which a single image's outlier flag
+    alone does not call unfit."""
+    from pipeline.cli import main
+
+    root = tmp_path / "calib"
+    render_calibration_views(root, arrangement="oblique", seed=3, views=6, progress=False)
+    shutil.rmtree(root / "cam2")
+    world = root / "cam1" / "world.png"
+    cv2.imwrite(str(world), cv2.flip(cv2.imread(str(world)), 1))
+    out = tmp_path / "c.toml"
+    code = main(["calibrate", str(root), "-o", str(out)])
+    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning: ")]
+    assert code == 1, warnings
+    assert any("camera 'cam1': mean re-projection error" in w and "do not fit one rig" in w for w in warnings)
+    # The calibration and its report are written whole, for the user to look at; it says it is unfit.
+    assert tomllib.loads(out.read_text())["metadata"]["problems"]
+    assert (tmp_path / "reprojection_errors.png").is_file()

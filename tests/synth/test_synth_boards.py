@@ -127,3 +127,15 @@ def test_synth_calib_writes_into_a_new_or_empty_folder_or_over_its_own_render_on
     before = {p: p.read_bytes() for p in ninety.rglob("*.png")}
     render_calibration_views(ninety, arrangement="ninety", seed=1, views=4, progress=False)
     assert {p: p.read_bytes() for p in ninety.rglob("*.png")} == before
+
+
+def test_a_folder_synth_calib_cannot_create_is_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "notes.txt").write_text("mine")
+    target = tmp_path / "notes.txt" / "calib"  # under a file: no folder can be made there
+    assert main(["synth-calib", str(target)]) == EXIT_BAD_INPUT
+    assert capsys.readouterr().err.splitlines() == [
+        f"error: {target}: cannot create the folder (Not a directory); give synth-calib a folder "
+        "you can write in"
+    ]
