@@ -72,7 +72,14 @@ def camera_dirs(calib_dir: Path) -> list[Path]:
 
 
 def _world_file(cam_dir: Path) -> Path | None:
+    """The camera's world.* image, None without one; two of them are a CalibrationError
+    (one board pose defines the world frame, and which file was meant cannot be told)."""
     found = [cam_dir / f"world{ext}" for ext in IMAGE_EXTS if (cam_dir / f"world{ext}").is_file()]
+    if len(found) > 1:
+        raise CalibrationError(
+            f"{cam_dir}: holds {len(found)} world images ({', '.join(p.name for p in found)}); "
+            "one board pose defines the world frame: keep one of them and remove the others"
+        )
     return found[0] if found else None
 
 
@@ -159,7 +166,9 @@ def detect_directory(calib_dir: Path, board: Board) -> list[View]:
     a world image without one is an error (it defines the frame).
     """
     views: list[View] = []
-    for cam_dir in camera_dirs(calib_dir):
+    cam_dirs = camera_dirs(calib_dir)
+    worlds = [_world_file(cam_dir) for cam_dir in cam_dirs]  # every camera's checked before detection
+    for cam_dir, world in zip(cam_dirs, worlds, strict=True):
         cam = cam_dir.name
         images: list[tuple[str, str, NDArray[np.uint8]]] = []  # key, source, image
         intr = cam_dir / "intrinsics"
@@ -173,7 +182,6 @@ def detect_directory(calib_dir: Path, board: Board) -> list[View]:
         for path in sorted(shared.iterdir()) if shared.is_dir() else []:
             if path.suffix.lower() in IMAGE_EXTS:
                 images.append((f"shared/{path.stem}", str(path), _read_grey(path)))
-        world = _world_file(cam_dir)
         if world is not None:
             images.append((WORLD, str(world), _read_grey(world)))
         sizes = {(im.shape[1], im.shape[0]) for _, _, im in images}

@@ -101,6 +101,19 @@ def test_board_not_in_world_image(small_rig, tmp_path) -> None:
         calibrate_directory(root, tmp_path / "c.toml")
 
 
+def test_two_world_images_are_refused_before_detection(small_rig, tmp_path, monkeypatch) -> None:
+    root = _copy(small_rig, tmp_path)
+    world = root / "cam1" / "world.png"
+    cv2.imwrite(str(world.with_suffix(".jpg")), cv2.imread(str(world)))
+
+    def no_detection(*_args: object) -> None:
+        raise AssertionError("an image was searched for corners")
+
+    monkeypatch.setattr("pipeline.calibrate.views.detect", no_detection)
+    with pytest.raises(CalibrationError, match=r"cam1: holds 2 world images \(world\.png, world\.jpg\)"):
+        calibrate_directory(root, tmp_path / "c.toml")
+
+
 def test_too_few_views(small_rig, tmp_path) -> None:
     root = _copy(small_rig, tmp_path)
     for path in sorted((root / "cam1" / "intrinsics").glob("*.png"))[:3]:
