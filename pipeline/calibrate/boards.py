@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import CalibrationError
-from ..session.toml_file import load_toml
+from ..session.toml_file import check_keys, load_toml
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +96,10 @@ class Board:
         return np.column_stack([i.ravel(), j.ravel(), np.zeros(i.size)]) * self.square_mm
 
 
+# board.toml's keys: a chessboard's, then a ChArUco board's (square_mm is both's).
+BOARD_KEYS = ("type", "inner_corners", "square_mm", "squares", "marker_mm", "dictionary")
+
+
 def load_board(
     calib_dir: Path,
     *,
@@ -121,6 +125,7 @@ def load_board(
             raise CalibrationError(f"{path}: is not UTF-8 text; save it as UTF-8") from None
         except OSError as exc:
             raise CalibrationError(f"{path}: cannot read: {exc.strerror}") from None
+        check_keys(doc, BOARD_KEYS, str(path), error=CalibrationError)
     if charuco is not None:
         kind: object = "charuco"
     elif board is not None:

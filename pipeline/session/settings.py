@@ -7,7 +7,6 @@ manipulator mounted at (128, 128, 0) mm.
 
 from __future__ import annotations
 
-import difflib
 import math
 import tomllib
 from dataclasses import dataclass, field, fields
@@ -16,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import SettingsError
-from .toml_file import load_toml
+from .toml_file import check_keys, load_toml
 
 SILHOUETTE_METHODS = ("threshold", "otsu", "background")
 POLARITIES = ("dark", "bright")
@@ -173,14 +172,14 @@ def load_settings(path: Path | None) -> Settings:
 
 def settings_from_dict(data: dict[str, Any], *, source: str = "session.toml") -> Settings:
     """Build validated :class:`Settings` from parsed TOML; raise SettingsError naming the key."""
-    _check_keys(data, {*_SECTIONS, "live"}, source, "")
+    check_keys(data, {*_SECTIONS, "live"}, source, error=SettingsError, hint=_key_home)
     parts: dict[str, Any] = {"live": _live(data.get("live", {}), source)}
     for name, cls in _SECTIONS.items():
         section = data.get(name, {})
         if not isinstance(section, dict):
             raise SettingsError(f"{source}: [{name}] must be a table")
         allowed = {f.name: f for f in fields(cls)}
-        _check_keys(section, allowed, source, f"[{name}] ")
+        check_keys(section, allowed, source, error=SettingsError, where=f"[{name}] ", hint=_key_home)
         parts[name] = cls(**{k: _convert(source, name, k, v) for k, v in section.items()})
     settings = Settings(**parts)
     _validate(settings, source)
@@ -204,25 +203,15 @@ def _live(section: Any, source: str) -> LiveSettings:
     return LiveSettings(tuple(pairs))
 
 
-def _check_keys(data: dict[str, Any], allowed: Any, source: str, where: str) -> None:
-    for key in data:
-        if key not in allowed:
-            raise SettingsError(
-                f"{source}: unknown key {where}{key!r}{_key_hint(key, allowed)}; "
-                f"allowed: {', '.join(sorted(allowed))}"
-            )
-
-
-def _key_hint(key: str, allowed: Any) -> str:
-    """Where an unknown ``key`` belongs: the table it is a key of (a setting written above
-    its table's header, or under another table), else the allowed name nearest its spelling."""
+def _key_home(key: str) -> str:
+    """The table an unknown ``key`` is a key of (a setting written above its table's header,
+    or under another table), or "" (then the allowed name nearest its spelling is given)."""
     homes = [f"[{name}]" for name, cls in _SECTIONS.items() if key in {f.name for f in fields(cls)}]
     if len(homes) == 1:
         return f" (a key of {homes[0]}: put it under {homes[0]})"
     if homes:  # "method": a key of two tables
         return f" (a key of {' and '.join(homes)}: put it under one of them)"
-    nearest = difflib.get_close_matches(key, sorted(allowed), n=1)
-    return f" (did you mean {nearest[0]!r}?)" if nearest else ""
+    return ""
 
 
 def _number(source: str, key: str, value: Any) -> float:

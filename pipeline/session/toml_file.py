@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import difflib
 import errno
 import stat
 import tomllib
+from collections.abc import Callable, Collection, Mapping
 from pathlib import Path
 from typing import Any
+
+from ..errors import PipelineError
 
 _BOM = "\ufeff"
 
@@ -38,3 +42,31 @@ def require_regular_file(path: Path) -> None:
         return
     if not stat.S_ISREG(mode):
         raise OSError(errno.EINVAL, "is not a regular file", str(path))
+
+
+def check_keys(
+    data: Mapping[str, Any],
+    allowed: Collection[str],
+    source: str,
+    *,
+    error: type[PipelineError],
+    where: str = "",
+    hint: Callable[[str], str] | None = None,
+) -> None:
+    """Raise ``error`` on the first key of ``data`` that is not in ``allowed``.
+
+    The message names ``source`` and the key (after ``where``, e.g. "[workspace] "), then
+    ``hint(key)`` (where the key belongs, " (...)") or, when that is empty, the allowed name
+    nearest its spelling, then every allowed name: a misspelt key must not fall back to a
+    default without a word.
+    """
+    for key in data:
+        if key not in allowed:
+            found = (hint(key) if hint is not None else "") or nearest_name(key, allowed)
+            raise error(f"{source}: unknown key {where}{key!r}{found}; allowed: {', '.join(sorted(allowed))}")
+
+
+def nearest_name(key: str, allowed: Collection[str]) -> str:
+    """`` (did you mean 'NAME'?)`` for the name of ``allowed`` nearest ``key``'s spelling, else ""."""
+    nearest = difflib.get_close_matches(key, sorted(allowed), n=1)
+    return f" (did you mean {nearest[0]!r}?)" if nearest else ""

@@ -129,6 +129,28 @@ def test_a_square_size_that_is_no_size_is_refused_before_any_detection(tmp_path:
         load_board(tmp_path)
 
 
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        ('type = "charuco"\nsquares = [7, 5]\nsquare_mm = 50.0\ndictonary = "DICT_5X5_100"\n', "dictonary"),
+        ('type = "chessboard"\ninner_corners = [9, 6]\nsquare_m = 20.0\n', "square_m"),
+    ],
+    ids=["charuco-dictonary", "chessboard-square_m"],
+)
+def test_an_unknown_board_toml_key_is_named_with_the_nearest_name(
+    tmp_path: Path, text: str, needle: str
+) -> None:
+    # A misspelt key would fall back to its default (DICT_4X4_50, the --square-mm flag) without a word.
+    path = tmp_path / "board.toml"
+    path.write_text(text)
+    nearest = {"dictonary": "dictionary", "square_m": "square_mm"}[needle]
+    with pytest.raises(
+        CalibrationError,
+        match=re.escape(f"{path}: unknown key {needle!r} (did you mean {nearest!r}?); allowed: "),
+    ):
+        load_board(tmp_path, square_mm=20.0)
+
+
 def test_cli_synth_calib_board_option() -> None:
     args = build_parser().parse_args(["synth-calib", "out", "--board", "charuco"])
     assert args.board == "charuco"
