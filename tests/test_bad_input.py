@@ -159,6 +159,10 @@ def _fisheye(d: dict[str, Any]) -> None:
     d["cam_1"]["fisheye"] = True  # as anipose writes a fisheye calibration
 
 
+def _folding_distortion(d: dict[str, Any]) -> None:
+    d["cam_1"]["distortions"][0] = -50.0  # the radius stops growing a tenth of the way to the corners
+
+
 def _text_size(d: dict[str, Any]) -> None:
     d["cam_1"]["size"] = ["320", "240"]
 
@@ -185,6 +189,15 @@ def _copied_table(d: dict[str, Any]) -> None:
         (_reflection, ("cam1", "rotation", "not a rotation")),
         (_skewed_matrix, ("cam1", "skew", "calibrate with zero skew")),
         (_fisheye, ("cam1", "fisheye", "standard lens model")),
+        (
+            _folding_distortion,
+            (
+                "camera 'cam1'",
+                "distortion (k1 -50, k2 0.03, ",
+                "folds the image before its corners",
+                "(k1, k2, p1, p2, k3)",
+            ),
+        ),
         (_text_size, ("cam1", "size")),
         (_duplicate_name, ("'cam0'", "more than once")),
         (_copied_table, ("cameras 'cam0' and 'cam1' stand at the same place", "copied")),

@@ -134,6 +134,14 @@ def _camera(source: str, key: str, table: Any) -> Camera:
     if len(dist) not in (4, 5, 8, 12, 14):
         raise CalibrationError(f"{source}: {where} distortions must hold 4, 5, 8, 12 or 14 numbers")
     distortions = _array(source, f"{where} distortions", list(dist), (len(dist),))
+    reach = _unfolded_reach(matrix, (size[0], size[1]), distortions)
+    if reach < 1.0:
+        named = ", ".join(f"{n} {v:g}" for n, v in zip(DISTORTION_NAMES, distortions, strict=False))
+        raise CalibrationError(
+            f"{source}: {where} distortion ({named}) folds the image before its corners (its radius "
+            f"stops growing {100 * reach:.0f} % of the way out); check the coefficients and their order "
+            f"({', '.join(DISTORTION_NAMES[: len(distortions)])})"
+        )
     rotation = _rotation(source, where, table["rotation"])
     translation = _array(source, f"{where} translation", table["translation"], (3,))
     return Camera(
@@ -144,6 +152,42 @@ def _camera(source: str, key: str, table: Any) -> Camera:
         rotation=rotation,
         translation_mm=translation,
     )
+
+
+# OpenCV's order of the distortion coefficients.
+DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tau_x", "tau_y")
+# How far out (times the corners' distorted radius) an undistorted radius is looked for: a
+# lens that squeezes its corners ten times over is no lens this pipeline models.
+_FOLD_SEARCH = 10.0
+
+
+def _unfolded_reach(matrix: np.ndarray, size: tuple[int, int], distortions: np.ndarray) -> float:
+    """How far the radial distortion maps out without folding, as a fraction of the image
+    corners' radius: 1.0 when the distorted radius r_d(r) = r (1 + k1 r^2 + k2 r^4 + k3 r^6)
+    / (1 + k4 r^2 + k5 r^4 + k6 r^6) grows with r until it reaches the farthest corner.
+
+    Below 1, pixels past the fold are no ray's image and nearer ones two rays' (a
+    calibration that carves nothing). Tangential, prism and tilt terms are left out: they
+    are small in any lens the radial terms fit.
+    """
+    k = np.zeros(8)
+    k[: min(len(distortions), 8)] = distortions[:8]
+    fx, fy, cx, cy = matrix[0, 0], matrix[1, 1], matrix[0, 2], matrix[1, 2]
+    # The corners' normalised radius (pixel centres at integers: the image spans -0.5..W-0.5).
+    xs = (np.array([-0.5, size[0] - 0.5]) - cx) / fx
+    ys = (np.array([-0.5, size[1] - 0.5]) - cy) / fy
+    corner = float(np.hypot(np.abs(xs).max(), np.abs(ys).max()))
+    r = np.linspace(0.0, _FOLD_SEARCH * corner, 20_001)
+    r2 = r * r
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        r_d = r * (1 + r2 * (k[0] + r2 * (k[1] + r2 * k[4]))) / (1 + r2 * (k[5] + r2 * (k[6] + r2 * k[7])))
+        grows = np.diff(r_d) > 0  # False at a fold, and where a rational model's denominator crosses 0
+    out = int(np.argmax(r_d >= corner)) if np.any(r_d >= corner) else len(r_d)
+    folds = np.flatnonzero(~grows[:out])
+    if folds.size == 0 and out < len(r_d):
+        return 1.0
+    end = folds[0] if folds.size else len(r_d) - 1
+    return float(np.nanmax(r_d[: end + 1]) / corner)
 
 
 def _field_of_view_deg(pixels: int, focal_px: float) -> float:

@@ -54,6 +54,32 @@ def test_distortion_lengths_opencv_accepts(n: int) -> None:
     assert cameras_from_dict(doc)[0].distortions.shape == (n,)
 
 
+@pytest.mark.parametrize(
+    ("distortions", "folds"),
+    [
+        ([-0.4, 0.0, 0.0, 0.0, 0.0], True),  # barrel whose radius peaks 91 % of the way to the corners
+        ([-0.4, 0.2, 0.0, 0.0, 0.0], False),  # the same lens with the k2 that holds it up
+        ([0.3, -2.0, 0.0, 0.0, 0.0], True),  # k2 where k3 belongs, or a sign lost
+        ([0.3, 0.0, 0.0, 0.0, -1.0], False),  # a fold past the corners (radius 0.75 against 0.67)
+        ([2.0, 0.5, 0.0, 0.0, 0.0, 2.1, 0.6, 0.0], False),  # a rational model's terms that cancel
+        ([-0.1, 0.03, 0.0, 0.0, 0.0, 10.0, 0.0, 0.0], True),  # a denominator that outgrows the numerator
+    ],
+)
+def test_a_distortion_that_folds_the_image_is_refused(distortions: list[float], folds: bool) -> None:
+    # cam_1: 320x240 at fx = fy = 300, centred: the corners' normalised radius is 0.67.
+    doc = _doc()
+    doc["cam_1"]["matrix"] = [[300.0, 0.0, 159.5], [0.0, 300.0, 119.5], [0.0, 0.0, 1.0]]
+    doc["cam_1"]["size"] = [320, 240]
+    doc["cam_1"]["distortions"] = distortions
+    if not folds:
+        cameras_from_dict(doc)
+        return
+    with pytest.raises(
+        CalibrationError, match=r"\[cam_1\] \(camera 'cam1'\) distortion \(k1 .*folds the image"
+    ):
+        cameras_from_dict(doc)
+
+
 def test_unreadable_and_missing_files(tmp_path: Path) -> None:
     with pytest.raises(CalibrationError, match=r"calibration\.toml: not found"):
         read_calibration(tmp_path / "calibration.toml")
