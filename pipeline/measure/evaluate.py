@@ -29,6 +29,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..errors import EvaluationError
 from ..geometry.polyline import polyline_arclength
+from ..session.folder import check_not_dangling
 
 log = logging.getLogger(__name__)
 
@@ -309,7 +310,9 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
     timestamps_s : (F,) float64, s, or None if the file has none.
     """
     path = Path(path)
+    check_not_dangling(path, EvaluationError)
     file = path / "ground_truth.npz" if path.is_dir() else path
+    check_not_dangling(file, EvaluationError)
     if file.exists() and not file.is_file():
         raise EvaluationError(
             f"{file}: is not a regular file (a pipe or device); give the ground_truth.npz file"
@@ -405,6 +408,7 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
     from ..record.load import load_recording
 
     recording = Path(recording)
+    check_not_dangling(recording, EvaluationError)
     if recording.is_dir():
         if Path(ground_truth).suffix == ".mcap":
             raise EvaluationError(

@@ -79,7 +79,7 @@ def load_session(directory: Path | str) -> Session:
 
 
 def _load_session(directory: Path) -> Session:
-    _check_not_dangling(directory)
+    check_not_dangling(directory)
     check_utf8_path(directory, "rename the folder (or move the session) to a UTF-8 path")
     if directory.is_file():
         raise SessionError(f"{directory}: is a file; give the session directory that holds it")
@@ -90,7 +90,7 @@ def _load_session(directory: Path) -> Session:
     if not any(directory.iterdir()):
         raise SessionError(f"{directory}: the session directory is empty")
     for name in ("session.toml", "calibration.toml"):
-        _check_not_dangling(directory / name)
+        check_not_dangling(directory / name)
     settings = load_settings(directory / "session.toml")
     cameras = _rig_cameras(directory / "calibration.toml")
     videos = _find_videos(directory, [c.name for c in cameras])
@@ -179,7 +179,7 @@ def load_rig(directory: Path | str) -> Session:
 
 
 def _load_rig(directory: Path) -> Session:
-    _check_not_dangling(directory)
+    check_not_dangling(directory)
     check_utf8_path(directory, "rename the folder (or move the rig) to a UTF-8 path")
     if not directory.is_dir():
         raise SessionError(
@@ -187,7 +187,7 @@ def _load_rig(directory: Path) -> Session:
             "and session.toml"
         )
     for name in ("session.toml", "calibration.toml"):
-        _check_not_dangling(directory / name)
+        check_not_dangling(directory / name)
     settings = load_settings(directory / "session.toml")
     cameras = _rig_cameras(directory / "calibration.toml")
     names = [c.name for c in cameras]
@@ -263,7 +263,7 @@ def _find_videos(directory: Path, names: list[str]) -> dict[str, Path]:
         if path.name.startswith(".") and path.stem not in names:
             continue  # hidden: a file manager's own (macOS's ._cam0.mp4), not a camera's video
         if path.suffix.lower() in VIDEO_EXTENSIONS:
-            _check_not_dangling(path)
+            check_not_dangling(path)
         if not path.is_file() or path.suffix.lower() not in VIDEO_EXTENSIONS:
             continue
         if path.stem not in names:
@@ -345,7 +345,7 @@ def _backgrounds(
 
 def _background(directory: Path, cam: Camera) -> NDArray[np.uint8] | None:
     path = directory / "background" / f"{cam.name}.png"
-    _check_not_dangling(path)
+    check_not_dangling(path)
     if not path.exists():
         return None
     image = _read_grey_8bit(path)
@@ -406,20 +406,20 @@ def _readable(directory: Path, what: str) -> Iterator[None]:
         ) from None
 
 
-def _check_not_dangling(path: Path) -> None:
-    """A symbolic link to nothing, or into a loop of links, is named as such, not taken for
-    a missing file."""
+def check_not_dangling(path: Path, error: type[PipelineError] = SessionError) -> None:
+    """A symbolic link to nothing, or into a loop of links, is named as such (an ``error``),
+    not taken for a missing file."""
     if not path.is_symlink():
         return
     try:
         path.resolve(strict=True)
     except FileNotFoundError:
-        raise SessionError(
+        raise error(
             f"{path}: is a symbolic link to {os.readlink(path)}, which does not exist; "
             "fix the link or copy the file in"
         ) from None
     except (RuntimeError, OSError):  # Python 3.11 raises RuntimeError for a loop
-        raise SessionError(
+        raise error(
             f"{path}: is a symbolic link that leads back to itself ({os.readlink(path)}); "
             "fix the link or copy the file in"
         ) from None

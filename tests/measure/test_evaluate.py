@@ -207,6 +207,22 @@ def test_missing_inputs_are_user_errors(tmp_path: Path) -> None:
         evaluate_recording(tmp_path / "missing.mcap", tmp_path / "other.npz")
 
 
+@pytest.mark.parametrize("where", ["file", "in-session", "recording"])
+def test_a_link_that_leads_back_to_itself_is_named_as_such(tmp_path: Path, where: str) -> None:
+    # A loop of links is no missing file: "does not exist" would send the user looking for one.
+    np.savez(tmp_path / "truth.npz", centerlines=np.stack([line(20)] * 3))
+    (tmp_path / "session").mkdir()
+    loop = {"file": tmp_path / "gt.npz", "in-session": tmp_path / "session" / "ground_truth.npz"}.get(
+        where, tmp_path / "run.mcap"
+    )
+    loop.symlink_to(loop.name)
+    with pytest.raises(EvaluationError, match=rf"{loop}: is a symbolic link that leads back to itself"):
+        if where == "recording":
+            evaluate_recording(loop, tmp_path / "truth.npz")
+        else:
+            load_ground_truth(loop if where == "file" else loop.parent)
+
+
 # --- a recording made by the runner -------------------------------------------------
 
 RUN_FRAMES = 8
