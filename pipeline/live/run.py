@@ -134,14 +134,25 @@ class LiveSummary:
         return self.run.problem_lines() + self.outage_lines() + self.replay_lines()
 
     def live_lines(self) -> list[str]:
-        rates = ", ".join(f"{name} {fps:.1f}" for name, fps in self.camera_fps.items())
+        rates = ", ".join(self._rate(name, fps) for name, fps in self.camera_fps.items())
         unmatched = sum(self.unmatched.values())
+        latency = (
+            f"latency p50 {self.latency_ms(50):.1f} ms, p99 {self.latency_ms(99):.1f} ms"
+            if len(self.latencies_ms)
+            else "no frame-set written, so no latency"
+        )
         return [
-            f"live: stopped by {self.stopped_by}; latency p50 {self.latency_ms(50):.1f} ms, "
-            f"p99 {self.latency_ms(99):.1f} ms; {self.dropped} frame-sets dropped, "
+            f"live: stopped by {self.stopped_by}; {latency}; {self.dropped} frame-sets dropped, "
             f"{unmatched} frames unmatched",
             f"  cameras (frames/s): {rates}",
         ]
+
+    def _rate(self, name: str, fps: float) -> str:
+        """``name`` and its frames per second, or why it has none (a rate needs two frames)."""
+        if np.isfinite(fps):
+            return f"{name} {fps:.1f}"
+        frames = self.delivered.get(name, 0)
+        return f"{name} no frames" if frames == 0 else f"{name} {frames} frame(s), no rate"
 
     def lines(self) -> list[str]:
         """The run's summary with the cameras that stopped and the live lines before its time

@@ -780,7 +780,7 @@ def test_the_summary_gives_latency_drops_rates_and_outages() -> None:
     # numpy's linear interpolation: p50 of 10..50 is 30, p99 is 10 + 0.99 * 40 = 49.6.
     live = "live: stopped by a signal; latency p50 30.0 ms, p99 49.6 ms; 3 frame-sets dropped"
     assert f"{live}, 1 frames unmatched" in lines
-    assert "  cameras (frames/s): cam0 30.0, cam1 nan" in lines
+    assert "  cameras (frames/s): cam0 30.0, cam1 no frames" in lines
     outage = "  camera cam1: stopped 1 time(s), picked up again (first: Connection refused)"
     assert outage in summary.problem_lines() and lines.index(outage) < lines.index(
         "time: 2.0 s wall, 2.0 frames/s"
@@ -789,6 +789,28 @@ def test_the_summary_gives_latency_drops_rates_and_outages() -> None:
     assert data["live"]["latency_ms"] == {"p50": 30.0, "p99": pytest.approx(49.6)}
     assert data["live"]["camera_fps"] == {"cam0": 30.0, "cam1": None}
     assert data["live"]["frames_dropped"] == 3 and data["exit_code"] == 0
+
+
+def test_the_summary_of_a_run_without_frames_says_so_rather_than_nan() -> None:
+    from pipeline.run.summary import RunSummary
+
+    run = RunSummary(frames_ok=0, frames_empty=0, frames_failed=[], wall_s=2.0, fps=0.0)
+    summary = LiveSummary(
+        run=run,
+        latencies_ms=np.array([]),
+        dropped=0,
+        unmatched={"cam0": 0, "cam1": 1},
+        camera_fps={"cam0": float("nan"), "cam1": float("nan")},
+        stopped_by="--duration",
+        delivered={"cam0": 0, "cam1": 1},  # one frame gives no rate
+    )
+    lines = summary.lines()
+    assert not any("nan" in line for line in lines), lines
+    assert (
+        "live: stopped by --duration; no frame-set written, so no latency; 0 frame-sets dropped, "
+        in "\n".join(lines)
+    )
+    assert "  cameras (frames/s): cam0 no frames, cam1 1 frame(s), no rate" in lines
 
 
 def test_the_summary_names_a_camera_that_delivered_nothing_or_whose_replay_ended_short() -> None:
