@@ -177,6 +177,22 @@ def test_an_image_that_cannot_be_read_whole_is_named(small_rig, tmp_path, damage
     assert not (tmp_path / "c.toml").exists()
 
 
+@pytest.mark.parametrize("ext", [".png", ".jpg"])
+def test_an_image_with_bytes_after_its_end_is_read(small_rig, tmp_path, ext: str) -> None:
+    """A phone's trailer after the image's end (a motion photo's video) is no cut."""
+    root = _copy(small_rig, tmp_path)
+    for path in sorted((root / "cam1" / "intrinsics").glob("*.png")):
+        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        path.unlink()
+        ok, encoded = cv2.imencode(ext, image, [cv2.IMWRITE_JPEG_QUALITY, 98] if ext == ".jpg" else [])
+        assert ok
+        trailer = bytes(range(256)) * 400  # 100 kB holding no end marker of either kind
+        trailer = trailer.replace(b"\xff\xd9", b"\xff\x00")
+        path.with_suffix(ext).write_bytes(encoded.tobytes() + trailer)
+    result = calibrate_directory(root, tmp_path / "c.toml")
+    assert result.camera_mean_px()["cam1"] < 0.2
+
+
 def test_16_bit_images_holding_8_bit_values_are_read_at_their_contrast(small_rig, tmp_path) -> None:
     """Some tools save 8-bit (or 10- and 12-bit) grey levels in 16-bit PNGs: scaled by 256 they are black."""
     root = _copy(small_rig, tmp_path)
