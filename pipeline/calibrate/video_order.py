@@ -84,12 +84,16 @@ def check_video_order(
 
     named = tuple(range(cameras))
     as_named = share(named)
-    if as_named >= EXPLAINED_AS_NAMED:
+    # A video can only be the view of a camera whose images are its size.
+    sizes = [mask.shape for mask in masks[0]]
+    orders = [
+        order
+        for order in itertools.permutations(named)
+        if order != named and all(sizes[k] == sizes[i] for i, k in enumerate(order))
+    ]
+    if as_named >= EXPLAINED_AS_NAMED or not orders:
         return
-    best, best_share = max(
-        ((order, share(order)) for order in itertools.permutations(named) if order != named),
-        key=lambda item: item[1],
-    )
+    best, best_share = max(((order, share(order)) for order in orders), key=lambda item: item[1])
     if best_share < max(SWAPPED_EXPLAINS, as_named + SWAP_MARGIN):
         return
     moves = ", ".join(

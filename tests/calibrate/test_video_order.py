@@ -55,3 +55,26 @@ def test_two_videos_swapped_are_named(session: Path, tmp_path: Path) -> None:
     assert "the videos do not match their cameras in calibration.toml" in message
     assert "cam2.mp4 looks like cam1's view" in message and "cam1.mp4 looks like cam2's view" in message
     assert "cam0.mp4" not in message
+
+
+def test_cameras_of_other_sizes_are_not_taken_for_each_other(session: Path) -> None:
+    # cam2 films at twice the size (its images and its calibration both): no order may give
+    # its video to another camera, though the others' pair is checked as before.
+    import dataclasses
+
+    import cv2
+
+    loaded = load_session(session)
+    big = loaded.cameras[2]
+    big = dataclasses.replace(
+        big, size_px=(2 * big.width, 2 * big.height), matrix=big.matrix * [[2], [2], [1]]
+    )
+    model = build_model(dataclasses.replace(loaded, cameras=(*loaded.cameras[:2], big)))
+    frames = [
+        (i, [images[0], images[1], cv2.resize(images[2], big.size_px, interpolation=cv2.INTER_LINEAR)])
+        for i, images in decode_frames(loaded.video_paths, range(loaded.frame_count))
+    ]
+    check_video_order(model, frames, loaded.video_paths)  # as named: passes
+    swapped = [(i, [images[1], images[0], images[2]]) for i, images in frames]
+    with pytest.raises(SessionError, match=r"cam1\.mp4 looks like cam0's view"):
+        check_video_order(model, swapped, loaded.video_paths)
