@@ -135,10 +135,10 @@ def probe_video(path: Path) -> VideoInfo:
             f"{path}: carries a {rotation_deg % 360:g}-degree rotation tag that is not applied; the "
             f"calibration must be of the frames as stored ({width}x{height})"
         )
-    streams, stamps_s = _video_streams(path)
+    streams, stamps_s, tick_s = _video_streams(path)
     if streams > 1:
         notes.append(f"{path}: holds {streams} video streams; the first ({width}x{height}) is read")
-    variable = describe_variable_rate(stamps_s)
+    variable = describe_variable_rate(stamps_s, tick_s)
     if variable:
         notes.append(
             f"{path}: has a variable frame rate ({variable}); frame i is taken as the one at "
@@ -157,15 +157,16 @@ def probe_video(path: Path) -> VideoInfo:
     )
 
 
-def _video_streams(path: Path) -> tuple[int, NDArray[np.float64]]:
-    """The number of video streams in ``path``, and the first one's frame timestamps (s,
-    ascending, at most VFR_FRAMES): from the container's index where it has an entry per
-    frame (MP4, AVI; nothing is read), else from the first packets demuxed (Matroska)."""
+def _video_streams(path: Path) -> tuple[int, NDArray[np.float64], float]:
+    """The number of video streams in ``path``, the first one's frame timestamps (s,
+    ascending, at most VFR_FRAMES) and their tick (s): from the container's index where it
+    has an entry per frame (MP4, AVI; nothing is read), else from the first packets demuxed
+    (Matroska)."""
     try:
         with av.open(str(path)) as container:
             streams = container.streams.video
             if not streams:
-                return 0, np.zeros(0)
+                return 0, np.zeros(0), 0.0
             stream = streams[0]
             time_base = float(stream.time_base or Fraction(1, 1000))
             entries = stream.index_entries
@@ -178,20 +179,23 @@ def _video_streams(path: Path) -> tuple[int, NDArray[np.float64]]:
                         ticks.append(packet.pts)
                     if len(ticks) >= VFR_FRAMES:
                         break
-            return len(streams), np.sort(np.asarray(ticks, dtype=np.float64)) * time_base
+            return len(streams), np.sort(np.asarray(ticks, dtype=np.float64)) * time_base, time_base
     except (av.error.FFmpegError, OSError):
-        return 0, np.zeros(0)
+        return 0, np.zeros(0), 0.0
 
 
-def describe_variable_rate(stamps_s: NDArray[np.float64]) -> str:
+def describe_variable_rate(stamps_s: NDArray[np.float64], tick_s: float = 0.0) -> str:
     """How the intervals between frame timestamps ``stamps_s`` ((N,) float64 s, ascending)
     vary ("frames 20.0-46.7 ms apart, median 33.3 ms"), where one strays from their median
-    by more than VFR_TOLERANCE of it; "" for a constant rate (or too few frames to tell)."""
+    by more than VFR_TOLERANCE of it and by more than a tick of the container's clock
+    (``tick_s``: Matroska counts whole ms, so a constant 120 fps reads 8, 8, 9 ms apart);
+    "" for a constant rate (or too few frames to tell)."""
     intervals = np.diff(stamps_s)
     if len(intervals) < 2:
         return ""
     median = float(np.median(intervals))
-    if not median > 0 or np.abs(intervals - median).max() <= VFR_TOLERANCE * median:
+    allowed = max(VFR_TOLERANCE * median, 1.5 * tick_s)
+    if not median > 0 or np.abs(intervals - median).max() <= allowed:
         return ""
     return (
         f"frames {intervals.min() * 1e3:.1f}-{intervals.max() * 1e3:.1f} ms apart, "

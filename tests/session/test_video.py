@@ -274,6 +274,23 @@ def test_a_matroska_stream_that_starts_late_counts_its_own_frames(tmp_path: Path
     assert len(frames) == N_FRAMES and all(image is not None for image in frames)
 
 
+@pytest.mark.parametrize("fps", [120, 240])
+def test_a_matroska_video_at_a_constant_high_rate_is_not_variable(tmp_path: Path, fps: int) -> None:
+    # Matroska stores whole milliseconds: a constant 120 fps reads 8, 8, 9 ms apart.
+    path = tmp_path / "fast.mkv"
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("mpeg4", rate=fps)
+        stream.width, stream.height, stream.pix_fmt = 96, 64, "yuv420p"
+        for i, image in enumerate(_moving_texture()):
+            frame = av.VideoFrame.from_ndarray(np.dstack([image] * 3), format="bgr24")
+            frame.pts = i
+            container.mux(stream.encode(frame))
+        container.mux(stream.encode(None))
+    info = video.probe_video(path)
+    assert info.variable_rate == "" and not info.notes
+    assert info.fps == pytest.approx(fps, rel=0.01)
+
+
 @pytest.mark.parametrize(
     ("suffix", "when", "expected"),
     [
@@ -383,3 +400,8 @@ def test_describe_variable_rate_against_the_median_interval() -> None:
     # One interval 20 % long: more than VFR_TOLERANCE (10 %) of the median.
     stretched = np.concatenate([steady[:5], steady[5:] + 0.2 / 30.0])
     assert video.describe_variable_rate(stretched) == "frames 33.3-40.0 ms apart, median 33.3 ms"
+    # Stamps in whole ms (a Matroska clock): a tick's rounding is no variation, more is.
+    fast = np.round(np.arange(20) / 120.0, 3)
+    assert video.describe_variable_rate(fast, tick_s=0.001) == ""
+    assert video.describe_variable_rate(fast, tick_s=0.0) != ""
+    assert video.describe_variable_rate(np.round(stretched, 3), tick_s=0.001) != ""
