@@ -73,7 +73,7 @@ def test_an_empty_path_is_a_usage_error_not_the_current_folder(
 
 
 def test_json_before_the_session_folder_takes_stdout_not_the_folder(tmp_path: Path) -> None:
-    from pipeline.cli.parser import with_json_before_a_folder
+    from pipeline.cli.parser import build_parser, with_json_before_a_folder
 
     session, out = tmp_path / "take", tmp_path / "out"
     session.mkdir()
@@ -85,6 +85,10 @@ def test_json_before_the_session_folder_takes_stdout_not_the_folder(tmp_path: Pa
     # Beside the session, a folder after --json is a mistaken FILE, left for its own message.
     words = ["process", str(session), "--json", str(out)]
     assert with_json_before_a_folder(words) == words
+    # evaluate's --json is a flag: a folder after it is its ground truth, as given.
+    words = ["evaluate", str(tmp_path / "run.mcap"), "--json", str(session)]
+    assert with_json_before_a_folder(words) == words
+    assert build_parser().parse_args(words).json is True
 
 
 def _raising(exc: BaseException) -> object:

@@ -338,11 +338,18 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     return parser
 
 
+# The commands whose --json takes an optional FILE (evaluate's is a flag).
+JSON_FILE_COMMANDS = ("process", "live")
+
+
 def with_json_before_a_folder(argv: Sequence[str]) -> list[str]:
-    """``--json SESSION_DIR`` as ``--json=- SESSION_DIR``: argparse gives --json (whose
-    FILE is optional) the folder that was meant as the session, then says the session is
-    missing. A JSON summary is never written to a folder."""
+    """``--json SESSION_DIR`` as ``--json=- SESSION_DIR`` for JSON_FILE_COMMANDS: argparse
+    gives --json (whose FILE is optional) the folder that was meant as the session, then
+    says the session is missing. A JSON summary is never written to a folder."""
     out = list(argv)
+    command = next((word for word in out if not word.startswith("-")), None)
+    if command not in JSON_FILE_COMMANDS:
+        return out
     # The folders given, but for the output's: where the folder after --json is the only
     # one, it is the session (or rig); beside another, it is a mistaken FILE, named later.
     folders = [
