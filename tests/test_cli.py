@@ -318,3 +318,14 @@ def test_a_command_that_leaves_a_worker_pool_running_still_exits(tmp_path: Path)
     proc = subprocess.run(command, capture_output=True, text=True, timeout=120, check=False)
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "s" / "calibration.toml").is_file()
+
+
+def test_say_to_a_stdout_closed_in_the_process_drops_the_text_and_goes_on() -> None:
+    # A library or a caller closed sys.stdout: what is said is dropped, later prints too.
+    script = (
+        "import sys; from pipeline.cli.commands import say; sys.stdout.close(); "
+        "say('lost'); say('lost too'); print('after', flush=True); print('went on', file=sys.stderr)"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr == "went on\n" and done.stdout == ""

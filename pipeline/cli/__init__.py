@@ -18,7 +18,7 @@ from collections.abc import Callable, Sequence
 
 from ..errors import Interrupted, PipelineError
 from ..run.interrupts import signals_interrupt
-from .commands import EXIT_BAD_INPUT, EXIT_FRAMES_FAILED, EXIT_INTERNAL_ERROR, EXIT_OK
+from .commands import EXIT_BAD_INPUT, EXIT_FRAMES_FAILED, EXIT_INTERNAL_ERROR, EXIT_OK, null_onto
 from .parser import PROG, build_parser, with_json_before_a_folder, with_negative_frames
 
 __all__ = [
@@ -55,14 +55,10 @@ def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
 def _open_closed_std_streams() -> None:
     """A standard stream the caller closed (``>&-``) is opened on the null device: Python
     leaves it None, and the first print (or a worker process inheriting the descriptor)
-    failed. What goes to it is dropped, as a closed stream asks."""
+    would fail. What goes to it is dropped, as a closed stream asks."""
     for fd, name in ((1, "stdout"), (2, "stderr")):
         if getattr(sys, name) is None:
-            null = os.open(os.devnull, os.O_WRONLY)
-            if null != fd:
-                os.dup2(null, fd)
-                os.close(null)
-            setattr(sys, name, open(fd, "w", encoding="utf-8", errors="replace", closefd=False))
+            null_onto(fd, name)
 
 
 def _main(argv: Sequence[str] | None, prog: str) -> int:

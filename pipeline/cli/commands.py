@@ -34,40 +34,40 @@ def _process_started_at() -> float:
     return time.perf_counter() - max(0.0, age_s)
 
 
-def say(text: str, stream: TextIO | None = None) -> None:
+def say(text: str, stream: TextIO | None = None, *, result: str = "") -> None:
     """Print ``text`` to ``stream`` (stdout by default). Stdout closed by its reader (``| head``)
-    or unable to take more (``> /dev/full``) loses what is printed to it, not the run: the
-    outputs are written by then, and the exit status stays the run's."""
+    has taken what it wanted; one that cannot take more (``> /dev/full``) loses a run's summary,
+    not the run: its outputs are written by then, and the exit status stays the run's. Where
+    ``text`` is all the command makes (``result`` names it, for the message), that is an
+    OutputError instead: with exit status 0, a script would keep an empty report."""
     stream = sys.stdout if stream is None else stream
     try:
         print(text, file=stream, flush=True)
-    except (OSError, ValueError):  # BrokenPipeError among the former, a closed stream the latter
+    except (OSError, ValueError) as exc:  # BrokenPipeError among the former, a closed stream the latter
         if stream is not sys.stdout:
             raise
-        _drop_stdout()
+        # Later prints, and the flush at exit, go nowhere instead of failing again.
+        try:
+            fd = sys.stdout.fileno()
+        except (OSError, ValueError):  # closed in this process: its descriptor is 1
+            fd = 1
+        null_onto(fd, "stdout")
+        if result and isinstance(exc, OSError) and not isinstance(exc, BrokenPipeError):
+            raise OutputError(
+                f"stdout: cannot take {result} ({exc.strerror or exc}); free space, or send it elsewhere"
+            ) from None
 
 
-def say_result(text: str, what: str) -> None:
-    """Print ``text``, all that the command makes (``what``, for the message), to stdout. A
-    reader that closed it (``| head``) has taken what it wanted; a stdout that cannot take it
-    (``> /dev/full``, a full disk) is an OutputError: with exit status 0, a script would keep
-    an empty report."""
-    try:
-        print(text, flush=True)
-    except (BrokenPipeError, ValueError):  # closed by its reader, or closed in this process
-        _drop_stdout()
-    except OSError as exc:
-        _drop_stdout()  # else the flush at exit fails again, with a second message
-        raise OutputError(
-            f"stdout: cannot take {what} ({exc.strerror or exc}); free space, or send it elsewhere"
-        ) from None
-
-
-def _drop_stdout() -> None:
-    """Send later prints to stdout (and the flush at exit) to the null device."""
+def null_onto(fd: int, name: str) -> None:
+    """Open the null device on descriptor ``fd``, and the Python stream ``name`` ("stdout" or
+    "stderr") on that where the stream is closed or missing: what is written there is dropped."""
     null = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(null, sys.stdout.fileno())
-    os.close(null)
+    if null != fd:
+        os.dup2(null, fd)
+        os.close(null)
+    stream = getattr(sys, name)
+    if stream is None or stream.closed:
+        setattr(sys, name, open(fd, "w", encoding="utf-8", errors="replace", closefd=False))
 
 
 def _report(summary: Any, json_to: str | None) -> None:
@@ -277,8 +277,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from ..measure.evaluate import evaluate_recording, format_report
 
     report = evaluate_recording(args.recording, args.ground_truth)
-    say_result(
-        report.to_json() if args.json else format_report(report), f"the report of {args.recording.name}"
+    say(
+        report.to_json() if args.json else format_report(report),
+        result=f"the report of {args.recording.name}",
     )
     if not report.complete:
         print(
