@@ -184,9 +184,9 @@ def reconstruct_from_silhouettes(
     # The fit and the quality figures see only the tube's blobs (see tube_blobs): those the
     # hull supports, and where a track predicts this frame's tube, those along it.
     predicted = predict_axis(previous, index) if model.settings.centerline.method == "fit" else None
-    radius = previous[-1].radius_mm if predicted is not None else float("nan")
-    masks = tube_blobs(masks, points, model, predicted, radius)
+    radius_mm = previous[-1].radius_mm if predicted is not None else float("nan")
     try:
+        masks = tube_blobs(masks, points, model, predicted, radius_mm)
         return _curve_and_quality(
             index, images, masks, points, model, timings, previous, predicted, restart_here
         )
