@@ -134,6 +134,21 @@ def test_noise_never_raises(model: SessionModel) -> None:
         assert result.status == "ok" or result.reason
 
 
+def test_a_drawing_that_fails_while_the_blobs_are_kept_fails_the_frame(
+    tmp_path: Path, make_session: Callable[..., Path], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    session = load_session(make_session(tmp_path / "s", frames=1))
+    model = build_model(session)
+    images = [image for p in session.video_paths for _, image in read_frames(p, 0, 1)]
+
+    def impossible_disc(*_: object) -> None:
+        raise cv2.error("OpenCV(4) circle: radius >= 0")
+
+    monkeypatch.setattr(frame, "tube_blobs", impossible_disc)
+    result = reconstruct_frame(0, images, model)
+    assert result.status == "failed" and "circle: radius >= 0" in result.reason
+
+
 def test_a_session_directory_round_trip(tmp_path: Path, make_session: Callable[..., Path]) -> None:
     # The conftest rod: a dark 7 px line from the base straight up, 160 mm.
     session = load_session(make_session(tmp_path / "s", frames=2, empty_frames={1}))
