@@ -30,7 +30,7 @@ from ..run.interrupts import deferred_signals, signals_interrupt
 from ..run.output_target import OutputTarget, prepare_outputs
 from ..run.outputs import Writers
 from ..run.summary import RunSummary
-from ..session.folder import Session
+from ..session.folder import SHORT_VIDEO_FRACTION, SHORT_VIDEO_FRAMES, Session
 from .capture import CameraReader
 from .handoff import QUEUE_SETS, DroppingQueue
 from .restarts import RestartWorker
@@ -111,17 +111,19 @@ class LiveSummary:
         return lines
 
     def replay_lines(self) -> list[str]:
-        """A replayed camera whose frames ended before the others' (its video cut short, or
-        damaged past them): the others' later frames had no set."""
+        """A replayed camera whose frames ended well before the others' (its video cut short,
+        by more than ``process`` lets videos differ) or that is damaged past them: the
+        others' later frames had no set."""
         if not self.delivered or not all(name in self.cut_short for name in self.delivered):
             return []  # not a replay
         if self.stopped_by != "the end of the replay":
             return []  # stopped before the videos' ends: they are not known to end short
         most = max(self.delivered.values())
+        allowed = max(SHORT_VIDEO_FRAMES, SHORT_VIDEO_FRACTION * most)  # as process allows
         lines = []
         for name, frames in self.delivered.items():
             why = self.cut_short[name]
-            if frames < most or why:
+            if most - frames > allowed or why:
                 ends = f"it is damaged there: {why}" if why else "its video ends there: cut short?"
                 lines.append(
                     f"  camera {name}: its replay ended after {frames} of the {most} frames the others "
@@ -164,6 +166,7 @@ class LiveSummary:
     def to_dict(self) -> dict[str, Any]:
         """:meth:`RunSummary.to_dict` with the live figures under "live" (null where unknown)."""
         return self.run.to_dict() | {
+            "exit_code": self.exit_code,
             "problems": [line.strip() for line in self.problem_lines()],
             "live": {
                 "stopped_by": self.stopped_by,
@@ -400,10 +403,11 @@ def _loop(
 
 def _stop_readers(stop: threading.Event, readers: Sequence[CameraReader]) -> None:
     stop.set()
-    for reader in readers:
-        reader.wake()
     # One wait for all of them: readers that stay blocked (daemon threads) cost the run
-    # JOIN_S once, not once each.
+    # JOIN_S once, not once each. A reader is woken until it ends: one that had not reached
+    # a named pipe's open when first woken may wait in it since.
     deadline = time.monotonic() + JOIN_S
     for reader in readers:
-        reader.join(max(0.0, deadline - time.monotonic()))
+        while reader.alive and time.monotonic() < deadline:
+            reader.wake()
+            reader.join(min(POLL_S, max(0.0, deadline - time.monotonic())))
