@@ -19,6 +19,7 @@ from joblib import Parallel, delayed
 from numpy.typing import NDArray
 
 from ..errors import CalibrationError
+from ..session.folder import check_not_dangling
 from .boards import Board, detect
 
 log = logging.getLogger(__name__)
@@ -100,11 +101,7 @@ def _read_grey(path: Path) -> NDArray[np.uint8]:
     the board's contrast matters to the detector, and 8-bit values or a 10- or 12-bit
     camera's stored in 16 bits would read near black scaled by 256, as OpenCV's grey read does.
     """
-    if path.is_symlink() and not path.exists():
-        raise CalibrationError(
-            f"{path}: is a symbolic link to {path.readlink()}, which does not exist; "
-            "fix the link or copy the image in"
-        )
+    check_not_dangling(path, CalibrationError)
     try:
         data = path.read_bytes()
     except OSError as exc:
@@ -113,7 +110,7 @@ def _read_grey(path: Path) -> NDArray[np.uint8]:
         ) from None
     suffix = path.suffix.lower()
     cut_png = suffix == ".png" and data.startswith(b"\x89PNG") and _PNG_END not in data
-    cut_jpeg = suffix in (".jpg", ".jpeg") and data.startswith(b"\xff\xd8") and _JPEG_END not in data[2:]
+    cut_jpeg = suffix in (".jpg", ".jpeg") and data.startswith(b"\xff\xd8") and data.find(_JPEG_END, 2) < 0
     if not data:
         raise CalibrationError(f"{path}: is empty (0 bytes); copy the image in again or remove it")
     if cut_png or cut_jpeg:
