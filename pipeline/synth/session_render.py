@@ -313,7 +313,6 @@ def render_session(
     out_dir = Path(out_dir)
     _check_out_dir(out_dir)
     cameras = make_rig(arrangement, size=options.size, cameras=options.cameras)
-    _remove_earlier_views(out_dir, {cam.name for cam in cameras})
     profile = _profile(options, radius_mm)
     centerlines, length = session_centerlines(
         shape, frames, seed=seed, length_mm=length_mm, profile=profile, tip=options.tip
@@ -328,6 +327,7 @@ def render_session(
             (out_dir / "background").mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise PipelineError(f"{out_dir}: cannot create the session directory: {exc.strerror}") from None
+        _remove_earlier_views(out_dir, {cam.name for cam in cameras})
         if options.calib_error_deg:
             given = perturbed_rig(cameras, options.calib_error_deg, seed=seed)
             source = f"pipeline synth (true cameras with a {options.calib_error_deg:g} deg calibration error)"
@@ -352,7 +352,9 @@ def render_session(
             backgrounds[blob.camera_index] = paint_distractor(backgrounds[blob.camera_index], blob)
         for cam, bg in zip(cameras, backgrounds, strict=True):
             grey = 255.0 - bg if polarity == "bright" else bg
-            cv2.imwrite(str(out_dir / "background" / f"{cam.name}.png"), np.rint(grey).astype(np.uint8))
+            path = out_dir / "background" / f"{cam.name}.png"
+            if not cv2.imwrite(str(path), np.rint(grey).astype(np.uint8)):
+                raise OSError(errno.EIO, "the background image was not written", str(path))
         gains = flicker_gains(seed, frames) if options.flicker else np.ones(frames)
         write_npz_deterministic(
             out_dir / "ground_truth.npz",
@@ -381,7 +383,7 @@ def render_session(
                 "calib_error_deg": np.float64(options.calib_error_deg),
             },
         )
-        # Named shapes with the original options pass the plain radius, exactly as before.
+        # A uniform tube is drawn at its plain radius (the profile's values are that radius).
         uniform = profile.kind == "uniform"
         look = Look(radius_mm if uniform else radii, options.tip, disks, backgrounds, polarity, seed, gains)
         _write_videos(out_dir, cameras, centerlines, look, progress, jobs)

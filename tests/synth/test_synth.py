@@ -449,7 +449,9 @@ def test_bad_arguments_raise_pipeline_errors(tmp_path: Path) -> None:
     assert not (tmp_path / "seeded").exists()  # refused before anything is written
 
 
-def test_synth_renders_into_a_new_or_empty_folder_or_over_a_render_only(tmp_path: Path) -> None:
+def test_synth_renders_into_a_new_or_empty_folder_or_over_a_render_only(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     mine = tmp_path / "mine"
     mine.mkdir()
     (mine / "calibration.toml").write_text("my own cameras\n")
@@ -459,6 +461,19 @@ def test_synth_renders_into_a_new_or_empty_folder_or_over_a_render_only(tmp_path
     render_session(tmp_path / "new", frames=2, progress=False, jobs=1)
     render_session(tmp_path / "new", frames=3, progress=False, jobs=1)  # over its own render
     assert len(np.load(tmp_path / "new" / "ground_truth.npz")["centerlines"]) == 3
+    # A render of two cameras refused for its poses leaves the earlier render whole.
+    from pipeline.synth import session_render
+
+    def refused(*_: object, **__: object) -> None:
+        raise PipelineError("synthetic frame 0: the tube runs into itself")
+
+    monkeypatch.setattr(session_render, "check_poses", refused)
+    with pytest.raises(PipelineError, match="runs into itself"):
+        render_session(tmp_path / "new", frames=2, progress=False, jobs=1, options=SceneOptions(cameras=2))
+    assert (tmp_path / "new" / "cam2.mp4").is_file() and (
+        tmp_path / "new" / "background" / "cam2.png"
+    ).is_file()
+    monkeypatch.undo()
     # Two cameras over three: the third camera's video and background go with the render.
     render_session(tmp_path / "new", frames=2, progress=False, jobs=1, options=SceneOptions(cameras=2))
     assert sorted(p.name for p in (tmp_path / "new").glob("*.mp4")) == ["cam0.mp4", "cam1.mp4"]
