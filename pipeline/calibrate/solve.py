@@ -58,6 +58,9 @@ CORNER_FACTOR, CORNER_FLOOR_PX = 6.0, 0.4
 # sound images stay far below it (0.12 px on the real stereo rig, 0.02-0.03 px on renders),
 # while one image of another session, or a mirrored one, among them gives tens of pixels.
 MAX_CAMERA_MEAN_PX = 1.0
+# ... per this many pixels of the image's diagonal, above it: a large sensor's pixels are
+# small, and a sound calibration of 4000x3000 images can average more than a pixel.
+MEAN_PX_PER_DIAGONAL_PX = 1.0 / 1000.0
 
 
 def calibrate_directory(
@@ -136,16 +139,21 @@ def calibrate_directory(
 
 
 def _problems(result: CalibrationResult) -> list[str]:
-    """A line per camera whose mean re-projection error exceeds MAX_CAMERA_MEAN_PX, with its worst image."""
+    """A line per camera whose mean re-projection error exceeds its bar (``MAX_CAMERA_MEAN_PX``,
+    or ``MEAN_PX_PER_DIAGONAL_PX`` of its image's diagonal where that is more), with its
+    worst image."""
     lines = []
-    for name, mean in result.camera_mean_px().items():
-        if mean <= MAX_CAMERA_MEAN_PX:
+    means = result.camera_mean_px()
+    for cam in result.cameras:
+        mean = means[cam.name]
+        bar = max(MAX_CAMERA_MEAN_PX, MEAN_PX_PER_DIAGONAL_PX * float(np.hypot(*cam.size_px)))
+        if mean <= bar:
             continue
-        worst = max((e for e in result.image_errors if e.camera == name), key=lambda e: e.mean_px)
+        worst = max((e for e in result.image_errors if e.camera == cam.name), key=lambda e: e.mean_px)
         lines.append(
-            f"camera {name!r}: mean re-projection error {mean:.1f} px (above {MAX_CAMERA_MEAN_PX:g} px; "
+            f"camera {cam.name!r}: mean re-projection error {mean:.1f} px (above {bar:.2g} px; "
             f"worst {worst.source}, {worst.mean_px:.1f} px): the images do not fit one rig; look for an "
-            "image of another session or camera, a mirrored one, or a second world.*, and calibrate again"
+            "image of another session or camera, or a mirrored one, and calibrate again"
         )
     return lines
 

@@ -345,6 +345,24 @@ def test_report_pictures_that_cannot_be_written_are_an_error_after_the_calibrati
     assert read_calibration(tmp_path / "c.toml")  # the calibration itself is whole
 
 
+def test_the_unfit_bar_grows_with_the_images_diagonal() -> None:
+    """1.5 px on average is unfit at 640x480, ordinary at 4000x3000 (whose bar is 5 px)."""
+    from pipeline.calibrate.result import CalibrationResult, ImageError
+    from pipeline.calibrate.solve import _problems
+    from pipeline.geometry.camera import Camera
+
+    def rig(size_px: tuple[int, int]) -> CalibrationResult:
+        cam = Camera("cam0", size_px, np.eye(3), np.zeros(5), np.zeros(3), np.zeros(3))
+        errors = [
+            ImageError("cam0", f"{i:02d}", f"{i:02d}.png", mean_px) for i, mean_px in enumerate((1.0, 2.0))
+        ]
+        return CalibrationResult([cam], errors, board=None, rms_px=1.5)  # type: ignore[arg-type]
+
+    (line,) = _problems(rig((640, 480)))
+    assert "mean re-projection error 1.5 px (above 1 px; worst 01.png, 2.0 px)" in line
+    assert _problems(rig((4000, 3000))) == []
+
+
 def test_a_calibration_whose_images_do_not_fit_one_rig_says_so_and_exits_1(
     tmp_path, capsys: pytest.CaptureFixture[str]
 ) -> None:
