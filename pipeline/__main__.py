@@ -6,6 +6,7 @@ import sys
 import threading
 
 from .cli import main
+from .run.interrupts import INTERRUPT_SIGNALS
 
 
 def _exit(code: int) -> None:
@@ -19,9 +20,8 @@ def _exit(code: int) -> None:
     # threads without its hooks would wait forever on a pool's manager thread.
     # The run is over: a signal now (Ctrl-C just as it ends) has nothing left to stop, and
     # raised inside threading's shutdown it would print a traceback.
-    for name in ("SIGINT", "SIGTERM", "SIGHUP"):
-        if hasattr(signal, name):
-            signal.signal(getattr(signal, name), signal.SIG_IGN)
+    for sig in INTERRUPT_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
     threading._shutdown()  # type: ignore[attr-defined]
     atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):

@@ -34,7 +34,7 @@ from ..session.folder import check_not_dangling
 log = logging.getLogger(__name__)
 
 # A true centreline farther than this from the world origin (mm) is no workspace's: the
-# distances to it overflow, and every figure came out empty.
+# distances to it would overflow, and every figure be empty.
 MAX_TRUTH_MM = 1e6
 
 FloatArray = NDArray[np.float64]
@@ -258,7 +258,7 @@ def evaluate_centerlines(
         pred = np.full((len(pred), 1, 3), np.nan)
     frames = len(pred)
     index = np.arange(frames) if frame_indices is None else np.asarray(frame_indices).reshape(-1)
-    ok: NDArray[np.bool_] = np.asarray(np.isfinite(pred).all(axis=(1, 2)) & (pred.shape[1] > 0))
+    ok: NDArray[np.bool_] = np.asarray(np.isfinite(pred).all(axis=(1, 2)))
 
     pooled = [
         np.concatenate([centerline_distances(p, q), centerline_distances(q, p)])
@@ -312,7 +312,8 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
     path = Path(path)
     check_not_dangling(path, EvaluationError)
     file = path / "ground_truth.npz" if path.is_dir() else path
-    check_not_dangling(file, EvaluationError)
+    if file is not path:
+        check_not_dangling(file, EvaluationError)
     if file.exists() and not file.is_file():
         raise EvaluationError(
             f"{file}: is not a regular file (a pipe or device); give the ground_truth.npz file"
@@ -355,7 +356,7 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
         raise EvaluationError(
             f"{file}: 'centerlines' holds non-finite values; render the session again (pipeline synth)"
         )
-    farthest = float(np.abs(centerlines).max()) if centerlines.size else 0.0
+    farthest = float(np.abs(centerlines).max())
     if farthest > MAX_TRUTH_MM:
         raise EvaluationError(
             f"{file}: 'centerlines' reach {farthest:.3g} mm from the origin, beyond any workspace "

@@ -79,7 +79,8 @@ class RunSummary:
         return out
 
     def problem_lines(self) -> list[str]:
-        """The summary's failure and warning lines: failed frames, suspect frames, doubtful
+        """The summary's failure and warning lines: the session's problems (a video much
+        shorter than the others), failed frames, moved cameras, suspect frames, doubtful
         frames, frames at the walls, no tube found."""
         out = [f"  {line}" for line in self.session_problems]
         out += [f"  failed {span}: {reason}" for span, reason in compress_failures(self.frames_failed)]

@@ -242,7 +242,8 @@ def _close_before_the_manager(connection: Any) -> None:
     wakes on it and closes the same end as it tears the broken pool down, finds it closed.
 
     ``Connection.close`` closes the descriptor before it forgets it: a manager woken in
-    between closed it a second time (OSError EBADF, a traceback from its thread on stderr).
+    between would close it a second time (OSError EBADF, a traceback from its thread on
+    stderr). The handle is forgotten first here.
     """
     handle, connection._handle = getattr(connection, "_handle", None), None
     if handle is not None:
