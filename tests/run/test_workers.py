@@ -197,11 +197,13 @@ def test_the_stuck_pools_results_pipe_is_forgotten_before_it_is_closed(
     import multiprocessing
 
     reader, writer = multiprocessing.Pipe(duplex=False)
-    handle_at_close: list[object] = []
+    descriptor = writer.fileno()
+    handle_at_close: list[object] = []  # the connection's handle as its descriptor closes
     real_close = os.close
 
     def close(fd: int) -> None:
-        handle_at_close.append(writer._handle)  # type: ignore[attr-defined]
+        if fd == descriptor:  # another thread's closes (a pool's, a viewer's) are not this one
+            handle_at_close.append(writer._handle)  # type: ignore[attr-defined]
         real_close(fd)
 
     monkeypatch.setattr(workers.os, "close", close)
