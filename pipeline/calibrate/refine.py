@@ -305,7 +305,7 @@ def refined_cameras(
         # exactly the two numbers that place it, and nothing is left to tell the cameras by.
         reason = "two views of a tube's sides say nothing about the cameras; refining needs three or more"
         return model.cameras, Refinement(False, 0, float("nan"), float("nan"), (), reason), None
-    tubes, read = _sampled(model, frames, map_frames, read_tips=model.settings.manipulator.tip == "auto")
+    tubes, read = _sampled(model, frames, map_frames)
     if len(tubes) < 3:
         return model.cameras, None, read
     cameras, report = refine(model, tubes, mode, refitter(model, frames, map_frames))
@@ -327,7 +327,7 @@ def sample_tips(
     if not _reads_tips(model):
         return None
     frames = decode_frames(video_paths, sample_frames(start, stop, SAMPLE_FRAMES))
-    return _sampled(model, frames, map_frames, read_tips=True)[1]
+    return _sampled(model, frames, map_frames)[1]
 
 
 def _reads_tips(model: SessionModel) -> bool:
@@ -342,11 +342,10 @@ def _sampled(
     model: SessionModel,
     frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
     map_frames: FrameMap,
-    *,
-    read_tips: bool,
 ) -> tuple[list[Tube], ReadTips | None]:
-    """The tubes of ``frames`` (:func:`sample_tubes`) and, with ``read_tips``, their ends
-    read on the same reconstructions (else None)."""
+    """The tubes of ``frames`` (:func:`sample_tubes`) and, where the session reads its tube
+    end from them (:func:`_reads_tips`), their ends read on the same reconstructions (else None)."""
+    read_tips = _reads_tips(model)
     samples = map_frames(functools.partial(_sample, tip=read_tips), frames, _base_free(model))
     tubes = [tube for tube, _ in samples if tube is not None]
     if not read_tips:
