@@ -56,7 +56,8 @@ def cameras_from_dict(data: dict[str, Any], *, source: str = "calibration.toml")
                 raise CalibrationError(
                     f"{source}: cameras {a.name!r} and {b.name!r} stand at the same place "
                     f"({np.linalg.norm(a.center_mm - b.center_mm):.2g} mm apart): one camera's table "
-                    "was copied from the other's; give each camera its own calibration"
+                    "copied from the other's, or translations not in mm (a calibration in metres); "
+                    "give each camera its own calibration, in mm"
                 )
     return cameras
 
