@@ -17,7 +17,6 @@ corners are identified by the markers, so a view may show any subset of them.
 from __future__ import annotations
 
 import logging
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import CalibrationError
-from ..session.toml_file import check_keys, load_toml
+from ..session.toml_file import check_keys, read_toml
 
 log = logging.getLogger(__name__)
 
@@ -117,14 +116,7 @@ def load_board(
     path = Path(calib_dir) / "board.toml"
     doc: dict[str, object] = {}
     if path.is_file():
-        try:
-            doc = load_toml(path)
-        except tomllib.TOMLDecodeError as exc:
-            raise CalibrationError(f"{path}: TOML syntax error: {exc}") from None
-        except UnicodeDecodeError:
-            raise CalibrationError(f"{path}: is not UTF-8 text; save it as UTF-8") from None
-        except OSError as exc:
-            raise CalibrationError(f"{path}: cannot read: {exc.strerror}") from None
+        doc = read_toml(path, error=CalibrationError)
         check_keys(doc, BOARD_KEYS, str(path), error=CalibrationError)
     if charuco is not None:
         kind: object = "charuco"

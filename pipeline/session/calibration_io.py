@@ -9,7 +9,6 @@ an optional ``[metadata]`` table is kept as free-form data.
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +18,7 @@ import tomli_w
 
 from ..errors import CalibrationError
 from ..geometry.camera import Camera
-from .toml_file import load_toml
+from .toml_file import read_toml
 
 REQUIRED_KEYS = ("name", "size", "matrix", "distortions", "rotation", "translation")
 
@@ -27,17 +26,11 @@ REQUIRED_KEYS = ("name", "size", "matrix", "distortions", "rotation", "translati
 def read_calibration(path: Path) -> list[Camera]:
     """Read and validate calibration.toml; raise CalibrationError naming file, camera and key."""
     try:
-        data = load_toml(path)
+        data = read_toml(path, error=CalibrationError)
     except FileNotFoundError:
         raise CalibrationError(
             f"{path}: not found; every session needs a calibration.toml (see docs/input.md)"
         ) from None
-    except tomllib.TOMLDecodeError as exc:
-        raise CalibrationError(f"{path}: TOML syntax error: {exc}") from None
-    except UnicodeDecodeError:
-        raise CalibrationError(f"{path}: is not UTF-8 text; save it as UTF-8") from None
-    except OSError as exc:
-        raise CalibrationError(f"{path}: cannot read: {exc.strerror}") from None
     return cameras_from_dict(data, source=str(path))
 
 

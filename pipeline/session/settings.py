@@ -8,14 +8,13 @@ manipulator mounted at (128, 128, 0) mm.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field, fields
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
 from ..errors import SettingsError
-from .toml_file import check_keys, load_toml
+from .toml_file import check_keys, read_toml
 
 SILHOUETTE_METHODS = ("threshold", "otsu", "background")
 POLARITIES = ("dark", "bright")
@@ -159,15 +158,7 @@ def load_settings(path: Path | None) -> Settings:
     """Read session.toml (None or a missing file gives the defaults) and validate it."""
     if path is None or not path.exists():
         return Settings()
-    try:
-        data = load_toml(path)
-    except tomllib.TOMLDecodeError as exc:
-        raise SettingsError(f"{path}: TOML syntax error: {exc}") from None
-    except UnicodeDecodeError:
-        raise SettingsError(f"{path}: is not UTF-8 text; save it as UTF-8") from None
-    except OSError as exc:
-        raise SettingsError(f"{path}: cannot read: {exc.strerror}") from None
-    return settings_from_dict(data, source=str(path))
+    return settings_from_dict(read_toml(path, error=SettingsError), source=str(path))
 
 
 def settings_from_dict(data: dict[str, Any], *, source: str = "session.toml") -> Settings:

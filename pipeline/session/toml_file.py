@@ -33,6 +33,21 @@ def load_toml(path: Path) -> dict[str, Any]:
         raise tomllib.TOMLDecodeError("arrays or tables nested too deeply") from None
 
 
+def read_toml(path: Path, *, error: type[PipelineError]) -> dict[str, Any]:
+    """:func:`load_toml`, its failures raised as ``error`` naming ``path`` and what to do
+    (a missing file raises FileNotFoundError, for the caller to name in its own terms)."""
+    try:
+        return load_toml(path)
+    except FileNotFoundError:
+        raise
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{path}: TOML syntax error: {exc}") from None
+    except UnicodeDecodeError:
+        raise error(f"{path}: is not UTF-8 text; save it as UTF-8") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot read: {exc.strerror}") from None
+
+
 def require_regular_file(path: Path) -> None:
     """OSError (``strerror`` "is not a regular file") where ``path`` exists but is not a
     regular file: a directory, a named pipe, a device. A missing path is left to the read."""
