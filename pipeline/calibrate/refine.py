@@ -34,7 +34,6 @@ from ..session.calibration_io import write_calibration
 from ..session.toml_file import load_toml
 from .adjust import Tube, adjust_cameras, aligned_by_images, resampled_tube
 from .mount import CHECK_BASE, mount_shift, moved_to_mount
-from .video_order import check_video_order
 
 FloatArray = NDArray[np.float64]
 
@@ -277,26 +276,30 @@ def refine(
     return (tuple(cameras) if applied else given), report
 
 
+def sample_session(
+    video_paths: Sequence[Path], start: int, stop: int
+) -> Sequence[tuple[int, Sequence[NDArray[np.uint8]]]]:
+    """The ``SAMPLE_FRAMES`` frames spread over ``[start, stop)`` that settle the cameras
+    (:func:`refined_cameras`), the videos' order (:mod:`.video_order`) and the tube's end:
+    (index, per camera grey image), decoded once for all three."""
+    return decode_frames(video_paths, sample_frames(start, stop, SAMPLE_FRAMES))
+
+
 def refined_cameras(
     model: SessionModel,
-    video_paths: Sequence[Path],
-    start: int,
-    stop: int,
+    frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
     map_frames: FrameMap = map_here,
 ) -> tuple[tuple[Camera, ...], Refinement | None, ReadTips | None]:
-    """The cameras to reconstruct frames ``[start, stop)`` with, under the settings'
-    ``[calibration] refine``, and the refinement's report (None when not asked for, or
-    when too few frames show the tube to refine on). ``map_frames`` runs the sample
-    frames' reconstructions.
+    """The cameras to reconstruct the session with, under the settings' ``[calibration]
+    refine``, and the refinement's report (None when not asked for, or when too few frames
+    show the tube to refine on), from its sample ``frames`` (:func:`sample_session`).
+    ``map_frames`` runs their reconstructions.
 
     Third, where the settings leave the tube's end to the frames (``[manipulator] tip =
     "auto"``) and the given cameras are kept: the sample frames' ends, read on the same
     reconstructions, for :func:`pipeline.reconstruct.tip_shape.with_session_tip` (their
     bases are free, which moves a fit near its base, not at its end); else None."""
     started = time.perf_counter()
-    frames = decode_frames(video_paths, sample_frames(start, stop, SAMPLE_FRAMES))
-    # Videos in other cameras' places would be taken for cameras that moved: named first.
-    check_video_order(model, frames, video_paths)
     mode = model.settings.calibration.refine
     if mode is False or model.settings.centerline.method != "fit":
         return model.cameras, None, None
@@ -315,18 +318,15 @@ def refined_cameras(
 
 def sample_tips(
     model: SessionModel,
-    video_paths: Sequence[Path],
-    start: int,
-    stop: int,
+    frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
     map_frames: FrameMap = map_here,
 ) -> ReadTips | None:
     """The tube ends :func:`refined_cameras` reads where it keeps the given cameras, read
-    the same way without refining: a run that keeps its cameras as given (a live replay)
-    then chooses the end as ``process`` does. None where it reads none (fewer than three
-    cameras, ``[calibration] refine = false``, the end set in session.toml)."""
+    the same way on the sample ``frames`` without refining: a run that keeps its cameras as
+    given (a live replay) then chooses the end as ``process`` does. None where it reads none
+    (fewer than three cameras, ``[calibration] refine = false``, the end set in session.toml)."""
     if not _reads_tips(model):
         return None
-    frames = decode_frames(video_paths, sample_frames(start, stop, SAMPLE_FRAMES))
     return _sampled(model, frames, map_frames)[1]
 
 

@@ -237,7 +237,8 @@ def _model(rig: Session, sources: Sequence[Source]) -> tuple[Any, str, str]:
     does where it keeps the given cameras. With it, why every frame's tip is in doubt (""
     where it is not: see :attr:`pipeline.reconstruct.tip_shape.TipChoice.doubt`), and the
     end assumed and how it was chosen (for the recordings' metadata)."""
-    from ..calibrate.refine import sample_tips
+    from ..calibrate.refine import sample_session, sample_tips
+    from ..calibrate.video_order import check_video_order
     from ..reconstruct.model import build_model
     from ..reconstruct.tip_shape import end_assumed, with_session_tip
 
@@ -253,7 +254,9 @@ def _model(rig: Session, sources: Sequence[Source]) -> tuple[Any, str, str]:
 
         paths = [Path(s.url) for s in sources]
         frames = min(probe_video(p).frame_count for p in paths)
-        model, choice = with_session_tip(model, paths, 0, frames, read=sample_tips(model, paths, 0, frames))
+        samples = sample_session(paths, 0, frames)
+        check_video_order(model, samples, paths)
+        model, choice = with_session_tip(model, paths, 0, frames, read=sample_tips(model, samples))
         return model, choice.doubt if choice is not None else "", end_assumed(model, choice)
     return model, "", end_assumed(model, None)
 

@@ -305,7 +305,8 @@ def _run_with(
                 # spawn and import the per-frame modules while the parent builds the model.
                 start_local_workers(n_jobs)
             if frame_fn is None:
-                from ..calibrate.refine import refined_cameras
+                from ..calibrate.refine import refined_cameras, sample_session
+                from ..calibrate.video_order import check_video_order
                 from ..reconstruct.model import build_model
                 from ..reconstruct.tip_shape import end_assumed, with_session_tip
 
@@ -315,7 +316,10 @@ def _run_with(
                 # where the given cameras are kept, the end is read on the cameras' frames.
                 frame_map = local_frame_map(n_jobs) if backend == "loky" else map_here
                 paths = session.video_paths
-                cameras, refinement, tips = refined_cameras(model, paths, start, stop, frame_map)
+                samples = sample_session(paths, start, stop)
+                # Videos in other cameras' places would be taken for cameras that moved: named first.
+                check_video_order(model, samples, paths)
+                cameras, refinement, tips = refined_cameras(model, samples, frame_map)
                 if cameras is not session.cameras:
                     session = dataclasses.replace(session, cameras=cameras)
                     model = build_model(session)

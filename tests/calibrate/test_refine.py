@@ -14,7 +14,14 @@ from conftest import rig_cameras
 
 from pipeline.calibrate.adjust import Tube, aligned_by_images, moved_camera, nearest_to_given, similar_camera
 from pipeline.calibrate.mount import mount_shift, moved_to_mount
-from pipeline.calibrate.refine import Refinement, distinct_poses, refine, refitter, sample_tubes
+from pipeline.calibrate.refine import (
+    Refinement,
+    distinct_poses,
+    refine,
+    refitter,
+    sample_session,
+    sample_tubes,
+)
 from pipeline.errors import SettingsError
 from pipeline.geometry.camera import Camera
 from pipeline.reconstruct.frame_task import decode_frames
@@ -253,7 +260,7 @@ def test_two_cameras_are_kept_and_the_summary_says_why(tmp_path: Path) -> None:
     )
     session = load_session(tmp_path / "two")
     model = build_model(session)
-    cameras, report, _ = refined_cameras(model, session.video_paths, 0, 4)
+    cameras, report, _ = refined_cameras(model, sample_session(session.video_paths, 0, 4))
     assert cameras is model.cameras
     assert report is not None and not report.applied
     assert "three or more" in report.describe()
@@ -266,17 +273,18 @@ def test_the_tube_end_is_read_on_the_frames_of_cameras_kept(sessions: dict[float
     session = load_session(sessions[0.0])
     model = build_model(session)
     assert model.settings.manipulator.tip == "auto"
-    cameras, report, read = refined_cameras(model, session.video_paths, 0, FRAMES)
+    samples = sample_session(session.video_paths, 0, FRAMES)
+    cameras, report, read = refined_cameras(model, samples)
     assert cameras is model.cameras and report is not None and not report.applied
     assert read is not None and list(read.frames) == sample_frames(0, FRAMES, SAMPLE_FRAMES)
     assert 3 <= len(read.tips) <= len(read.frames)
     # Read alone (a live replay keeps its cameras as given), the same frames and ends.
-    alone = sample_tips(model, session.video_paths, 0, FRAMES)
+    alone = sample_tips(model, samples)
     assert alone is not None and alone.frames == read.frames
     for a, b in zip(alone.tips, read.tips, strict=True):
         np.testing.assert_array_equal(a.axis_mm, b.axis_mm)
     unrefined = replace(model.settings, calibration=replace(model.settings.calibration, refine=False))
-    assert sample_tips(replace(model, settings=unrefined), session.video_paths, 0, FRAMES) is None
+    assert sample_tips(replace(model, settings=unrefined), samples) is None
     settled, choice = with_session_tip(model, session.video_paths, 0, FRAMES, read=read)
     # The synthetic tube's end is flat, and the frames read settle it: none is read again.
     assert choice is not None and settled.tip == choice.tip == "flat"
@@ -286,7 +294,7 @@ def test_the_tube_end_is_read_on_the_frames_of_cameras_kept(sessions: dict[float
     off = build_model(moved)
     calibration = replace(off.settings.calibration, refine=True)
     forced = replace(off, settings=replace(off.settings, calibration=calibration))
-    cameras, report, read = refined_cameras(forced, moved.video_paths, 0, FRAMES)
+    cameras, report, read = refined_cameras(forced, sample_session(moved.video_paths, 0, FRAMES))
     assert report is not None and report.applied and cameras is not forced.cameras
     assert read is None
 

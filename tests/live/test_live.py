@@ -293,6 +293,20 @@ def _verify_rrd(path: Path) -> None:
     assert verify.returncode == 0, verify.stderr
 
 
+def test_a_replay_of_swapped_videos_is_refused_naming_them(session: Path, tmp_path: Path) -> None:
+    # As process refuses them: the videos in other cameras' places, named before any frame.
+    swapped = tmp_path / "take"
+    swapped.mkdir()
+    for item in session.iterdir():
+        (swapped / {"cam1.mp4": "cam2.mp4", "cam2.mp4": "cam1.mp4"}.get(item.name, item.name)).symlink_to(
+            item
+        )
+    rig, sources = open_rig(None, swapped)
+    with pytest.raises(SessionError, match=r"cam2\.mp4 looks like cam1's view"):
+        run_live(rig, sources, out_dir=tmp_path / "out", duration_s=5.0)
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_replay_damaged_part_way_keeps_the_frames_before_and_says_why(
     session: Path, tmp_path: Path
 ) -> None:
