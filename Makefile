@@ -25,8 +25,9 @@ ifeq ($(strip $(VIDEO_DIR)),)
 process: demo
 	$(PY) -m pipeline process $(DEMO_DIR) --out recordings --force $(ARGS)
 else
+# The session folder last, after --: one named like an option (-x) is still the folder.
 process: $(STAMP)
-	$(PY) -m pipeline process "$(VIDEO_DIR)" --out recordings $(ARGS)
+	$(PY) -m pipeline process --out recordings $(ARGS) -- "$(VIDEO_DIR)"
 endif
 
 lint: $(STAMP)

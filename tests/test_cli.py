@@ -53,6 +53,33 @@ def test_bad_argument_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> No
 
 
 @pytest.mark.parametrize(
+    "command",
+    [["process", "-x"], ["process", "s", "--out", "-x"], ["evaluate", "-x", "gt.npz"]],
+    ids=["session", "out", "recording"],
+)
+def test_a_folder_named_like_an_option_is_named_with_how_to_give_it(
+    command: list[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "-x").mkdir()
+    with pytest.raises(SystemExit) as exit_info:
+        main(command)
+    assert exit_info.value.code == EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"error: pipeline {command[0]}: ")
+    assert "-x is read as an option; to give the folder -x, write ./-x (or -- -x)" in err
+
+
+def test_a_folder_named_like_an_option_after_a_double_dash_is_the_session(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "-x").mkdir()
+    assert main(["process", "--out", str(tmp_path / "out"), "--", "-x"]) == EXIT_BAD_INPUT
+    assert capsys.readouterr().err == "error: -x: the session directory is empty\n"
+
+
+@pytest.mark.parametrize(
     ("command", "argument"),
     [
         (["process", ""], "video_dir"),
