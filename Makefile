@@ -5,6 +5,10 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 VIDEO_DIR ?=
+# The session folder reaches the recipe through the environment as it was given: make
+# expands a $ in it no further, and the shell reads it from there, so $ and " are kept.
+override VIDEO_DIR := $(value VIDEO_DIR)
+export VIDEO_DIR
 DEMO_DIR := recordings/demo
 ARGS ?=
 
@@ -27,7 +31,7 @@ process: demo
 else
 # The session folder last, after --: one named like an option (-x) is still the folder.
 process: $(STAMP)
-	$(PY) -m pipeline process --out recordings $(ARGS) -- "$(VIDEO_DIR)"
+	$(PY) -m pipeline process --out recordings $(ARGS) -- "$$VIDEO_DIR"
 endif
 
 lint: $(STAMP)
