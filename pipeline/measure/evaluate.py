@@ -89,7 +89,9 @@ class EvaluationReport:
     tube_end : the tube end the recording's fit assumed, and how it was chosen; "" when
         the recording does not say.
     complete : False where the recording ended before its footer (a run killed while
-        writing): the figures are those of the frames it holds.
+        writing), or is damaged: the figures are those of the frames it holds.
+    damaged : True where bytes inside the recording are not its own (a disk or copy
+        error): the figures are those of the frames before the damage.
     """
 
     label: str
@@ -112,6 +114,7 @@ class EvaluationReport:
     cameras: str = ""
     tube_end: str = ""
     complete: bool = True
+    damaged: bool = False
 
     @property
     def frames_off(self) -> int:
@@ -373,6 +376,16 @@ def _truth_session(ground_truth: Path) -> str:
     return ground_truth.resolve().parent.name if ground_truth.name == "ground_truth.npz" else ""
 
 
+def _why_no_frames(complete: bool, damaged: bool) -> str:
+    """Why a recording holds no frames, for its error line: "" for a whole file."""
+    if damaged:
+        return (
+            " (damaged before its first frame: bytes inside it are not the recording's, a disk or "
+            "copy error; run `pipeline process` on its session again)"
+        )
+    return "" if complete else " (cut short before its first frame: the run did not finish)"
+
+
 @contextlib.contextmanager
 def _held_warnings(logger: str) -> Iterator[list[logging.LogRecord]]:
     """The records ``logger`` emits inside the block, held back (for the caller to emit or
@@ -424,7 +437,7 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
         rec = load_recording(recording)
     indices = np.asarray(rec.frame_indices, dtype=np.int64).reshape(-1)
     if len(indices) == 0:
-        why = "" if rec.complete else " (cut short or damaged before its first frame: the run did not finish)"
+        why = _why_no_frames(rec.complete, rec.damaged)
         raise EvaluationError(f"{recording}: the recording holds no frames{why}")
     for record in held:  # a recording cut short after some frames: said, and evaluated
         logging.getLogger(record.name).handle(record)
@@ -467,6 +480,7 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
         cameras=rec.cameras,
         tube_end=rec.tube_end,
         complete=rec.complete,
+        damaged=rec.damaged,
     )
     if rec.smoothed_centerlines_m is not None:
         smoothed = evaluate_centerlines(

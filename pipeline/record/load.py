@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import struct
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -32,6 +33,7 @@ from mcap.exceptions import McapError
 from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader
 from mcap.well_known import MessageEncoding
+from mcap.writer import MCAP0_MAGIC
 from mcap_protobuf.decoder import DecoderFactory
 from numpy.typing import NDArray
 
@@ -72,6 +74,9 @@ class Recording:
     tube_end : the tube end the fit assumed, "flat" or "round", and how it was chosen
         (the summary's "tube end" line); "" when the file does not say.
     session : the name of the session recorded (its folder's); "" when the file does not say.
+    damaged : True when the file ends whole (its closing magic) but bytes inside it are not
+        the recording's (a disk or copy error, not a run stopped while writing): the frames
+        before the damage are read, ``complete`` is False.
     """
 
     path: Path
@@ -87,6 +92,7 @@ class Recording:
     cameras: str = ""
     tube_end: str = ""
     session: str = ""
+    damaged: bool = False
 
     def __len__(self) -> int:
         return len(self.frame_indices)
@@ -221,7 +227,7 @@ def _read(stream: Any, path: Path) -> Recording:
     points: dict[int, NDArray[np.float32]] = {}  # log_time -> points
     curves: dict[int, NDArray[np.float64] | None] = {}
     smoothed: dict[int, NDArray[np.float64] | None] = {}
-    complete = False
+    complete = damaged = False
     # validate_crcs: a chunk cut short fails its CRC (or its decompression) and is dropped whole.
     reader = StreamReader(stream, validate_crcs=True)
     try:
@@ -254,21 +260,46 @@ def _read(stream: Any, path: Path) -> Recording:
                 else:
                     smoothed[record.log_time] = _curve_from_update(message)
     except _TRUNCATION_ERRORS as exc:
+        damaged = _ends_whole(stream)
         if not metrics and not metadata:
             why = " ".join(str(exc).split()) or type(exc).__name__
+            if damaged:
+                raise RecordingError(
+                    f"{path}: {_damage('before its first frame')}; {_REWRITE} ({why})"
+                ) from None
             raise RecordingError(f"{path}: not a readable MCAP recording ({why})") from None
-        if metrics:
-            log.warning(
-                "%s: truncated or damaged after frame %d (the run did not finish); read what precedes it",
-                path,
-                max(metrics),
-            )
+        where, read = (
+            (f"after frame {max(metrics)}", "; read what precedes it")
+            if metrics
+            else ("before its first frame", "")
+        )
+        if damaged:
+            log.warning("%s: %s%s; %s", path, _damage(where), read, _REWRITE)
         else:
-            log.warning("%s: truncated or damaged before its first frame (the run did not finish)", path)
+            log.warning("%s: cut short %s (the run did not finish)%s", path, where, read)
     else:
         if not complete:
             log.warning("%s: no footer (the run did not finish); %d frames read", path, len(metrics))
-    return _assemble(path, metadata, metrics, points, curves, smoothed, complete)
+    return _assemble(path, metadata, metrics, points, curves, smoothed, complete, damaged)
+
+
+def _damage(where: str) -> str:
+    """What a file that ends whole but cannot be read through ``where`` is."""
+    return f"damaged {where}: bytes inside the file are not the recording's (a disk or copy error)"
+
+
+# What to do about a damaged recording.
+_REWRITE = "run `pipeline process` on its session again to write it anew"
+
+
+def _ends_whole(stream: Any) -> bool:
+    """Whether the file ends as a finished MCAP does, with its closing magic: one that does
+    but cannot be read through was damaged inside, not cut short while being written."""
+    try:
+        stream.seek(-len(MCAP0_MAGIC), os.SEEK_END)
+        return bool(stream.read(len(MCAP0_MAGIC)) == MCAP0_MAGIC)
+    except (OSError, ValueError):  # shorter than the magic
+        return False
 
 
 # Frame indices are int64 in the Recording's arrays.
@@ -335,6 +366,7 @@ def _assemble(
     curves: dict[int, NDArray[np.float64] | None],
     smoothed: dict[int, NDArray[np.float64] | None],
     complete: bool,
+    damaged: bool,
 ) -> Recording:
     frames = sorted(metrics)
     times = [metrics[i][0] for i in frames]
@@ -361,4 +393,5 @@ def _assemble(
         cameras=metadata.get("cameras_used", ""),
         tube_end=metadata.get("tube_end", ""),
         session=metadata.get("session", ""),
+        damaged=damaged,
     )

@@ -6,6 +6,7 @@ import dataclasses
 import json
 import logging
 import os
+import struct
 import sys
 from pathlib import Path
 
@@ -309,6 +310,56 @@ def test_a_truncated_recording_is_evaluated_as_far_as_it_goes_and_says_so(
     assert not evaluate_recording(cut, session_dir).complete
 
 
+def _in_small_chunks(recording: Path, copy: Path) -> Path:
+    """A copy of ``recording`` with a chunk every few messages: damage in the middle of its
+    data leaves frames before it."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with recording.open("rb") as f, copy.open("wb") as out:
+        writer = Writer(out, chunk_size=500)
+        writer.start()
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        for schema, channel, message in make_reader(f).iter_messages(log_time_order=False):
+            if schema is not None and schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schemas[schema.id] if schema else 0
+                )
+            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time)
+        writer.finish()
+    return copy
+
+
+def _data_section_end(mcap: bytes | bytearray) -> int:
+    """Where an MCAP's summary starts (its footer's summary_start), after its data."""
+    footer_start = len(mcap) - 8 - 29  # the closing magic, a footer record of 29 bytes
+    return int(struct.unpack_from("<Q", mcap, footer_start + 9)[0])
+
+
+def test_a_recording_damaged_inside_is_evaluated_as_far_as_it_goes_and_named_damaged(
+    partial_run: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from pipeline.cli import EXIT_FRAMES_FAILED, main
+
+    recording, session_dir = partial_run
+    data = bytearray(_in_small_chunks(recording, tmp_path / "chunked.mcap").read_bytes())
+    middle = _data_section_end(data) // 2
+    data[middle : middle + 64] = bytes(64)
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(data)
+    assert main(["evaluate", str(damaged), str(session_dir)]) == EXIT_FRAMES_FAILED
+    (line,) = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning:")]
+    assert (
+        line.startswith(f"warning: {damaged} is damaged after its ") and "ends before its footer" not in line
+    )
+    assert "run `pipeline process` on the session again" in line
+    report = evaluate_recording(damaged, session_dir)
+    assert report.damaged and not report.complete
+
+
 def test_another_sessions_ground_truth_is_warned_of(
     partial_run: tuple[Path, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -364,7 +415,7 @@ def test_a_recording_cut_before_its_first_frame_is_one_line(
     cut.write_bytes(recording.read_bytes()[:600])  # the header and metadata, no frame
     with caplog.at_level(logging.WARNING), pytest.raises(EvaluationError) as info:
         evaluate_recording(cut, session_dir)
-    assert "holds no frames (cut short or damaged before its first frame" in str(info.value)
+    assert "holds no frames (cut short before its first frame" in str(info.value)
     assert not caplog.records  # the reason is in the error's line, not in a warning above it
     rrd = tmp_path / "run.rrd"
     rrd.write_bytes(b"RRF2" + bytes(60))

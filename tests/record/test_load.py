@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import os
 from pathlib import Path
 
@@ -179,6 +180,41 @@ def test_a_file_cut_mid_write_reads_up_to_its_last_complete_chunk(
     assert counts == sorted(counts) and counts[-1] == N_FRAMES and 0 < counts[2] < N_FRAMES
 
 
+def test_bytes_overwritten_inside_a_file_are_read_as_damage_not_as_a_cut(
+    written: tuple[Path, list[FrameResult]], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path, _ = written
+    data = bytearray(path.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 64] = bytes(64)
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(data)
+    rec = pipeline.load_recording(damaged)
+    assert rec.damaged and not rec.complete and 0 < len(rec) < N_FRAMES
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert warning.startswith(f"{damaged}: damaged after frame {rec.frame_indices[-1]}: ")
+    assert "run `pipeline process` on its session again" in warning and "cut short" not in warning
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[:middle])
+    caplog.clear()
+    assert not pipeline.load_recording(cut).damaged
+    assert f"{cut}: cut short after frame" in caplog.text
+
+
+def test_a_file_damaged_before_its_first_frame_is_named_damaged(
+    written: tuple[Path, list[FrameResult]], tmp_path: Path
+) -> None:
+    path, _ = written
+    data = bytearray(path.read_bytes())
+    data[30:200] = b"x" * 170
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(data)
+    with pytest.raises(
+        PipelineError, match=r"damaged\.mcap: damaged before its first frame: .*pipeline process"
+    ):
+        pipeline.load_recording(damaged)
+
+
 def test_not_an_mcap_is_a_pipeline_error(tmp_path: Path) -> None:
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(b"this is not an mcap file at all")
@@ -260,7 +296,7 @@ def test_a_message_that_is_not_its_protobuf_is_read_as_damage(
         writer.finish()
     rec = pipeline.load_recording(damaged)
     assert not rec.complete and 0 < len(rec) <= 10
-    assert "damaged.mcap: truncated or damaged after frame" in caplog.text
+    assert rec.damaged and "damaged.mcap: damaged after frame" in caplog.text
 
 
 @pytest.mark.timeout(20)

@@ -439,11 +439,9 @@ def test_recording_cut_short_is_read_to_its_last_complete_chunk(
         # One warning, naming the last frame read (frame indices count from 0 here), or none.
         (warning,) = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
         if expected:
-            assert (
-                f"truncated or damaged after frame {expected - 1} (the run did not finish); read" in warning
-            )
+            assert f"cut short after frame {expected - 1} (the run did not finish); read" in warning
         else:
-            assert warning.endswith("truncated or damaged before its first frame (the run did not finish)")
+            assert warning.endswith("cut short before its first frame (the run did not finish)")
         np.testing.assert_array_equal(rec.frame_indices, full.frame_indices[:expected])
         np.testing.assert_array_equal(rec.centerlines_m, full.centerlines_m[:expected])
         for got, want in zip(rec.points_m, full.points_m, strict=False):
