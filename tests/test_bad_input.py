@@ -652,6 +652,24 @@ def test_calibrate_checks_its_output_before_calibrating(
         assert target.read_bytes() == content[kind]
 
 
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs /proc, where no file can be created")
+@pytest.mark.parametrize("target", ["/proc/calibration.toml", "/proc/rig/calibration.toml"])
+def test_calibrate_to_where_no_file_can_be_created_is_refused_before_any_image_is_read(
+    target: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def no_detection(*_args: object) -> None:
+        raise AssertionError("the board images were read")
+
+    monkeypatch.setattr("pipeline.calibrate.solve.detect_directory", no_detection)
+    monkeypatch.setattr("pipeline.calibrate.solve.load_board", no_detection)
+    (tmp_path / "boards").mkdir()
+    code = main(["calibrate", str(tmp_path / "boards"), "-o", target])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == EXIT_BAD_INPUT and len(err) == 1, err
+    assert err[0].startswith(f"error: {target}: cannot be written in /proc (")
+    assert err[0].endswith("give -o a file in a folder you can write to")
+
+
 def test_calibrate_keeps_an_existing_calibration_without_force(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import logging
 import os
+import tempfile
 from pathlib import Path
 
 import cv2
@@ -176,10 +177,23 @@ def _check_output(output: Path, *, force: bool) -> None:
     folder = output.parent
     while not folder.exists() and folder != folder.parent:
         folder = folder.parent
-    if not folder.is_dir() or not os.access(folder, os.W_OK):
+    why = _cannot_create_in(folder) if folder.is_dir() else "not a folder"
+    if why:
         raise OutputError(
-            f"{output}: cannot be written in {folder}; give -o a file in a folder you can write to"
+            f"{output}: cannot be written in {folder} ({why}); give -o a file in a folder you can write to"
         )
+
+
+def _cannot_create_in(folder: Path) -> str:
+    """Why no file can be created in ``folder``, found by creating (and removing) one; "" where
+    one can. Permission bits do not tell: root passes them in /proc, where nothing is created."""
+    try:
+        handle, probe = tempfile.mkstemp(prefix=".pipeline-calibrate-", dir=folder)
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    os.close(handle)
+    os.unlink(probe)
+    return ""
 
 
 def _is_calibration(doc: dict[str, object]) -> bool:
