@@ -421,6 +421,21 @@ def test_a_stdout_that_takes_nothing_costs_the_summary_not_the_run(session: Path
     assert (out / "session.mcap").is_file() and (out / "session.rrd").is_file()
 
 
+def test_a_json_summary_that_a_full_stdout_cannot_take_is_an_error(session: Path) -> None:
+    # `--json > summary.json` on a full disk: the script that asked for it would read nothing.
+    out = session.parent / "out"
+    command = [sys.executable, "-m", "pipeline", *_process(session, out), "--json"]
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run(
+            command, stdout=full, stderr=subprocess.PIPE, text=True, timeout=120, check=False
+        )
+    assert proc.returncode == EXIT_BAD_INPUT, proc.stderr
+    (line,) = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert line.startswith("error: stdout: cannot take the JSON summary (No space left on device)"), line
+    assert "Traceback" not in proc.stderr
+    assert (out / "session.mcap").is_file() and (out / "session.rrd").is_file()
+
+
 def test_a_current_directory_that_no_longer_exists_is_named(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

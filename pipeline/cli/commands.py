@@ -73,12 +73,13 @@ def null_onto(fd: int, name: str) -> None:
 def _report(summary: Any, json_to: str | None) -> None:
     """Print a run's summary: the failures and warnings to stderr, where scripts and logs look
     for them, the rest to stdout unless stdout carries the JSON summary (``json_to`` "-");
-    the JSON summary to ``json_to`` if given."""
+    the JSON summary to ``json_to`` if given. A JSON summary that cannot be written, to a
+    file or to stdout, is an OutputError: a script asked for it."""
     problems = set(summary.problem_lines())
     for line in summary.lines():
         say(line, sys.stderr if line in problems or json_to == "-" else sys.stdout)
     if json_to == "-":
-        say(json.dumps(summary.to_dict(), indent=2))
+        say(json.dumps(summary.to_dict(), indent=2), result="the JSON summary")
     elif json_to is not None:
         try:
             Path(json_to).write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
