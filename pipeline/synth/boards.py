@@ -34,7 +34,9 @@ cam1.
 
 from __future__ import annotations
 
+import errno
 import logging
+import shutil
 from pathlib import Path
 
 import cv2
@@ -147,6 +149,7 @@ def render_calibration_views(
         marker=TRUTH_FILE,
         kind="an earlier synth-calib output",
     )
+    created = not out_dir.exists()
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -175,15 +178,38 @@ def render_calibration_views(
                 jobs.append((path, ci, cam.R @ R_w, cam.R @ t_w + cam.t))
             shared_index += 1
 
-    for path, ci, R, t in tqdm(jobs, desc="synth-calib", unit="image", disable=not progress):
-        image = _render(rays[ci], cams[ci], R, t, cols, rows, square_mm, rng, texture=texture)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(path), image)
-
-    (out_dir / "board.toml").write_text(tomli_w.dumps({**board_doc, "square_mm": float(square_mm)}))
-    truth = calibration_document(cams, metadata={"source": "synth-calib", "arrangement": arrangement})
-    (out_dir / TRUTH_FILE).write_text(tomli_w.dumps(truth))
+    try:
+        for path, ci, R, t in tqdm(jobs, desc="synth-calib", unit="image", disable=not progress):
+            image = _render(rays[ci], cams[ci], R, t, cols, rows, square_mm, rng, texture=texture)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            _write_image(path, image)
+        (out_dir / "board.toml").write_text(tomli_w.dumps({**board_doc, "square_mm": float(square_mm)}))
+        truth = calibration_document(cams, metadata={"source": "synth-calib", "arrangement": arrangement})
+        (out_dir / TRUTH_FILE).write_text(tomli_w.dumps(truth))
+    except OSError as exc:
+        # A full disk or a folder that turned read-only: a render into a new folder leaves
+        # nothing; one over an earlier render leaves it incomplete, and says so.
+        raise PipelineError(
+            f"{exc.filename or out_dir}: cannot be written ({exc.strerror or exc}); "
+            f"{_left(out_dir, created)}, after freeing space or in another directory"
+        ) from None
     log.info("wrote %d calibration images to %s", len(jobs), out_dir)
+
+
+def _write_image(path: Path, image: NDArray[np.uint8]) -> None:
+    """Write ``image`` to ``path``; OSError where OpenCV does not (it only returns False:
+    a full disk, a folder in the file's place)."""
+    if not cv2.imwrite(str(path), image):
+        raise OSError(errno.EIO, "OpenCV wrote no image: a full disk, or a folder in its place?", str(path))
+
+
+def _left(out_dir: Path, created: bool) -> str:
+    """What a render that stopped part-way leaves: nothing, where it made the folder (it is
+    removed), else an earlier render's images partly replaced."""
+    if created:
+        shutil.rmtree(out_dir, ignore_errors=True)
+        return "nothing written"
+    return f"the board images in {out_dir} are incomplete: render them again"
 
 
 def _camera_rays(cam: SynthCamera) -> FloatArray:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import tomllib
 from pathlib import Path
 
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 
 from pipeline.cli import EXIT_BAD_INPUT, main
+from pipeline.errors import PipelineError
 from pipeline.synth.boards import _camera_rays, _render, _rotation, render_calibration_views
 from pipeline.synth.rig import SynthCamera, make_rig
 
@@ -139,3 +141,37 @@ def test_a_folder_synth_calib_cannot_create_is_named(
         f"error: {target}: cannot create the folder (Not a directory); give synth-calib a folder "
         "you can write in"
     ]
+
+
+def test_an_image_that_cannot_be_written_over_an_earlier_render_is_named(
+    ninety, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    earlier = tmp_path / "calib"
+    shutil.copytree(ninety, earlier)
+    blocked = earlier / "cam0" / "intrinsics" / "01.png"
+    blocked.unlink()
+    blocked.mkdir()  # OpenCV cannot write there, and says so only by returning False
+    assert main(["synth-calib", str(earlier), "--arrangement", "ninety", "--seed", "1"]) == EXIT_BAD_INPUT
+    assert capsys.readouterr().err.splitlines() == [
+        f"error: {blocked}: cannot be written (OpenCV wrote no image: a full disk, or a folder in its "
+        f"place?); the board images in {earlier} are incomplete: render them again, after freeing space "
+        "or in another directory"
+    ]
+
+
+def test_an_image_that_cannot_be_written_into_a_new_folder_leaves_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    written: list[str] = []
+
+    def full_disk_after_two(path: str, image: object) -> bool:
+        written.append(path)
+        return len(written) <= 2
+
+    monkeypatch.setattr("pipeline.synth.boards.cv2.imwrite", full_disk_after_two)
+    target = tmp_path / "calib"
+    with pytest.raises(
+        PipelineError, match=r"intrinsics/02\.png: cannot be written .*; nothing written, after"
+    ):
+        render_calibration_views(target, arrangement="ninety", views=4, progress=False)
+    assert not target.exists()
