@@ -10,6 +10,7 @@ import os
 import subprocess
 import sys
 import time
+import tomllib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,7 @@ from pipeline.session import folder as session
 from pipeline.synth.session_render import MIN_PARALLEL_FRAMES
 
 PIPELINE = str(Path(sys.executable).parent / "pipeline")  # the console script
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.parametrize(
@@ -334,6 +336,44 @@ def test_a_run_from_the_command_line_exits_0_with_its_summary_on_stdout(
         proc.stdout
     )
     assert load_recording(out / "session.mcap").complete
+
+
+# Ctrl-C just as the program ends: an exit handler registered before any of the program's,
+# and so run after them all, sends the process SIGINT.
+_CTRL_C_AT_EXIT = (
+    "import atexit, os, signal, time\n"
+    "atexit.register(lambda: (os.kill(os.getpid(), signal.SIGINT), time.sleep(0.2)))\n"
+)
+
+
+def _console_script_start() -> str:
+    """Python that starts the program as the console script installed with the package does,
+    through the entry point pyproject.toml names."""
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    module, _, function = scripts["pipeline"].partition(":")
+    return f"import sys\nfrom {module} import {function}\nsys.argv[0] = 'pipeline'\nsys.exit({function}())\n"
+
+
+@pytest.mark.parametrize(
+    "start",
+    [
+        _console_script_start(),
+        "import runpy\nrunpy.run_module('pipeline', run_name='__main__', alter_sys=True)\n",
+    ],
+    ids=["console-script", "python-m"],
+)
+def test_ctrl_c_as_the_program_ends_changes_neither_its_lines_nor_its_status(
+    start: str, tmp_path: Path
+) -> None:
+    # The console script and `python -m pipeline` leave the same way: the run's status, and a
+    # signal once it is over ignored, not a traceback from an exit handler it landed in.
+    missing = tmp_path / "missing.mcap"
+    command = [sys.executable, "-c", _CTRL_C_AT_EXIT + start, "evaluate", str(missing), str(tmp_path)]
+    proc = subprocess.run(command, capture_output=True, text=True, timeout=60, check=False, cwd=ROOT)
+    assert proc.returncode == EXIT_BAD_INPUT, proc.stderr
+    assert (
+        proc.stderr == f"error: recording {missing} does not exist; run `python -m pipeline process` first\n"
+    )
 
 
 def test_a_command_that_leaves_a_worker_pool_running_still_exits(tmp_path: Path) -> None:

@@ -4,7 +4,9 @@ Each subcommand parses its arguments and calls one library function. A
 :class:`PipelineError` becomes one line on stderr and exit status 2; anything
 else is a bug: one line and exit status 3, its traceback only with ``--debug``.
 Global options (``--debug``) are accepted before or after the subcommand. ``parser`` holds
-the options, ``commands`` what each subcommand does.
+the options, ``commands`` what each subcommand does, ``shutdown`` the way out. :func:`run`
+is the program (the console script and ``python -m pipeline``); :func:`main` returns the
+exit status instead of exiting.
 """
 
 from __future__ import annotations
@@ -15,11 +17,13 @@ import os
 import sys
 import traceback
 from collections.abc import Callable, Sequence
+from typing import NoReturn
 
 from ..errors import Interrupted, PipelineError
 from ..run.interrupts import signals_interrupt
 from .commands import EXIT_BAD_INPUT, EXIT_FRAMES_FAILED, EXIT_INTERNAL_ERROR, EXIT_OK, null_onto
 from .parser import PROG, build_parser, with_json_before_a_folder, with_negative_frames
+from .shutdown import exit_fast
 
 __all__ = [
     "EXIT_BAD_INPUT",
@@ -29,9 +33,17 @@ __all__ = [
     "PROG",
     "build_parser",
     "main",
+    "run",
 ]
 
 log = logging.getLogger("pipeline")
+
+
+def run(prog: str = PROG) -> NoReturn:
+    """The program: :func:`main` on the command line's words, then the exit with its status
+    (:func:`~.shutdown.exit_fast`: no teardown of the modules, and a signal as the run ends
+    ignored)."""
+    exit_fast(main(prog=prog))
 
 
 def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
@@ -135,4 +147,4 @@ def _one_line(exc: BaseException) -> str:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run()
