@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import os
+import select
 import stat
 import threading
 import time
@@ -37,6 +38,8 @@ OPEN_TIMEOUT_S = 5.0
 LOW_DELAY_OPTIONS = {"fflags": "nobuffer", "probesize": "32768", "analyzeduration": "0"}
 # A camera that is down is tried again this often.
 RETRY_S = 1.0
+# A named pipe is waited on in slices this long, each ending with a look at the run's stop.
+PIPE_POLL_S = 0.1
 
 
 @dataclass
@@ -64,6 +67,51 @@ class CameraStats:
 
 class SourceFault(Exception):
     """A camera's frames cannot be used as they are (wrong size): the run stops, named."""
+
+
+class PipeStalled(OSError):
+    """A named pipe's writer holds it open but has written nothing for the stall time."""
+
+
+class PipeFile:
+    """A named pipe's reading end as a file for FFmpeg, whose reads see the run's stop.
+
+    FFmpeg reads a pipe in blocking reads that nothing but data or the writer's close
+    ends, so a writer that stalls with the pipe open would hold the reader past the run.
+    Here the pipe is opened without waiting for a writer, and each read waits for data in
+    slices of ``poll_s``: it returns nothing (the stream's end) once ``stop`` is set, and
+    raises :class:`PipeStalled` where data came once and then none for ``stall_s``. Before
+    any data it waits for a writer as long as the run goes on, as FFmpeg's open would.
+    """
+
+    def __init__(self, path: str, stop: threading.Event, stall_s: float, poll_s: float = PIPE_POLL_S) -> None:
+        self._fd: int | None = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        self._poll = select.poll()
+        self._poll.register(self._fd, select.POLLIN)
+        self._stop, self._stall_s, self._poll_s = stop, stall_s, poll_s
+        self._started = False  # data has come
+
+    def read(self, size: int) -> bytes:
+        """Up to ``size`` bytes, b"" at the stream's end or the run's stop."""
+        assert self._fd is not None, "read after close"
+        waited_s = 0.0
+        while not self._stop.is_set():
+            if self._started and waited_s >= self._stall_s:
+                raise PipeStalled(f"no data for {self._stall_s:g} s: its writer stalled")
+            if self._poll.poll(self._poll_s * 1e3):
+                try:
+                    data = os.read(self._fd, size)
+                except BlockingIOError:  # another reader of the pipe took the data
+                    continue
+                self._started = self._started or bool(data)
+                return data  # b"": every writer closed it
+            waited_s += self._poll_s
+        return b""
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 class CameraReader:
@@ -113,23 +161,6 @@ class CameraReader:
     def alive(self) -> bool:
         return self._thread.is_alive()
 
-    def wake(self) -> None:
-        """Let a reader waiting to open a named pipe that nothing writes to see the stop.
-
-        FFmpeg opens a named pipe blocking, until a writer opens it too: no timeout reaches
-        it there. Opening the pipe's writing end and closing it at once ends that wait (the
-        stream is then empty, and the reader, seeing the stop, returns). Called after the
-        stop is set; a reader doing anything else is left alone.
-        """
-        if self.source.is_replay or not self._thread.is_alive():
-            return
-        try:
-            if stat.S_ISFIFO(os.stat(self.source.url).st_mode):
-                # Fails (ENXIO) where no reader has the pipe open: nothing waits on it then.
-                os.close(os.open(self.source.url, os.O_WRONLY | os.O_NONBLOCK))
-        except OSError:  # not a path, or no reader waiting on it
-            pass
-
     def _run(self) -> None:
         reported_at: int | None = None  # frames delivered when the last outage was reported
         try:
@@ -176,9 +207,17 @@ class CameraReader:
             # first ones back and hand them over at once, stamped alike.
             options.update(LOW_DELAY_OPTIONS)
         timeout = None if self.source.is_replay else (OPEN_TIMEOUT_S, self._stall_s)
+        target: Any = self.source.url
+        if not self.source.is_replay and _is_pipe(self.source.url):
+            # The pipe's reads see the stop and time out themselves (FFmpeg's cannot).
+            target, timeout = PipeFile(self.source.url, self._stop, self._stall_s), None
         try:
-            return av.open(self.source.url, format=self.source.format, options=options, timeout=timeout)
-        except av.error.ProtocolNotFoundError:
+            return av.open(target, format=self.source.format, options=options, timeout=timeout)
+        except BaseException as exc:
+            if isinstance(target, PipeFile):
+                target.close()
+            if not isinstance(exc, av.error.ProtocolNotFoundError):
+                raise
             # Never opens, however often it is tried: a typo (rtps://) or another program's URL.
             scheme = self.source.url.partition(":")[0]
             raise SourceFault(
@@ -224,3 +263,11 @@ class CameraReader:
             log.warning("%s: frames again", self.source.describe())
         self.stats.add(arrived_ns)
         self._deliver(CapturedFrame(self.camera, arrived_ns, image))
+
+
+def _is_pipe(path: str) -> bool:
+    """``path`` is a named pipe (False where it is not a path, or not there)."""
+    try:
+        return stat.S_ISFIFO(os.stat(path).st_mode)
+    except (OSError, ValueError):
+        return False

@@ -407,10 +407,7 @@ def _loop(
 def _stop_readers(stop: threading.Event, readers: Sequence[CameraReader]) -> None:
     stop.set()
     # One wait for all of them: readers that stay blocked (daemon threads) cost the run
-    # JOIN_S once, not once each. A reader is woken until it ends: one that had not reached
-    # a named pipe's open when first woken may wait in it since.
+    # JOIN_S once, not once each.
     deadline = time.monotonic() + JOIN_S
     for reader in readers:
-        while reader.alive and time.monotonic() < deadline:
-            reader.wake()
-            reader.join(min(POLL_S, max(0.0, deadline - time.monotonic())))
+        reader.join(max(0.0, deadline - time.monotonic()))

@@ -728,6 +728,57 @@ def test_named_pipes_nothing_writes_to_end_with_the_run(
         assert lines[k + 1].startswith(f"  camera cam{k}: delivered no frame (its source opened no stream")
 
 
+def _mpegts(video: Path) -> bytes:
+    """``video`` as an MPEG-TS stream, as a camera's writer would send it down a pipe."""
+    import av
+
+    out = io.BytesIO()
+    with av.open(out, mode="w", format="mpegts") as container:
+        stream = container.add_stream("mpeg2video", rate=30)
+        stream.width, stream.height, stream.pix_fmt = 320, 240, "yuv420p"
+        for frame in av.open(video).decode(video=0):
+            container.mux(stream.encode(frame.reformat(format="yuv420p")))
+        container.mux(stream.encode(None))
+    return out.getvalue()
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes")
+def test_named_pipes_whose_writers_stall_open_are_reported_and_end_with_the_run(
+    session: Path, tmp_path: Path
+) -> None:
+    pipes = [tmp_path / f"cam{k}.pipe" for k in range(3)]
+    # Five times over: more than FFmpeg probes before the first frame.
+    streams = [_mpegts(session / f"cam{k}.mp4") * 5 for k in range(3)]
+    writers: list[int] = []
+
+    def write_and_stall(pipe: Path, data: bytes) -> None:
+        fd = os.open(pipe, os.O_WRONLY)  # waits for the run's reader
+        writers.append(fd)
+        os.write(fd, data)  # then writes nothing more, and keeps the pipe open
+
+    for pipe, data in zip(pipes, streams, strict=True):
+        os.mkfifo(pipe)
+        threading.Thread(target=write_and_stall, args=(pipe, data), daemon=True).start()
+    rig, sources = open_rig(
+        _rig(tmp_path / "rig", session, {f"cam{k}": str(p) for k, p in enumerate(pipes)}), None
+    )
+    try:
+        summary = run_live(rig, sources, out_dir=tmp_path / "out", duration_s=4.0)
+        # Every reader saw the stop, though its writer still holds its pipe open.
+        blocked = [t.name for t in threading.enumerate() if t.name.startswith("camera-cam")]
+    finally:
+        for fd in writers:
+            os.close(fd)
+    assert blocked == []
+    assert summary.stopped_by == "--duration"
+    for k in range(3):
+        assert summary.delivered[f"cam{k}"] > 0
+        assert summary.outages[f"cam{k}"] == ["no data for 2 s: its writer stalled"]
+        assert f"  camera cam{k}: stopped 1 time(s), down at the end (first: no data for 2 s" in "\n".join(
+            summary.problem_lines()
+        )
+
+
 @pytest.mark.slow
 def test_a_camera_that_stalls_is_reported_and_picked_up_again_while_the_others_go_on(
     session: Path, udp_rig: tuple[Path, list[int]], tmp_path: Path, caplog: pytest.LogCaptureFixture
