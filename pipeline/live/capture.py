@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..session.video import Greyer
+from .reasons import ffmpeg_text, outage_reason
 from .sources import V4L2_FORMAT, Source
 from .sync import CapturedFrame
 
@@ -149,6 +150,7 @@ class CameraReader:
         # Why a replay's frames ended before its video did (damaged past them): "" where not.
         self.cut_short = ""
         self.down = False  # an outage was reported and no frame has come since
+        self._opened = False  # the source of the current attempt opened
         self._thread = threading.Thread(target=self._run, name=f"camera-{source.camera}", daemon=True)
 
     def start(self) -> None:
@@ -165,6 +167,7 @@ class CameraReader:
         reported_at: int | None = None  # frames delivered when the last outage was reported
         try:
             while not self._stop.is_set():
+                check = ""  # what to check, for the warning
                 try:
                     self._read()
                     why = "the stream ended"
@@ -172,7 +175,12 @@ class CameraReader:
                     self.fault = str(exc)
                     return
                 except Exception as exc:  # FFmpeg's errors: refused, timed out, no such device
-                    why = " ".join(str(exc).split())[:200] or type(exc).__name__
+                    if self.source.is_replay:
+                        why = ffmpeg_text(exc)
+                    else:
+                        why, check = outage_reason(
+                            exc, opened=self._opened, open_timeout_s=OPEN_TIMEOUT_S, stall_s=self._stall_s
+                        )
                 if self._stop.is_set():
                     return
                 if self.source.is_replay:
@@ -187,9 +195,10 @@ class CameraReader:
                     self.stats.outages.append(why)
                     self.down = True
                     log.warning(
-                        "%s: %s; the other cameras go on, retrying every %g s",
+                        "%s: %s%s; the other cameras go on, retrying every %g s",
                         self.source.describe(),
                         why,
+                        f" ({check})" if check else "",
                         self._retry_s,
                     )
                 self._stop.wait(self._retry_s)
@@ -226,7 +235,9 @@ class CameraReader:
             ) from None
 
     def _read(self) -> None:
+        self._opened = False
         container = self._open()
+        self._opened = True
         try:
             stream = container.streams.video[0]
             rate = stream.average_rate or stream.guessed_rate

@@ -676,7 +676,8 @@ def test_a_camera_that_does_not_answer_is_reported_and_the_run_still_stops_clean
     assert summary.stopped_by == "--duration" and summary.run.frames_total == 0 and summary.exit_code == 1
     for k in range(3):
         assert any(f"camera 'cam{k}' (tcp://127.0.0.1:{ports[k]})" in r.message for r in caplog.records)
-        assert len(summary.outages[f"cam{k}"]) == 1  # the same outage, reported once
+        assert summary.outages[f"cam{k}"] == ["connection refused"]  # the same outage, reported once
+    assert not any("Errno" in r.message for r in caplog.records)
     # No frame-set: no recording, no temporary file, and not the folder made for them.
     assert summary.run.outputs == [] and not (tmp_path / "out").exists()
     assert summary.problem_lines()[0] == (
@@ -689,6 +690,37 @@ def test_a_camera_that_does_not_answer_is_reported_and_the_run_still_stops_clean
     assert summary.run.outputs == [] and summary.exit_code == 1
     assert [p.name for p in (tmp_path / "out").iterdir()] == ["rig.mcap"]
     assert (tmp_path / "out" / "rig.mcap").read_bytes() == b"earlier"
+
+
+def test_ffmpegs_errors_are_worded_for_the_camera_without_its_error_numbers() -> None:
+    import errno
+
+    import av
+
+    from pipeline.live.reasons import ffmpeg_text, outage_reason
+
+    def reason(exc: BaseException, *, opened: bool = False) -> tuple[str, str]:
+        return outage_reason(exc, opened=opened, open_timeout_s=5.0, stall_s=2.0)
+
+    cut_off = av.error.ExitError(1414092869, "Immediate exit requested", "udp://0.0.0.0:5002")
+    assert reason(cut_off) == (
+        "no stream within 5 s",
+        "check that the camera sends its stream to this address",
+    )
+    assert reason(cut_off, opened=True) == ("no frame for 2 s", "check the camera's cable, power or stream")
+    refused = av.error.ConnectionRefusedError(errno.ECONNREFUSED, "Connection refused", "tcp://rig:5000")
+    assert reason(refused)[0] == "connection refused" and "runs at this address" in reason(refused)[1]
+    busy = av.error.OSError(-errno.EBUSY, "Device or resource busy", "/dev/video0")  # a negative code
+    assert reason(busy) == ("the device is busy", "close the other program that uses the camera")
+    invalid = av.error.InvalidDataError(1094995529, "Invalid data found when processing input", "x")
+    assert reason(invalid)[0] == "FFmpeg cannot read the stream (invalid data)"
+    # FFmpeg's own text, where it has no better word, without its number or the URL again.
+    bug = av.error.BugError(558323010, "Internal bug, should not have happened", "rtsp://rig/1")
+    assert reason(bug)[0] == "FFmpeg: Internal bug, should not have happened"
+    assert ffmpeg_text(bug) == "Internal bug, should not have happened"
+    for exc in (cut_off, refused, busy, invalid, bug):
+        text = " ".join(reason(exc))
+        assert "Errno" not in text and str(abs(exc.errno)) not in text, text
 
 
 def test_a_source_of_a_scheme_ffmpeg_does_not_read_stops_the_run_named(session: Path, tmp_path: Path) -> None:
