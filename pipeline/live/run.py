@@ -35,6 +35,7 @@ from .capture import CameraReader
 from .handoff import QUEUE_SETS, DroppingQueue
 from .restarts import RestartWorker
 from .sources import Source
+from .stream import check_foxglove
 from .sync import CapturedFrame, FrameMatcher, half_period_ns
 
 log = logging.getLogger(__name__)
@@ -221,6 +222,8 @@ def run_live(
     A run that no frame-set reached writes no recording (its summary lists no output,
     and exits 1), and removes the folders it made for them.
     """
+    if foxglove is not None:
+        check_foxglove(*foxglove)  # not seconds into the run, once the model is built
     with signals_interrupt():
         target = prepare_outputs(Path(out_dir), rig.name, force)
         written = False

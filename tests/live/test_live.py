@@ -662,6 +662,33 @@ def test_live_to_a_viewer_nobody_runs_is_refused_before_the_run(
     assert len(err.splitlines()) == 1 and not (tmp_path / "out").exists()
 
 
+def test_a_foxglove_port_already_taken_is_refused_before_the_run(
+    session: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pipeline.cli import main
+    from pipeline.live import run
+
+    def began(*args: object) -> None:
+        raise AssertionError("the run began")
+
+    monkeypatch.setattr(run, "_model", began)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        out = ["--out", str(tmp_path / "out"), "--viewer", "none", "--foxglove", f"127.0.0.1:{port}"]
+        assert main(["live", "--replay", str(session), *out]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"--foxglove 127.0.0.1:{port}: port {port} is taken (" in err and "another --foxglove" in err
+        assert len(err.splitlines()) == 1 and not (tmp_path / "out").exists()
+        rig, sources = open_rig(None, session)
+        with pytest.raises(SettingsError, match=f"port {port} is taken"):
+            run_live(rig, sources, out_dir=tmp_path / "out", foxglove=("127.0.0.1", port))
+    with pytest.raises(SettingsError, match=r"--foxglove no-such-host\.invalid:8765: cannot serve there"):
+        run_live(rig, sources, out_dir=tmp_path / "out", foxglove=("no-such-host.invalid", 8765))
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_camera_that_does_not_answer_is_reported_and_the_run_still_stops_cleanly(
     session: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
