@@ -144,6 +144,26 @@ def test_live_table_takes_device_indices_and_refuses_other_values() -> None:
         settings_from_dict({"live": {"cam0": 1.5}})
 
 
+def test_two_names_for_one_source_are_one_source(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from pipeline.live.sources import source_identity
+
+    # A device and a link to it (as udev's /dev/v4l/by-id/... links are): one device number.
+    link = tmp_path / "usb-rig-cam0-video-index0"
+    link.symlink_to("/dev/null")
+    assert (
+        source_identity(str(link)) == source_identity("/dev/null") == ("device", os.stat("/dev/null").st_rdev)
+    )
+    # A named pipe by its relative and its absolute path; two pipes are two sources.
+    os.mkfifo(tmp_path / "cam1.pipe")
+    os.mkfifo(tmp_path / "cam2.pipe")
+    monkeypatch.chdir(tmp_path)
+    assert source_identity("cam1.pipe") == source_identity(str(tmp_path / "cam1.pipe"))
+    assert source_identity("cam1.pipe") != source_identity("cam2.pipe")
+    # Paths not there yet (a camera unplugged) by where they lead; URLs by their text.
+    assert source_identity("./gone/../cam3") == source_identity(str(tmp_path / "cam3"))
+    assert source_identity("udp://127.0.0.1:5002") != source_identity("udp://127.0.0.1:5003")
+
+
 def _rig(directory: Path, session: Path, live: dict[str, str | int] | None) -> Path:
     """A rig directory: the session's calibration and settings, with ``[live]``."""
     import tomllib
@@ -175,6 +195,15 @@ def test_a_rig_whose_live_table_misses_or_misnames_a_camera_is_refused(tmp_path:
     rig = _rig(tmp_path / "f", session, {"cam0": 0, "cam1": video, "cam2": 2})
     with pytest.raises(
         SettingsError, match=r"\[live\] cam1 = .*cam1.mp4. is a file, not a camera .*--replay"
+    ):
+        open_rig(rig, None)
+    # Two names of one device (a link to it, as udev's by-id links are) are one source.
+    link = tmp_path / "by-id-cam0"
+    link.symlink_to("/dev/null")
+    rig = _rig(tmp_path / "g", session, {"cam0": "/dev/null", "cam1": 1, "cam2": str(link)})
+    with pytest.raises(
+        SettingsError,
+        match=r"cameras 'cam0' and 'cam2' the same source \(/dev/null and .*by-id-cam0, one device\)",
     ):
         open_rig(rig, None)
     # A device index and its path are the same device.
