@@ -20,9 +20,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import av
 import numpy as np
 from numpy.typing import NDArray
 
+from ..errors import VideoError
 from ..session.video import Greyer
 from .reasons import ffmpeg_text, outage_reason
 from .sources import V4L2_FORMAT, Source
@@ -41,6 +43,9 @@ LOW_DELAY_OPTIONS = {"fflags": "nobuffer", "probesize": "32768", "analyzeduratio
 RETRY_S = 1.0
 # A named pipe is waited on in slices this long, each ending with a look at the run's stop.
 PIPE_POLL_S = 0.1
+# What a source that cannot be read, or stops being read, raises: FFmpeg's errors (refused,
+# timed out, no such device, damaged data), the system's (a named pipe's), and the pipeline's.
+SOURCE_ERRORS = (av.error.FFmpegError, OSError, VideoError)
 
 
 @dataclass
@@ -147,6 +152,8 @@ class CameraReader:
         self.rate_fps: float | None = source.replay_fps  # the stream's declared rate, once open
         self.finished = threading.Event()  # a replay ended, or the reader stopped
         self.fault: str | None = None  # why the run must stop (set with ``finished``)
+        # An error that is no source's (a bug): the run raises it again (set with ``finished``).
+        self.crash: Exception | None = None
         # Why a replay's frames ended before its video did (damaged past them): "" where not.
         self.cut_short = ""
         self.down = False  # an outage was reported and no frame has come since
@@ -174,13 +181,16 @@ class CameraReader:
                 except SourceFault as exc:
                     self.fault = str(exc)
                     return
-                except Exception as exc:  # FFmpeg's errors: refused, timed out, no such device
+                except SOURCE_ERRORS as exc:
                     if self.source.is_replay:
                         why = ffmpeg_text(exc)
                     else:
                         why, check = outage_reason(
                             exc, opened=self._opened, open_timeout_s=OPEN_TIMEOUT_S, stall_s=self._stall_s
                         )
+                except Exception as exc:  # no source's error: handed to the run, which raises it
+                    self.crash = exc
+                    return
                 if self._stop.is_set():
                     return
                 if self.source.is_replay:
@@ -206,8 +216,6 @@ class CameraReader:
             self.finished.set()
 
     def _open(self) -> Any:
-        import av
-
         options = {}
         if self.source.format == V4L2_FORMAT:
             options["video_size"] = f"{self.size_px[0]}x{self.size_px[1]}"
@@ -239,6 +247,8 @@ class CameraReader:
         container = self._open()
         self._opened = True
         try:
+            if not container.streams.video:
+                raise VideoError("it holds no video stream")
             stream = container.streams.video[0]
             rate = stream.average_rate or stream.guessed_rate
             if rate and not self.source.is_replay:

@@ -388,6 +388,8 @@ def _loop(
                 for reader in readers:
                     if reader.fault is not None:
                         raise SessionError(reader.fault)
+                    if reader.crash is not None:
+                        raise reader.crash
                 if all(r.finished.is_set() for r in readers) and not len(queue):
                     replay = all(r.source.is_replay for r in readers)
                     return latencies, "the end of the replay" if replay else "the cameras ending"

@@ -358,6 +358,23 @@ def test_a_replay_damaged_part_way_keeps_the_frames_before_and_says_why(
     assert "Invalid data" in reader.cut_short
 
 
+def test_a_replay_reader_that_fails_other_than_on_its_video_raises_that_error_in_the_run(
+    session: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pipeline.live import capture
+
+    class BrokenGreyer:
+        def __call__(self, frame: object) -> None:
+            raise TypeError("a bug in the reader")
+
+    # Not taken for a damaged video (a replay "that cannot be replayed"): a bug, raised as such.
+    monkeypatch.setattr(capture, "Greyer", BrokenGreyer)
+    rig, sources = open_rig(None, session)
+    with pytest.raises(TypeError, match="a bug in the reader"):
+        run_live(rig, sources, out_dir=tmp_path / "out", duration_s=10.0)
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.slow
 def test_a_replay_records_what_process_records(
     session: Path, processed: pipeline.record.load.Recording, tmp_path: Path
