@@ -30,7 +30,7 @@ import pipeline
 from pipeline.errors import SessionError, SettingsError
 from pipeline.live.handoff import DroppingQueue
 from pipeline.live.restarts import RestartWorker
-from pipeline.live.run import LiveSummary, run_live
+from pipeline.live.run import CameraSummary, LiveSummary, run_live
 from pipeline.live.sources import V4L2_FORMAT, Source, open_rig, parse_source
 from pipeline.live.stream import grpc_url, parse_host_port
 from pipeline.live.sync import MAX_WAITING_FRAMES, CapturedFrame, FrameMatcher, FrameSet, head_action
@@ -749,7 +749,7 @@ def test_a_camera_that_does_not_answer_is_reported_and_the_run_still_stops_clean
     assert summary.stopped_by == "--duration" and summary.run.frames_total == 0 and summary.exit_code == 1
     for k in range(3):
         assert any(f"camera 'cam{k}' (tcp://127.0.0.1:{ports[k]})" in r.message for r in caplog.records)
-        assert summary.outages[f"cam{k}"] == ["connection refused"]  # the same outage, reported once
+        assert summary.camera(f"cam{k}").outages == ("connection refused",)  # the same outage, reported once
     assert not any("Errno" in r.message for r in caplog.records)
     # No frame-set: no recording, no temporary file, and not the folder made for them.
     assert summary.run.outputs == [] and not (tmp_path / "out").exists()
@@ -877,8 +877,8 @@ def test_named_pipes_whose_writers_stall_open_are_reported_and_end_with_the_run(
     assert blocked == []
     assert summary.stopped_by == "--duration"
     for k in range(3):
-        assert summary.delivered[f"cam{k}"] > 0
-        assert summary.outages[f"cam{k}"] == ["no data for 2 s: its writer stalled"]
+        assert summary.camera(f"cam{k}").delivered > 0
+        assert summary.camera(f"cam{k}").outages == ("no data for 2 s: its writer stalled",)
         assert f"  camera cam{k}: stopped 1 time(s), down at the end (first: no data for 2 s" in "\n".join(
             summary.problem_lines()
         )
@@ -917,7 +917,7 @@ def test_a_camera_that_stalls_is_reported_and_picked_up_again_while_the_others_g
         for sender in senders:
             sender.kill()
             sender.wait()
-    assert len(summary.outages["cam2"]) == 1 and not summary.outages["cam0"] and not summary.outages["cam1"]
+    assert [len(c.outages) for c in summary.cameras] == [0, 0, 1]
     assert any("camera 'cam2'" in r.message and "retrying" in r.message for r in caplog.records)
     assert any("camera 'cam2'" in r.message and "frames again" in r.message for r in caplog.records)
     # Frames before the stall and after it, none while cam2 was away.
@@ -944,17 +944,18 @@ def test_the_summary_gives_latency_drops_rates_and_outages() -> None:
         run=run,
         latencies_ms=np.array([10.0, 20.0, 30.0, 40.0, 50.0]),
         dropped=3,
-        unmatched={"cam0": 1, "cam1": 0},
-        camera_fps={"cam0": 30.0, "cam1": float("nan")},
-        outages={"cam0": [], "cam1": ["Connection refused"]},
         stopped_by="a signal",
+        cameras=(
+            CameraSummary("cam0", fps=30.0, delivered=60, unmatched=1),
+            CameraSummary("cam1", fps=float("nan"), delivered=1, outages=("Connection refused",)),
+        ),
     )
     lines = summary.lines()
     assert lines[0] == "frames: 4 processed, 4 ok, 0 empty, 0 failed"
     # numpy's linear interpolation: p50 of 10..50 is 30, p99 is 10 + 0.99 * 40 = 49.6.
     live = "live: stopped by a signal; latency p50 30.0 ms, p99 49.6 ms; 3 frame-sets dropped"
     assert f"{live}, 1 frames unmatched" in lines
-    assert "  cameras (frames/s): cam0 30.0, cam1 no frames" in lines
+    assert "  cameras (frames/s): cam0 30.0, cam1 1 frame(s), no rate" in lines
     outage = "  camera cam1: stopped 1 time(s), picked up again (first: Connection refused)"
     assert outage in summary.problem_lines() and lines.index(outage) < lines.index(
         "time: 2.0 s wall, 2.0 frames/s"
@@ -973,10 +974,11 @@ def test_the_summary_of_a_run_without_frames_says_so_rather_than_nan() -> None:
         run=run,
         latencies_ms=np.array([]),
         dropped=0,
-        unmatched={"cam0": 0, "cam1": 1},
-        camera_fps={"cam0": float("nan"), "cam1": float("nan")},
         stopped_by="--duration",
-        delivered={"cam0": 0, "cam1": 1},  # one frame gives no rate
+        cameras=(
+            CameraSummary("cam0", fps=float("nan"), delivered=0),
+            CameraSummary("cam1", fps=float("nan"), delivered=1, unmatched=1),  # one frame gives no rate
+        ),
     )
     lines = summary.lines()
     assert not any("nan" in line for line in lines), lines
@@ -998,29 +1000,30 @@ def test_the_summary_names_a_camera_that_delivered_nothing_or_whose_replay_ended
         "stopped_by": "the end of the replay",
     }
     names = ("cam0", "cam1", "cam2")
-    short = LiveSummary(
-        **common,
-        unmatched={"cam0": 19, "cam1": 0, "cam2": 19},
-        camera_fps=dict.fromkeys(names, 30.0),
-        delivered={"cam0": 40, "cam1": 21, "cam2": 40},
-        cut_short={"cam0": "", "cam1": "", "cam2": ""},
-    )
+
+    def replayed(
+        delivered: tuple[int, int, int], cut_short: tuple[str, str, str] = ("", "", "")
+    ) -> tuple[CameraSummary, ...]:
+        return tuple(
+            CameraSummary(name, fps=30.0, delivered=n, unmatched=40 - n, cut_short=why)
+            for name, n, why in zip(names, delivered, cut_short, strict=True)
+        )
+
+    short = LiveSummary(**common, cameras=replayed((40, 21, 40)))
     (line,) = short.problem_lines()
     assert line.startswith("  camera cam1: its replay ended after 21 of the 40 frames the others gave")
     assert "cut short?" in line and short.exit_code == 1
     assert short.to_dict()["exit_code"] == 1  # the JSON summary's status is the process's
     # Cameras started by hand stop a few frames apart: as process, that is no problem.
-    close = dataclasses.replace(short, delivered={"cam0": 40, "cam1": 38, "cam2": 40})
+    close = dataclasses.replace(short, cameras=replayed((40, 38, 40)))
     assert close.problem_lines() == [] and close.exit_code == 0
-    damaged = dataclasses.replace(short, cut_short={"cam0": "", "cam1": "Invalid data", "cam2": ""})
+    damaged = dataclasses.replace(short, cameras=replayed((40, 21, 40), ("", "Invalid data", "")))
     assert "it is damaged there: Invalid data" in damaged.problem_lines()[0]
-    whole = dataclasses.replace(short, delivered=dict.fromkeys(names, 40))
+    whole = dataclasses.replace(short, cameras=replayed((40, 40, 40)))
     assert whole.problem_lines() == [] and whole.exit_code == 0
     # Stopped by --duration before the replay's first frame: not the videos' fault.
     none = RunSummary(frames_ok=0, frames_empty=0, frames_failed=[], wall_s=0.1, fps=0.0)
-    early = dataclasses.replace(
-        short, run=none, stopped_by="--duration", delivered={"cam0": 1, "cam1": 0, "cam2": 0}
-    )
+    early = dataclasses.replace(short, run=none, stopped_by="--duration", cameras=replayed((1, 0, 0)))
     assert early.problem_lines() == [
         "  no frame-set arrived before the run was stopped by --duration; nothing written"
     ]
@@ -1029,11 +1032,13 @@ def test_the_summary_names_a_camera_that_delivered_nothing_or_whose_replay_ended
     assert stopped.problem_lines() == []
     silent = LiveSummary(
         **common,
-        unmatched=dict.fromkeys(names, 0),
-        camera_fps=dict.fromkeys(names, float("nan")),
-        outages={"cam0": ["No such file or directory"], "cam1": [], "cam2": ["Connection refused"]},
-        delivered={"cam0": 0, "cam1": 0, "cam2": 12},
-        down_at_end={"cam2": True},
+        cameras=(
+            CameraSummary("cam0", fps=float("nan"), delivered=0, outages=("No such file or directory",)),
+            CameraSummary("cam1", fps=float("nan"), delivered=0),
+            CameraSummary(
+                "cam2", fps=float("nan"), delivered=12, outages=("Connection refused",), down_at_end=True
+            ),
+        ),
     )
     assert silent.problem_lines() == [
         "  camera cam0: delivered no frame (No such file or directory); check its source in [live] in "
