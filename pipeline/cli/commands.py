@@ -124,7 +124,7 @@ def cmd_process(args: argparse.Namespace) -> int:
 def cmd_live(args: argparse.Namespace) -> int:
     from ..live.run import run_live
     from ..live.sources import open_rig
-    from ..live.stream import DEFAULT_FOXGLOVE, parse_host_port, viewer_from_choice
+    from ..live.stream import DEFAULT_FOXGLOVE, check_foxglove, parse_host_port, viewer_from_choice
 
     if args.duration is not None and not args.duration > 0:
         args.usage_error(f"--duration must be > 0 seconds, got {args.duration:g}")
@@ -137,6 +137,8 @@ def cmd_live(args: argparse.Namespace) -> int:
     if args.json not in (None, "-"):
         _check_json_path(Path(args.json), _recordings(Path(args.out), rig.name))
     foxglove = None if args.foxglove is None else parse_host_port(args.foxglove or DEFAULT_FOXGLOVE)
+    if foxglove is not None:
+        check_foxglove(*foxglove)  # before a viewer is spawned for the run
     viewer_url = viewer_from_choice(args.viewer or [])
     summary = run_live(
         rig,

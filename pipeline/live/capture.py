@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import os
+import select
 import stat
 import threading
 import time
@@ -19,10 +20,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import av
 import numpy as np
 from numpy.typing import NDArray
 
+from ..errors import VideoError
 from ..session.video import Greyer
+from .reasons import ffmpeg_text, outage_reason
 from .sources import V4L2_FORMAT, Source
 from .sync import CapturedFrame
 
@@ -37,6 +41,11 @@ OPEN_TIMEOUT_S = 5.0
 LOW_DELAY_OPTIONS = {"fflags": "nobuffer", "probesize": "32768", "analyzeduration": "0"}
 # A camera that is down is tried again this often.
 RETRY_S = 1.0
+# A named pipe is waited on in slices this long, each ending with a look at the run's stop.
+PIPE_POLL_S = 0.1
+# What a source that cannot be read, or stops being read, raises: FFmpeg's errors (refused,
+# timed out, no such device, damaged data), the system's (a named pipe's), and the pipeline's.
+SOURCE_ERRORS = (av.error.FFmpegError, OSError, VideoError)
 
 
 @dataclass
@@ -64,6 +73,51 @@ class CameraStats:
 
 class SourceFault(Exception):
     """A camera's frames cannot be used as they are (wrong size): the run stops, named."""
+
+
+class PipeStalled(OSError):
+    """A named pipe's writer holds it open but has written nothing for the stall time."""
+
+
+class PipeFile:
+    """A named pipe's reading end as a file for FFmpeg, whose reads see the run's stop.
+
+    FFmpeg reads a pipe in blocking reads that nothing but data or the writer's close
+    ends, so a writer that stalls with the pipe open would hold the reader past the run.
+    Here the pipe is opened without waiting for a writer, and each read waits for data in
+    slices of ``poll_s``: it returns nothing (the stream's end) once ``stop`` is set, and
+    raises :class:`PipeStalled` where data came once and then none for ``stall_s``. Before
+    any data it waits for a writer as long as the run goes on, as FFmpeg's open would.
+    """
+
+    def __init__(self, path: str, stop: threading.Event, stall_s: float, poll_s: float = PIPE_POLL_S) -> None:
+        self._fd: int | None = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        self._poll = select.poll()
+        self._poll.register(self._fd, select.POLLIN)
+        self._stop, self._stall_s, self._poll_s = stop, stall_s, poll_s
+        self._started = False  # data has come
+
+    def read(self, size: int) -> bytes:
+        """Up to ``size`` bytes, b"" at the stream's end or the run's stop."""
+        assert self._fd is not None, "read after close"
+        waited_s = 0.0
+        while not self._stop.is_set():
+            if self._started and waited_s >= self._stall_s:
+                raise PipeStalled(f"no data for {self._stall_s:g} s: its writer stalled")
+            if self._poll.poll(self._poll_s * 1e3):
+                try:
+                    data = os.read(self._fd, size)
+                except BlockingIOError:  # another reader of the pipe took the data
+                    continue
+                self._started = self._started or bool(data)
+                return data  # b"": every writer closed it
+            waited_s += self._poll_s
+        return b""
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 class CameraReader:
@@ -98,9 +152,12 @@ class CameraReader:
         self.rate_fps: float | None = source.replay_fps  # the stream's declared rate, once open
         self.finished = threading.Event()  # a replay ended, or the reader stopped
         self.fault: str | None = None  # why the run must stop (set with ``finished``)
+        # An error that is no source's (a bug): the run raises it again (set with ``finished``).
+        self.crash: Exception | None = None
         # Why a replay's frames ended before its video did (damaged past them): "" where not.
         self.cut_short = ""
         self.down = False  # an outage was reported and no frame has come since
+        self._opened = False  # the source of the current attempt opened
         self._thread = threading.Thread(target=self._run, name=f"camera-{source.camera}", daemon=True)
 
     def start(self) -> None:
@@ -113,35 +170,27 @@ class CameraReader:
     def alive(self) -> bool:
         return self._thread.is_alive()
 
-    def wake(self) -> None:
-        """Let a reader waiting to open a named pipe that nothing writes to see the stop.
-
-        FFmpeg opens a named pipe blocking, until a writer opens it too: no timeout reaches
-        it there. Opening the pipe's writing end and closing it at once ends that wait (the
-        stream is then empty, and the reader, seeing the stop, returns). Called after the
-        stop is set; a reader doing anything else is left alone.
-        """
-        if self.source.is_replay or not self._thread.is_alive():
-            return
-        try:
-            if stat.S_ISFIFO(os.stat(self.source.url).st_mode):
-                # Fails (ENXIO) where no reader has the pipe open: nothing waits on it then.
-                os.close(os.open(self.source.url, os.O_WRONLY | os.O_NONBLOCK))
-        except OSError:  # not a path, or no reader waiting on it
-            pass
-
     def _run(self) -> None:
         reported_at: int | None = None  # frames delivered when the last outage was reported
         try:
             while not self._stop.is_set():
+                check = ""  # what to check, for the warning
                 try:
                     self._read()
                     why = "the stream ended"
                 except SourceFault as exc:
                     self.fault = str(exc)
                     return
-                except Exception as exc:  # FFmpeg's errors: refused, timed out, no such device
-                    why = " ".join(str(exc).split())[:200] or type(exc).__name__
+                except SOURCE_ERRORS as exc:
+                    if self.source.is_replay:
+                        why = ffmpeg_text(exc)
+                    else:
+                        why, check = outage_reason(
+                            exc, opened=self._opened, open_timeout_s=OPEN_TIMEOUT_S, stall_s=self._stall_s
+                        )
+                except Exception as exc:  # no source's error: handed to the run, which raises it
+                    self.crash = exc
+                    return
                 if self._stop.is_set():
                     return
                 if self.source.is_replay:
@@ -156,9 +205,10 @@ class CameraReader:
                     self.stats.outages.append(why)
                     self.down = True
                     log.warning(
-                        "%s: %s; the other cameras go on, retrying every %g s",
+                        "%s: %s%s; the other cameras go on, retrying every %g s",
                         self.source.describe(),
                         why,
+                        f" ({check})" if check else "",
                         self._retry_s,
                     )
                 self._stop.wait(self._retry_s)
@@ -166,8 +216,6 @@ class CameraReader:
             self.finished.set()
 
     def _open(self) -> Any:
-        import av
-
         options = {}
         if self.source.format == V4L2_FORMAT:
             options["video_size"] = f"{self.size_px[0]}x{self.size_px[1]}"
@@ -176,9 +224,17 @@ class CameraReader:
             # first ones back and hand them over at once, stamped alike.
             options.update(LOW_DELAY_OPTIONS)
         timeout = None if self.source.is_replay else (OPEN_TIMEOUT_S, self._stall_s)
+        target: Any = self.source.url
+        if not self.source.is_replay and _is_pipe(self.source.url):
+            # The pipe's reads see the stop and time out themselves (FFmpeg's cannot).
+            target, timeout = PipeFile(self.source.url, self._stop, self._stall_s), None
         try:
-            return av.open(self.source.url, format=self.source.format, options=options, timeout=timeout)
-        except av.error.ProtocolNotFoundError:
+            return av.open(target, format=self.source.format, options=options, timeout=timeout)
+        except BaseException as exc:
+            if isinstance(target, PipeFile):
+                target.close()
+            if not isinstance(exc, av.error.ProtocolNotFoundError):
+                raise
             # Never opens, however often it is tried: a typo (rtps://) or another program's URL.
             scheme = self.source.url.partition(":")[0]
             raise SourceFault(
@@ -187,8 +243,12 @@ class CameraReader:
             ) from None
 
     def _read(self) -> None:
+        self._opened = False
         container = self._open()
+        self._opened = True
         try:
+            if not container.streams.video:
+                raise VideoError("it holds no video stream")
             stream = container.streams.video[0]
             rate = stream.average_rate or stream.guessed_rate
             if rate and not self.source.is_replay:
@@ -224,3 +284,11 @@ class CameraReader:
             log.warning("%s: frames again", self.source.describe())
         self.stats.add(arrived_ns)
         self._deliver(CapturedFrame(self.camera, arrived_ns, image))
+
+
+def _is_pipe(path: str) -> bool:
+    """``path`` is a named pipe (False where it is not a path, or not there)."""
+    try:
+        return stat.S_ISFIFO(os.stat(path).st_mode)
+    except (OSError, ValueError):
+        return False

@@ -18,7 +18,7 @@ import logging
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +35,7 @@ from .capture import CameraReader
 from .handoff import QUEUE_SETS, DroppingQueue
 from .restarts import RestartWorker
 from .sources import Source
+from .stream import check_foxglove
 from .sync import CapturedFrame, FrameMatcher, half_period_ns
 
 log = logging.getLogger(__name__)
@@ -48,40 +49,73 @@ JOIN_S = 3.0
 
 
 @dataclass(frozen=True)
+class CameraSummary:
+    """How one camera of a live run went.
+
+    name : the camera's name in calibration.toml.
+    fps : frames per second it delivered (NaN with fewer than two frames).
+    delivered : frames it delivered.
+    unmatched : its frames that no frame of every other camera matched.
+    outages : why it stopped, each time it did (retried).
+    down_at_end : it was still down (an outage not over) as the run ended.
+    cut_short : a replayed camera's: why its frames ended before its video did ("" where
+        not); None for a camera.
+    """
+
+    name: str
+    fps: float
+    delivered: int
+    unmatched: int = 0
+    outages: tuple[str, ...] = ()
+    down_at_end: bool = False
+    cut_short: str | None = None
+
+    @property
+    def is_replay(self) -> bool:
+        return self.cut_short is not None
+
+    @property
+    def silent(self) -> bool:
+        """It delivered no frame, where one was due: a camera, or a replay that failed."""
+        return not self.delivered and (bool(self.outages) or not self.is_replay)
+
+    def rate(self) -> str:
+        """Its name and frames per second, or why it has none (a rate needs two frames)."""
+        if np.isfinite(self.fps):
+            return f"{self.name} {self.fps:.1f}"
+        return (
+            f"{self.name} no frames"
+            if not self.delivered
+            else f"{self.name} {self.delivered} frame(s), no rate"
+        )
+
+
+@dataclass(frozen=True)
 class LiveSummary:
     """How a live run went: the run's summary plus the live figures.
 
     latencies_ms : (F,) per frame written, from the capture of its last image to its
         result being written, ms.
     dropped : frame-sets dropped because the reconstruction fell behind.
-    unmatched : per camera, frames that no frame of every other camera matched.
-    camera_fps : per camera, frames per second delivered.
-    outages : per camera, why it stopped each time it did (retried).
     stopped_by : "a signal" (Ctrl-C, SIGTERM, SIGHUP), "--duration", "the end of the replay"
         or "the cameras ending".
-    delivered : per camera, frames it delivered.
-    down_at_end : per camera, whether it was still down (an outage not over) as the run ended.
-    cut_short : per replayed camera, why its frames ended before its video did ("" where not).
+    cameras : per camera, in calibration order, how it went.
     """
 
     run: RunSummary
     latencies_ms: np.ndarray
     dropped: int
-    unmatched: dict[str, int]
-    camera_fps: dict[str, float]
-    outages: dict[str, list[str]] = field(default_factory=dict)
     stopped_by: str = ""
-    delivered: dict[str, int] = field(default_factory=dict)
-    down_at_end: dict[str, bool] = field(default_factory=dict)
-    cut_short: dict[str, str] = field(default_factory=dict)
+    cameras: tuple[CameraSummary, ...] = ()
+
+    def camera(self, name: str) -> CameraSummary:
+        """The camera named ``name``."""
+        return next(c for c in self.cameras if c.name == name)
 
     @property
     def exit_code(self) -> int:
         """The run's; 1 at least where a camera delivered nothing or a replay ended short."""
-        silent = any(
-            not n and (self.outages.get(name) or name not in self.cut_short)
-            for name, n in self.delivered.items()
-        )
+        silent = any(c.silent for c in self.cameras)
         return max(self.run.exit_code, int(silent or bool(self.replay_lines())))
 
     def latency_ms(self, percentile: float) -> float:
@@ -95,39 +129,42 @@ class LiveSummary:
                 f"  no frame-set arrived{when if self.stopped_by in ('--duration', 'a signal') else ''}; "
                 "nothing written"
             )
-        for name in dict.fromkeys([*self.delivered, *self.outages]):
-            whys = self.outages.get(name, [])
-            if not whys and name in self.cut_short:
+        for cam in self.cameras:
+            if not cam.outages and cam.is_replay:
                 continue  # a replay stopped before its first frame: nothing wrong with it
-            if not self.delivered.get(name, 1):
-                why = whys[0] if whys else "its source opened no stream before the run ended"
+            if not cam.delivered:
+                why = cam.outages[0] if cam.outages else "its source opened no stream before the run ended"
                 lines.append(
-                    f"  camera {name}: delivered no frame ({why}); check its source in [live] in "
+                    f"  camera {cam.name}: delivered no frame ({why}); check its source in [live] in "
                     "session.toml, and that the camera is on or its stream is sent"
                 )
-            elif whys:
-                state = "down at the end" if self.down_at_end.get(name) else "picked up again"
-                lines.append(f"  camera {name}: stopped {len(whys)} time(s), {state} (first: {whys[0]})")
+            elif cam.outages:
+                state = "down at the end" if cam.down_at_end else "picked up again"
+                stopped = f"stopped {len(cam.outages)} time(s), {state}"
+                lines.append(f"  camera {cam.name}: {stopped} (first: {cam.outages[0]})")
         return lines
 
     def replay_lines(self) -> list[str]:
         """A replayed camera whose frames ended well before the others' (its video cut short,
         by more than ``process`` lets videos differ) or that is damaged past them: the
         others' later frames had no set."""
-        if not self.delivered or not all(name in self.cut_short for name in self.delivered):
+        if not self.cameras or not all(c.is_replay for c in self.cameras):
             return []  # not a replay
         if self.stopped_by != "the end of the replay":
             return []  # stopped before the videos' ends: they are not known to end short
-        most = max(self.delivered.values())
+        most = max(c.delivered for c in self.cameras)
         allowed = max(SHORT_VIDEO_FRAMES, SHORT_VIDEO_FRACTION * most)  # as process allows
         lines = []
-        for name, frames in self.delivered.items():
-            why = self.cut_short[name]
-            if most - frames > allowed or why:
-                ends = f"it is damaged there: {why}" if why else "its video ends there: cut short?"
+        for cam in self.cameras:
+            if most - cam.delivered > allowed or cam.cut_short:
+                ends = (
+                    f"it is damaged there: {cam.cut_short}"
+                    if cam.cut_short
+                    else "its video ends there: cut short?"
+                )
                 lines.append(
-                    f"  camera {name}: its replay ended after {frames} of the {most} frames the others "
-                    f"gave ({ends}); the frames after had no set: re-export the video"
+                    f"  camera {cam.name}: its replay ended after {cam.delivered} of the {most} frames the "
+                    f"others gave ({ends}); the frames after had no set: re-export the video"
                 )
         return lines
 
@@ -136,8 +173,8 @@ class LiveSummary:
         return self.run.problem_lines() + self.outage_lines() + self.replay_lines()
 
     def live_lines(self) -> list[str]:
-        rates = ", ".join(self._rate(name, fps) for name, fps in self.camera_fps.items())
-        unmatched = sum(self.unmatched.values())
+        rates = ", ".join(c.rate() for c in self.cameras)
+        unmatched = sum(c.unmatched for c in self.cameras)
         latency = (
             f"latency p50 {self.latency_ms(50):.1f} ms, p99 {self.latency_ms(99):.1f} ms"
             if len(self.latencies_ms)
@@ -148,13 +185,6 @@ class LiveSummary:
             f"{unmatched} frames unmatched",
             f"  cameras (frames/s): {rates}",
         ]
-
-    def _rate(self, name: str, fps: float) -> str:
-        """``name`` and its frames per second, or why it has none (a rate needs two frames)."""
-        if np.isfinite(fps):
-            return f"{name} {fps:.1f}"
-        frames = self.delivered.get(name, 0)
-        return f"{name} no frames" if frames == 0 else f"{name} {frames} frame(s), no rate"
 
     def lines(self) -> list[str]:
         """The run's summary with the cameras that stopped and the live lines before its time
@@ -172,9 +202,9 @@ class LiveSummary:
                 "stopped_by": self.stopped_by,
                 "latency_ms": {"p50": _finite(self.latency_ms(50)), "p99": _finite(self.latency_ms(99))},
                 "frames_dropped": self.dropped,
-                "frames_unmatched": dict(self.unmatched),
-                "camera_fps": {name: _finite(fps) for name, fps in self.camera_fps.items()},
-                "outages": {name: list(whys) for name, whys in self.outages.items()},
+                "frames_unmatched": {c.name: c.unmatched for c in self.cameras},
+                "camera_fps": {c.name: _finite(c.fps) for c in self.cameras},
+                "outages": {c.name: list(c.outages) for c in self.cameras},
             },
         }
 
@@ -221,6 +251,8 @@ def run_live(
     A run that no frame-set reached writes no recording (its summary lists no output,
     and exits 1), and removes the folders it made for them.
     """
+    if foxglove is not None:
+        check_foxglove(*foxglove)  # not seconds into the run, once the model is built
     with signals_interrupt():
         target = prepare_outputs(Path(out_dir), rig.name, force)
         written = False
@@ -346,13 +378,19 @@ def _run(
         run=writer.summary(time.perf_counter() - t0),
         latencies_ms=np.asarray(latencies, dtype=np.float64),
         dropped=queue.dropped,
-        unmatched=dict(zip(names, matcher.unmatched, strict=True)),
-        camera_fps={n: r.stats.fps for n, r in zip(names, readers, strict=True)},
-        outages={n: list(r.stats.outages) for n, r in zip(names, readers, strict=True)},
         stopped_by=stopped_by,
-        delivered={n: r.stats.frames for n, r in zip(names, readers, strict=True)},
-        down_at_end={n: r.down for n, r in zip(names, readers, strict=True)},
-        cut_short={n: r.cut_short for n, r in zip(names, readers, strict=True) if r.source.is_replay},
+        cameras=tuple(
+            CameraSummary(
+                name=name,
+                fps=reader.stats.fps,
+                delivered=reader.stats.frames,
+                unmatched=unmatched,
+                outages=tuple(reader.stats.outages),
+                down_at_end=reader.down,
+                cut_short=reader.cut_short if reader.source.is_replay else None,
+            )
+            for name, reader, unmatched in zip(names, readers, matcher.unmatched, strict=True)
+        ),
     )
 
 
@@ -385,6 +423,8 @@ def _loop(
                 for reader in readers:
                     if reader.fault is not None:
                         raise SessionError(reader.fault)
+                    if reader.crash is not None:
+                        raise reader.crash
                 if all(r.finished.is_set() for r in readers) and not len(queue):
                     replay = all(r.source.is_replay for r in readers)
                     return latencies, "the end of the replay" if replay else "the cameras ending"
@@ -407,10 +447,7 @@ def _loop(
 def _stop_readers(stop: threading.Event, readers: Sequence[CameraReader]) -> None:
     stop.set()
     # One wait for all of them: readers that stay blocked (daemon threads) cost the run
-    # JOIN_S once, not once each. A reader is woken until it ends: one that had not reached
-    # a named pipe's open when first woken may wait in it since.
+    # JOIN_S once, not once each.
     deadline = time.monotonic() + JOIN_S
     for reader in readers:
-        while reader.alive and time.monotonic() < deadline:
-            reader.wake()
-            reader.join(min(POLL_S, max(0.0, deadline - time.monotonic())))
+        reader.join(max(0.0, deadline - time.monotonic()))

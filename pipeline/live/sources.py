@@ -7,6 +7,7 @@ videos instead and plays them at their frame rate, as if they were cameras.
 
 from __future__ import annotations
 
+import os
 import stat
 from dataclasses import dataclass
 from pathlib import Path
@@ -72,16 +73,36 @@ def rig_sources(rig: Session) -> list[Source]:
             )
         source = parse_source(cam.name, text)
         _check_path(toml, source)
-        other = next((s for s in sources if s.url == source.url), None)
+        identity = source_identity(source.url)
+        other = next((s for s in sources if source_identity(s.url) == identity), None)
         if other is not None:
             # The second reader would be refused (a device busy, a port in use) or steal
             # half the frames: the run would go on short of a camera.
+            names = (
+                source.url if other.url == source.url else f"{other.url} and {source.url}, one {identity[0]}"
+            )
             raise SettingsError(
                 f"{toml}: [live] gives cameras {other.camera!r} and {cam.name!r} the same source "
-                f"({source.url}); each camera needs a source of its own"
+                f"({names}); each camera needs a source of its own"
             )
         sources.append(source)
     return sources
+
+
+def source_identity(url: str) -> tuple[str | int, ...]:
+    """What a source is, whatever it is called: a device by its device number (a udev link
+    such as /dev/v4l/by-id/... and its /dev/videoN are one device), another path by its
+    file (a relative path and its absolute one, a link and its target), and a path not
+    there by where it leads; a URL by its text. The first item names the kind."""
+    if "://" in url:
+        return ("url", url)
+    try:
+        status = os.stat(url)
+    except (OSError, ValueError):
+        return ("path", os.path.realpath(url))
+    if stat.S_ISCHR(status.st_mode) or stat.S_ISBLK(status.st_mode):
+        return ("device", status.st_rdev)
+    return ("file", status.st_dev, status.st_ino)
 
 
 def _check_path(toml: Path, source: Source) -> None:

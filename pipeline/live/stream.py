@@ -7,6 +7,7 @@ a Foxglove WebSocket server on the same topics (``foxglove-sdk``).
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import socket
@@ -105,6 +106,31 @@ def parse_host_port(text: str) -> tuple[str, int]:
     if not port.isdigit() or int(port) > 65535:
         raise SettingsError(f"--foxglove {text!r}: expected HOST:PORT (e.g. {DEFAULT_FOXGLOVE}) or PORT")
     return host or "127.0.0.1", int(port)
+
+
+def check_foxglove(host: str, port: int) -> None:
+    """Refuse, before the run, a ``--foxglove`` address the server could not serve on: its
+    port taken (another server, another live run), or a host that is not this machine's.
+    Port 0 (any free one) always can."""
+    if port == 0:
+        return
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+        family, kind, proto, _, address = infos[0]
+        with socket.socket(family, kind, proto) as probe:
+            # As a server binds: a port that only connections closing hold is free for it.
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            probe.bind(address)
+    except OSError as exc:
+        why = exc.strerror or " ".join(str(exc).split())
+        if exc.errno == errno.EADDRINUSE:
+            raise SettingsError(
+                f"--foxglove {host}:{port}: port {port} is taken ({why}); stop what serves there, or "
+                "give another --foxglove HOST:PORT"
+            ) from None
+        raise SettingsError(
+            f"--foxglove {host}:{port}: cannot serve there ({why}); give a HOST:PORT of this machine"
+        ) from None
 
 
 class FoxgloveServer:

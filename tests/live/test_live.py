@@ -30,7 +30,7 @@ import pipeline
 from pipeline.errors import SessionError, SettingsError
 from pipeline.live.handoff import DroppingQueue
 from pipeline.live.restarts import RestartWorker
-from pipeline.live.run import LiveSummary, run_live
+from pipeline.live.run import CameraSummary, LiveSummary, run_live
 from pipeline.live.sources import V4L2_FORMAT, Source, open_rig, parse_source
 from pipeline.live.stream import grpc_url, parse_host_port
 from pipeline.live.sync import MAX_WAITING_FRAMES, CapturedFrame, FrameMatcher, FrameSet, head_action
@@ -144,6 +144,26 @@ def test_live_table_takes_device_indices_and_refuses_other_values() -> None:
         settings_from_dict({"live": {"cam0": 1.5}})
 
 
+def test_two_names_for_one_source_are_one_source(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from pipeline.live.sources import source_identity
+
+    # A device and a link to it (as udev's /dev/v4l/by-id/... links are): one device number.
+    link = tmp_path / "usb-rig-cam0-video-index0"
+    link.symlink_to("/dev/null")
+    assert (
+        source_identity(str(link)) == source_identity("/dev/null") == ("device", os.stat("/dev/null").st_rdev)
+    )
+    # A named pipe by its relative and its absolute path; two pipes are two sources.
+    os.mkfifo(tmp_path / "cam1.pipe")
+    os.mkfifo(tmp_path / "cam2.pipe")
+    monkeypatch.chdir(tmp_path)
+    assert source_identity("cam1.pipe") == source_identity(str(tmp_path / "cam1.pipe"))
+    assert source_identity("cam1.pipe") != source_identity("cam2.pipe")
+    # Paths not there yet (a camera unplugged) by where they lead; URLs by their text.
+    assert source_identity("./gone/../cam3") == source_identity(str(tmp_path / "cam3"))
+    assert source_identity("udp://127.0.0.1:5002") != source_identity("udp://127.0.0.1:5003")
+
+
 def _rig(directory: Path, session: Path, live: dict[str, str | int] | None) -> Path:
     """A rig directory: the session's calibration and settings, with ``[live]``."""
     import tomllib
@@ -175,6 +195,15 @@ def test_a_rig_whose_live_table_misses_or_misnames_a_camera_is_refused(tmp_path:
     rig = _rig(tmp_path / "f", session, {"cam0": 0, "cam1": video, "cam2": 2})
     with pytest.raises(
         SettingsError, match=r"\[live\] cam1 = .*cam1.mp4. is a file, not a camera .*--replay"
+    ):
+        open_rig(rig, None)
+    # Two names of one device (a link to it, as udev's by-id links are) are one source.
+    link = tmp_path / "by-id-cam0"
+    link.symlink_to("/dev/null")
+    rig = _rig(tmp_path / "g", session, {"cam0": "/dev/null", "cam1": 1, "cam2": str(link)})
+    with pytest.raises(
+        SettingsError,
+        match=r"cameras 'cam0' and 'cam2' the same source \(/dev/null and .*by-id-cam0, one device\)",
     ):
         open_rig(rig, None)
     # A device index and its path are the same device.
@@ -327,6 +356,23 @@ def test_a_replay_damaged_part_way_keeps_the_frames_before_and_says_why(
     # Not a fault that stops the run: the frames before the damage stand, and why it ended is kept.
     assert reader.fault is None and 0 < len(delivered) < FRAMES
     assert "Invalid data" in reader.cut_short
+
+
+def test_a_replay_reader_that_fails_other_than_on_its_video_raises_that_error_in_the_run(
+    session: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pipeline.live import capture
+
+    class BrokenGreyer:
+        def __call__(self, frame: object) -> None:
+            raise TypeError("a bug in the reader")
+
+    # Not taken for a damaged video (a replay "that cannot be replayed"): a bug, raised as such.
+    monkeypatch.setattr(capture, "Greyer", BrokenGreyer)
+    rig, sources = open_rig(None, session)
+    with pytest.raises(TypeError, match="a bug in the reader"):
+        run_live(rig, sources, out_dir=tmp_path / "out", duration_s=10.0)
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.slow
@@ -662,6 +708,33 @@ def test_live_to_a_viewer_nobody_runs_is_refused_before_the_run(
     assert len(err.splitlines()) == 1 and not (tmp_path / "out").exists()
 
 
+def test_a_foxglove_port_already_taken_is_refused_before_the_run(
+    session: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pipeline.cli import main
+    from pipeline.live import run
+
+    def began(*args: object) -> None:
+        raise AssertionError("the run began")
+
+    monkeypatch.setattr(run, "_model", began)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        out = ["--out", str(tmp_path / "out"), "--viewer", "none", "--foxglove", f"127.0.0.1:{port}"]
+        assert main(["live", "--replay", str(session), *out]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"--foxglove 127.0.0.1:{port}: port {port} is taken (" in err and "another --foxglove" in err
+        assert len(err.splitlines()) == 1 and not (tmp_path / "out").exists()
+        rig, sources = open_rig(None, session)
+        with pytest.raises(SettingsError, match=f"port {port} is taken"):
+            run_live(rig, sources, out_dir=tmp_path / "out", foxglove=("127.0.0.1", port))
+    with pytest.raises(SettingsError, match=r"--foxglove no-such-host\.invalid:8765: cannot serve there"):
+        run_live(rig, sources, out_dir=tmp_path / "out", foxglove=("no-such-host.invalid", 8765))
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_camera_that_does_not_answer_is_reported_and_the_run_still_stops_cleanly(
     session: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -676,7 +749,8 @@ def test_a_camera_that_does_not_answer_is_reported_and_the_run_still_stops_clean
     assert summary.stopped_by == "--duration" and summary.run.frames_total == 0 and summary.exit_code == 1
     for k in range(3):
         assert any(f"camera 'cam{k}' (tcp://127.0.0.1:{ports[k]})" in r.message for r in caplog.records)
-        assert len(summary.outages[f"cam{k}"]) == 1  # the same outage, reported once
+        assert summary.camera(f"cam{k}").outages == ("connection refused",)  # the same outage, reported once
+    assert not any("Errno" in r.message for r in caplog.records)
     # No frame-set: no recording, no temporary file, and not the folder made for them.
     assert summary.run.outputs == [] and not (tmp_path / "out").exists()
     assert summary.problem_lines()[0] == (
@@ -689,6 +763,37 @@ def test_a_camera_that_does_not_answer_is_reported_and_the_run_still_stops_clean
     assert summary.run.outputs == [] and summary.exit_code == 1
     assert [p.name for p in (tmp_path / "out").iterdir()] == ["rig.mcap"]
     assert (tmp_path / "out" / "rig.mcap").read_bytes() == b"earlier"
+
+
+def test_ffmpegs_errors_are_worded_for_the_camera_without_its_error_numbers() -> None:
+    import errno
+
+    import av
+
+    from pipeline.live.reasons import ffmpeg_text, outage_reason
+
+    def reason(exc: BaseException, *, opened: bool = False) -> tuple[str, str]:
+        return outage_reason(exc, opened=opened, open_timeout_s=5.0, stall_s=2.0)
+
+    cut_off = av.error.ExitError(1414092869, "Immediate exit requested", "udp://0.0.0.0:5002")
+    assert reason(cut_off) == (
+        "no stream within 5 s",
+        "check that the camera sends its stream to this address",
+    )
+    assert reason(cut_off, opened=True) == ("no frame for 2 s", "check the camera's cable, power or stream")
+    refused = av.error.ConnectionRefusedError(errno.ECONNREFUSED, "Connection refused", "tcp://rig:5000")
+    assert reason(refused)[0] == "connection refused" and "runs at this address" in reason(refused)[1]
+    busy = av.error.OSError(-errno.EBUSY, "Device or resource busy", "/dev/video0")  # a negative code
+    assert reason(busy) == ("the device is busy", "close the other program that uses the camera")
+    invalid = av.error.InvalidDataError(1094995529, "Invalid data found when processing input", "x")
+    assert reason(invalid)[0] == "FFmpeg cannot read the stream (invalid data)"
+    # FFmpeg's own text, where it has no better word, without its number or the URL again.
+    bug = av.error.BugError(558323010, "Internal bug, should not have happened", "rtsp://rig/1")
+    assert reason(bug)[0] == "FFmpeg: Internal bug, should not have happened"
+    assert ffmpeg_text(bug) == "Internal bug, should not have happened"
+    for exc in (cut_off, refused, busy, invalid, bug):
+        text = " ".join(reason(exc))
+        assert "Errno" not in text and str(abs(exc.errno)) not in text, text
 
 
 def test_a_source_of_a_scheme_ffmpeg_does_not_read_stops_the_run_named(session: Path, tmp_path: Path) -> None:
@@ -728,6 +833,57 @@ def test_named_pipes_nothing_writes_to_end_with_the_run(
         assert lines[k + 1].startswith(f"  camera cam{k}: delivered no frame (its source opened no stream")
 
 
+def _mpegts(video: Path) -> bytes:
+    """``video`` as an MPEG-TS stream, as a camera's writer would send it down a pipe."""
+    import av
+
+    out = io.BytesIO()
+    with av.open(out, mode="w", format="mpegts") as container:
+        stream = container.add_stream("mpeg2video", rate=30)
+        stream.width, stream.height, stream.pix_fmt = 320, 240, "yuv420p"
+        for frame in av.open(video).decode(video=0):
+            container.mux(stream.encode(frame.reformat(format="yuv420p")))
+        container.mux(stream.encode(None))
+    return out.getvalue()
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes")
+def test_named_pipes_whose_writers_stall_open_are_reported_and_end_with_the_run(
+    session: Path, tmp_path: Path
+) -> None:
+    pipes = [tmp_path / f"cam{k}.pipe" for k in range(3)]
+    # Five times over: more than FFmpeg probes before the first frame.
+    streams = [_mpegts(session / f"cam{k}.mp4") * 5 for k in range(3)]
+    writers: list[int] = []
+
+    def write_and_stall(pipe: Path, data: bytes) -> None:
+        fd = os.open(pipe, os.O_WRONLY)  # waits for the run's reader
+        writers.append(fd)
+        os.write(fd, data)  # then writes nothing more, and keeps the pipe open
+
+    for pipe, data in zip(pipes, streams, strict=True):
+        os.mkfifo(pipe)
+        threading.Thread(target=write_and_stall, args=(pipe, data), daemon=True).start()
+    rig, sources = open_rig(
+        _rig(tmp_path / "rig", session, {f"cam{k}": str(p) for k, p in enumerate(pipes)}), None
+    )
+    try:
+        summary = run_live(rig, sources, out_dir=tmp_path / "out", duration_s=4.0)
+        # Every reader saw the stop, though its writer still holds its pipe open.
+        blocked = [t.name for t in threading.enumerate() if t.name.startswith("camera-cam")]
+    finally:
+        for fd in writers:
+            os.close(fd)
+    assert blocked == []
+    assert summary.stopped_by == "--duration"
+    for k in range(3):
+        assert summary.camera(f"cam{k}").delivered > 0
+        assert summary.camera(f"cam{k}").outages == ("no data for 2 s: its writer stalled",)
+        assert f"  camera cam{k}: stopped 1 time(s), down at the end (first: no data for 2 s" in "\n".join(
+            summary.problem_lines()
+        )
+
+
 @pytest.mark.slow
 def test_a_camera_that_stalls_is_reported_and_picked_up_again_while_the_others_go_on(
     session: Path, udp_rig: tuple[Path, list[int]], tmp_path: Path, caplog: pytest.LogCaptureFixture
@@ -761,7 +917,7 @@ def test_a_camera_that_stalls_is_reported_and_picked_up_again_while_the_others_g
         for sender in senders:
             sender.kill()
             sender.wait()
-    assert len(summary.outages["cam2"]) == 1 and not summary.outages["cam0"] and not summary.outages["cam1"]
+    assert [len(c.outages) for c in summary.cameras] == [0, 0, 1]
     assert any("camera 'cam2'" in r.message and "retrying" in r.message for r in caplog.records)
     assert any("camera 'cam2'" in r.message and "frames again" in r.message for r in caplog.records)
     # Frames before the stall and after it, none while cam2 was away.
@@ -788,17 +944,18 @@ def test_the_summary_gives_latency_drops_rates_and_outages() -> None:
         run=run,
         latencies_ms=np.array([10.0, 20.0, 30.0, 40.0, 50.0]),
         dropped=3,
-        unmatched={"cam0": 1, "cam1": 0},
-        camera_fps={"cam0": 30.0, "cam1": float("nan")},
-        outages={"cam0": [], "cam1": ["Connection refused"]},
         stopped_by="a signal",
+        cameras=(
+            CameraSummary("cam0", fps=30.0, delivered=60, unmatched=1),
+            CameraSummary("cam1", fps=float("nan"), delivered=1, outages=("Connection refused",)),
+        ),
     )
     lines = summary.lines()
     assert lines[0] == "frames: 4 processed, 4 ok, 0 empty, 0 failed"
     # numpy's linear interpolation: p50 of 10..50 is 30, p99 is 10 + 0.99 * 40 = 49.6.
     live = "live: stopped by a signal; latency p50 30.0 ms, p99 49.6 ms; 3 frame-sets dropped"
     assert f"{live}, 1 frames unmatched" in lines
-    assert "  cameras (frames/s): cam0 30.0, cam1 no frames" in lines
+    assert "  cameras (frames/s): cam0 30.0, cam1 1 frame(s), no rate" in lines
     outage = "  camera cam1: stopped 1 time(s), picked up again (first: Connection refused)"
     assert outage in summary.problem_lines() and lines.index(outage) < lines.index(
         "time: 2.0 s wall, 2.0 frames/s"
@@ -817,10 +974,11 @@ def test_the_summary_of_a_run_without_frames_says_so_rather_than_nan() -> None:
         run=run,
         latencies_ms=np.array([]),
         dropped=0,
-        unmatched={"cam0": 0, "cam1": 1},
-        camera_fps={"cam0": float("nan"), "cam1": float("nan")},
         stopped_by="--duration",
-        delivered={"cam0": 0, "cam1": 1},  # one frame gives no rate
+        cameras=(
+            CameraSummary("cam0", fps=float("nan"), delivered=0),
+            CameraSummary("cam1", fps=float("nan"), delivered=1, unmatched=1),  # one frame gives no rate
+        ),
     )
     lines = summary.lines()
     assert not any("nan" in line for line in lines), lines
@@ -842,29 +1000,30 @@ def test_the_summary_names_a_camera_that_delivered_nothing_or_whose_replay_ended
         "stopped_by": "the end of the replay",
     }
     names = ("cam0", "cam1", "cam2")
-    short = LiveSummary(
-        **common,
-        unmatched={"cam0": 19, "cam1": 0, "cam2": 19},
-        camera_fps=dict.fromkeys(names, 30.0),
-        delivered={"cam0": 40, "cam1": 21, "cam2": 40},
-        cut_short={"cam0": "", "cam1": "", "cam2": ""},
-    )
+
+    def replayed(
+        delivered: tuple[int, int, int], cut_short: tuple[str, str, str] = ("", "", "")
+    ) -> tuple[CameraSummary, ...]:
+        return tuple(
+            CameraSummary(name, fps=30.0, delivered=n, unmatched=40 - n, cut_short=why)
+            for name, n, why in zip(names, delivered, cut_short, strict=True)
+        )
+
+    short = LiveSummary(**common, cameras=replayed((40, 21, 40)))
     (line,) = short.problem_lines()
     assert line.startswith("  camera cam1: its replay ended after 21 of the 40 frames the others gave")
     assert "cut short?" in line and short.exit_code == 1
     assert short.to_dict()["exit_code"] == 1  # the JSON summary's status is the process's
     # Cameras started by hand stop a few frames apart: as process, that is no problem.
-    close = dataclasses.replace(short, delivered={"cam0": 40, "cam1": 38, "cam2": 40})
+    close = dataclasses.replace(short, cameras=replayed((40, 38, 40)))
     assert close.problem_lines() == [] and close.exit_code == 0
-    damaged = dataclasses.replace(short, cut_short={"cam0": "", "cam1": "Invalid data", "cam2": ""})
+    damaged = dataclasses.replace(short, cameras=replayed((40, 21, 40), ("", "Invalid data", "")))
     assert "it is damaged there: Invalid data" in damaged.problem_lines()[0]
-    whole = dataclasses.replace(short, delivered=dict.fromkeys(names, 40))
+    whole = dataclasses.replace(short, cameras=replayed((40, 40, 40)))
     assert whole.problem_lines() == [] and whole.exit_code == 0
     # Stopped by --duration before the replay's first frame: not the videos' fault.
     none = RunSummary(frames_ok=0, frames_empty=0, frames_failed=[], wall_s=0.1, fps=0.0)
-    early = dataclasses.replace(
-        short, run=none, stopped_by="--duration", delivered={"cam0": 1, "cam1": 0, "cam2": 0}
-    )
+    early = dataclasses.replace(short, run=none, stopped_by="--duration", cameras=replayed((1, 0, 0)))
     assert early.problem_lines() == [
         "  no frame-set arrived before the run was stopped by --duration; nothing written"
     ]
@@ -873,11 +1032,13 @@ def test_the_summary_names_a_camera_that_delivered_nothing_or_whose_replay_ended
     assert stopped.problem_lines() == []
     silent = LiveSummary(
         **common,
-        unmatched=dict.fromkeys(names, 0),
-        camera_fps=dict.fromkeys(names, float("nan")),
-        outages={"cam0": ["No such file or directory"], "cam1": [], "cam2": ["Connection refused"]},
-        delivered={"cam0": 0, "cam1": 0, "cam2": 12},
-        down_at_end={"cam2": True},
+        cameras=(
+            CameraSummary("cam0", fps=float("nan"), delivered=0, outages=("No such file or directory",)),
+            CameraSummary("cam1", fps=float("nan"), delivered=0),
+            CameraSummary(
+                "cam2", fps=float("nan"), delivered=12, outages=("Connection refused",), down_at_end=True
+            ),
+        ),
     )
     assert silent.problem_lines() == [
         "  camera cam0: delivered no frame (No such file or directory); check its source in [live] in "
