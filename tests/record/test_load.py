@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import os
 from pathlib import Path
 
@@ -177,6 +178,26 @@ def test_a_file_cut_mid_write_reads_up_to_its_last_complete_chunk(
         np.testing.assert_array_equal(rec.centerlines_m, full.centerlines_m[:n])
         assert rec.metrics == full.metrics[:n]
     assert counts == sorted(counts) and counts[-1] == N_FRAMES and 0 < counts[2] < N_FRAMES
+
+
+def test_a_files_warnings_go_to_on_warning_where_given_else_to_the_log(
+    written: tuple[Path, list[FrameResult]], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path, _ = written
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    lines: list[str] = []
+    with caplog.at_level(logging.WARNING):
+        rec = pipeline.load_recording(cut, on_warning=lines.append)
+    assert not caplog.records  # the caller chooses how to show them
+    (line,) = lines
+    assert line == (
+        f"{cut}: truncated or damaged after frame {rec.frame_indices[-1]} (the run did not finish); "
+        "read what precedes it"
+    )
+    with caplog.at_level(logging.WARNING):
+        pipeline.load_recording(cut)
+    assert [r.getMessage() for r in caplog.records] == lines
 
 
 def test_not_an_mcap_is_a_pipeline_error(tmp_path: Path) -> None:
