@@ -108,19 +108,19 @@ def probe_video(path: Path) -> VideoInfo:
     """Open ``path`` and read its size, fps and frame count; VideoError if it is not a video.
 
     The file is opened once by OpenCV and once by PyAV. A file probed before and unchanged
-    since (the same path, inode, size and modification time) is not opened again: a
-    session's checks and a replay's reading share one probe.
+    since (the same path, device and inode, size and modification time) is not opened
+    again: a session's checks and a replay's reading share one probe.
     """
     try:
         stat = os.stat(path)
     except OSError:
         return _probe(Path(path))  # not a file: OpenCV's open names it
-    return _probe_unchanged(str(path), stat.st_ino, stat.st_size, stat.st_mtime_ns)
+    return _probe_unchanged(str(path), (stat.st_dev, stat.st_ino), stat.st_size, stat.st_mtime_ns)
 
 
 @functools.lru_cache(maxsize=64)
-def _probe_unchanged(path: str, inode: int, size_bytes: int, mtime_ns: int) -> VideoInfo:
-    """:func:`_probe` of ``path`` as it is while its inode, size and mtime are these."""
+def _probe_unchanged(path: str, file_id: tuple[int, int], size_bytes: int, mtime_ns: int) -> VideoInfo:
+    """:func:`_probe` of ``path`` while it is this file (device, inode) of this size and mtime."""
     return _probe(Path(path))
 
 
