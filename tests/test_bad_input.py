@@ -522,14 +522,18 @@ def test_an_out_path_that_is_not_utf8_is_refused(session: Path, capsys: pytest.C
 # --- background images ------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("scale", [1, 257], ids=["8-bit-values", "full-16-bit-range"])
-def test_a_16_bit_background_is_read_at_the_videos_depth(session: Path, scale: int) -> None:
+@pytest.mark.parametrize(
+    "scale", [1, 4095 / 255, 257], ids=["8-bit-values", "12-bit-values", "full-16-bit-range"]
+)
+def test_a_16_bit_background_is_read_at_the_videos_depth(session: Path, scale: float) -> None:
     (session / "background").mkdir()
     grey = np.full((240, 320), 150, np.uint8)
     grey[100:140, 150:170] = 40
     for cam in ("cam0", "cam1", "cam2"):
         cv2.imwrite(str(session / "background" / f"{cam}.png"), grey)
-    cv2.imwrite(str(session / "background" / "cam1.png"), grey.astype(np.uint16) * scale)
+    cv2.imwrite(
+        str(session / "background" / "cam1.png"), np.round(grey.astype(np.float64) * scale).astype(np.uint16)
+    )
     backgrounds = load_session(session).backgrounds
     for background in backgrounds:
         assert background is not None and background.dtype == np.uint8

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from ..errors import CalibrationError
 from ..session.folder import check_not_dangling
+from ..session.grey_levels import grey_8bit
 from .boards import Board, detect
 
 log = logging.getLogger(__name__)
@@ -97,9 +98,9 @@ _JPEG_END = b"\xff\xd9"
 def _read_grey(path: Path) -> NDArray[np.uint8]:
     """The board image at ``path`` as (H, W) uint8 grey levels, or a CalibrationError saying why not.
 
-    A 16-bit (or floating-point) image is scaled so that its brightest pixel is 255: only
-    the board's contrast matters to the detector, and 8-bit values or a 10- or 12-bit
-    camera's stored in 16 bits would read near black scaled by 256, as OpenCV's grey read does.
+    A 16-bit (or floating-point) image's levels are scaled from the depth they are stored at
+    (:func:`~pipeline.session.grey_levels.grey_8bit`): 8-bit values or a 10- or 12-bit
+    camera's saved in 16 bits keep the board's contrast rather than reading near black.
     """
     check_not_dangling(path, CalibrationError)
     try:
@@ -127,10 +128,7 @@ def _read_grey(path: Path) -> NDArray[np.uint8]:
         ) from None
     if image is None:
         raise CalibrationError(f"{path}: cannot be read as an image; save it as a PNG or JPEG, or remove it")
-    if image.dtype != np.uint8:
-        top = float(image.max())
-        image = np.clip(image * (255.0 / top if top > 0 else 0.0), 0, 255).round()
-    return np.asarray(image, dtype=np.uint8)
+    return grey_8bit(image)
 
 
 def _video_frames(path: Path) -> list[tuple[str, NDArray[np.uint8]]]:

@@ -13,13 +13,11 @@ place here that converts the recording's metres to millimetres.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import logging
 import math
 import zipfile
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -386,23 +384,6 @@ def _why_no_frames(complete: bool, damaged: bool) -> str:
     return "" if complete else " (cut short before its first frame: the run did not finish)"
 
 
-@contextlib.contextmanager
-def _held_warnings(logger: str) -> Iterator[list[logging.LogRecord]]:
-    """The records ``logger`` emits inside the block, held back (for the caller to emit or
-    to fold into its one line of error)."""
-    held: list[logging.LogRecord] = []
-
-    def hold(record: logging.LogRecord) -> bool:
-        held.append(record)
-        return False
-
-    logging.getLogger(logger).addFilter(hold)
-    try:
-        yield held
-    finally:
-        logging.getLogger(logger).removeFilter(hold)
-
-
 def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> EvaluationReport:
     """Evaluate an MCAP recording against a synthetic session's ground truth.
 
@@ -433,14 +414,14 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
     if not recording.exists():  # anything else there (a named pipe) is named by load_recording
         raise EvaluationError(f"recording {recording} does not exist; run `python -m pipeline process` first")
     truth_mm, truth_times = load_ground_truth(ground_truth)
-    with _held_warnings("pipeline.record.load") as held:
-        rec = load_recording(recording)
+    held: list[str] = []  # said once the recording is known to hold frames, else in the error's line
+    rec = load_recording(recording, on_warning=held.append)
     indices = np.asarray(rec.frame_indices, dtype=np.int64).reshape(-1)
     if len(indices) == 0:
         why = _why_no_frames(rec.complete, rec.damaged)
         raise EvaluationError(f"{recording}: the recording holds no frames{why}")
-    for record in held:  # a recording cut short after some frames: said, and evaluated
-        logging.getLogger(record.name).handle(record)
+    for warning in held:  # a recording cut short after some frames: said, and evaluated
+        log.warning("%s", warning)
     outside = indices[(indices < 0) | (indices >= len(truth_mm))]
     if len(outside):
         raise EvaluationError(

@@ -192,17 +192,20 @@ _TRUNCATION_ERRORS = (
 _RRD_MAGIC = b"RRF"
 
 
-def load_recording(path: Path | str) -> Recording:
-    """Read ``path`` (an MCAP written by the pipeline) into a :class:`Recording`."""
+def load_recording(path: Path | str, *, on_warning: Callable[[str], None] | None = None) -> Recording:
+    """Read ``path`` (an MCAP written by the pipeline) into a :class:`Recording`.
+
+    What is read but worth a word (a file cut short, the run that wrote it killed while
+    putting its outputs in place, centrelines of different lengths) is a line naming the
+    file, given to ``on_warning``; without it, each line is logged as a warning.
+    """
     path = Path(path)
+    warn = on_warning if on_warning is not None else _log_warning
     if killed_commits(path.parent, path.stem):
-        log.warning(
-            "%s: the run that wrote it was killed while putting its outputs in place: %s may be "
-            "an earlier run's; the next 'pipeline process' of %s into %s puts the pair together",
-            path,
-            path.with_suffix(".rrd").name,
-            path.stem,
-            path.parent,
+        warn(
+            f"{path}: the run that wrote it was killed while putting its outputs in place: "
+            f"{path.with_suffix('.rrd').name} may be an earlier run's; the next 'pipeline process' "
+            f"of {path.stem} into {path.parent} puts the pair together"
         )
     try:
         require_regular_file(path)  # a named pipe would block the read until something wrote to it
@@ -213,12 +216,19 @@ def load_recording(path: Path | str) -> Recording:
                     "written beside it"
                 )
             f.seek(0)
-            return _read(f, path)
+            return _read(f, path, warn)
     except OSError as exc:
         raise RecordingError(f"{path}: cannot read: {exc.strerror}") from None
 
 
-def _read(stream: Any, path: Path) -> Recording:
+def _log_warning(message: str) -> None:
+    """A warning line of :func:`load_recording`, logged."""
+    log.warning("%s", message)
+
+
+def _read(stream: Any, path: Path, warn: Callable[[str], None]) -> Recording:
+    """The recording in ``stream`` (the file ``path``), read up to its last complete chunk;
+    ``warn`` takes a line for a file cut short."""
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     decoders = DecoderFactory()
@@ -274,13 +284,13 @@ def _read(stream: Any, path: Path) -> Recording:
             else ("before its first frame", "")
         )
         if damaged:
-            log.warning("%s: %s%s; %s", path, _damage(where), read, _REWRITE)
+            warn(f"{path}: {_damage(where)}{read}; {_REWRITE}")
         else:
-            log.warning("%s: cut short %s (the run did not finish)%s", path, where, read)
+            warn(f"{path}: cut short {where} (the run did not finish){read}")
     else:
         if not complete:
-            log.warning("%s: no footer (the run did not finish); %d frames read", path, len(metrics))
-    return _assemble(path, metadata, metrics, points, curves, smoothed, complete, damaged)
+            warn(f"{path}: no footer (the run did not finish); {len(metrics)} frames read")
+    return _assemble(path, metadata, metrics, points, curves, smoothed, complete, damaged, warn)
 
 
 def _damage(where: str) -> str:
@@ -367,6 +377,7 @@ def _assemble(
     smoothed: dict[int, NDArray[np.float64] | None],
     complete: bool,
     damaged: bool,
+    warn: Callable[[str], None],
 ) -> Recording:
     frames = sorted(metrics)
     times = [metrics[i][0] for i in frames]
@@ -374,9 +385,7 @@ def _assemble(
     declared = metadata.get("centerline_points", "")
     n = max(lengths) if lengths else int(declared) if declared.isdecimal() else 0
     if len(lengths) > 1:
-        log.warning(
-            "%s: centrelines of different lengths %s; shorter ones read as NaN", path, sorted(lengths)
-        )
+        warn(f"{path}: centrelines of different lengths {sorted(lengths)}; shorter ones read as NaN")
     names = tuple(n for n in metadata.get("cameras", "").split(",") if n)
     return Recording(
         path=path,

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from ..errors import CalibrationError, PipelineError, SessionError, SettingsError, VideoError
 from ..geometry.camera import Camera
 from .calibration_io import read_calibration
+from .grey_levels import grey_8bit
 from .settings import LAST_TIMESTAMP, SessionInfo, Settings, describe, load_settings
 from .toml_file import require_regular_file
 from .video import VIDEO_EXTENSIONS, VideoInfo, probe_video
@@ -359,10 +360,10 @@ def _background(directory: Path, cam: Camera) -> NDArray[np.uint8] | None:
 def _read_grey_8bit(path: Path) -> NDArray[np.uint8]:
     """The image at ``path`` as (H, W) uint8 grey levels, the videos' depth.
 
-    OpenCV's grey read scales a 16-bit PNG down by 256, so a 16-bit file holding 8-bit
-    values (as some tools save them) read as black, and every pixel became silhouette.
-    A 16-bit image is taken as 8-bit values when none exceeds 255, and scaled from the
-    full 16-bit range otherwise.
+    A 16-bit image's levels are scaled from the depth they are stored at
+    (:func:`~pipeline.session.grey_levels.grey_8bit`): 8-bit values saved in 16 bits
+    (as some tools save them) are not scaled down to black, where every pixel would
+    differ from the frames and be silhouette.
     """
     try:
         require_regular_file(path)
@@ -386,9 +387,7 @@ def _read_grey_8bit(path: Path) -> NDArray[np.uint8]:
     if raw.ndim == 3:
         code = cv2.COLOR_BGRA2GRAY if raw.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         raw = cv2.cvtColor(raw, code)
-    if int(raw.max()) <= 255:
-        return raw.astype(np.uint8)
-    return np.round(raw / 257.0).astype(np.uint8)  # 65535 -> 255
+    return grey_8bit(raw)
 
 
 @contextlib.contextmanager

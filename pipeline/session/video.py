@@ -1,4 +1,4 @@
-"""Video files: probing (OpenCV), and reading a contiguous range of frames (PyAV).
+"""Video files: probing (OpenCV and PyAV), and reading a contiguous range of frames (PyAV).
 
 Frames are read with PyAV rather than OpenCV because placing each one by the
 container's index, not by a count of packets, needs the packets' byte positions.
@@ -10,6 +10,8 @@ images and never a path.
 from __future__ import annotations
 
 import bisect
+import dataclasses
+import functools
 import logging
 import math
 import os
@@ -103,7 +105,28 @@ class VideoInfo:
 
 
 def probe_video(path: Path) -> VideoInfo:
-    """Open ``path`` and read its size, fps and frame count; VideoError if it is not a video."""
+    """Open ``path`` and read its size, fps and frame count; VideoError if it is not a video.
+
+    The file is opened once by OpenCV and once by PyAV. A file probed before and unchanged
+    since (the same path, device and inode, size and modification time) is not opened
+    again: a session's checks and a replay's reading share one probe.
+    """
+    try:
+        stat = os.stat(path)
+    except OSError:
+        return _probe(Path(path))  # not a file: OpenCV's open names it
+    return _probe_unchanged(str(path), (stat.st_dev, stat.st_ino), stat.st_size, stat.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=64)
+def _probe_unchanged(path: str, file_id: tuple[int, int], size_bytes: int, mtime_ns: int) -> VideoInfo:
+    """:func:`_probe` of ``path`` while it is this file (device, inode) of this size and mtime."""
+    return _probe(Path(path))
+
+
+def _probe(path: Path) -> VideoInfo:
+    """Size, fps, frame count and notes of the video ``path``: OpenCV's view of its first
+    video stream, and PyAV's one reading of its container (:func:`_read_container`)."""
     cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
     try:
         if not cap.isOpened():
@@ -111,9 +134,11 @@ def probe_video(path: Path) -> VideoInfo:
                 f"{path}: cannot be opened as a video (empty, unreadable, copied half-way "
                 "or not a video); re-copy or re-export it"
             )
-        still = _still_image_kind(path)
-        if still:
-            raise VideoError(f"{path}: is a still {still} image, not a video; put the camera's video here")
+        facts = _read_container(path)
+        if facts.still_kind:
+            raise VideoError(
+                f"{path}: is a still {facts.still_kind} image, not a video; put the camera's video here"
+            )
         # The frames as stored, which the reader (PyAV) gives: not turned by a rotation tag.
         cap.set(cv2.CAP_PROP_ORIENTATION_AUTO, 0)
         rotation_deg = float(cap.get(cv2.CAP_PROP_ORIENTATION_META) or 0.0)
@@ -128,17 +153,16 @@ def probe_video(path: Path) -> VideoInfo:
             raise VideoError(f"{path}: has no frame rate; re-export it with a fixed fps")
     finally:
         cap.release()
-    count = _counted_frames(path) or count
+    count = facts.packet_count or count
     notes = []
     if rotation_deg % 360:
         notes.append(
             f"{path}: carries a {rotation_deg % 360:g}-degree rotation tag that is not applied; the "
             f"calibration must be of the frames as stored ({width}x{height})"
         )
-    streams, stamps_s, tick_s = _video_streams(path)
-    if streams > 1:
-        notes.append(f"{path}: holds {streams} video streams; the first ({width}x{height}) is read")
-    variable = describe_variable_rate(stamps_s, tick_s)
+    if facts.streams > 1:
+        notes.append(f"{path}: holds {facts.streams} video streams; the first ({width}x{height}) is read")
+    variable = describe_variable_rate(facts.stamps_s, facts.tick_s)
     if variable:
         notes.append(
             f"{path}: has a variable frame rate ({variable}); frame i is taken as the one at "
@@ -151,37 +175,100 @@ def probe_video(path: Path) -> VideoInfo:
         height=height,
         fps=fps,
         frame_count=max(count, 1),
-        creation_time=creation_time(path),
+        creation_time=_parse_creation_time(path, facts.creation_text),
         variable_rate=variable,
         notes=tuple(notes),
     )
 
 
-def _video_streams(path: Path) -> tuple[int, NDArray[np.float64], float]:
-    """The number of video streams in ``path``, the first one's frame timestamps (s,
-    ascending, at most VFR_FRAMES) and their tick (s): from the container's index where it
-    has an entry per frame (MP4, AVI; nothing is read), else from the first packets demuxed
-    (Matroska)."""
+@dataclass(frozen=True, eq=False)
+class _ContainerFacts:
+    """What one PyAV opening of a video file reads, nothing decoded; the defaults stand
+    where the file cannot be opened.
+
+    ``still_kind``: the kind of still image ("PNG", ...) the file holds under a video's
+    name, "" for anything else. ``streams``: its video streams (0 where the first cannot
+    be demuxed as far as its timestamps are read). ``stamps_s``, ``tick_s``: the first
+    stream's frame timestamps (s, ascending, at most VFR_FRAMES) and their tick (s).
+    ``packet_count``: its packets, where the container keeps no frame count (None where
+    it keeps one, or where the stream cannot be demuxed to its end). ``creation_text``:
+    the container's creation_time tag, else its first video stream's ("" for none).
+    """
+
+    still_kind: str = ""
+    streams: int = 0
+    stamps_s: NDArray[np.float64] = dataclasses.field(default_factory=lambda: np.zeros(0))
+    tick_s: float = 0.0
+    packet_count: int | None = None
+    creation_text: str = ""
+
+
+def _read_container(path: Path) -> _ContainerFacts:
+    """:class:`_ContainerFacts` of ``path`` from one PyAV opening.
+
+    The timestamps come from the container's index where it has an entry per frame
+    (MP4, AVI; nothing is read), else from the first packets demuxed (Matroska). The
+    packets are counted where the container keeps no frame count (Matroska, WebM):
+    OpenCV estimates that count as its duration x fps, and a Matroska duration runs from
+    time 0, so a stream that starts 2 s in was counted 60 frames too long, and those
+    frames "failed" as cut short.
+    """
     try:
         with av.open(str(path)) as container:
+            name = container.format.name
+            # FFmpeg's demuxers of single images are all named "<kind>_pipe" (png_pipe, ...).
+            still = name.removesuffix("_pipe").upper() if name.endswith("_pipe") else ""
             streams = container.streams.video
+            text = container.metadata.get("creation_time") or (
+                streams[0].metadata.get("creation_time") if streams else None
+            )
             if not streams:
-                return 0, np.zeros(0), 0.0
+                return _ContainerFacts(still_kind=still, creation_text=text or "")
             stream = streams[0]
             time_base = float(stream.time_base or Fraction(1, 1000))
             entries = stream.index_entries
-            ticks: list[int] = []
-            if 0 < len(entries) == stream.frames:
+            indexed = 0 < len(entries) == stream.frames
+            ticks, count = _demuxed(
+                container, stream, ticks_wanted=not indexed, count_wanted=stream.frames <= 0
+            )
+            if indexed:
                 ticks = [entries[k].timestamp for k in range(min(len(entries), VFR_FRAMES))]
-            else:
-                for packet in container.demux(stream):
-                    if packet.pts is not None:
-                        ticks.append(packet.pts)
-                    if len(ticks) >= VFR_FRAMES:
-                        break
-            return len(streams), np.sort(np.asarray(ticks, dtype=np.float64)) * time_base, time_base
+            return _ContainerFacts(
+                still_kind=still,
+                streams=len(streams) if ticks is not None else 0,
+                stamps_s=np.sort(np.asarray(ticks or [], dtype=np.float64)) * time_base,
+                tick_s=time_base if ticks is not None else 0.0,
+                packet_count=count,
+                creation_text=text or "",
+            )
     except (av.error.FFmpegError, OSError):
-        return 0, np.zeros(0), 0.0
+        return _ContainerFacts()
+
+
+def _demuxed(
+    container: av.container.InputContainer,
+    stream: av.video.stream.VideoStream,
+    *,
+    ticks_wanted: bool,
+    count_wanted: bool,
+) -> tuple[list[int] | None, int | None]:
+    """The timestamps of ``stream``'s first VFR_FRAMES packets (if ``ticks_wanted``) and
+    the count of all its packets (if ``count_wanted``), from one pass of demuxing that
+    stops once it has what is wanted; each None where not wanted, or where the demuxer
+    fails before it is read."""
+    ticks: list[int] = []
+    count = 0
+    if ticks_wanted or count_wanted:
+        try:
+            for packet in container.demux(stream):
+                if packet.pts is not None and len(ticks) < VFR_FRAMES:
+                    ticks.append(packet.pts)
+                count += packet.size > 0
+                if not count_wanted and len(ticks) >= VFR_FRAMES:
+                    break
+        except (av.error.FFmpegError, OSError):
+            return (ticks if ticks_wanted and len(ticks) >= VFR_FRAMES else None), None
+    return (ticks if ticks_wanted else []), (count if count_wanted else None)
 
 
 def describe_variable_rate(stamps_s: NDArray[np.float64], tick_s: float = 0.0) -> str:
@@ -203,30 +290,16 @@ def describe_variable_rate(stamps_s: NDArray[np.float64], tick_s: float = 0.0) -
     )
 
 
-def _still_image_kind(path: Path) -> str:
-    """The kind of still image ("PNG", "JPEG", ...) that ``path`` holds under a video's name,
-    which FFmpeg opens as a one-frame "video" at 25 fps; "" for anything else."""
-    try:
-        with av.open(str(path)) as container:
-            name = container.format.name
-    except (av.error.FFmpegError, OSError):
-        return ""
-    # FFmpeg's demuxers of single images are all named "<kind>_pipe" (png_pipe, jpeg_pipe, ...).
-    return name.removesuffix("_pipe").upper() if name.endswith("_pipe") else ""
-
-
 def creation_time(path: Path) -> datetime | None:
     """The container's ``creation_time`` (MP4/MOV, Matroska; the container's own, else its
     first video stream's), timezone-aware (UTC where it names no zone); None where the file
     has none, or one that is not an ISO 8601 date-time."""
-    try:
-        with av.open(str(path)) as container:
-            streams = container.streams.video
-            text = container.metadata.get("creation_time") or (
-                streams[0].metadata.get("creation_time") if streams else None
-            )
-    except (av.error.FFmpegError, OSError):
-        return None
+    return _parse_creation_time(path, _read_container(path).creation_text)
+
+
+def _parse_creation_time(path: Path, text: str) -> datetime | None:
+    """A creation_time tag ``text`` of ``path`` as a timezone-aware date-time (UTC where it
+    names no zone); None for "" or text that is not ISO 8601."""
     if not text:
         return None
     try:
@@ -235,25 +308,6 @@ def creation_time(path: Path) -> datetime | None:
         log.debug("%s: creation_time %r is not ISO 8601; ignored", path, text)
         return None
     return stamp if stamp.tzinfo else stamp.replace(tzinfo=UTC)
-
-
-def _counted_frames(path: Path) -> int | None:
-    """The first video stream's packets, demuxed without decoding, where the container
-    keeps no frame count (Matroska, WebM); None where it keeps one (MP4, AVI), or where
-    the file cannot be demuxed to its end (OpenCV's count stands).
-
-    OpenCV estimates a count the container does not keep as its duration x fps, and a
-    Matroska duration runs from time 0: a stream that starts 2 s in was counted 60 frames
-    too long, and those frames "failed" as cut short.
-    """
-    try:
-        with av.open(str(path)) as container:
-            stream = container.streams.video[0]
-            if stream.frames > 0:
-                return None
-            return sum(1 for packet in container.demux(stream) if packet.size > 0)
-    except (av.error.FFmpegError, OSError, IndexError):
-        return None
 
 
 def read_frames(

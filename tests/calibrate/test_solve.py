@@ -17,8 +17,10 @@ from conftest import assert_meets_calibration_targets, rotation_angle_deg
 from pipeline.calibrate.boards import detect_corners, load_board
 from pipeline.calibrate.report import format_table
 from pipeline.calibrate.solve import CalibrationResult, calibrate_directory, calibrate_views, detect_directory
+from pipeline.calibrate.views import _read_grey
 from pipeline.errors import CalibrationError
 from pipeline.session.calibration_io import read_calibration
+from pipeline.session.folder import _read_grey_8bit
 from pipeline.synth.boards import render_calibration_views
 
 STEREO = Path("/work/shared/data/stereo-chessboard")
@@ -200,6 +202,16 @@ def test_16_bit_images_holding_8_bit_values_are_read_at_their_contrast(small_rig
     result = calibrate_directory(root, tmp_path / "c.toml")
     assert sum(e.camera == "cam1" for e in result.image_errors) == 7  # 6 intrinsics views and world.png
     assert result.camera_mean_px()["cam1"] < 0.2
+
+
+@pytest.mark.parametrize("top", [255, 4095, 30000, 65535])
+def test_a_16_bit_board_image_reads_at_a_backgrounds_levels(tmp_path, top: int) -> None:
+    """One rule for both: a board image is not stretched to its brightest pixel."""
+    path = tmp_path / "board.png"
+    cv2.imwrite(str(path), np.linspace(0, top, 64 * 48).reshape(48, 64).astype(np.uint16))
+    as_board = _read_grey(path)
+    np.testing.assert_array_equal(as_board, _read_grey_8bit(path))
+    assert int(as_board.max()) == (117 if top == 30000 else 255)
 
 
 def test_a_camera_with_shared_views_alone_is_calibrated(tmp_path) -> None:

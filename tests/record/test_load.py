@@ -215,6 +215,26 @@ def test_a_file_damaged_before_its_first_frame_is_named_damaged(
         pipeline.load_recording(damaged)
 
 
+def test_a_files_warnings_go_to_on_warning_where_given_else_to_the_log(
+    written: tuple[Path, list[FrameResult]], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path, _ = written
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    lines: list[str] = []
+    with caplog.at_level(logging.WARNING):
+        rec = pipeline.load_recording(cut, on_warning=lines.append)
+    assert not caplog.records  # the caller chooses how to show them
+    (line,) = lines
+    assert line == (
+        f"{cut}: cut short after frame {rec.frame_indices[-1]} (the run did not finish); "
+        "read what precedes it"
+    )
+    with caplog.at_level(logging.WARNING):
+        pipeline.load_recording(cut)
+    assert [r.getMessage() for r in caplog.records] == lines
+
+
 def test_not_an_mcap_is_a_pipeline_error(tmp_path: Path) -> None:
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(b"this is not an mcap file at all")

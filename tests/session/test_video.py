@@ -405,3 +405,30 @@ def test_describe_variable_rate_against_the_median_interval() -> None:
     assert video.describe_variable_rate(fast, tick_s=0.001) == ""
     assert video.describe_variable_rate(fast, tick_s=0.0) != ""
     assert video.describe_variable_rate(np.round(stretched, 3), tick_s=0.001) != ""
+
+
+# --- one probe per file ----------------------------------------------------------------------
+
+
+def test_a_probe_opens_the_file_once_per_library_and_an_unchanged_file_not_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = write_video(tmp_path / "cam0.mkv", _moving_texture(5), fourcc="MJPG")
+    opened: list[str] = []
+    real_av_open, real_capture = av.open, cv2.VideoCapture
+
+    def av_open(*args: object, **kwargs: object) -> object:
+        opened.append("PyAV")
+        return real_av_open(*args, **kwargs)  # type: ignore[call-overload]
+
+    def capture(*args: object) -> object:
+        opened.append("OpenCV")
+        return real_capture(*args)  # type: ignore[call-overload]
+
+    monkeypatch.setattr(video.av, "open", av_open)
+    monkeypatch.setattr(video.cv2, "VideoCapture", capture)
+    first = video.probe_video(path)
+    assert sorted(opened) == ["OpenCV", "PyAV"] and first.frame_count == 5
+    assert video.probe_video(path) == first and len(opened) == 2  # the same file: no opening
+    write_video(path, _moving_texture(7), fourcc="MJPG")  # rewritten where it is
+    assert video.probe_video(path).frame_count == 7 and len(opened) == 4
