@@ -451,3 +451,11 @@ def _stop_readers(stop: threading.Event, readers: Sequence[CameraReader]) -> Non
     deadline = time.monotonic() + JOIN_S
     for reader in readers:
         reader.join(max(0.0, deadline - time.monotonic()))
+    for reader in readers:
+        if reader.alive:  # blocked inside its source (a device or stream that hangs)
+            log.warning(
+                "%s: its reader was still waiting on the source %g s after the run stopped; "
+                "the run ended without it (check the camera and its connection)",
+                reader.source.describe(),
+                JOIN_S,
+            )

@@ -12,6 +12,7 @@ import contextlib
 import dataclasses
 import io
 import json
+import logging
 import os
 import signal
 import socket
@@ -28,6 +29,8 @@ import tomli_w
 
 import pipeline
 from pipeline.errors import SessionError, SettingsError
+from pipeline.live import run as live_run
+from pipeline.live.capture import CameraReader
 from pipeline.live.handoff import DroppingQueue
 from pipeline.live.restarts import RestartWorker
 from pipeline.live.run import CameraSummary, LiveSummary, run_live
@@ -1101,3 +1104,36 @@ def test_a_run_stopped_by_a_camera_of_the_wrong_size_leaves_nothing_behind(
         sender.kill()
         sender.wait()
     assert not (tmp_path / "out").exists()
+
+
+class _HangingReader(CameraReader):
+    """A camera whose source never returns (a device or stream that hangs in its read)."""
+
+    def __init__(self, release: threading.Event, stop: threading.Event) -> None:
+        source = Source("cam0", "/dev/video9", V4L2_FORMAT)
+        super().__init__(0, source, (320, 240), lambda _: None, stop, start_ns=0)
+        self._release = release
+
+    def _read(self) -> None:
+        self._release.wait()
+
+
+def test_a_reader_still_blocked_in_its_source_after_the_stop_is_named(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    monkeypatch.setattr(live_run, "JOIN_S", 0.2)
+    stop, release = threading.Event(), threading.Event()
+    reader = _HangingReader(release, stop)
+    reader.start()
+    try:
+        live_run._stop_readers(stop, [reader])
+        (line,) = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+        assert line.startswith("camera 'cam0' (/dev/video9): its reader was still waiting on the source")
+        assert "0.2 s after the run stopped" in line
+        assert "check the camera and its connection" in line
+    finally:
+        release.set()
+        reader.join(5.0)
+    caplog.clear()
+    live_run._stop_readers(stop, [reader])  # a reader that has ended is not named
+    assert not caplog.records
