@@ -200,7 +200,8 @@ def load_recording(path: Path | str, *, on_warning: Callable[[str], None] | None
     file, given to ``on_warning``; without it, each line is logged as a warning.
     """
     path = Path(path)
-    warn = on_warning if on_warning is not None else _log_warning
+    # A line holds no %-formatting of its own: logged as it is (a path may hold a %).
+    warn = on_warning if on_warning is not None else log.warning
     if killed_commits(path.parent, path.stem):
         warn(
             f"{path}: the run that wrote it was killed while putting its outputs in place: "
@@ -219,11 +220,6 @@ def load_recording(path: Path | str, *, on_warning: Callable[[str], None] | None
             return _read(f, path, warn)
     except OSError as exc:
         raise RecordingError(f"{path}: cannot read: {exc.strerror}") from None
-
-
-def _log_warning(message: str) -> None:
-    """A warning line of :func:`load_recording`, logged."""
-    log.warning("%s", message)
 
 
 def _read(stream: Any, path: Path, warn: Callable[[str], None]) -> Recording:
@@ -313,7 +309,7 @@ def _ends_whole(stream: Any) -> bool:
 
 
 # Frame indices are int64 in the Recording's arrays.
-_MAX_FRAME = 2**63 - 1
+_MAX_FRAME = int(np.iinfo(np.int64).max)
 
 
 def _frame_metrics(path: Path, data: bytes) -> tuple[int, dict[str, Any]]:

@@ -219,7 +219,7 @@ def test_a_files_warnings_go_to_on_warning_where_given_else_to_the_log(
     written: tuple[Path, list[FrameResult]], tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     path, _ = written
-    cut = tmp_path / "cut.mcap"
+    cut = tmp_path / "cut%d.mcap"  # a % in the name is logged as it is
     cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
     lines: list[str] = []
     with caplog.at_level(logging.WARNING):
