@@ -120,6 +120,21 @@ def test_json_before_the_session_folder_takes_stdout_not_the_folder(tmp_path: Pa
     assert build_parser().parse_args(words).json is True
 
 
+@pytest.mark.parametrize("command", ["process", "live"])
+def test_json_to_the_file_that_is_stdout_is_stdout(
+    command: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pipeline.cli.parser import build_parser
+
+    stdout, other = tmp_path / "stdout", tmp_path / "summary.json"
+    with stdout.open("w", encoding="utf-8") as f:
+        monkeypatch.setattr(sys, "stdout", f)
+        parser = build_parser()
+        assert parser.parse_args([command, "s", "--json", str(stdout)]).json == "-"
+        assert parser.parse_args([command, "s", "--json", str(other)]).json == str(other)
+        assert parser.parse_args([command, "s", "--json"]).json == "-"
+
+
 def _raising(exc: BaseException) -> object:
     def command(args: argparse.Namespace) -> int:
         raise exc

@@ -58,6 +58,19 @@ def _path(text: str) -> Path:
     return Path(text)
 
 
+def _json_file(text: str) -> str:
+    """--json's FILE (of process and live), with a path that is this process's stdout
+    (``/dev/stdout``) taken as "-": opened as a file, a pipe there would be read, and
+    waited on for good."""
+    if text == "-":
+        return text
+    try:
+        here, out = os.stat(text), os.fstat(sys.stdout.fileno())
+    except (OSError, ValueError):
+        return text
+    return "-" if (here.st_dev, here.st_ino) == (out.st_dev, out.st_ino) else text
+
+
 def _board(text: str) -> tuple[int, int]:
     cols, sep, rows = text.lower().partition("x")
     if not sep or not cols.isdigit() or not rows.isdigit():
@@ -183,6 +196,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         "--json",
         nargs="?",
         const="-",
+        type=_json_file,
         metavar="FILE",
         help="also write the run's summary as JSON to FILE, or to stdout with - or no FILE "
         "(the text summary then goes to stderr)",
@@ -248,6 +262,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         "--json",
         nargs="?",
         const="-",
+        type=_json_file,
         metavar="FILE",
         help="also write the run's summary as JSON to FILE, or to stdout with - or no FILE",
     )
