@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import rewrite_mcap
 from numpy.typing import NDArray
 
 from pipeline.errors import EvaluationError, RecordingError
@@ -310,29 +311,6 @@ def test_a_truncated_recording_is_evaluated_as_far_as_it_goes_and_says_so(
     assert not evaluate_recording(cut, session_dir).complete
 
 
-def _in_small_chunks(recording: Path, copy: Path) -> Path:
-    """A copy of ``recording`` with a chunk every few messages: damage in the middle of its
-    data leaves frames before it."""
-    from mcap.reader import make_reader
-    from mcap.writer import Writer
-
-    with recording.open("rb") as f, copy.open("wb") as out:
-        writer = Writer(out, chunk_size=500)
-        writer.start()
-        schemas: dict[int, int] = {}
-        channels: dict[int, int] = {}
-        for schema, channel, message in make_reader(f).iter_messages(log_time_order=False):
-            if schema is not None and schema.id not in schemas:
-                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
-            if channel.id not in channels:
-                channels[channel.id] = writer.register_channel(
-                    channel.topic, channel.message_encoding, schemas[schema.id] if schema else 0
-                )
-            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time)
-        writer.finish()
-    return copy
-
-
 def _data_section_end(mcap: bytes | bytearray) -> int:
     """Where an MCAP's summary starts (its footer's summary_start), after its data."""
     footer_start = len(mcap) - 8 - 29  # the closing magic, a footer record of 29 bytes
@@ -345,7 +323,8 @@ def test_a_recording_damaged_inside_is_evaluated_as_far_as_it_goes_and_named_dam
     from pipeline.cli import EXIT_FRAMES_FAILED, main
 
     recording, session_dir = partial_run
-    data = bytearray(_in_small_chunks(recording, tmp_path / "chunked.mcap").read_bytes())
+    # A chunk every few messages: damage in the middle of its data leaves frames before it.
+    data = bytearray(rewrite_mcap(recording, tmp_path / "chunked.mcap", chunk_size=500).read_bytes())
     middle = _data_section_end(data) // 2
     data[middle : middle + 64] = bytes(64)
     damaged = tmp_path / "damaged.mcap"
