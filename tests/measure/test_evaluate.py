@@ -3,16 +3,17 @@
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import logging
 import os
-import struct
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from conftest import rewrite_mcap
+from mcap.reader import make_reader
 from numpy.typing import NDArray
 
 from pipeline.errors import EvaluationError, RecordingError
@@ -311,12 +312,6 @@ def test_a_truncated_recording_is_evaluated_as_far_as_it_goes_and_says_so(
     assert not evaluate_recording(cut, session_dir).complete
 
 
-def _data_section_end(mcap: bytes | bytearray) -> int:
-    """Where an MCAP's summary starts (its footer's summary_start), after its data."""
-    footer_start = len(mcap) - 8 - 29  # the closing magic, a footer record of 29 bytes
-    return int(struct.unpack_from("<Q", mcap, footer_start + 9)[0])
-
-
 def test_a_recording_damaged_inside_is_evaluated_as_far_as_it_goes_and_named_damaged(
     partial_run: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -325,7 +320,10 @@ def test_a_recording_damaged_inside_is_evaluated_as_far_as_it_goes_and_named_dam
     recording, session_dir = partial_run
     # A chunk every few messages: damage in the middle of its data leaves frames before it.
     data = bytearray(rewrite_mcap(recording, tmp_path / "chunked.mcap", chunk_size=500).read_bytes())
-    middle = _data_section_end(data) // 2
+    summary = make_reader(io.BytesIO(data)).get_summary()
+    assert summary is not None and len(summary.chunk_indexes) > 2
+    chunk = summary.chunk_indexes[len(summary.chunk_indexes) // 2]
+    middle = chunk.chunk_start_offset + chunk.chunk_length // 2  # inside the middle chunk
     data[middle : middle + 64] = bytes(64)
     damaged = tmp_path / "damaged.mcap"
     damaged.write_bytes(data)
