@@ -311,10 +311,8 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
     timestamps_s : (F,) float64, s, or None if the file has none.
     """
     path = Path(path)
-    check_not_dangling(path, EvaluationError)
-    file = path / "ground_truth.npz" if path.is_dir() else path
-    if file is not path:
-        check_not_dangling(file, EvaluationError)
+    file = path / "ground_truth.npz" if path.is_dir() else path  # a broken link is no folder
+    check_not_dangling(file, EvaluationError)
     if file.exists() and not file.is_file():
         raise EvaluationError(
             f"{file}: is not a regular file (a pipe or device); give the ground_truth.npz file"
