@@ -412,7 +412,9 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
     if not recording.exists():  # anything else there (a named pipe) is named by load_recording
         raise EvaluationError(f"recording {recording} does not exist; run `python -m pipeline process` first")
     truth_mm, truth_times = load_ground_truth(ground_truth)
-    held: list[str] = []  # said once the recording is known to hold frames, else in the error's line
+    # The recording's warnings, said once it is known to hold frames; without frames, the
+    # error's line says why instead (_why_no_frames).
+    held: list[str] = []
     rec = load_recording(recording, on_warning=held.append)
     indices = np.asarray(rec.frame_indices, dtype=np.int64).reshape(-1)
     if len(indices) == 0:
