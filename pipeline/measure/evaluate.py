@@ -374,11 +374,10 @@ def _truth_session(ground_truth: Path) -> str:
 
 def _why_no_frames(complete: bool, damaged: bool) -> str:
     """Why a recording holds no frames, for its error line: "" for a whole file."""
+    from ..record.load import REWRITE, damage_line
+
     if damaged:
-        return (
-            " (damaged before its first frame: bytes inside it are not the recording's, a disk or "
-            "copy error; run `pipeline process` on its session again)"
-        )
+        return f" ({damage_line('before its first frame')}; {REWRITE})"
     return "" if complete else " (cut short before its first frame: the run did not finish)"
 
 

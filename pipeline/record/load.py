@@ -271,7 +271,7 @@ def _read(stream: Any, path: Path, warn: Callable[[str], None]) -> Recording:
             why = " ".join(str(exc).split()) or type(exc).__name__
             if damaged:
                 raise RecordingError(
-                    f"{path}: {_damage('before its first frame')}; {_REWRITE} ({why})"
+                    f"{path}: {damage_line('before its first frame')}; {REWRITE} ({why})"
                 ) from None
             raise RecordingError(f"{path}: not a readable MCAP recording ({why})") from None
         where, read = (
@@ -280,7 +280,7 @@ def _read(stream: Any, path: Path, warn: Callable[[str], None]) -> Recording:
             else ("before its first frame", "")
         )
         if damaged:
-            warn(f"{path}: {_damage(where)}{read}; {_REWRITE}")
+            warn(f"{path}: {damage_line(where)}{read}; {REWRITE}")
         else:
             warn(f"{path}: cut short {where} (the run did not finish){read}")
     else:
@@ -289,13 +289,14 @@ def _read(stream: Any, path: Path, warn: Callable[[str], None]) -> Recording:
     return _assemble(path, metadata, metrics, points, curves, smoothed, complete, damaged, warn)
 
 
-def _damage(where: str) -> str:
-    """What a file that ends whole but cannot be read through ``where`` is."""
+def damage_line(where: str) -> str:
+    """What a file that ends whole but cannot be read through ``where`` ("after frame 41",
+    "before its first frame") is."""
     return f"damaged {where}: bytes inside the file are not the recording's (a disk or copy error)"
 
 
 # What to do about a damaged recording.
-_REWRITE = "run `pipeline process` on its session again to write it anew"
+REWRITE = "run `pipeline process` on its session again to write it anew"
 
 
 def _ends_whole(stream: Any) -> bool:

@@ -400,6 +400,22 @@ def test_a_recording_cut_before_its_first_frame_is_one_line(
         evaluate_recording(rrd, session_dir)
 
 
+def test_a_recording_damaged_before_its_first_frame_is_one_line(
+    partial_run: tuple[Path, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    recording, session_dir = partial_run
+    data = bytearray(recording.read_bytes())
+    data[700:764] = bytes(64)  # past the header and metadata, inside the first chunk
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(data)
+    with caplog.at_level(logging.WARNING), pytest.raises(EvaluationError) as info:
+        evaluate_recording(damaged, session_dir)
+    message = str(info.value)
+    assert message.startswith(f"{damaged}: the recording holds no frames (damaged before its first frame: ")
+    assert "a disk or copy error" in message and "run `pipeline process` on its session again" in message
+    assert not caplog.records  # the reason is in the error's line, not in a warning above it
+
+
 def test_recording_beyond_the_truth_is_a_user_error(partial_run: tuple[Path, Path], tmp_path: Path) -> None:
     recording, _ = partial_run
     np.savez(tmp_path / "short.npz", centerlines=np.stack([rod_truth(0)] * 4))
