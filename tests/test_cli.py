@@ -393,8 +393,8 @@ def test_ctrl_c_as_the_program_ends_changes_neither_its_lines_nor_its_status(
 
 def test_a_command_that_leaves_a_worker_pool_running_still_exits(tmp_path: Path) -> None:
     # `synth` renders longer sessions on a joblib pool it never shuts down itself; the fast
-    # exit must still stop the pool's manager thread (it once waited forever on it, so
-    # `make process` on a fresh clone never got past rendering the demo).
+    # exit must still stop the pool's manager thread: a wait on it would last for good, and
+    # `make process` on a fresh clone would never get past rendering the demo.
     frames = str(MIN_PARALLEL_FRAMES)
     command = [sys.executable, "-m", "pipeline", "synth", str(tmp_path / "s"), "--frames", frames]
     proc = subprocess.run(command, capture_output=True, text=True, timeout=120, check=False)
