@@ -174,6 +174,37 @@ def remux_with_creation_time(source: Path, target: Path, when: str | None) -> Pa
     return target
 
 
+def rewrite_mcap(
+    source: Path,
+    target: Path,
+    *,
+    chunk_size: int | None = None,
+    data: Callable[[str, int, bytes], bytes] | None = None,
+) -> Path:
+    """``source``'s schemas, channels and messages written again, in file order, into the
+    MCAP ``target``: with chunks of ``chunk_size`` bytes (the writer's default if None), and
+    each message's bytes replaced by ``data(topic, log_time_ns, bytes)`` where given."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with source.open("rb") as f, target.open("wb") as out:
+        writer = Writer(out) if chunk_size is None else Writer(out, chunk_size=chunk_size)
+        writer.start()
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        for schema, channel, message in make_reader(f).iter_messages(log_time_order=False):
+            if schema is not None and schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schemas[schema.id] if schema else 0
+                )
+            payload = message.data if data is None else data(channel.topic, message.log_time, message.data)
+            writer.add_message(channels[channel.id], message.log_time, payload, message.publish_time)
+        writer.finish()
+    return target
+
+
 COARSE_WS = Workspace((0.0, 0.0, 0.0), (256.0, 256.0, 256.0), 8.0)  # 32^3: brute force in ~0.1 s
 
 

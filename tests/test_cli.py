@@ -120,6 +120,21 @@ def test_json_before_the_session_folder_takes_stdout_not_the_folder(tmp_path: Pa
     assert build_parser().parse_args(words).json is True
 
 
+@pytest.mark.parametrize("command", ["process", "live"])
+def test_json_to_the_file_that_is_stdout_is_stdout(
+    command: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pipeline.cli.parser import build_parser
+
+    stdout, other = tmp_path / "stdout", tmp_path / "summary.json"
+    with stdout.open("w", encoding="utf-8") as f:
+        monkeypatch.setattr(sys, "stdout", f)
+        parser = build_parser()
+        assert parser.parse_args([command, "s", "--json", str(stdout)]).json == "-"
+        assert parser.parse_args([command, "s", "--json", str(other)]).json == str(other)
+        assert parser.parse_args([command, "s", "--json"]).json == "-"
+
+
 def _raising(exc: BaseException) -> object:
     def command(args: argparse.Namespace) -> int:
         raise exc
@@ -378,8 +393,8 @@ def test_ctrl_c_as_the_program_ends_changes_neither_its_lines_nor_its_status(
 
 def test_a_command_that_leaves_a_worker_pool_running_still_exits(tmp_path: Path) -> None:
     # `synth` renders longer sessions on a joblib pool it never shuts down itself; the fast
-    # exit must still stop the pool's manager thread (it once waited forever on it, so
-    # `make process` on a fresh clone never got past rendering the demo).
+    # exit must still stop the pool's manager thread: a wait on it would last for good, and
+    # `make process` on a fresh clone would never get past rendering the demo.
     frames = str(MIN_PARALLEL_FRAMES)
     command = [sys.executable, "-m", "pipeline", "synth", str(tmp_path / "s"), "--frames", frames]
     proc = subprocess.run(command, capture_output=True, text=True, timeout=120, check=False)

@@ -91,7 +91,6 @@ def cmd_process(args: argparse.Namespace) -> int:
     from ..run.workers import started_early
 
     started_at = _process_started_at()
-    args.json = _json_target(args.json)
     if args.json not in (None, "-"):
         # A session is named after its folder (pipeline.session.folder.load_session).
         name = Path(args.video_dir).resolve().name
@@ -133,7 +132,6 @@ def cmd_live(args: argparse.Namespace) -> int:
     if args.rig_dir is None and replay is None:
         args.usage_error("give RIG_DIR, or --replay SESSION_DIR")
     rig, sources = open_rig(args.rig_dir, replay)
-    args.json = _json_target(args.json)
     if args.json not in (None, "-"):
         _check_json_path(Path(args.json), _recordings(Path(args.out), rig.name))
     foxglove = None if args.foxglove is None else parse_host_port(args.foxglove or DEFAULT_FOXGLOVE)
@@ -161,18 +159,6 @@ def _rig_dir_after_viewer(args: argparse.Namespace) -> None:
     take = 2 if words[:1] == ["connect"] else 1
     if len(words) == take + 1 and args.rig_dir is None:
         args.rig_dir, args.viewer = Path(words[-1]), words[:take]
-
-
-def _json_target(text: str | None) -> str | None:
-    """``--json``'s argument, with a path that is this process's stdout (``/dev/stdout``)
-    taken as "-": opened as a file, a pipe there would be read, and waited on for good."""
-    if text in (None, "-"):
-        return text
-    try:
-        here, out = os.stat(text), os.fstat(sys.stdout.fileno())
-    except (OSError, ValueError):
-        return text
-    return "-" if (here.st_dev, here.st_ino) == (out.st_dev, out.st_ino) else text
 
 
 def _check_json_path(path: Path, outputs: tuple[Path, ...] = ()) -> None:

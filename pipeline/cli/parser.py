@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -58,6 +57,19 @@ def _path(text: str) -> Path:
     return Path(text)
 
 
+def _json_file(text: str) -> str:
+    """--json's FILE (of process and live), with a path that is this process's stdout
+    (``/dev/stdout``) taken as "-": opened as a file, a pipe there would be read, and
+    waited on for good."""
+    if text == "-":
+        return text
+    try:
+        here, out = os.stat(text), os.fstat(sys.stdout.fileno())
+    except (OSError, ValueError):
+        return text
+    return "-" if (here.st_dev, here.st_ino) == (out.st_dev, out.st_ino) else text
+
+
 def _board(text: str) -> tuple[int, int]:
     cols, sep, rows = text.lower().partition("x")
     if not sep or not cols.isdigit() or not rows.isdigit():
@@ -65,28 +77,6 @@ def _board(text: str) -> tuple[int, int]:
             f"expected COLSxROWS (e.g. 9x6: inner corners for --board, squares for --charuco), got {text!r}"
         )
     return int(cols), int(rows)
-
-
-# A word argparse reads as a negative number, not as an option (it has no such options).
-_NEGATIVE_NUMBER = re.compile(r"^-\d+$|^-\d*\.\d+$")
-
-
-def option_like_path(words: Sequence[str]) -> str | None:
-    """The first of ``words`` (before any ``--``) that argparse reads as an option but that
-    names an existing file or folder, such as a session folder called ``-x``; else None."""
-    for word in words:
-        if word == "--":
-            return None
-        read_as_option = word.startswith("-") and word != "-" and not _NEGATIVE_NUMBER.match(word)
-        if read_as_option and os.path.lexists(word):
-            return word
-    return None
-
-
-def option_like_path_message(word: str) -> str:
-    """How to give the file or folder ``word``, which starts with "-", as a path."""
-    kind = "folder" if os.path.isdir(word) else "file"
-    return f"{word} is read as an option; to give the {kind} {word}, write ./{word} (or -- {word})"
 
 
 class _Parser(argparse.ArgumentParser):
@@ -105,10 +95,29 @@ class _Parser(argparse.ArgumentParser):
             self._words = ()
 
     def error(self, message: str) -> NoReturn:
-        word = option_like_path(self._words)
+        word = self._option_like_path()
         if word is not None:
-            self.exit(EXIT_BAD_INPUT, f"error: {self.prog}: {option_like_path_message(word)}\n")
+            kind = "folder" if os.path.isdir(word) else "file"
+            self.exit(
+                EXIT_BAD_INPUT,
+                f"error: {self.prog}: {word} is read as an option; to give the {kind} {word}, "
+                f"write ./{word} (or -- {word})\n",
+            )
         self.exit(EXIT_BAD_INPUT, f"error: {self.prog}: {message} (see {self.prog} --help)\n")
+
+    def _option_like_path(self) -> str | None:
+        """The first of the words being parsed (before any ``--``) that argparse reads as an
+        option (not "-", nor a negative number: this parser has no options like those) but
+        that names an existing file or folder, such as a session folder called ``-x``."""
+        for word in self._words:
+            if word == "--":
+                return None
+            read_as_option = (
+                word.startswith("-") and word != "-" and not self._negative_number_matcher.match(word)
+            )
+            if read_as_option and os.path.lexists(word):
+                return word
+        return None
 
 
 def _version() -> str:
@@ -183,6 +192,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         "--json",
         nargs="?",
         const="-",
+        type=_json_file,
         metavar="FILE",
         help="also write the run's summary as JSON to FILE, or to stdout with - or no FILE "
         "(the text summary then goes to stderr)",
@@ -248,6 +258,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         "--json",
         nargs="?",
         const="-",
+        type=_json_file,
         metavar="FILE",
         help="also write the run's summary as JSON to FILE, or to stdout with - or no FILE",
     )

@@ -311,10 +311,8 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
     timestamps_s : (F,) float64, s, or None if the file has none.
     """
     path = Path(path)
-    check_not_dangling(path, EvaluationError)
-    file = path / "ground_truth.npz" if path.is_dir() else path
-    if file is not path:
-        check_not_dangling(file, EvaluationError)
+    file = path / "ground_truth.npz" if path.is_dir() else path  # a broken link is no folder
+    check_not_dangling(file, EvaluationError)
     if file.exists() and not file.is_file():
         raise EvaluationError(
             f"{file}: is not a regular file (a pipe or device); give the ground_truth.npz file"
@@ -376,11 +374,10 @@ def _truth_session(ground_truth: Path) -> str:
 
 def _why_no_frames(complete: bool, damaged: bool) -> str:
     """Why a recording holds no frames, for its error line: "" for a whole file."""
+    from ..record.load import REWRITE, damage_line
+
     if damaged:
-        return (
-            " (damaged before its first frame: bytes inside it are not the recording's, a disk or "
-            "copy error; run `pipeline process` on its session again)"
-        )
+        return f" ({damage_line('before its first frame')}; {REWRITE})"
     return "" if complete else " (cut short before its first frame: the run did not finish)"
 
 
@@ -414,7 +411,9 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
     if not recording.exists():  # anything else there (a named pipe) is named by load_recording
         raise EvaluationError(f"recording {recording} does not exist; run `python -m pipeline process` first")
     truth_mm, truth_times = load_ground_truth(ground_truth)
-    held: list[str] = []  # said once the recording is known to hold frames, else in the error's line
+    # The recording's warnings, said once it is known to hold frames; without frames, the
+    # error's line says why instead (_why_no_frames).
+    held: list[str] = []
     rec = load_recording(recording, on_warning=held.append)
     indices = np.asarray(rec.frame_indices, dtype=np.int64).reshape(-1)
     if len(indices) == 0:

@@ -200,7 +200,8 @@ def load_recording(path: Path | str, *, on_warning: Callable[[str], None] | None
     file, given to ``on_warning``; without it, each line is logged as a warning.
     """
     path = Path(path)
-    warn = on_warning if on_warning is not None else _log_warning
+    # A line holds no %-formatting of its own: logged as it is (a path may hold a %).
+    warn = on_warning if on_warning is not None else log.warning
     if killed_commits(path.parent, path.stem):
         warn(
             f"{path}: the run that wrote it was killed while putting its outputs in place: "
@@ -219,11 +220,6 @@ def load_recording(path: Path | str, *, on_warning: Callable[[str], None] | None
             return _read(f, path, warn)
     except OSError as exc:
         raise RecordingError(f"{path}: cannot read: {exc.strerror}") from None
-
-
-def _log_warning(message: str) -> None:
-    """A warning line of :func:`load_recording`, logged."""
-    log.warning("%s", message)
 
 
 def _read(stream: Any, path: Path, warn: Callable[[str], None]) -> Recording:
@@ -275,7 +271,7 @@ def _read(stream: Any, path: Path, warn: Callable[[str], None]) -> Recording:
             why = " ".join(str(exc).split()) or type(exc).__name__
             if damaged:
                 raise RecordingError(
-                    f"{path}: {_damage('before its first frame')}; {_REWRITE} ({why})"
+                    f"{path}: {damage_line('before its first frame')}; {REWRITE} ({why})"
                 ) from None
             raise RecordingError(f"{path}: not a readable MCAP recording ({why})") from None
         where, read = (
@@ -284,7 +280,7 @@ def _read(stream: Any, path: Path, warn: Callable[[str], None]) -> Recording:
             else ("before its first frame", "")
         )
         if damaged:
-            warn(f"{path}: {_damage(where)}{read}; {_REWRITE}")
+            warn(f"{path}: {damage_line(where)}{read}; {REWRITE}")
         else:
             warn(f"{path}: cut short {where} (the run did not finish){read}")
     else:
@@ -293,13 +289,14 @@ def _read(stream: Any, path: Path, warn: Callable[[str], None]) -> Recording:
     return _assemble(path, metadata, metrics, points, curves, smoothed, complete, damaged, warn)
 
 
-def _damage(where: str) -> str:
-    """What a file that ends whole but cannot be read through ``where`` is."""
+def damage_line(where: str) -> str:
+    """What a file that ends whole but cannot be read through ``where`` ("after frame 41",
+    "before its first frame") is."""
     return f"damaged {where}: bytes inside the file are not the recording's (a disk or copy error)"
 
 
 # What to do about a damaged recording.
-_REWRITE = "run `pipeline process` on its session again to write it anew"
+REWRITE = "run `pipeline process` on its session again to write it anew"
 
 
 def _ends_whole(stream: Any) -> bool:
@@ -313,7 +310,7 @@ def _ends_whole(stream: Any) -> bool:
 
 
 # Frame indices are int64 in the Recording's arrays.
-_MAX_FRAME = 2**63 - 1
+_MAX_FRAME = int(np.iinfo(np.int64).max)
 
 
 def _frame_metrics(path: Path, data: bytes) -> tuple[int, dict[str, Any]]:

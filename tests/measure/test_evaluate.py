@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import logging
 import os
-import struct
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import rewrite_mcap
+from mcap.reader import make_reader
 from numpy.typing import NDArray
 
 from pipeline.errors import EvaluationError, RecordingError
@@ -310,43 +312,18 @@ def test_a_truncated_recording_is_evaluated_as_far_as_it_goes_and_says_so(
     assert not evaluate_recording(cut, session_dir).complete
 
 
-def _in_small_chunks(recording: Path, copy: Path) -> Path:
-    """A copy of ``recording`` with a chunk every few messages: damage in the middle of its
-    data leaves frames before it."""
-    from mcap.reader import make_reader
-    from mcap.writer import Writer
-
-    with recording.open("rb") as f, copy.open("wb") as out:
-        writer = Writer(out, chunk_size=500)
-        writer.start()
-        schemas: dict[int, int] = {}
-        channels: dict[int, int] = {}
-        for schema, channel, message in make_reader(f).iter_messages(log_time_order=False):
-            if schema is not None and schema.id not in schemas:
-                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
-            if channel.id not in channels:
-                channels[channel.id] = writer.register_channel(
-                    channel.topic, channel.message_encoding, schemas[schema.id] if schema else 0
-                )
-            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time)
-        writer.finish()
-    return copy
-
-
-def _data_section_end(mcap: bytes | bytearray) -> int:
-    """Where an MCAP's summary starts (its footer's summary_start), after its data."""
-    footer_start = len(mcap) - 8 - 29  # the closing magic, a footer record of 29 bytes
-    return int(struct.unpack_from("<Q", mcap, footer_start + 9)[0])
-
-
 def test_a_recording_damaged_inside_is_evaluated_as_far_as_it_goes_and_named_damaged(
     partial_run: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     from pipeline.cli import EXIT_FRAMES_FAILED, main
 
     recording, session_dir = partial_run
-    data = bytearray(_in_small_chunks(recording, tmp_path / "chunked.mcap").read_bytes())
-    middle = _data_section_end(data) // 2
+    # A chunk every few messages: damage in the middle of its data leaves frames before it.
+    data = bytearray(rewrite_mcap(recording, tmp_path / "chunked.mcap", chunk_size=500).read_bytes())
+    summary = make_reader(io.BytesIO(data)).get_summary()
+    assert summary is not None and len(summary.chunk_indexes) > 2
+    chunk = summary.chunk_indexes[len(summary.chunk_indexes) // 2]
+    middle = chunk.chunk_start_offset + chunk.chunk_length // 2  # inside the middle chunk
     data[middle : middle + 64] = bytes(64)
     damaged = tmp_path / "damaged.mcap"
     damaged.write_bytes(data)
@@ -421,6 +398,22 @@ def test_a_recording_cut_before_its_first_frame_is_one_line(
     rrd.write_bytes(b"RRF2" + bytes(60))
     with pytest.raises(RecordingError, match=r"is a Rerun recording .*; read the \.mcap written beside it"):
         evaluate_recording(rrd, session_dir)
+
+
+def test_a_recording_damaged_before_its_first_frame_is_one_line(
+    partial_run: tuple[Path, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    recording, session_dir = partial_run
+    data = bytearray(recording.read_bytes())
+    data[700:764] = bytes(64)  # past the header and metadata, inside the first chunk
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(data)
+    with caplog.at_level(logging.WARNING), pytest.raises(EvaluationError) as info:
+        evaluate_recording(damaged, session_dir)
+    message = str(info.value)
+    assert message.startswith(f"{damaged}: the recording holds no frames (damaged before its first frame: ")
+    assert "a disk or copy error" in message and "run `pipeline process` on its session again" in message
+    assert not caplog.records  # the reason is in the error's line, not in a warning above it
 
 
 def test_recording_beyond_the_truth_is_a_user_error(partial_run: tuple[Path, Path], tmp_path: Path) -> None:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import rig_cameras
+from conftest import rewrite_mcap, rig_cameras
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
@@ -219,7 +219,7 @@ def test_a_files_warnings_go_to_on_warning_where_given_else_to_the_log(
     written: tuple[Path, list[FrameResult]], tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     path, _ = written
-    cut = tmp_path / "cut.mcap"
+    cut = tmp_path / "cut%d.mcap"  # a % in the name is logged as it is
     cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
     lines: list[str] = []
     with caplog.at_level(logging.WARNING):
@@ -293,27 +293,14 @@ def test_a_centerline_length_in_the_metadata_that_is_not_a_number_is_ignored(tmp
 def test_a_message_that_is_not_its_protobuf_is_read_as_damage(
     written: tuple[Path, list[FrameResult]], tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    from mcap.writer import Writer
-
     path, _ = written
-    damaged = tmp_path / "damaged.mcap"
-    with path.open("rb") as f, damaged.open("wb") as out:
-        writer = Writer(out)
-        writer.start()
-        schemas: dict[int, int] = {}
-        channels: dict[int, int] = {}
-        for schema, channel, message in make_reader(f).iter_messages():
-            if schema is not None and schema.id not in schemas:
-                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
-            if channel.id not in channels:
-                channels[channel.id] = writer.register_channel(
-                    channel.topic, channel.message_encoding, schemas[schema.id] if schema else 0
-                )
-            data = message.data
-            if channel.topic == "/reconstruction/points" and message.log_time == T0_NS + 10 * DT_NS:
-                data = b"\xff\xff\xff\xff\x0f not a PointCloud"
-            writer.add_message(channels[channel.id], message.log_time, data, message.publish_time)
-        writer.finish()
+
+    def tenth_points_broken(topic: str, log_time_ns: int, data: bytes) -> bytes:
+        if topic == "/reconstruction/points" and log_time_ns == T0_NS + 10 * DT_NS:
+            return b"\xff\xff\xff\xff\x0f not a PointCloud"
+        return data
+
+    damaged = rewrite_mcap(path, tmp_path / "damaged.mcap", data=tenth_points_broken)
     rec = pipeline.load_recording(damaged)
     assert not rec.complete and 0 < len(rec) <= 10
     assert rec.damaged and "damaged.mcap: damaged after frame" in caplog.text
