@@ -290,16 +290,10 @@ def describe_variable_rate(stamps_s: NDArray[np.float64], tick_s: float = 0.0) -
     )
 
 
-def creation_time(path: Path) -> datetime | None:
-    """The container's ``creation_time`` (MP4/MOV, Matroska; the container's own, else its
-    first video stream's), timezone-aware (UTC where it names no zone); None where the file
-    has none, or one that is not an ISO 8601 date-time."""
-    return _parse_creation_time(path, _read_container(path).creation_text)
-
-
 def _parse_creation_time(path: Path, text: str) -> datetime | None:
-    """A creation_time tag ``text`` of ``path`` as a timezone-aware date-time (UTC where it
-    names no zone); None for "" or text that is not ISO 8601."""
+    """The container's creation_time tag ``text`` of ``path`` (MP4/MOV, Matroska; the
+    container's own, else its first video stream's) as a timezone-aware date-time (UTC
+    where it names no zone); None for "" or text that is not ISO 8601."""
     if not text:
         return None
     try:
