@@ -371,22 +371,17 @@ def _read_grey_8bit(path: Path) -> NDArray[np.uint8]:
         raise SessionError(
             f"{path}: is not a regular file; save the image as an 8-bit greyscale PNG"
         ) from None
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    # One decode, to grey at the depth stored (as a calibration's board images are read).
+    raw = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
     if raw is None:
         if not os.access(path, os.R_OK):  # OpenCV says nothing of why it read nothing
             raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
         raise SessionError(f"{path}: cannot be read as an image; save it as an 8-bit greyscale PNG")
-    if raw.dtype == np.uint8:
-        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)  # OpenCV's own grey conversion, as before
-        return np.asarray(image, dtype=np.uint8)
-    if raw.dtype != np.uint16:
+    if raw.dtype not in (np.uint8, np.uint16):
         raise SessionError(
             f"{path}: holds {raw.dtype} pixels, not 8- or 16-bit grey levels; save it as an 8-bit "
             "greyscale PNG"
         )
-    if raw.ndim == 3:
-        code = cv2.COLOR_BGRA2GRAY if raw.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-        raw = cv2.cvtColor(raw, code)
     return grey_8bit(raw)
 
 
