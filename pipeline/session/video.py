@@ -210,8 +210,8 @@ def _read_container(path: Path) -> _ContainerFacts:
     (MP4, AVI; nothing is read), else from the first packets demuxed (Matroska). The
     packets are counted where the container keeps no frame count (Matroska, WebM):
     OpenCV estimates that count as its duration x fps, and a Matroska duration runs from
-    time 0, so a stream that starts 2 s in was counted 60 frames too long, and those
-    frames "failed" as cut short.
+    time 0: at 30 fps a stream that starts 2 s in would count 60 frames too many, each
+    then failing as cut short.
     """
     try:
         with av.open(str(path)) as container:
