@@ -107,7 +107,7 @@ def _load_session(directory: Path) -> Session:
     fps = _common_fps(infos)
     settings = _with_start_time(settings, infos)
     counts = tuple(i.frame_count for i in infos)
-    problems = short_videos([i.path for i in infos], counts)
+    problems = _short_videos(infos)
     if len(set(counts)) > 1 and not problems:
         log.warning(
             "videos differ in length (%s); processing the %d common frames",
@@ -143,14 +143,15 @@ def _load_session(directory: Path) -> Session:
     )
 
 
-def short_videos(paths: list[Path], counts: tuple[int, ...]) -> list[str]:
-    """A line for each video whose frame count (``counts[i]`` of ``paths[i]``) falls short of
-    the longest by more than SHORT_VIDEO_FRAMES and SHORT_VIDEO_FRACTION of it: only the
-    frames every video has are processed."""
+def _short_videos(infos: list[VideoInfo]) -> list[str]:
+    """A line for each video whose frame count falls short of the longest by more than
+    SHORT_VIDEO_FRAMES and SHORT_VIDEO_FRACTION of it: only the frames every video has are
+    processed."""
+    counts = [i.frame_count for i in infos]
     longest, common = max(counts), min(counts)
     allowed = max(SHORT_VIDEO_FRAMES, SHORT_VIDEO_FRACTION * longest)
     lines = []
-    for i, (path, count) in enumerate(zip(paths, counts, strict=True)):
+    for i, (path, count) in enumerate((info.path, info.frame_count) for info in infos):
         if longest - count <= allowed:
             continue
         others = [n for j, n in enumerate(counts) if j != i]
