@@ -210,24 +210,14 @@ def _validate(
 
 # The longest session rendered: an hour at 30 fps (its ground truth alone is ~1 GB).
 MAX_FRAMES = 108_000
-
-
-def _check_out_dir(out_dir: Path) -> None:
-    """A session is rendered into a new or empty directory, or over an earlier render (it
-    holds ground_truth.npz): never over a folder of the user's own files."""
-    check_out_dir(
-        out_dir,
-        command="synth",
-        contents="the session",
-        marker="ground_truth.npz",
-        kind="a synthetic session",
-    )
+# The session's ground truth, written by this module alone: the mark of a folder it rendered into.
+TRUTH_FILE = "ground_truth.npz"
 
 
 def _remove_earlier_views(out_dir: Path, names: set[str]) -> None:
     """An earlier render's videos and backgrounds of cameras this rig has not (a render of
     three cameras replaced by one of two): left there, they would be taken for the rig's."""
-    if not (out_dir / "ground_truth.npz").is_file():
+    if not (out_dir / TRUTH_FILE).is_file():
         return
     log.info("%s: replacing the synthetic session rendered there before", out_dir)
     for path in [*out_dir.glob("*.mp4"), *(out_dir / "background").glob("*.png")]:
@@ -301,7 +291,10 @@ def render_session(
     """
     _validate(shape, frames, seed, polarity, radius_mm, arrangement, length_mm, options)
     out_dir = Path(out_dir)
-    _check_out_dir(out_dir)
+    # Into a new or empty directory, or over an earlier render: never a folder of the user's own files.
+    check_out_dir(
+        out_dir, command="synth", contents="the session", marker=TRUTH_FILE, kind="a synthetic session"
+    )
     cameras = make_rig(arrangement, size=options.size, cameras=options.cameras)
     profile = _profile(options, radius_mm)
     centerlines, length = session_centerlines(
@@ -347,7 +340,7 @@ def render_session(
             write_image(path, np.rint(grey).astype(np.uint8))
         gains = flicker_gains(seed, frames) if options.flicker else np.ones(frames)
         write_npz_deterministic(
-            out_dir / "ground_truth.npz",
+            out_dir / TRUTH_FILE,
             {
                 "centerlines": centerlines,
                 "timestamps_s": np.arange(frames) / FPS,
