@@ -281,7 +281,7 @@ def sample_session(
 ) -> Sequence[tuple[int, Sequence[NDArray[np.uint8]]]]:
     """The ``SAMPLE_FRAMES`` frames spread over ``[start, stop)`` that settle the cameras
     (:func:`refined_cameras`), the videos' order (:mod:`.video_order`) and the tube's end:
-    (index, per camera grey image), decoded once for all three."""
+    (index, per camera (H, W) uint8 grey image), decoded once for all three."""
     return decode_frames(video_paths, sample_frames(start, stop, SAMPLE_FRAMES))
 
 

@@ -156,9 +156,11 @@ _FOLD_SEARCH = 10.0
 
 
 def _unfolded_reach(matrix: np.ndarray, size: tuple[int, int], distortions: np.ndarray) -> float:
-    """How far the radial distortion maps out without folding, as a fraction of the image
-    corners' radius: 1.0 when the distorted radius r_d(r) = r (1 + k1 r^2 + k2 r^4 + k3 r^6)
-    / (1 + k4 r^2 + k5 r^4 + k6 r^6) grows with r until it reaches the farthest corner.
+    """How far the radial distortion (``distortions``: (N,) in OpenCV's order) of a camera
+    with ``matrix`` ((3, 3), px) and images of ``size`` ((W, H), px) maps out without
+    folding, as a fraction of the image corners' radius: 1.0 when the distorted radius
+    r_d(r) = r (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6) grows with
+    r (normalised, unitless) until it reaches the farthest corner.
 
     Below 1, pixels past the fold are no ray's image and nearer ones two rays' (a
     calibration that carves nothing). Tangential, prism and tilt terms are left out: they

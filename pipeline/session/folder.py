@@ -107,7 +107,7 @@ def _load_session(directory: Path) -> Session:
     fps = _common_fps(infos)
     settings = _with_start_time(settings, infos)
     counts = tuple(i.frame_count for i in infos)
-    problems = short_videos([i.path for i in infos], counts)
+    problems = _short_videos(infos)
     if len(set(counts)) > 1 and not problems:
         log.warning(
             "videos differ in length (%s); processing the %d common frames",
@@ -143,14 +143,15 @@ def _load_session(directory: Path) -> Session:
     )
 
 
-def short_videos(paths: list[Path], counts: tuple[int, ...]) -> list[str]:
-    """A line for each video whose frame count (``counts[i]`` of ``paths[i]``) falls short of
-    the longest by more than SHORT_VIDEO_FRAMES and SHORT_VIDEO_FRACTION of it: only the
-    frames every video has are processed."""
+def _short_videos(infos: list[VideoInfo]) -> list[str]:
+    """A line for each video whose frame count falls short of the longest by more than
+    SHORT_VIDEO_FRAMES and SHORT_VIDEO_FRACTION of it: only the frames every video has are
+    processed."""
+    counts = [i.frame_count for i in infos]
     longest, common = max(counts), min(counts)
     allowed = max(SHORT_VIDEO_FRAMES, SHORT_VIDEO_FRACTION * longest)
     lines = []
-    for i, (path, count) in enumerate(zip(paths, counts, strict=True)):
+    for i, (path, count) in enumerate((info.path, info.frame_count) for info in infos):
         if longest - count <= allowed:
             continue
         others = [n for j, n in enumerate(counts) if j != i]
@@ -371,22 +372,17 @@ def _read_grey_8bit(path: Path) -> NDArray[np.uint8]:
         raise SessionError(
             f"{path}: is not a regular file; save the image as an 8-bit greyscale PNG"
         ) from None
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    # One decode, to grey at the depth stored (as a calibration's board images are read).
+    raw = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
     if raw is None:
         if not os.access(path, os.R_OK):  # OpenCV says nothing of why it read nothing
             raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
         raise SessionError(f"{path}: cannot be read as an image; save it as an 8-bit greyscale PNG")
-    if raw.dtype == np.uint8:
-        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)  # OpenCV's own grey conversion, as before
-        return np.asarray(image, dtype=np.uint8)
-    if raw.dtype != np.uint16:
+    if raw.dtype not in (np.uint8, np.uint16):
         raise SessionError(
             f"{path}: holds {raw.dtype} pixels, not 8- or 16-bit grey levels; save it as an 8-bit "
             "greyscale PNG"
         )
-    if raw.ndim == 3:
-        code = cv2.COLOR_BGRA2GRAY if raw.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-        raw = cv2.cvtColor(raw, code)
     return grey_8bit(raw)
 
 

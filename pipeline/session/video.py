@@ -210,8 +210,8 @@ def _read_container(path: Path) -> _ContainerFacts:
     (MP4, AVI; nothing is read), else from the first packets demuxed (Matroska). The
     packets are counted where the container keeps no frame count (Matroska, WebM):
     OpenCV estimates that count as its duration x fps, and a Matroska duration runs from
-    time 0, so a stream that starts 2 s in was counted 60 frames too long, and those
-    frames "failed" as cut short.
+    time 0: at 30 fps a stream that starts 2 s in would count 60 frames too many, each
+    then failing as cut short.
     """
     try:
         with av.open(str(path)) as container:
@@ -226,13 +226,12 @@ def _read_container(path: Path) -> _ContainerFacts:
                 return _ContainerFacts(still_kind=still, creation_text=text or "")
             stream = streams[0]
             time_base = float(stream.time_base or Fraction(1, 1000))
-            entries = stream.index_entries
-            indexed = 0 < len(entries) == stream.frames
+            index = _FrameIndex.of(stream)
             ticks, count = _demuxed(
-                container, stream, ticks_wanted=not indexed, count_wanted=stream.frames <= 0
+                container, stream, ticks_wanted=index is None, count_wanted=stream.frames <= 0
             )
-            if indexed:
-                ticks = [entries[k].timestamp for k in range(min(len(entries), VFR_FRAMES))]
+            if index is not None:
+                ticks = [index[k].timestamp for k in range(min(stream.frames, VFR_FRAMES))]
             return _ContainerFacts(
                 still_kind=still,
                 streams=len(streams) if ticks is not None else 0,
@@ -256,19 +255,20 @@ def _demuxed(
     the count of all its packets (if ``count_wanted``), from one pass of demuxing that
     stops once it has what is wanted; each None where not wanted, or where the demuxer
     fails before it is read."""
+    if not (ticks_wanted or count_wanted):
+        return None, None
     ticks: list[int] = []
     count = 0
-    if ticks_wanted or count_wanted:
-        try:
-            for packet in container.demux(stream):
-                if packet.pts is not None and len(ticks) < VFR_FRAMES:
-                    ticks.append(packet.pts)
-                count += packet.size > 0
-                if not count_wanted and len(ticks) >= VFR_FRAMES:
-                    break
-        except (av.error.FFmpegError, OSError):
-            return (ticks if ticks_wanted and len(ticks) >= VFR_FRAMES else None), None
-    return (ticks if ticks_wanted else []), (count if count_wanted else None)
+    try:
+        for packet in container.demux(stream):
+            if packet.pts is not None and len(ticks) < VFR_FRAMES:
+                ticks.append(packet.pts)
+            count += packet.size > 0
+            if not count_wanted and len(ticks) >= VFR_FRAMES:
+                break
+    except (av.error.FFmpegError, OSError):
+        return (ticks if ticks_wanted and len(ticks) >= VFR_FRAMES else None), None
+    return (ticks if ticks_wanted else None), (count if count_wanted else None)
 
 
 def describe_variable_rate(stamps_s: NDArray[np.float64], tick_s: float = 0.0) -> str:
@@ -290,16 +290,10 @@ def describe_variable_rate(stamps_s: NDArray[np.float64], tick_s: float = 0.0) -
     )
 
 
-def creation_time(path: Path) -> datetime | None:
-    """The container's ``creation_time`` (MP4/MOV, Matroska; the container's own, else its
-    first video stream's), timezone-aware (UTC where it names no zone); None where the file
-    has none, or one that is not an ISO 8601 date-time."""
-    return _parse_creation_time(path, _read_container(path).creation_text)
-
-
 def _parse_creation_time(path: Path, text: str) -> datetime | None:
-    """A creation_time tag ``text`` of ``path`` as a timezone-aware date-time (UTC where it
-    names no zone); None for "" or text that is not ISO 8601."""
+    """The container's creation_time tag ``text`` of ``path`` (MP4/MOV, Matroska; the
+    container's own, else its first video stream's) as a timezone-aware date-time (UTC
+    where it names no zone); None for "" or text that is not ISO 8601."""
     if not text:
         return None
     try:

@@ -34,9 +34,7 @@ cam1.
 
 from __future__ import annotations
 
-import errno
 import logging
-import shutil
 from pathlib import Path
 
 import cv2
@@ -46,7 +44,7 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from ..errors import PipelineError
-from .out_dir import check_out_dir
+from .out_dir import check_out_dir, left_behind, write_image
 from .rig import WORKSPACE_CENTER_MM, SynthCamera, calibration_document, make_rig
 
 log = logging.getLogger(__name__)
@@ -182,34 +180,19 @@ def render_calibration_views(
         for path, ci, R, t in tqdm(jobs, desc="synth-calib", unit="image", disable=not progress):
             image = _render(rays[ci], cams[ci], R, t, cols, rows, square_mm, rng, texture=texture)
             path.parent.mkdir(parents=True, exist_ok=True)
-            _write_image(path, image)
+            write_image(path, image)
         (out_dir / "board.toml").write_text(tomli_w.dumps({**board_doc, "square_mm": float(square_mm)}))
         truth = calibration_document(cams, metadata={"source": "synth-calib", "arrangement": arrangement})
         (out_dir / TRUTH_FILE).write_text(tomli_w.dumps(truth))
     except OSError as exc:
         # A full disk or a folder that turned read-only: a render into a new folder leaves
         # nothing; one over an earlier render leaves it incomplete, and says so.
+        incomplete = f"the board images in {out_dir} are incomplete: render them again"
         raise PipelineError(
             f"{exc.filename or out_dir}: cannot be written ({exc.strerror or exc}); "
-            f"{_left(out_dir, created)}, after freeing space or in another directory"
+            f"{left_behind(out_dir, created, incomplete)}, after freeing space or in another directory"
         ) from None
     log.info("wrote %d calibration images to %s", len(jobs), out_dir)
-
-
-def _write_image(path: Path, image: NDArray[np.uint8]) -> None:
-    """Write ``image`` to ``path``; OSError where OpenCV does not (it only returns False:
-    a full disk, a folder in the file's place)."""
-    if not cv2.imwrite(str(path), image):
-        raise OSError(errno.EIO, "OpenCV wrote no image: a full disk, or a folder in its place?", str(path))
-
-
-def _left(out_dir: Path, created: bool) -> str:
-    """What a render that stopped part-way leaves: nothing, where it made the folder (it is
-    removed), else an earlier render's images partly replaced."""
-    if created:
-        shutil.rmtree(out_dir, ignore_errors=True)
-        return "nothing written"
-    return f"the board images in {out_dir} are incomplete: render them again"
 
 
 def _camera_rays(cam: SynthCamera) -> FloatArray:

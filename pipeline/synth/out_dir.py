@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import errno
+import shutil
 from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
 
 from ..errors import PipelineError
 
@@ -20,3 +26,20 @@ def check_out_dir(out_dir: Path, *, command: str, contents: str, marker: str, ki
         raise PipelineError(
             f"{out_dir}: holds files and is not {kind} (no {marker}); give {command} a new or empty directory"
         )
+
+
+def write_image(path: Path, image: NDArray[np.uint8]) -> None:
+    """Write ``image`` ((H, W) uint8 grey levels) to ``path``; OSError where OpenCV does not
+    (it only returns False: a full disk, a folder in the file's place)."""
+    if not cv2.imwrite(str(path), image):
+        raise OSError(errno.EIO, "OpenCV wrote no image: a full disk, or a folder in its place?", str(path))
+
+
+def left_behind(out_dir: Path, created: bool, incomplete: str) -> str:
+    """What a render into ``out_dir`` that stopped part-way leaves, for its message: "nothing
+    written" where the render made the folder (it is removed here), else ``incomplete``
+    (the earlier render it partly replaced, and what to do)."""
+    if created:
+        shutil.rmtree(out_dir, ignore_errors=True)
+        return "nothing written"
+    return incomplete

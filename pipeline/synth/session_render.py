@@ -11,7 +11,6 @@ import dataclasses
 import errno
 import io
 import logging
-import shutil
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +28,7 @@ from .calib_error import perturbed_rig
 from .distractor import paint_distractor, place_distractor
 from .images import background_texture, flicker_gains, render_frame, threshold_for
 from .names import IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
-from .out_dir import check_out_dir
+from .out_dir import check_out_dir, left_behind, write_image
 from .poses import out_of_view, outside_box, self_contact
 from .radius_profiles import Disks, RadiusProfile, disks_of, radius_along
 from .random_shapes import draw_shape, shape_at
@@ -211,33 +210,14 @@ def _validate(
 
 # The longest session rendered: an hour at 30 fps (its ground truth alone is ~1 GB).
 MAX_FRAMES = 108_000
-
-
-def _check_out_dir(out_dir: Path) -> None:
-    """A session is rendered into a new or empty directory, or over an earlier render (it
-    holds ground_truth.npz): never over a folder of the user's own files."""
-    check_out_dir(
-        out_dir,
-        command="synth",
-        contents="the session",
-        marker="ground_truth.npz",
-        kind="a synthetic session",
-    )
-
-
-def _left(out_dir: Path, created: bool) -> str:
-    """What a render that stopped part-way leaves: nothing, where it made the folder (it is
-    removed), else an earlier render partly replaced."""
-    if created:
-        shutil.rmtree(out_dir, ignore_errors=True)
-        return "nothing written"
-    return f"the session in {out_dir} is incomplete: render it again"
+# The session's ground truth, written by this module alone: the mark of a folder it rendered into.
+TRUTH_FILE = "ground_truth.npz"
 
 
 def _remove_earlier_views(out_dir: Path, names: set[str]) -> None:
     """An earlier render's videos and backgrounds of cameras this rig has not (a render of
     three cameras replaced by one of two): left there, they would be taken for the rig's."""
-    if not (out_dir / "ground_truth.npz").is_file():
+    if not (out_dir / TRUTH_FILE).is_file():
         return
     log.info("%s: replacing the synthetic session rendered there before", out_dir)
     for path in [*out_dir.glob("*.mp4"), *(out_dir / "background").glob("*.png")]:
@@ -311,7 +291,10 @@ def render_session(
     """
     _validate(shape, frames, seed, polarity, radius_mm, arrangement, length_mm, options)
     out_dir = Path(out_dir)
-    _check_out_dir(out_dir)
+    # Into a new or empty directory, or over an earlier render: never a folder of the user's own files.
+    check_out_dir(
+        out_dir, command="synth", contents="the session", marker=TRUTH_FILE, kind="a synthetic session"
+    )
     cameras = make_rig(arrangement, size=options.size, cameras=options.cameras)
     profile = _profile(options, radius_mm)
     centerlines, length = session_centerlines(
@@ -322,6 +305,7 @@ def render_session(
     check_poses(centerlines, radii, cameras, tip=options.tip, disks=disks)
 
     created = not out_dir.exists()
+    incomplete = f"the session in {out_dir} is incomplete: render it again"
     try:
         try:
             (out_dir / "background").mkdir(parents=True, exist_ok=True)
@@ -353,11 +337,10 @@ def render_session(
         for cam, bg in zip(cameras, backgrounds, strict=True):
             grey = 255.0 - bg if polarity == "bright" else bg
             path = out_dir / "background" / f"{cam.name}.png"
-            if not cv2.imwrite(str(path), np.rint(grey).astype(np.uint8)):
-                raise OSError(errno.EIO, "the background image was not written", str(path))
+            write_image(path, np.rint(grey).astype(np.uint8))
         gains = flicker_gains(seed, frames) if options.flicker else np.ones(frames)
         write_npz_deterministic(
-            out_dir / "ground_truth.npz",
+            out_dir / TRUTH_FILE,
             {
                 "centerlines": centerlines,
                 "timestamps_s": np.arange(frames) / FPS,
@@ -392,11 +375,11 @@ def render_session(
         # A full disk or a folder that turned read-only: a render into a new folder leaves
         # nothing; one over an earlier render leaves it incomplete, and says so.
         raise PipelineError(
-            f"{out_dir}: cannot write the session ({exc.strerror or exc}); {_left(out_dir, created)}, after "
-            "freeing space or in another directory"
+            f"{out_dir}: cannot write the session ({exc.strerror or exc}); "
+            f"{left_behind(out_dir, created, incomplete)}, after freeing space or in another directory"
         ) from None
     except KeyboardInterrupt:
-        raise Interrupted(f"interrupted; {_left(out_dir, created)}") from None
+        raise Interrupted(f"interrupted; {left_behind(out_dir, created, incomplete)}") from None
 
 
 def _write_videos(

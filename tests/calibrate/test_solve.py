@@ -204,14 +204,17 @@ def test_16_bit_images_holding_8_bit_values_are_read_at_their_contrast(small_rig
     assert result.camera_mean_px()["cam1"] < 0.2
 
 
+@pytest.mark.parametrize("channels", [1, 3])
 @pytest.mark.parametrize("top", [255, 4095, 30000, 65535])
-def test_a_16_bit_board_image_reads_at_a_backgrounds_levels(tmp_path, top: int) -> None:
-    """One rule for both: a board image is not stretched to its brightest pixel."""
+def test_a_16_bit_board_image_reads_at_a_backgrounds_levels(tmp_path, top: int, channels: int) -> None:
+    """One rule for both, grey or colour: a board image is not stretched to its brightest pixel."""
     path = tmp_path / "board.png"
-    cv2.imwrite(str(path), np.linspace(0, top, 64 * 48).reshape(48, 64).astype(np.uint16))
+    levels = np.linspace(0, top, 64 * 48).reshape(48, 64).astype(np.uint16)
+    cv2.imwrite(str(path), levels if channels == 1 else np.dstack([levels, levels // 2, levels]))
     as_board = _read_grey(path)
     np.testing.assert_array_equal(as_board, _read_grey_8bit(path))
-    assert int(as_board.max()) == (117 if top == 30000 else 255)
+    if channels == 1:
+        assert int(as_board.max()) == (117 if top == 30000 else 255)
 
 
 def test_a_camera_with_shared_views_alone_is_calibrated(tmp_path) -> None:

@@ -59,7 +59,7 @@ def test_two_videos_swapped_are_named(session: Path, tmp_path: Path) -> None:
 
 def test_cameras_of_other_sizes_are_not_taken_for_each_other(session: Path) -> None:
     # cam2 films at twice the size (its images and its calibration both): no order may give
-    # its video to another camera, though the others' pair is checked as before.
+    # its video to another camera, while the other two are still checked against each other.
     import dataclasses
 
     import cv2

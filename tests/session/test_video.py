@@ -322,7 +322,7 @@ def test_a_creation_time_that_is_no_date_is_ignored(tmp_path: Path) -> None:
     odd = remux_with_creation_time(plain, tmp_path / "odd.nut", "last tuesday")
     with av.open(str(odd)) as container:
         assert container.metadata["creation_time"] == "last tuesday"
-    assert video.creation_time(odd) is None
+    assert video.probe_video(odd).creation_time is None
 
 
 # --- what the reader does not follow: rotation tags, second streams, variable rates ----------

@@ -995,3 +995,16 @@ def test_synth_draws_no_progress_bar_into_a_log(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr
     assert "\r" not in proc.stderr and "rendering" not in proc.stderr
     assert proc.stderr.strip().endswith("(bend_rotate, 2 frames)")
+
+
+def test_a_background_opencv_does_not_write_is_named_and_leaves_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # OpenCV returns False, raising nothing, where it cannot write (a full disk).
+    monkeypatch.setattr("pipeline.synth.out_dir.cv2.imwrite", lambda *_: False)
+    with pytest.raises(
+        PipelineError,
+        match=r"new: cannot write the session \(OpenCV wrote no image: a full disk.*; nothing written",
+    ):
+        render_session(tmp_path / "new", frames=2, progress=False, jobs=1)
+    assert not (tmp_path / "new").exists()
