@@ -9,7 +9,6 @@ its source itself; these functions give what went wrong, and what to check.
 from __future__ import annotations
 
 import errno
-import re
 
 import av
 
@@ -35,9 +34,9 @@ REASONS_BY_ERRNO = {
 
 
 def ffmpeg_text(exc: BaseException) -> str:
-    """The error's own text on one line, without FFmpeg's error number or the source's URL."""
-    text = getattr(exc, "strerror", None) or str(exc)
-    text = re.sub(r"^\[Errno -?\d+\]\s*", "", " ".join(str(text).split()))
+    """The error's own text on one line: an OSError's (FFmpeg's too) ``strerror``, without
+    the error number and the source's URL that ``str`` adds to it."""
+    text = " ".join(str(getattr(exc, "strerror", None) or exc).split())
     return text[:200] or type(exc).__name__
 
 
