@@ -816,7 +816,7 @@ def test_a_source_of_a_scheme_ffmpeg_does_not_read_stops_the_run_named(session: 
 def test_named_pipes_nothing_writes_to_end_with_the_run(
     session: Path, tmp_path: Path, duration_s: float
 ) -> None:
-    # Stopped at once, the readers may not have reached their pipes' open yet when the stop lands.
+    # Stopped at once, the stop may land before the readers have opened their pipes.
     pipes = [tmp_path / f"cam{k}.pipe" for k in range(3)]
     for pipe in pipes:
         os.mkfifo(pipe)
@@ -824,10 +824,10 @@ def test_named_pipes_nothing_writes_to_end_with_the_run(
     rig, sources = open_rig(rig_dir, None)
     try:
         summary = run_live(rig, sources, out_dir=tmp_path / "out", duration_s=duration_s)
-        # Each reader waited to open its pipe: the run's stop reached it there, and it ended.
+        # Each reader waited for its pipe's first data: the run's stop reached it there, and it ended.
         waiting = [t.name for t in threading.enumerate() if t.name.startswith("camera-cam")]
     finally:
-        for pipe in pipes:  # a reader still waiting in its open (a failure above) is let go
+        for pipe in pipes:  # a reader still waiting on its pipe (a failure above) reads its end
             with contextlib.suppress(OSError):
                 os.close(os.open(pipe, os.O_WRONLY | os.O_NONBLOCK))
     assert waiting == []
