@@ -10,6 +10,7 @@ it is due (when a camera would have delivered it), and ends with its last frame.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import select
@@ -215,7 +216,8 @@ class CameraReader:
         finally:
             self.finished.set()
 
-    def _open(self) -> Any:
+    def _open(self, pipe: PipeFile | None) -> Any:
+        """The source opened by FFmpeg, read through ``pipe`` where it is a named pipe."""
         options = {}
         if self.source.format == V4L2_FORMAT:
             options["video_size"] = f"{self.size_px[0]}x{self.size_px[1]}"
@@ -223,18 +225,13 @@ class CameraReader:
             # A stream's frames are stamped as they arrive: FFmpeg's probing would hold the
             # first ones back and hand them over at once, stamped alike.
             options.update(LOW_DELAY_OPTIONS)
-        timeout = None if self.source.is_replay else (OPEN_TIMEOUT_S, self._stall_s)
-        target: Any = self.source.url
-        if not self.source.is_replay and _is_pipe(self.source.url):
-            # The pipe's reads see the stop and time out themselves (FFmpeg's cannot).
-            target, timeout = PipeFile(self.source.url, self._stop, self._stall_s), None
+        # The pipe's reads see the stop and time out themselves (FFmpeg's cannot).
+        timeout = None if self.source.is_replay or pipe is not None else (OPEN_TIMEOUT_S, self._stall_s)
         try:
-            return av.open(target, format=self.source.format, options=options, timeout=timeout)
-        except BaseException as exc:
-            if isinstance(target, PipeFile):
-                target.close()
-            if not isinstance(exc, av.error.ProtocolNotFoundError):
-                raise
+            return av.open(
+                pipe or self.source.url, format=self.source.format, options=options, timeout=timeout
+            )
+        except av.error.ProtocolNotFoundError:
             # Never opens, however often it is tried: a typo (rtps://) or another program's URL.
             scheme = self.source.url.partition(":")[0]
             raise SourceFault(
@@ -244,9 +241,14 @@ class CameraReader:
 
     def _read(self) -> None:
         self._opened = False
-        container = self._open()
-        self._opened = True
-        try:
+        with contextlib.ExitStack() as held:  # closed in reverse: the container, then the pipe
+            pipe = None
+            if not self.source.is_replay and _is_pipe(self.source.url):
+                pipe = held.enter_context(
+                    contextlib.closing(PipeFile(self.source.url, self._stop, self._stall_s))
+                )
+            container = held.enter_context(self._open(pipe))
+            self._opened = True
             if not container.streams.video:
                 raise VideoError("it holds no video stream")
             stream = container.streams.video[0]
@@ -267,8 +269,6 @@ class CameraReader:
                         "to the calibrated resolution, or use this resolution's calibration"
                     )
                 self._hand_over(k, arrived_ns, greyer(frame))
-        finally:
-            container.close()
 
     def _hand_over(self, k: int, arrived_ns: int, image: NDArray[np.uint8]) -> None:
         if self.source.replay_fps is not None:

@@ -9,13 +9,9 @@ its source itself; these functions give what went wrong, and what to check.
 from __future__ import annotations
 
 import errno
-import re
 
-# FFmpeg's tag for "Immediate exit requested", as PyAV reports it (1414092869, 'EXIT'):
-# its open or read was cut off by the run's timeout.
-FFMPEG_EXIT = 0x54495845
-# FFmpeg's tag for "Invalid data found when processing input" (1094995529, 'INDA').
-FFMPEG_INVALID_DATA = 0x41444E49
+import av
+
 _PLUGGED_IN = "check that the camera is plugged in"
 _PERMISSION = "check that this user may read the device (the video group)"
 # (what went wrong, what to check) by the error number FFmpeg or the system gives.
@@ -34,17 +30,13 @@ REASONS_BY_ERRNO = {
     errno.ENETUNREACH: ("network unreachable", "check the network and the URL's host"),
     errno.ECONNRESET: ("the connection was reset", "check the program serving the camera's stream"),
     errno.EIO: ("input/output error", "check the camera's cable and power"),
-    FFMPEG_INVALID_DATA: (
-        "FFmpeg cannot read the stream (invalid data)",
-        "check the format the camera sends",
-    ),
 }
 
 
 def ffmpeg_text(exc: BaseException) -> str:
-    """The error's own text on one line, without FFmpeg's error number or the source's URL."""
-    text = getattr(exc, "strerror", None) or str(exc)
-    text = re.sub(r"^\[Errno -?\d+\]\s*", "", " ".join(str(text).split()))
+    """The error's own text on one line: an OSError's (FFmpeg's too) ``strerror``, without
+    the error number and the source's URL that ``str`` adds to it."""
+    text = " ".join(str(getattr(exc, "strerror", None) or exc).split())
     return text[:200] or type(exc).__name__
 
 
@@ -56,14 +48,16 @@ def outage_reason(
     ``opened``: the source had opened (the error came while reading it), so a timeout is
     a stall rather than a stream that never came.
     """
-    code = abs(getattr(exc, "errno", None) or 0)
-    if code == FFMPEG_EXIT:
+    if isinstance(exc, av.error.ExitError):  # its open or read was cut off by the run's timeout
         if opened:
             return f"no frame for {stall_s:g} s", "check the camera's cable, power or stream"
         return (
             f"no stream within {open_timeout_s:g} s",
             "check that the camera sends its stream to this address",
         )
+    if isinstance(exc, av.error.InvalidDataError):
+        return "FFmpeg cannot read the stream (invalid data)", "check the format the camera sends"
+    code = abs(getattr(exc, "errno", None) or 0)  # the system's number, of either sign
     if code in REASONS_BY_ERRNO:
         return REASONS_BY_ERRNO[code]
     if not code:  # neither FFmpeg's error nor the system's: its text says it

@@ -124,15 +124,11 @@ class LiveSummary:
     def outage_lines(self) -> list[str]:
         lines = []
         if not self.run.frames_total:
-            when = f" before the run was stopped by {self.stopped_by}"
-            lines.append(
-                f"  no frame-set arrived{when if self.stopped_by in ('--duration', 'a signal') else ''}; "
-                "nothing written"
-            )
+            by_stop = self.stopped_by in ("--duration", "a signal")
+            when = f" before the run was stopped by {self.stopped_by}" if by_stop else ""
+            lines.append(f"  no frame-set arrived{when}; nothing written")
         for cam in self.cameras:
-            if not cam.outages and cam.is_replay:
-                continue  # a replay stopped before its first frame: nothing wrong with it
-            if not cam.delivered:
+            if cam.silent:
                 why = cam.outages[0] if cam.outages else "its source opened no stream before the run ended"
                 lines.append(
                     f"  camera {cam.name}: delivered no frame ({why}); check its source in [live] in "

@@ -63,7 +63,7 @@ def rig_sources(rig: Session) -> list[Source]:
             f"{toml}: no [live] table; add one naming each camera's source "
             '(cam0 = "/dev/video0", cam1 = 1, cam2 = "udp://127.0.0.1:5002"), or use --replay SESSION_DIR'
         )
-    sources: list[Source] = []
+    sources: dict[tuple[str | int, ...], Source] = {}  # by what each is (source_identity)
     for cam in rig.cameras:
         text = live.source(cam.name)
         if text is None:
@@ -74,7 +74,7 @@ def rig_sources(rig: Session) -> list[Source]:
         source = parse_source(cam.name, text)
         _check_path(toml, source)
         identity = source_identity(source.url)
-        other = next((s for s in sources if source_identity(s.url) == identity), None)
+        other = sources.get(identity)
         if other is not None:
             # The second reader would be refused (a device busy, a port in use) or steal
             # half the frames: the run would go on short of a camera.
@@ -85,8 +85,8 @@ def rig_sources(rig: Session) -> list[Source]:
                 f"{toml}: [live] gives cameras {other.camera!r} and {cam.name!r} the same source "
                 f"({names}); each camera needs a source of its own"
             )
-        sources.append(source)
-    return sources
+        sources[identity] = source
+    return list(sources.values())
 
 
 def source_identity(url: str) -> tuple[str | int, ...]:

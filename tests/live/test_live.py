@@ -22,6 +22,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -815,7 +816,7 @@ def test_a_source_of_a_scheme_ffmpeg_does_not_read_stops_the_run_named(session: 
 def test_named_pipes_nothing_writes_to_end_with_the_run(
     session: Path, tmp_path: Path, duration_s: float
 ) -> None:
-    # Stopped at once, the readers may not have reached their pipes' open yet when the stop lands.
+    # Stopped at once, the stop may land before the readers have opened their pipes.
     pipes = [tmp_path / f"cam{k}.pipe" for k in range(3)]
     for pipe in pipes:
         os.mkfifo(pipe)
@@ -823,10 +824,10 @@ def test_named_pipes_nothing_writes_to_end_with_the_run(
     rig, sources = open_rig(rig_dir, None)
     try:
         summary = run_live(rig, sources, out_dir=tmp_path / "out", duration_s=duration_s)
-        # Each reader waited to open its pipe: the run's stop reached it there, and it ended.
+        # Each reader waited for its pipe's first data: the run's stop reached it there, and it ended.
         waiting = [t.name for t in threading.enumerate() if t.name.startswith("camera-cam")]
     finally:
-        for pipe in pipes:  # a reader still waiting in its open (a failure above) is let go
+        for pipe in pipes:  # a reader still waiting on its pipe (a failure above) reads its end
             with contextlib.suppress(OSError):
                 os.close(os.open(pipe, os.O_WRONLY | os.O_NONBLOCK))
     assert waiting == []
@@ -852,8 +853,18 @@ def _mpegts(video: Path) -> bytes:
 
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes")
 def test_named_pipes_whose_writers_stall_open_are_reported_and_end_with_the_run(
-    session: Path, tmp_path: Path
+    session: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    from pipeline.live import capture
+
+    opened: list[capture.PipeFile] = []
+
+    class KeptPipeFile(capture.PipeFile):
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs)
+            opened.append(self)
+
+    monkeypatch.setattr(capture, "PipeFile", KeptPipeFile)
     pipes = [tmp_path / f"cam{k}.pipe" for k in range(3)]
     # Five times over: more than FFmpeg probes before the first frame.
     streams = [_mpegts(session / f"cam{k}.mp4") * 5 for k in range(3)]
@@ -878,6 +889,8 @@ def test_named_pipes_whose_writers_stall_open_are_reported_and_end_with_the_run(
         for fd in writers:
             os.close(fd)
     assert blocked == []
+    # Each pipe's reading end is closed with its stream (after the stall, and after the stop).
+    assert len(opened) >= 3 and all(pipe._fd is None for pipe in opened)
     assert summary.stopped_by == "--duration"
     for k in range(3):
         assert summary.camera(f"cam{k}").delivered > 0
