@@ -270,25 +270,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         report.to_json() if args.json else format_report(report),
         result=f"the report of {args.recording.name}",
     )
-    if not report.complete:
-        print(
-            f"warning: {_incomplete_recording_line(args.recording, report.frames, report.damaged)}",
-            file=sys.stderr,
-        )
-        return EXIT_FRAMES_FAILED
-    return EXIT_OK
-
-
-def _incomplete_recording_line(recording: Path, frames: int, damaged: bool) -> str:
-    """What an evaluation of ``recording``, read only as far as its first ``frames`` frames,
-    says of it: damaged inside (a disk or copy error), or cut short while being written."""
-    if damaged:
-        return (
-            f"{recording} is damaged after its {frames} readable frames (bytes inside it are not the "
-            "recording's: a disk or copy error): the figures are of those frames; run `pipeline "
-            "process` on the session again for all of them"
-        )
-    return (
-        f"{recording} ends before its footer (its run was stopped while writing): the figures are "
-        f"of the {frames} frames it holds; process the session again for all of them"
-    )
+    # A recording cut short or damaged is named by the reading's own warning (on stderr):
+    # the report is of the frames it holds, and the exit status says it is not the whole run.
+    return EXIT_OK if report.complete else EXIT_FRAMES_FAILED

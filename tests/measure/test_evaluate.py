@@ -7,6 +7,7 @@ import io
 import json
 import logging
 import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -297,7 +298,7 @@ def test_cli_evaluate_prints_the_table_and_json(
 
 
 def test_a_truncated_recording_is_evaluated_as_far_as_it_goes_and_says_so(
-    partial_run: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    partial_run: tuple[Path, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     from pipeline.cli import EXIT_FRAMES_FAILED, main
 
@@ -307,13 +308,14 @@ def test_a_truncated_recording_is_evaluated_as_far_as_it_goes_and_says_so(
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(recording.read_bytes()[: recording.stat().st_size - 64])  # the footer lost
     assert main(["evaluate", str(cut), str(session_dir)]) == EXIT_FRAMES_FAILED
-    err = capsys.readouterr().err
-    assert "ends before its footer" in err and "cut.mcap" in err
+    # One line names it, the reading's: the report is of the frames before the cut.
+    (line,) = [r.getMessage() for r in caplog.records if "cut.mcap" in r.getMessage()]
+    assert "(the run did not finish)" in line and "damaged" not in line
     assert not evaluate_recording(cut, session_dir).complete
 
 
 def test_a_recording_damaged_inside_is_evaluated_as_far_as_it_goes_and_named_damaged(
-    partial_run: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    partial_run: tuple[Path, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     from pipeline.cli import EXIT_FRAMES_FAILED, main
 
@@ -328,11 +330,19 @@ def test_a_recording_damaged_inside_is_evaluated_as_far_as_it_goes_and_named_dam
     damaged = tmp_path / "damaged.mcap"
     damaged.write_bytes(data)
     assert main(["evaluate", str(damaged), str(session_dir)]) == EXIT_FRAMES_FAILED
-    (line,) = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning:")]
-    assert (
-        line.startswith(f"warning: {damaged} is damaged after its ") and "ends before its footer" not in line
+    (line,) = [r.getMessage() for r in caplog.records if str(damaged) in r.getMessage()]
+    assert f"{damaged}: damaged after frame " in line and "cut short" not in line
+    assert "run `pipeline process` on its session again" in line
+    # The command says it once: the reading's line, its report of the frames before it, exit 1.
+    run = subprocess.run(
+        [sys.executable, "-m", "pipeline", "evaluate", str(damaged), str(session_dir)],
+        capture_output=True,
+        text=True,
+        check=False,
     )
-    assert "run `pipeline process` on the session again" in line
+    assert run.returncode == EXIT_FRAMES_FAILED and "centreline mean" in run.stdout
+    said = [s for s in run.stderr.splitlines() if "damaged after" in s or "is damaged" in s]
+    assert said == [f"WARNING: {line}"]
     report = evaluate_recording(damaged, session_dir)
     assert report.damaged and not report.complete
 
