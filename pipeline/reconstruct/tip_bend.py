@@ -40,27 +40,40 @@ FloatArray = NDArray[np.float64]
 
 _log = logging.getLogger(__name__)
 
-# Bending the tip to the pixels (bend_tip_to_pixels): the curve's last 4
-# radii are bent, then its last 2, then its last 1, each by a pattern search
-# with these steps (mm); the tube is drawn SUPERSAMPLE times finer than the
-# image (coverage to 1/16 of a pixel), with _RING_POINTS points on each circle
-# of its flat end, in a window reaching _WINDOW_PX past the drawn tube (room for
-# the largest bend allowed, 1.5 radii: ~8 px for r = 9 mm at the rigs' ~0.6
-# px/mm). Measured on rendered loops (r 4, 6, 7.5, 9 mm, both rigs, 12-16
-# frames each), median tip on the r 9 loops: one span of 3, 4 or 6 radii
-# 1.6-2.5, 1.7-2.6, 2.4-3.8 mm; 4 then 2 radii 1.4-2.3 mm; 4, 2, 1 radii
-# 1.1-2.0 mm (6, 4, 2: 1.3-2.3 mm). Started from the true curve, the searches
-# moved the tip by 1.1 mm (median, r 9 ninety loop), mostly shorter, and
-# by as much against the renderer's exact coverage: the drawn tube was biased
-# (cv2's fill, the end face square to the chord; see _CIRCLE_BIAS and
-# _end_tangents), not the grey levels. Unbiased, 0.3 mm against exact coverage,
-# 0.5 mm against the grey levels read with local levels (0.8 mm with global
-# ones). The first step of 8 mm (bounded by _MAX_BEND_RADII) lets a search
-# from a tip far off leave a local minimum: r 7 oblique loop mean / p95 /
-# length 0.34 / 0.68 mm / 0.66 % -> 0.24 / 0.64 / 0.22, others unchanged
-# (a radius limit of 2 instead of 1.5 changed nothing but for the worse).
+# Bending the tip to the pixels (bend_tip_to_pixels): the curve's last 4 radii are
+# bent, then its last 2, then its last 1, each by a pattern search with the steps of
+# _BEND_STEPS_MM and a fit from where it stops; the tube is drawn SUPERSAMPLE times
+# finer than the image (coverage to 1/16 of a pixel), with _RING_POINTS points on each
+# circle of its flat end, in a window reaching _WINDOW_PX past the drawn tube (room
+# for the largest bend allowed, 1.5 radii: ~8 px for r = 9 mm at the rigs' ~0.6
+# px/mm). Measured on rendered loops (r 4, 6, 7.5, 9 mm, both rigs, 12-16 frames
+# each), median tip on the r 9 loops: one span of 3, 4 or 6 radii 1.6-2.5, 1.7-2.6,
+# 2.4-3.8 mm; 4 then 2 radii 1.4-2.3 mm; 4, 2, 1 radii 1.1-2.0 mm (6, 4, 2: 1.3-2.3
+# mm). Started from the true curve, the searches moved the tip by 1.1 mm (median, r 9
+# ninety loop), mostly shorter, and by as much against the renderer's exact coverage:
+# the drawn tube was biased (cv2's fill, the end face square to the chord; see
+# _CIRCLE_BIAS and _end_tangents), not the grey levels. Unbiased, 0.3 mm against exact
+# coverage, 0.5 mm against the grey levels read with local levels (0.8 mm with global
+# ones). The first step of 8 mm (bounded by _MAX_BEND_RADII) lets a search from a tip
+# far off leave a local minimum: r 7 oblique loop mean / p95 / length 0.34 / 0.68 mm /
+# 0.66 % -> 0.24 / 0.64 / 0.22, others unchanged (a radius limit of 2 instead of 1.5
+# changed nothing but for the worse).
 BEND_SPANS_RADII = (4.0, 2.0, 1.0)
-_BEND_STEPS_MM = (8.0, 4.0, 2.0, 1.0, 0.5, 0.25)
+# The search stops at 0.5 mm and the bend is then fitted from where it stopped, by the
+# Gauss-Newton of refine_tip_to_pixels (_fit_bend), in a few drawings where a step of
+# 0.25 mm took tens. On 144 frames started from the hull (every fifth of 60 frames of
+# eight loops, `synth --shape loop`, seeds 1-8, r 5-9 mm, both rigs and ends, and four
+# random shapes, seeds 11-14; the true tube end; 2026-12-05), a start took 224 ms instead
+# of 273 (median CPU time; 242 against 295 mean), mean error 0.270 mm against 0.274,
+# frames more than 2 mm off 13 against 16, median tip 0.50 against 0.48 mm. Whole sessions
+# (`accuracy_table --draw 191`, 193 and 197, 8 cases of 90 frames each; same day): 21 of
+# 24 unchanged; three two-camera sessions with spacer disks, which miss the targets
+# either way, moved (a loop's mean 1.27 -> 1.63 mm, frames off 84 either way). Stopped at 2
+# mm, a start took a quarter less again at the same errors, but on a tip that left its
+# loop for the stem (tests/reconstruct/test_centerline.py) the fit stopped 2.5 mm from
+# the true tip where the search's last steps reach 0.7 mm: the mismatch is rough at the
+# scale of a pixel's sixteenth, and Gauss-Newton finds no way down from 1-2 mm off.
+_BEND_STEPS_MM = (8.0, 4.0, 2.0, 1.0, 0.5)
 # The tip is moved at most this many radii across or along: farther, it is
 # another hypothesis of where the tube goes, not a correction of the fit.
 _MAX_BEND_RADII = 1.5
@@ -136,6 +149,7 @@ def bend_tip_to_pixels(
     *,
     spans_radii: Sequence[float] = BEND_SPANS_RADII,
     steps_mm: Sequence[float] = _BEND_STEPS_MM,
+    then_fit: bool = True,
     rejects: Callable[[FloatArray], bool] | None = None,
     coverages: Sequence[NDArray[np.float32]] | None = None,
     cap: str = "flat",
@@ -150,10 +164,11 @@ def bend_tip_to_pixels(
     over the views in a window around the end part, the squared difference
     between the tube's drawn coverage (sub-pixel, flat end: :func:`draw_tube`)
     and the coverage read from the grey levels (:func:`_coverage`), by a
-    pattern search. Unlike the side readings, this holds where the tip touches
-    another part of the tube: that part is drawn too, so its edges are not
-    taken for the tip's. A longer span sets the tip's course, the shorter ones
-    then its last few mm.
+    pattern search, then fitted from where it stops by damped Gauss-Newton on
+    the pixel differences (as :func:`refine_tip_to_pixels`). Unlike the side
+    readings, this holds where the tip touches another part of the tube: that
+    part is drawn too, so its edges are not taken for the tip's. A longer span
+    sets the tip's course, the shorter ones then its last few mm.
 
     Parameters
     ----------
@@ -164,6 +179,8 @@ def bend_tip_to_pixels(
     spans_radii : lengths of the bent part, in radii, one search each.
     steps_mm : the pattern search's steps, largest first: how far from
         ``points_mm`` the tip is sought.
+    then_fit : fit the bend from where the search stops (else the search's last
+        step is the bend's resolution).
     rejects : a bent axis (K, 3) this returns True for is not taken (a tube
         that passes through itself, say).
     coverages : the views' :func:`pixel_coverages`, if already read.
@@ -177,7 +194,9 @@ def bend_tip_to_pixels(
     # The grey levels read as coverage once for all the spans.
     seen = pixel_coverages(contrasts, masks) if coverages is None else coverages
     for span in spans_radii:
-        pts = _bend_once(pts, cameras, seen, radius_mm, span * radius_mm, rejects, steps_mm, cap == "flat")
+        pts = _bend_once(
+            pts, cameras, seen, radius_mm, span * radius_mm, rejects, steps_mm, then_fit, cap == "flat"
+        )
     return pts
 
 
@@ -309,6 +328,16 @@ def _refine_once(
     drawing = _TipDrawing(pts, cameras, coverages, radius_mm, span_mm, flat_end, radii_mm)
     if not drawing.windows:
         return pts
+    p = _fit_bend(drawing, np.zeros(3), rejects)
+    return drawing.bent(p[:2], float(p[2])) if p.any() else pts
+
+
+def _fit_bend(
+    drawing: _TipDrawing, start: FloatArray, rejects: Callable[[FloatArray], bool] | None
+) -> FloatArray:
+    """The bend (3,) of ``drawing`` fitted from ``start`` by damped Gauss-Newton on each
+    view's pixel differences (see ``REFINE_SPANS_RADII``); ``start`` where no step lowers
+    the cost."""
 
     def residuals(p: FloatArray) -> tuple[FloatArray, FloatArray]:
         """The bend ``p``'s axis, and its drawn coverage less the seen, pixel by pixel."""
@@ -319,7 +348,7 @@ def _refine_once(
         ]
         return bent, np.concatenate(parts).astype(np.float64)
 
-    p = np.zeros(3)
+    p = np.asarray(start, dtype=np.float64)
     _, r = residuals(p)
     cost = float(r @ r)
     jacobian: FloatArray | None = None
@@ -350,7 +379,7 @@ def _refine_once(
         if not taken or float(np.linalg.norm(step)) < _SETTLED_MM:
             break
     _log.debug("tip refined by %s mm across, %+.2f mm longer (cost %.1f)", p[:2], p[2], cost)
-    return drawing.bent(p[:2], float(p[2])) if p.any() else pts
+    return p
 
 
 def _bend_once(
@@ -361,9 +390,10 @@ def _bend_once(
     span_mm: float,
     rejects: Callable[[FloatArray], bool] | None,
     steps_mm: Sequence[float],
+    then_fit: bool,
     flat_end: bool,
 ) -> FloatArray:
-    """One search of :func:`bend_tip_to_pixels`, bending the last ``span_mm``;
+    """One search (and fit) of :func:`bend_tip_to_pixels`, bending the last ``span_mm``;
     ``coverages``: per camera, (H, W) float32 from :func:`_coverage`."""
     drawing = _TipDrawing(pts, cameras, coverages, radius_mm, span_mm, flat_end)
     if not drawing.windows:
@@ -432,6 +462,8 @@ def _bend_once(
                     if c < best:
                         best, p, improved = c, q, True
     _log.debug("tip bent by %s mm across, %+.2f mm longer (cost %.1f)", p[:2], p[2], best)
+    if then_fit:
+        p = _fit_bend(drawing, p, rejects)
     return drawing.bent(p[:2], float(p[2])) if p.any() else pts
 
 

@@ -438,6 +438,7 @@ def frame_evidence(tip: FrameTip, cameras: Sequence[Camera], radius_mm: float) -
             radius_mm,
             spans_radii=_SPANS_RADII,
             steps_mm=_STEPS_MM,
+            then_fit=False,
             coverages=tip.coverages,
             cap=cap,
         )
