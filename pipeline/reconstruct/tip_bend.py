@@ -68,7 +68,10 @@ BEND_SPANS_RADII = (4.0, 2.0, 1.0)
 # frames more than 2 mm off 13 against 16, median tip 0.50 against 0.48 mm. Whole sessions
 # (`accuracy_table --draw 191`, 193 and 197, 8 cases of 90 frames each; same day): 21 of
 # 24 unchanged; three two-camera sessions with spacer disks, which miss the targets
-# either way, moved (a loop's mean 1.27 -> 1.63 mm, frames off 84 either way). Stopped at 2
+# either way, moved (a loop's mean 1.27 -> 1.63 mm, frames off 84 either way). The bench's
+# two loop shapes rendered for 300 frames (`process --jobs 2`, then `evaluate`): mean 0.205
+# -> 0.200 and 0.348 -> 0.263 mm, frames off 22 -> 8 and 73 -> 50, their tracks started
+# again from the hull more often (another course from other starts). Stopped at 2
 # mm, a start took a quarter less again at the same errors, but on a tip that left its
 # loop for the stem (tests/reconstruct/test_centerline.py) the fit stopped 2.5 mm from
 # the true tip where the search's last steps reach 0.7 mm: the mismatch is rough at the
