@@ -362,7 +362,8 @@ def _run(
                 raise
             # A signal while finishing: the run was ending anyway, and its recordings are complete.
     except BaseException:
-        _stop_readers(stop, readers)
+        if not stop.is_set():  # not stopped already on the way out
+            _stop_readers(stop, readers)
         if writer is not None and not writer.committed:
             writer.abort()
         raise

@@ -1150,3 +1150,26 @@ def test_a_reader_still_blocked_in_its_source_after_the_stop_is_named(
     caplog.clear()
     live_run._stop_readers(stop, [reader])  # a reader that has ended is not named
     assert not caplog.records
+
+
+def test_a_run_whose_recordings_fail_to_finish_stops_its_readers_once(
+    session: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def fail(self: Any) -> None:
+        raise OSError("disk full")
+
+    calls: list[int] = []
+    stop_readers = live_run._stop_readers
+
+    def counted(stop: threading.Event, readers: Any) -> None:
+        calls.append(len(readers))
+        stop_readers(stop, readers)
+
+    monkeypatch.setattr(live_run.Writers, "finish", fail)
+    monkeypatch.setattr(live_run, "_stop_readers", counted)
+    rig, sources = open_rig(None, session)
+    with pytest.raises(OSError, match="disk full"):
+        run_live(rig, sources, out_dir=tmp_path / "out", duration_s=1.0)
+    # A reader still blocked in its source would be waited for, and named, once.
+    assert calls == [3]
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
