@@ -19,10 +19,11 @@ march coasting on its own course through the crowded hull; the fit without its
 outlier rejection; the march resumed from the fitted end, or from where the
 unexplained tube leaves the curve), and the one whose tube re-projects best
 onto the silhouettes (IoU) wins, those whose parts come too close handicapped.
-A tube that still leaves part of a silhouette unexplained may have stopped where one
-view loses it (in front of something of its own grey level, or behind something),
-where the hull, which needs every view, stops too: it is carried on the same way
-through the voxels that every view but one sees.
+A tube may stop where one view loses it (in front of something of its own grey
+level, or behind something), where the hull, which needs every view, stops too: a
+march carried on from the end through the voxels that every view but one sees is
+one of those hypotheses, and a tube that still leaves part of a silhouette
+unexplained is carried on through them alone.
 Where the hull was crowded and the tip's tube meets another part's in some
 view (a loop's tip lying on its stem, whose edges the side readings can take
 for the tip's), the tip is then bent to the pixels
@@ -44,6 +45,7 @@ fitted and bent too, and kept if it matches the grey levels clearly better
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 
@@ -136,6 +138,8 @@ def fit_centerline(
             scores[id(candidate)] = (candidate, ranked_score(candidate, cameras, masks))
         return scores[id(candidate)][1]
 
+    # The voxels every view but one sees: carved once, if a march is carried on.
+    wider = functools.cache(wider_hull) if wider_hull is not None else None
     march = march_hull(points_mm, base_mm, radius_mm=radius_mm, voxel_mm=voxel_mm, refine=refine)
     best = fit(march)
     if march.crowded.any() and (worst_misfit(best, cameras, masks) > MISFIT or passes_through_itself(best)):
@@ -161,18 +165,18 @@ def fit_centerline(
         if apart and max(apart, key=standing) is not seeds[0]:
             seeds.append(max(apart, key=standing))
         carried = [
-            _carry_on(seed, fit, standing, points_mm, base_mm, cameras, masks, radius_mm, voxel_mm, refine)
+            _carry_on(
+                seed, fit, standing, points_mm, base_mm, cameras, masks, radius_mm, voxel_mm, refine, wider
+            )
             for seed in seeds
         ]
         best = max(carried, key=standing)
-    if wider_hull is not None and worst_misfit(best, cameras, masks) > MISFIT:
+    if wider is not None and worst_misfit(best, cameras, masks) > MISFIT:
         # A part of the tube that one view does not show (passing in front of something
         # of its own grey level, or behind something) is not in the hull, and the march
         # stops where it starts, though the other views go on showing the tube: it is
         # carried on through the voxels that every view but one sees.
-        best = _carry_on(
-            best, fit, standing, wider_hull(), base_mm, cameras, masks, radius_mm, voxel_mm, refine
-        )
+        best = _carry_on(best, fit, standing, wider(), base_mm, cameras, masks, radius_mm, voxel_mm, refine)
     if (
         march.crowded.any()
         and np.isfinite(best.radius_mm)
@@ -320,6 +324,7 @@ def _carry_on(
     radius_mm: float,
     voxel_mm: float,
     refine: Callable[[FloatArray, FloatArray], FloatArray | None],
+    wider: Callable[[], FloatArray] | None = None,
 ) -> TubeFit:
     """``best`` marched on again towards the tube its silhouettes still show.
 
@@ -333,6 +338,10 @@ def _carry_on(
     few diameters back); keep the result that ranks best by ``standing``
     (:func:`.tube_scores.ranked_score`) if it ranks above ``best``. A ``best`` that passes
     through itself is carried on too, however well it explains the silhouettes.
+    ``wider`` () -> (Q, 3) mm, the voxels that every view but one sees: the march
+    from the end is tried through them too, across a stretch of tube that one view
+    does not show, where the hull stops and a march towards the rest of the tube
+    would join another part of it.
     """
     score = standing(best)
     for _ in range(_CARRY_ON_ROUNDS):
@@ -353,16 +362,18 @@ def _carry_on(
         # unexplained tube, towards it (the same when the curve stopped short);
         # and from a few diameters back, coasting on the curve's own course
         # through the crowd (a tip pulled onto the stem it runs along).
-        starts = [(len(curve) - 1, None, False)]
+        starts = [(len(curve) - 1, None, False, points_mm)]
+        if wider is not None:
+            starts.append((len(curve) - 1, None, False, wider()))
         if j < len(curve) - 1:
-            starts.append((j, near.mean(axis=0) - curve[j], False))
+            starts.append((j, near.mean(axis=0) - curve[j], False, points_mm))
         back = int(np.searchsorted(arc, arc[-1] - _COAST_BACK_RADII * radius_mm))
         if back > len(curve) // 2:
-            starts.append((back, None, True))
+            starts.append((back, None, True, points_mm))
         candidates = []
-        for k, heading, coast in starts:
+        for k, heading, coast, voxels in starts:
             march = march_hull(
-                points_mm,
+                voxels,
                 base_mm,
                 radius_mm=radius_mm,
                 voxel_mm=voxel_mm,

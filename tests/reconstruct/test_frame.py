@@ -230,6 +230,8 @@ def test_a_stretch_one_view_does_not_show_is_found_from_the_others(
 ) -> None:
     # A random shape (the synthetic variety's), its middle fifth hidden in one view: painted
     # over with the scene behind it, as an object of the tube's own grey level would.
+    # A start from the hull does not find every such stretch: on seeds 0-11 (2026-12-05)
+    # 6 of 12 curves came within 0.5 mm and 2 % of the length, 6 of 12 with a twentieth hidden.
     rng = np.random.default_rng(seed)
     shape = draw_shape(
         seed,

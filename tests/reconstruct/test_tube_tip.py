@@ -29,6 +29,7 @@ from pipeline.reconstruct.tube_drawing import (
     normals,
     tube_points,
 )
+from pipeline.reconstruct.tube_tip import back_along
 
 FloatArray = NDArray[np.float64]
 CENTRE = np.array([128.0, 128.0, 80.0])
@@ -378,3 +379,27 @@ def test_coverage_read_in_windows_is_the_whole_images_there(seed: int) -> None:
             inside[y0:y1, x0:x1] = True
         np.testing.assert_array_equal(part[inside], full[inside])
         assert not part[~inside].any()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_cap_is_taken_off_along_the_line_as_the_image_shows_it(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    u = np.arange(-10.0, 10.0, 0.25)
+    # A straight line at k px per unit: the reach comes off at that rate.
+    k = rng.uniform(0.3, 2.0)
+    direction = rng.normal(size=2)
+    straight = np.outer(u, k * direction / np.linalg.norm(direction)) + rng.uniform(0, 300, 2)
+    at, reach = rng.uniform(-2.0, 5.0), rng.uniform(0.5, 4.0)
+    assert back_along(straight, u, at, reach) == pytest.approx(at - reach / k, abs=1e-9)
+    # An arc (a curved end's projection): the point found lies at that distance in the
+    # image from the edge's, sooner along the line than the arc's length would put it.
+    radius_px, speed = rng.uniform(8.0, 20.0), rng.uniform(0.5, 1.5)
+    arc = radius_px * np.column_stack([np.cos(speed * u / radius_px), np.sin(speed * u / radius_px)])
+    found = back_along(arc, u, at, reach)
+    point = radius_px * np.array([np.cos(speed * found / radius_px), np.sin(speed * found / radius_px)])
+    edge = radius_px * np.array([np.cos(speed * at / radius_px), np.sin(speed * at / radius_px)])
+    assert np.linalg.norm(point - edge) == pytest.approx(reach, abs=0.01)
+    assert found < at - reach / speed
+    # No reach: the edge itself; a reach beyond the samples: the first of them.
+    assert back_along(straight, u, at, 0.0) == at
+    assert back_along(straight, u, at, 1e6) == u[0]
