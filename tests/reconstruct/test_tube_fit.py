@@ -222,11 +222,32 @@ def test_the_end_radius_is_the_tubes_where_disks_widen_most_readings() -> None:
     half[disk] = 11.0 + rng.normal(0.0, 0.2, size=int(disk.sum()))
     both = np.ones((k, views), dtype=bool)
     both[-3:] = False  # the tip zone has no reading
-    assert abs(_end_radius(half, both) - 8.0) < 0.15
+    assert abs(_end_radius(arc, half, both) - 8.0) < 0.15
     # The profile there is the disks' (its median), the cap would be 2-3 mm too wide.
     assert _radius_profile(arc, half, both, np.full(k, 8.0))[-1] > 10.0
     # Fewer than three samples read: no end radius.
-    assert np.isnan(_end_radius(half, np.zeros((k, views), dtype=bool)))
+    assert np.isnan(_end_radius(arc, half, np.zeros((k, views), dtype=bool)))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_end_radius_of_a_tapered_tube_is_its_end_s(seed: int) -> None:
+    from pipeline.reconstruct.side_readings import _end_radius
+
+    rng = np.random.default_rng(seed)
+    k, views = 60, 3
+    arc = np.arange(k) * 4.0
+    end, slope = rng.uniform(2.5, 6.0), rng.uniform(0.005, 0.02)  # mm, mm a mm towards the base
+    # The readings stop a few samples before the tip, as the tip zone's do.
+    half = end + slope * (arc[-1] - arc)[:, None] + rng.normal(0.0, 0.03, size=(k, views))
+    both = np.ones((k, views), dtype=bool)
+    both[-2:] = False
+    assert abs(_end_radius(arc, half, both) - end) < 0.02 * end + 0.03
+    # A uniform tube's reading is its radius; one widening towards its end is read at its
+    # window's lower quartile, not carried wider.
+    uniform = end + rng.normal(0.0, 0.03, size=(k, views))
+    assert abs(_end_radius(arc, uniform, both) - end) < 0.05
+    widening = end - slope * (arc[-1] - arc)[:, None] + rng.normal(0.0, 0.03, size=(k, views))
+    assert _end_radius(arc, widening, both) < end
 
 
 @pytest.mark.parametrize(
