@@ -10,6 +10,7 @@ readings another part of the tube contaminates dropped (:func:`centre_across`,
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
@@ -384,10 +385,18 @@ def _end_radius(arc_mm: FloatArray, half_mm: FloatArray, both: NDArray[np.bool_]
     # went 1.38 -> 5.47, 1.98 -> 5.78 and 4.64 -> 9.86 mm.
     span = seen[-4 * _PROFILE_HALF_SPAN - 2 :]
     narrowest = np.where(both[span], half_mm[span], np.inf).min(axis=1)
-    i, j = np.triu_indices(len(span), 1)
-    slope = min(float(np.median((narrowest[j] - narrowest[i]) / (arc_mm[span][j] - arc_mm[span][i]))), 0.0)
+    at = arc_mm[span]
+    i, j = _pairs(len(span))
+    slope = min(median_1d((narrowest[j] - narrowest[i]) / (at[j] - at[i])), 0.0)
     to_end = arc_mm[last] - arc_mm[-1]  # (W,) <= 0
     return percentile_1d((half_mm[last] - slope * to_end[:, None])[both[last]], 0.25)
+
+
+@functools.lru_cache(maxsize=8)
+def _pairs(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Every pair (i < j) of ``n`` samples, as two index arrays (the same for every read)."""
+    i, j = np.triu_indices(n, 1)
+    return i, j
 
 
 # The same limit along the whole tube, with the radius profile from each window's shorth

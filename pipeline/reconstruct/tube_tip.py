@@ -244,20 +244,19 @@ def _end_by_pixels(
 
 def back_along(line_px: FloatArray, u: FloatArray, at: float, reach_px: float) -> float:
     """The parameter, below ``at``, where the projected line (U, 2) ``line_px``, sampled at
-    increasing (U,) ``u``, comes within ``reach_px`` of its own point at ``at``: a length
-    in the image walked back along the line, linear between samples."""
-    x = np.interp(at, u, line_px[:, 0])
-    y = np.interp(at, u, line_px[:, 1])
-    back = u < at
-    uu = np.append(u[back], at)[::-1]
-    pp = np.vstack([line_px[back], [x, y]])[::-1]
-    gap = np.hypot(pp[:, 0] - x, pp[:, 1] - y)
+    increasing (U,) ``u``, first comes ``reach_px`` from its own point at ``at``, walking
+    back from there (linear between samples; the first sample where it never does)."""
+    edge = np.array([np.interp(at, u, line_px[:, 0]), np.interp(at, u, line_px[:, 1])])
+    behind = u < at
+    back_u = np.append(at, u[behind][::-1])  # from ``at`` back to the first sample
+    gap = np.append(0.0, np.linalg.norm(line_px[behind][::-1] - edge, axis=1))
     far = np.flatnonzero(gap >= reach_px)
-    if reach_px <= 0 or not len(far):
-        return at if reach_px <= 0 else float(uu[-1])
+    if not len(far):
+        return float(back_u[-1])
     k = int(far[0])
-    share = (reach_px - gap[k - 1]) / max(gap[k] - gap[k - 1], 1e-12)
-    return float(uu[k - 1] + share * (uu[k] - uu[k - 1]))
+    if k == 0:  # no reach
+        return at
+    return float(np.interp(reach_px, gap[k - 1 : k + 1], back_u[k - 1 : k + 1]))
 
 
 def tip_zone(radius_mm: float) -> float:
