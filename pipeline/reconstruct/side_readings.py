@@ -353,8 +353,9 @@ def _end_radius(arc_mm: FloatArray, half_mm: FloatArray, both: NDArray[np.bool_]
     readings ``both`` (K, C) of ``half_mm`` (K, C) over the last window of samples
     read (``2 _PROFILE_HALF_SPAN + 1``), each carried to the end (``arc_mm`` (K,))
     along the tube's taper over twice as many samples; NaN where fewer than three
-    samples were read. ``both`` leaves out readings narrower than the tube can
-    be (another part's outline over it), which a lower quartile would take.
+    samples were read, or the taper carries them to nothing. ``both`` leaves out
+    readings narrower than the tube can be (another part's outline over it), which a
+    lower quartile would take.
 
     Not the profile's last value: a window median there leans to the inside of a
     taper (the end is its narrowest part), and spacer disks seen at an angle widen
@@ -387,9 +388,17 @@ def _end_radius(arc_mm: FloatArray, half_mm: FloatArray, both: NDArray[np.bool_]
     narrowest = np.where(both[span], half_mm[span], np.inf).min(axis=1)
     at = arc_mm[span]
     i, j = _pairs(len(span))
-    slope = min(median_1d((narrowest[j] - narrowest[i]) / (at[j] - at[i])), 0.0)
+    run = at[j] - at[i]
+    apart = run > 0
+    slope = min(median_1d((narrowest[j] - narrowest[i])[apart] / run[apart]), 0.0) if apart.any() else 0.0
+    # The steepest taper a tube of this median radius can have: a cone from twice it to
+    # nothing over the tube's length. A steeper slope is the readings' scatter (a few
+    # samples of a lost fit), not a taper.
+    if arc_mm[-1] > 0:
+        slope = max(slope, -2.0 * median_1d(half_mm[both]) / float(arc_mm[-1]))
     to_end = arc_mm[last] - arc_mm[-1]  # (W,) <= 0
-    return percentile_1d((half_mm[last] - slope * to_end[:, None])[both[last]], 0.25)
+    radius = percentile_1d((half_mm[last] - slope * to_end[:, None])[both[last]], 0.25)
+    return radius if radius > 0 else float("nan")  # carried past nothing: no reading
 
 
 @functools.lru_cache(maxsize=8)

@@ -250,6 +250,22 @@ def test_the_end_radius_of_a_tapered_tube_is_its_end_s(seed: int) -> None:
     assert _end_radius(arc, widening, both) < end
 
 
+@pytest.mark.parametrize("seed", range(8))
+def test_an_end_radius_carried_along_scattered_readings_is_never_below_nothing(seed: int) -> None:
+    from pipeline.reconstruct.side_readings import _end_radius
+
+    # A lost fit's few readings, wide then narrow: no taper carries them below zero.
+    rng = np.random.default_rng(seed)
+    k, views = 11, 3
+    arc = np.arange(k) * 4.0
+    half = np.full((k, views), np.nan)
+    both = np.zeros((k, views), dtype=bool)
+    both[5:9] = True
+    half[5:9] = np.repeat(rng.uniform([8.0, 8.0, 0.5, 0.5], [12.0, 12.0, 1.5, 1.5])[:, None], views, axis=1)
+    radius = _end_radius(arc, half, both)
+    assert np.isnan(radius) or radius > 0
+
+
 @pytest.mark.parametrize(
     "far_mm", [(-15000.0, 300.0, -15000.0), (15000.0, -300.0, 15000.0), (-3000.0, 128.0, 2000.0)]
 )
