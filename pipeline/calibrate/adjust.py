@@ -38,8 +38,8 @@ from scipy.optimize import least_squares
 
 from ..geometry.camera import Camera
 from ..geometry.polyline import by_fraction, polyline_arclength, resample_polyline
+from ..reconstruct.placement import normal_equations
 from ..reconstruct.side_readings import SideReadings, consistent_readings, read_sides
-from ..reconstruct.tube_fit import normal_equations
 
 FloatArray = NDArray[np.float64]
 

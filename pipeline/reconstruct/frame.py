@@ -291,6 +291,7 @@ def _curve_and_quality(
         curve = smooth_curve(_polyfit()(pts, base if known else None, n_points=n_points), n_points=n_points)
         radius, residual, radii = radius_guess, float("nan"), None
         figures = None
+        placement = None
     else:
         contrasts = frame_contrasts(images, model)
 
@@ -349,6 +350,7 @@ def _curve_and_quality(
             raise ValueError("the fit gave no curve")
         curve, radii = best.curve, best.radii_mm
         radius, residual = best.fit.radius_mm, best.fit.residual_mm
+        placement = best.fit.placement
         # The curve's figures, found as it was judged (its tube drawn once).
         figures = best.iou, best.misfits
     timings["centerline"] = time.perf_counter() - start
@@ -374,6 +376,7 @@ def _curve_and_quality(
     )
     if lost:
         reason = "; ".join(filter(None, [f"its track was lost here ({lost})", reason]))
+    loose = placement.loose_reason(draw_radius) if placement is not None else ""
     timings["quality"] = time.perf_counter() - start
     return FrameResult(
         index=index,
@@ -391,6 +394,7 @@ def _curve_and_quality(
         tracked=tracked,
         lost=lost,
         suspect_reason=reason,
+        loose_reason=loose,
         timings_s=timings,
     )
 

@@ -52,6 +52,10 @@ class FrameResult:
         another core, :mod:`pipeline.live.restarts`); "" otherwise.
     suspect_reason : why the curve may be wrong, judged without ground truth
         (:func:`pipeline.reconstruct.quality.suspect_reason`); "" when nothing says so.
+    loose_reason : where the views barely fix the curve's course across it, as a suspect
+        reason (:meth:`pipeline.reconstruct.placement.Placement.loose_reason`); "" where they
+        fix it throughout. Written with ``suspect_reason``, but not one the track treats as
+        a wrong curve: the course there is the one the track carried, and its velocity holds.
     timings_s : stage name -> seconds spent on this frame.
     """
 
@@ -72,6 +76,7 @@ class FrameResult:
     tracked: bool = False
     lost: str = ""
     suspect_reason: str = ""
+    loose_reason: str = ""
     timings_s: dict[str, float] = field(default_factory=dict)
 
     @property

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -37,7 +36,8 @@ from numpy.typing import NDArray
 from scipy.linalg import solveh_banded
 
 from ..geometry.camera import Camera, project_in_views
-from ..geometry.polyline import by_fraction, polyline_arclength, resample_polyline, unit_tangents
+from ..geometry.polyline import by_fraction, polyline_arclength, resample_polyline
+from .placement import Placement, normal_equations
 from .side_readings import CROWD_MARGIN_PX, SideReadings, consistent_readings, read_sides
 from .tube_tip import refit_tip
 
@@ -80,6 +80,9 @@ class TubeFit:
     readings : number of clean (sample, camera) readings used.
     radii_mm : (K,) float64 the radius along the tube at each sample (the silhouette's
         half-widths near it, see :func:`_radius_profile`), or None without readings.
+    placement : the last readings at the samples, which tell how firmly they place each
+        one (:class:`pipeline.reconstruct.placement.Placement`), or None without readings.
+        They stay the fit's where its tip is bent later: the bend moves only the last radii.
     """
 
     points_mm: FloatArray
@@ -87,6 +90,7 @@ class TubeFit:
     residual_mm: float
     readings: int
     radii_mm: FloatArray | None = None
+    placement: Placement | None = None
 
     @property
     def end_radius_mm(self) -> float:
@@ -212,7 +216,8 @@ def fit_tube(
     obs = read_sides(pts, cameras, contrasts, np.interp(polyline_arclength(pts), along, radii), spacing_mm)
     if obs.readings == 0:
         return TubeFit(pts, float("nan"), float("nan"), 0)
-    return TubeFit(pts, obs.radius_mm, obs.residual_mm(), obs.readings, obs.radii_mm)
+    placement = Placement(pts, obs, base_fixed=base_fixed, smoothness=smoothness)
+    return TubeFit(pts, obs.radius_mm, obs.residual_mm(), obs.readings, obs.radii_mm, placement)
 
 
 def refit_body(
@@ -343,21 +348,6 @@ def _resampled(pts: FloatArray, spacing_mm: float) -> FloatArray:
     return resample_polyline(pts, _sample_count(pts, spacing_mm, arclength_mm=arc), arclength_mm=arc)
 
 
-@lru_cache(maxsize=256)
-def _second_difference_gram(k: int) -> FloatArray:
-    """(3, k) diagonals 0, 1, 2 of D^T D, D the (k-2, k) second difference;
-    entry [d, j] is (D^T D)[j - d, j]. Cached per k (read-only): curves keep their
-    sample count from frame to frame."""
-    stencil = np.array([1.0, -2.0, 1.0])
-    out = np.zeros((3, k))
-    rows = np.arange(k - 2)
-    for p in range(3):
-        for q in range(p, 3):
-            np.add.at(out[q - p], rows + q, stencil[p] * stencil[q])
-    out.flags.writeable = False
-    return out
-
-
 def _solve_corrections(
     pts: FloatArray,
     obs: SideReadings,
@@ -373,64 +363,3 @@ def _solve_corrections(
     """
     band, g = normal_equations(pts, obs, base_fixed=base_fixed, smoothness=smoothness, held=held)
     return np.asarray(solveh_banded(band, g)).reshape(len(pts), 3)
-
-
-# The normal equations' upper bandwidth: a sample couples with the two either side
-# of it through the second difference, 3 * 2 + 2 entries above the diagonal.
-BAND_UPPER = 8
-
-
-def normal_equations(
-    pts: FloatArray,
-    obs: SideReadings,
-    *,
-    base_fixed: bool,
-    smoothness: float,
-    held: NDArray[np.bool_] | None = None,
-) -> tuple[FloatArray, FloatArray]:
-    """The normal equations of :func:`_solve_corrections`: LAPACK's upper band
-    (BAND_UPPER + 1, 3K) of the (3K, 3K) matrix and the (3K,) right-hand side, for the
-    corrections of the K samples ``pts`` (mm) from the readings ``obs``. A held sample's
-    rows and columns are the identity's and its right-hand side 0."""
-    k = len(pts)
-    tangents = unit_tangents(pts)
-    centre, w = obs.centres()
-    # Normal equations, block-diagonal data part: sum_j w a a^T and sum_j w a b.
-    blocks = np.einsum("kc,kci,kcj->kij", w, obs.rows, obs.rows)
-    rhs = np.einsum("kc,kci,kc->ki", w, obs.rows, centre)
-    # Motion along the tangent is not observed by the sides: hold it (weight 1),
-    # plus a tiny damping so that a sample with no reading stays solvable. Holding each
-    # sample across the tube towards the track's prediction as well (weight 0.05 against
-    # 1 for a two-edge reading), so that a direction no view reads stays where it was
-    # expected, was measured on three drawn three-camera sessions, stepped and with spacer
-    # disks (pipeline.synth.variety.draw_cases, seeds 7000-7010, 90 tracked frames,
-    # 2026-12-04): frames more than 2 mm off 96 -> 124; it holds a wrong course as firmly
-    # as a right one. Left out.
-    blocks += tangents[:, :, None] * tangents[:, None, :] + 1e-3 * np.eye(3)
-    # The system is banded: store it as LAPACK's upper band and solve it in O(K)
-    # instead of densely.
-    n, upper = 3 * k, BAND_UPPER
-    band = np.zeros((upper + 1, n))
-    for a in range(3):
-        for b in range(a, 3):
-            band[upper + a - b, b::3] += blocks[:, a, b]  # columns 3 i + b
-    if k >= 3:
-        # Second-difference penalty D^T D on each coordinate: the pentadiagonal
-        # stencil (1, -4, 6, -4, 1) inside, trimmed at the ends.
-        d2tdd = _second_difference_gram(k)  # diagonals 0, 1, 2 of D^T D
-        for off in range(3):
-            # Columns 3 i + a (i >= off) of that band row, all three coordinates at once.
-            band[upper - 3 * off].reshape(k, 3)[off:] += smoothness * d2tdd[off, off:, None]
-    g = rhs.reshape(-1)
-    pinned = np.zeros(k, dtype=bool) if held is None else np.array(held, dtype=bool)
-    pinned[0] |= base_fixed
-    for i in np.flatnonzero(pinned):
-        # Pin sample i: its rows and columns become the identity.
-        for row in range(3 * i, 3 * i + 3):
-            for d in range(1, min(upper, n - 1 - row) + 1):
-                band[upper - d, row + d] = 0.0  # row, right of the diagonal
-            for d in range(1, min(upper, row) + 1):
-                band[upper - d, row] = 0.0  # column, above the diagonal
-            band[upper, row] = 1.0
-        g[3 * i : 3 * i + 3] = 0.0
-    return band, g

@@ -229,8 +229,10 @@ class Writers:
         """One frame, at ``time_ns`` (ns since the Unix epoch; default: the session's time of
         its index); ``extra_metrics``: figures its metrics gain (a live run's latency)."""
         result = out.result
-        if self.frame_doubt and result.status == "ok":
-            why = "; ".join(part for part in (result.suspect_reason, self.frame_doubt) if part)
+        # The reasons the track does not treat as a wrong curve join the frame's own here.
+        doubts = (result.loose_reason, self.frame_doubt) if result.status == "ok" else ()
+        if any(doubts):
+            why = "; ".join(part for part in (result.suspect_reason, *doubts) if part)
             result = dataclasses.replace(result, suspect_reason=why)
         if time_ns is None:
             time_ns = self.session.timestamp_ns(result.index)

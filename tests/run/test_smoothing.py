@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 
@@ -281,3 +282,33 @@ def test_a_doubt_over_the_tube_end_makes_every_written_frame_suspect(tmp_path: P
     assert [frame for frame, _ in summary.frames_suspect] == ok
     assert all(reasons[i] == TIP_DOUBT for i in ok) and reasons[7] == ""
     assert len(recording.metrics) == 40
+
+
+def test_a_loosely_placed_course_is_written_suspect_but_leaves_the_track_alone(tmp_path: Path) -> None:
+    from pipeline.reconstruct.frame_task import FrameOutput
+    from pipeline.reconstruct.tracking import velocity_pair
+    from pipeline.run.output_target import prepare_outputs
+    from pipeline.run.outputs import Writers
+
+    loose = "its course 40-96 mm from the base is barely seen across (the views look along it)"
+    session = load_session(build_session(tmp_path / "session", frames=60))
+    target = prepare_outputs(tmp_path / "out", session.name, force=False)
+    results = []
+    try:
+        writer = Writers(session, target, images=False)
+        for index in range(30):
+            result, _ = _swaying_rod(index, None, None)
+            if index in (11, 12):
+                result = dataclasses.replace(result, loose_reason=loose)
+            results.append(result)
+            writer.write(FrameOutput(result=result, jpegs=None, silhouettes_png=None))
+        writer.finish()
+        summary = writer.summary(0.0)
+    finally:
+        target.release(failed=False)
+    # The track still takes its velocity from those frames: their course elsewhere holds.
+    assert velocity_pair(results[:13]) is not None
+    recording = load_recording(tmp_path / "out" / f"{session.name}.mcap")
+    reasons = {m["frame"]: m["suspect_reason"] for m in recording.metrics if m["suspect"]}
+    assert reasons == {11: loose, 12: loose}
+    assert [frame for frame, _ in summary.frames_suspect] == [11, 12]
