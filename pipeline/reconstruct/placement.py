@@ -54,7 +54,8 @@ _FROM_TIP_RADII = 3.0
 @dataclass(frozen=True, eq=False)
 class Placement:
     """The side readings ``sides`` a fit's last round read at its (K, 3) ``points_mm``,
-    and whether its base was held there (``base_fixed``): what :func:`spread` needs."""
+    whether its base was held there (``base_fixed``) and the smoothness of its steps:
+    what :func:`spread_across` needs."""
 
     points_mm: FloatArray
     sides: SideReadings
