@@ -14,8 +14,10 @@ dropped ones, and from the take-over on the track is the one ``process`` would h
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing
+import os
 import signal
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, wait
@@ -27,6 +29,7 @@ from numpy.typing import NDArray
 from ..reconstruct.frame_result import FrameResult
 from ..reconstruct.tracking import LENGTH_FRAMES
 from ..run.interrupts import deferred_signals, signals_blocked_in_children
+from ..run.workers import shared_file
 
 log = logging.getLogger(__name__)
 
@@ -41,9 +44,14 @@ _model: Any = None
 _track: list[FrameResult] = []
 
 
-def _take_model(model: Any) -> None:
+def _take_model(path: str) -> None:
+    import joblib
+
     global _model
-    _model = model
+    try:
+        _model = joblib.load(path, mmap_mode="r")
+    except FileNotFoundError:  # the run ended (and removed it) before this worker started
+        os._exit(0)
     # Ctrl-C reaches the whole process group: the run, not this worker, decides what it means.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     from ..reconstruct import frame  # noqa: F401  (imported now, not at the first start)
@@ -78,22 +86,32 @@ class RestartWorker:
     worker once."""
 
     def __init__(self, model: Any) -> None:
-        self._pool = ProcessPoolExecutor(
-            max_workers=1,
-            # Not forked: the run's capture threads hold locks a fork would copy held.
-            mp_context=multiprocessing.get_context("spawn"),
-            initializer=_take_model,
-            initargs=(model,),
-        )
+        # The model goes to the worker as a file it maps, not through the pipe it is spawned
+        # with: multiprocessing writes that pipe while it still holds the worker's end, so a
+        # worker killed before it has read a model larger than the pipe (a terminal's signal
+        # to the whole group) left the run waiting on the write for good.
+        self._model_file = contextlib.ExitStack()
+        path = self._model_file.enter_context(shared_file(model))
         try:
-            # The worker is spawned here. A signal waits until its model is written to it
-            # whole (cut short, the worker fails reading it, with a traceback), and it starts
-            # with Ctrl-C and a hang-up blocked, which a terminal sends its whole group: the
-            # run handles them (the worker, still importing, would print a traceback).
+            # The worker is spawned here, and the resource tracker with the pool's first
+            # semaphore. A signal waits until the worker is under way, and both start with
+            # Ctrl-C and a hang-up blocked, which a terminal sends its whole group: the run
+            # handles them (the worker, still importing, would print a traceback; a tracker
+            # killed by the hang-up is started again by the run's exit, and its successor
+            # printed a KeyError per semaphore it was asked to forget).
             with deferred_signals(), signals_blocked_in_children():
+                self._pool = ProcessPoolExecutor(
+                    max_workers=1,
+                    # Not forked: the run's capture threads hold locks a fork would copy held.
+                    mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_take_model,
+                    initargs=(str(path),),
+                )
                 self._warm: Future[None] = self._pool.submit(_ready)
         except BaseException:
-            self._pool.shutdown(wait=False, cancel_futures=True)
+            if hasattr(self, "_pool"):
+                self._pool.shutdown(wait=False, cancel_futures=True)
+            self._model_file.close()
             raise
         # The started track: the run's track before it, and its own frames, in order.
         self._before: list[FrameResult] = []
@@ -191,5 +209,7 @@ class RestartWorker:
         self._failed = True
 
     def close(self) -> None:
-        """Stop the worker, without waiting for a start under way."""
+        """Stop the worker, without waiting for a start under way, and remove its model's
+        file (a worker still running keeps its mapping)."""
         self._pool.shutdown(wait=False, cancel_futures=True)
+        self._model_file.close()

@@ -339,6 +339,17 @@ def shared_with_local_workers(obj: T) -> Iterator[T]:
     """
     import joblib
 
+    with shared_file(obj) as path:
+        yield joblib.load(path, mmap_mode="r")
+
+
+@contextlib.contextmanager
+def shared_file(obj: object) -> Iterator[Path]:
+    """The path of one file holding ``obj`` (``joblib.dump``), in the folder the workers
+    share (shared memory where it has room); the file is removed on exit, and those of
+    runs killed before they could remove theirs are removed first."""
+    import joblib
+
     folder = _shared_folder()
     _remove_dead_runs_models(folder)
     with tempfile.TemporaryDirectory(prefix=f"{_MODEL_PREFIX}{os.getpid()}-", dir=folder) as tmp:
@@ -351,7 +362,7 @@ def shared_with_local_workers(obj: T) -> Iterator[T]:
                 f"{where}: cannot hold the session's model for the workers ({exc.strerror or exc}); "
                 "free space there, or set JOBLIB_TEMP_FOLDER to a folder with room"
             ) from None
-        yield joblib.load(path, mmap_mode="r")
+        yield path
 
 
 def _remove_dead_runs_models(folder: str | None) -> None:

@@ -319,6 +319,31 @@ def test_the_restart_worker_leaves_ctrl_c_and_a_hang_up_to_the_run() -> None:
         assert blocked & (1 << (sig - 1)), f"{sig.name} is not blocked in the restart worker"
 
 
+def test_a_restart_worker_that_ends_as_it_starts_does_not_hold_the_run() -> None:
+    # A terminal's SIGTERM to the whole group can end the worker before it has read what it
+    # is spawned with. The run must not wait for it: the model, far larger than a pipe
+    # holds, is not written to the worker's pipe. Spawned as /bin/false, it ends at once.
+    import multiprocessing.spawn
+
+    model = {"tables": np.zeros(8_000_000)}  # 64 MB
+    made: list[RestartWorker] = []
+    python = multiprocessing.spawn.get_executable()
+    multiprocessing.spawn.set_executable("/bin/false")
+    try:
+        starting = threading.Thread(target=lambda: made.append(RestartWorker(model)), daemon=True)
+        starting.start()
+        starting.join(30.0)
+    finally:
+        multiprocessing.spawn.set_executable(python)
+    assert not starting.is_alive(), "the run waits on a worker that has ended"
+    (worker,) = made
+    try:
+        worker.wait_ready(30.0)
+        assert not worker.available  # the run goes on without it
+    finally:
+        worker.close()
+
+
 def _verify_rrd(path: Path) -> None:
     verify = subprocess.run(
         [str(RERUN), "rrd", "verify", str(path)], env=RERUN_ENV, capture_output=True, text=True
