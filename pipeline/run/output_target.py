@@ -224,10 +224,12 @@ def prepare_outputs(out_dir: Path, name: str, force: bool) -> OutputTarget:
             target.lock()
         except OSError as exc:
             raise OutputError(f"{out_dir}: cannot write in the output directory ({exc.strerror})") from None
-        if not force:
-            for path in target.finals:
-                if path.exists():
-                    raise OutputError(f"{path}: already exists; use --force to replace it")
+        for path in target.finals:
+            # --force replaces recordings, not a folder (or a device) under their name.
+            if path.exists() and not path.is_file():
+                raise OutputError(f"{path}: is not a file but is where the recording goes; move it away")
+            if path.exists() and not force:
+                raise OutputError(f"{path}: already exists; use --force to replace it")
     except BaseException:
         target.release(failed=True)
         raise

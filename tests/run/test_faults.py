@@ -236,6 +236,20 @@ def test_existing_outputs_are_kept_without_force(tmp_path: Path) -> None:
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
+@pytest.mark.parametrize("which", ["mcap", "rrd"])
+def test_a_folder_where_a_recording_goes_is_refused_even_with_force(tmp_path: Path, which: str) -> None:
+    # --force replaces recordings; a folder under a recording's name is not one. Before any
+    # work, with nothing written and the folder as it was.
+    session = build_session(tmp_path / "take", frames=2)
+    out = tmp_path / "out"
+    (out / f"take.{which}").mkdir(parents=True)
+    (out / f"take.{which}" / "notes.txt").write_text("mine")
+    with pytest.raises(OutputError, match=rf"take\.{which}: is not a file but is where the recording goes"):
+        _run(session, out, force=True)
+    assert sorted(p.name for p in out.iterdir()) == [f"take.{which}"]
+    assert (out / f"take.{which}" / "notes.txt").read_text() == "mine"
+
+
 class _Recorder:
     """Frame function that checks, while the run goes on, that the old outputs are intact."""
 
