@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from ..carve.hull import carve, voxel_centers_mm
 from ..errors import SessionError
 from ..geometry.camera import project_in_views
-from ..reconstruct.frame import frame_silhouettes
+from ..reconstruct.frame import MAX_SILHOUETTE_SHARE, frame_silhouettes
 from ..reconstruct.model import SessionModel
 
 # Below this share (median over the frames) the videos as named leave too much of a
@@ -76,6 +76,9 @@ def check_video_order(
     if not frames or not 2 <= cameras <= MAX_CAMERAS:
         return
     masks = [frame_silhouettes(images, model) for _, images in frames]
+    # Frames with a view that is mostly silhouette fail on their own, named (their hull, the
+    # whole workspace, took minutes to carve and project in every order here).
+    masks = [frame for frame in masks if all(m.mean() <= MAX_SILHOUETTE_SHARE for m in frame)]
     if not any(all(m.any() for m in frame) for frame in masks):
         return  # no frame in which every view sees something: nothing to tell orders by
 

@@ -78,3 +78,28 @@ def test_cameras_of_other_sizes_are_not_taken_for_each_other(session: Path) -> N
     swapped = [(i, [images[1], images[0], images[2]]) for i, images in frames]
     with pytest.raises(SessionError, match=r"cam1\.mp4 looks like cam0's view"):
         check_video_order(model, swapped, loaded.video_paths)
+
+
+def test_frames_with_a_view_that_is_mostly_silhouette_are_not_carved(
+    session: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A threshold on the wrong side of the scene makes a view nearly all silhouette: such
+    # frames fail on their own, named, and their hull (the whole workspace) is not carved
+    # here for every order of the videos.
+    import dataclasses
+
+    from pipeline.calibrate import video_order
+
+    loaded = load_session(session)
+    silhouette = dataclasses.replace(loaded.settings.silhouette, polarity="bright")
+    model = build_model(
+        dataclasses.replace(loaded, settings=dataclasses.replace(loaded.settings, silhouette=silhouette))
+    )
+    carved: list[int] = []
+    monkeypatch.setattr(video_order, "explained_share", lambda *args: carved.append(1) or 0.0)
+    frames = decode_frames(loaded.video_paths, range(loaded.frame_count))
+    check_video_order(model, frames, loaded.video_paths)
+    assert carved == []
+    # Frames that show a tube are still compared (the check is not switched off).
+    check_video_order(build_model(loaded), frames, loaded.video_paths)
+    assert carved
