@@ -43,7 +43,7 @@ import tomli_w
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from ..errors import PipelineError
+from ..errors import Interrupted, PipelineError
 from .out_dir import check_out_dir, left_behind, write_image
 from .rig import WORKSPACE_CENTER_MM, SynthCamera, calibration_document, make_rig
 
@@ -176,6 +176,7 @@ def render_calibration_views(
                 jobs.append((path, ci, cam.R @ R_w, cam.R @ t_w + cam.t))
             shared_index += 1
 
+    incomplete = f"the board images in {out_dir} are incomplete: render them again"
     try:
         for path, ci, R, t in tqdm(jobs, desc="synth-calib", unit="image", disable=not progress):
             image = _render(rays[ci], cams[ci], R, t, cols, rows, square_mm, rng, texture=texture)
@@ -187,11 +188,12 @@ def render_calibration_views(
     except OSError as exc:
         # A full disk or a folder that turned read-only: a render into a new folder leaves
         # nothing; one over an earlier render leaves it incomplete, and says so.
-        incomplete = f"the board images in {out_dir} are incomplete: render them again"
         raise PipelineError(
             f"{exc.filename or out_dir}: cannot be written ({exc.strerror or exc}); "
             f"{left_behind(out_dir, created, incomplete)}, after freeing space or in another directory"
         ) from None
+    except KeyboardInterrupt:  # Ctrl-C, SIGTERM or a hang-up: the same
+        raise Interrupted(f"interrupted; {left_behind(out_dir, created, incomplete)}") from None
     log.info("wrote %d calibration images to %s", len(jobs), out_dir)
 
 

@@ -175,3 +175,24 @@ def test_an_image_that_cannot_be_written_into_a_new_folder_leaves_nothing(
     ):
         render_calibration_views(target, arrangement="ninety", views=4, progress=False)
     assert not target.exists()
+
+
+def test_an_interrupted_render_into_a_new_folder_leaves_nothing_and_says_so(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pipeline.errors import Interrupted
+
+    written: list[str] = []
+
+    def interrupted_after_two(path: str, image: object) -> bool:
+        if len(written) == 2:
+            raise KeyboardInterrupt  # Ctrl-C, SIGTERM or a hang-up, as the run turns them
+        written.append(path)
+        Path(path).write_bytes(b"png")
+        return True
+
+    monkeypatch.setattr("pipeline.synth.boards.cv2.imwrite", interrupted_after_two)
+    target = tmp_path / "calib"
+    with pytest.raises(Interrupted, match=r"^interrupted; nothing written$"):
+        render_calibration_views(target, arrangement="ninety", views=4, progress=False)
+    assert not target.exists()
