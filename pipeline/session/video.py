@@ -139,6 +139,12 @@ def _probe(path: Path) -> VideoInfo:
             raise VideoError(
                 f"{path}: is a still {facts.still_kind} image, not a video; put the camera's video here"
             )
+        if facts.bare_kind:
+            # Its frame rate and frame count would be FFmpeg's guesses (25 fps, none).
+            raise VideoError(
+                f"{path}: its {path.suffix} header is damaged or missing (only a bare {facts.bare_kind} "
+                "stream is left, without its frame rate or timing); re-copy or re-export it"
+            )
         # The frames as stored, which the reader (PyAV) gives: not turned by a rotation tag.
         cap.set(cv2.CAP_PROP_ORIENTATION_AUTO, 0)
         rotation_deg = float(cap.get(cv2.CAP_PROP_ORIENTATION_META) or 0.0)
@@ -181,21 +187,31 @@ def _probe(path: Path) -> VideoInfo:
     )
 
 
+# FFmpeg's demuxers of bare video streams, which carry no frame rate or timestamps of
+# their own; and the file names of containers, which always do.
+BARE_STREAMS = frozenset({"m4v", "h264", "hevc", "mpegvideo", "h263", "mjpeg", "rawvideo", "vc1", "av1"})
+CONTAINER_SUFFIXES = frozenset({".mp4", ".mov", ".avi", ".mkv", ".webm", ".mpg", ".mpeg", ".ts"})
+
+
 @dataclass(frozen=True, eq=False)
 class _ContainerFacts:
     """What one PyAV opening of a video file reads, nothing decoded; the defaults stand
     where the file cannot be opened.
 
     ``still_kind``: the kind of still image ("PNG", ...) the file holds under a video's
-    name, "" for anything else. ``streams``: its video streams (0 where the first cannot
-    be demuxed as far as its timestamps are read). ``stamps_s``, ``tick_s``: the first
-    stream's frame timestamps (s, ascending, at most VFR_FRAMES) and their tick (s).
+    name, "" for anything else. ``bare_kind``: the codec of a bare video stream (no
+    container: FFmpeg's raw demuxers, ``BARE_STREAMS``) under a container's name (a
+    header overwritten or cut off), "" for anything else. ``streams``: its video
+    streams (0 where the first cannot be demuxed as far as its timestamps are read).
+    ``stamps_s``, ``tick_s``: the first stream's frame timestamps (s, ascending, at most
+    VFR_FRAMES) and their tick (s).
     ``packet_count``: its packets, where the container keeps no frame count (None where
     it keeps one, or where the stream cannot be demuxed to its end). ``creation_text``:
     the container's creation_time tag, else its first video stream's ("" for none).
     """
 
     still_kind: str = ""
+    bare_kind: str = ""
     streams: int = 0
     stamps_s: NDArray[np.float64] = dataclasses.field(default_factory=lambda: np.zeros(0))
     tick_s: float = 0.0
@@ -218,12 +234,13 @@ def _read_container(path: Path) -> _ContainerFacts:
             name = container.format.name
             # FFmpeg's demuxers of single images are all named "<kind>_pipe" (png_pipe, ...).
             still = name.removesuffix("_pipe").upper() if name.endswith("_pipe") else ""
+            bare = name if name in BARE_STREAMS and path.suffix.lower() in CONTAINER_SUFFIXES else ""
             streams = container.streams.video
             text = container.metadata.get("creation_time") or (
                 streams[0].metadata.get("creation_time") if streams else None
             )
             if not streams:
-                return _ContainerFacts(still_kind=still, creation_text=text or "")
+                return _ContainerFacts(still_kind=still, bare_kind=bare, creation_text=text or "")
             stream = streams[0]
             time_base = float(stream.time_base or Fraction(1, 1000))
             index = _FrameIndex.of(stream)
@@ -234,6 +251,7 @@ def _read_container(path: Path) -> _ContainerFacts:
                 ticks = [index[k].timestamp for k in range(min(stream.frames, VFR_FRAMES))]
             return _ContainerFacts(
                 still_kind=still,
+                bare_kind=bare,
                 streams=len(streams) if ticks is not None else 0,
                 stamps_s=np.sort(np.asarray(ticks or [], dtype=np.float64)) * time_base,
                 tick_s=time_base if ticks is not None else 0.0,

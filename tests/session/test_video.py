@@ -381,6 +381,29 @@ def test_a_second_video_stream_is_named_and_the_first_is_read(tmp_path: Path) ->
     assert (info.width, info.height) == (64, 48)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_a_container_whose_header_is_overwritten_is_named_damaged(tmp_path: Path, seed: int) -> None:
+    # FFmpeg then finds only the bare MPEG-4 stream, and guesses its rate (25 fps): the run
+    # would blame the camera's frame rate. Its first 8-200 bytes overwritten, at random.
+    rng = np.random.default_rng(seed)
+    path = _encode(tmp_path / "cam1.mp4")
+    data = bytearray(path.read_bytes())
+    count = int(rng.integers(8, 200))
+    data[:count] = rng.integers(0, 256, count, dtype=np.uint8).tobytes()
+    path.write_bytes(bytes(data))
+    damaged = r"cam1\.mp4: its \.mp4 header is damaged or missing \(only a bare"
+    with pytest.raises(video.VideoError, match=damaged):
+        video.probe_video(path)
+    # The same stream under its own name (a bare stream's file) is a bare stream's matter,
+    # not a damaged container's.
+    bare = tmp_path / "cam1.m4v"
+    bare.write_bytes(bytes(data))
+    try:
+        video.probe_video(bare)
+    except video.VideoError as exc:
+        assert "header is damaged" not in str(exc)
+
+
 def test_a_variable_frame_rate_is_named_with_its_intervals_and_the_rate_used(tmp_path: Path) -> None:
     # A frame now and then twice as long after the last: a camera that drops frames, or a phone's.
     info = video.probe_video(_encode(tmp_path / "cam2.mp4", intervals=(1, 1, 2)))
