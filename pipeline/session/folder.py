@@ -99,8 +99,10 @@ def _load_session(directory: Path) -> Session:
     infos = [probe_video(videos[c.name]) for c in cameras]
     for cam, info in zip(cameras, infos, strict=True):
         if (info.width, info.height) != cam.size_px:
+            read = f"the first of its {info.streams} video streams, the one read"
+            first = f" ({read}: put the camera's stream first)" if info.streams > 1 else ""
             raise VideoError(
-                f"{info.path}: frames are {info.width}x{info.height} but calibration.toml gives "
+                f"{info.path}: frames are {info.width}x{info.height}{first} but calibration.toml gives "
                 f"camera {cam.name!r} size {cam.size_px[0]}x{cam.size_px[1]}; "
                 "use the calibration of this rig and resolution"
             )

@@ -92,7 +92,8 @@ class VideoInfo:
     """``creation_time``: when the container says the recording was made (timezone-aware),
     or None where it does not say. ``variable_rate``: how its frame intervals vary ("" for
     a constant rate). ``notes``: what the reader does not follow (a rotation tag, a second
-    video stream, a variable rate), a line each naming the file."""
+    video stream, a variable rate), a line each naming the file. ``streams``: its video
+    streams, of which the first is read (0 where they could not be counted)."""
 
     path: Path
     width: int
@@ -102,6 +103,7 @@ class VideoInfo:
     creation_time: datetime | None = None
     variable_rate: str = ""
     notes: tuple[str, ...] = ()
+    streams: int = 1
 
 
 def probe_video(path: Path) -> VideoInfo:
@@ -184,6 +186,7 @@ def _probe(path: Path) -> VideoInfo:
         creation_time=_parse_creation_time(path, facts.creation_text),
         variable_rate=variable,
         notes=tuple(notes),
+        streams=facts.streams,
     )
 
 

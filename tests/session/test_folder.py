@@ -262,3 +262,35 @@ def test_a_video_with_a_rotation_tag_is_read_as_stored_and_named(
         f"{stored}: carries a 270-degree rotation tag that is not applied; the calibration must be "
         "of the frames as stored (320x240)"
     ]
+
+
+def test_a_video_whose_first_stream_is_not_the_cameras_says_so(tmp_path: Path) -> None:
+    # A thumbnail or preview stream muxed first: its size is the one read, and the message
+    # says why it is not the camera's.
+    import av
+
+    from pipeline.errors import VideoError
+
+    directory = build_session(tmp_path / "take", frames=4)
+    session = load_session(directory)
+    width, height = session.cameras[1].size_px
+    target = directory / session.video_paths[1].with_suffix(".mp4").name
+    session.video_paths[1].unlink()
+    with av.open(str(target), "w") as out:
+        streams = []
+        for w, h in [(width // 2, height // 2), (width, height)]:
+            stream = out.add_stream("mpeg4", rate=30)
+            stream.width, stream.height, stream.pix_fmt = w, h, "yuv420p"
+            streams.append(stream)
+        for i in range(4):
+            for stream in streams:
+                frame = av.VideoFrame.from_ndarray(
+                    np.full((stream.height, stream.width, 3), 20 * i, np.uint8), "bgr24"
+                )
+                out.mux(stream.encode(frame))
+        for stream in streams:
+            out.mux(stream.encode())
+    with pytest.raises(
+        VideoError, match=rf"frames are {width // 2}x{height // 2} \(the first of its 2 video streams"
+    ):
+        load_session(directory)
