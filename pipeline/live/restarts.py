@@ -82,8 +82,8 @@ def _step(
 class RestartWorker:
     """One worker process that starts a lost track again from the hull and follows it
     until it has caught up (a :class:`~pipeline.reconstruct.frame_task.Restarts`).
-    ``model``: the session's (:func:`pipeline.reconstruct.model.build_model`), sent to the
-    worker once."""
+    ``model``: the session's (:func:`pipeline.reconstruct.model.build_model`), written once
+    to a file the worker maps (:func:`pipeline.run.workers.shared_file`)."""
 
     def __init__(self, model: Any) -> None:
         # The model goes to the worker as a file it maps, not through the pipe it is spawned
