@@ -387,7 +387,7 @@ def _run_with(
             if writer is not None:
                 writer.abort()
             message = (
-                f"interrupted after {done} of {stop - start} frames; temporary files removed, "
+                f"interrupted with {done} of {stop - start} frames written; temporary files removed, "
                 "existing outputs untouched"
             )
         raise Interrupted(message) from exc

@@ -286,7 +286,8 @@ def test_interrupted_force_run_leaves_old_outputs(tmp_path: Path) -> None:
     out = tmp_path / "out"
     _run(session, out, frames=(0, 1))
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    with pytest.raises(Interrupted, match=r"interrupted after \d of 4 frames; temporary files removed"):
+    stopped = r"interrupted with \d of 4 frames written; temporary files removed"
+    with pytest.raises(Interrupted, match=stopped):
         _run(session, out, force=True, backend="threading", frame_fn=_Interrupt())
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
@@ -1049,7 +1050,8 @@ def _assert_interrupted_in_one_line(proc: subprocess.Popen[str], err: str) -> No
     lines = err.strip().splitlines()
     assert len(lines) == 1, err
     assert re.fullmatch(
-        r"interrupted after \d+ of 60 frames; temporary files removed, existing outputs untouched", lines[0]
+        r"interrupted with \d+ of 60 frames written; temporary files removed, existing outputs untouched",
+        lines[0],
     )
 
 
