@@ -90,6 +90,8 @@ class EvaluationReport:
         writing), or is damaged: the figures are those of the frames it holds.
     damaged : True where bytes inside the recording are not its own (a disk or copy
         error): the figures are those of the frames before the damage.
+    other_session : the recording's session, where it is not the ground truth's (by their
+        folders' names; a warning says so): the figures may compare two sessions.
     """
 
     label: str
@@ -113,6 +115,7 @@ class EvaluationReport:
     tube_end: str = ""
     complete: bool = True
     damaged: bool = False
+    other_session: str = ""
 
     @property
     def frames_off(self) -> int:
@@ -428,7 +431,8 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
             "is this the ground truth of the same session?"
         )
     truth_session = _truth_session(Path(ground_truth))
-    if rec.session and truth_session and rec.session != truth_session:
+    other_session = rec.session if rec.session and truth_session and rec.session != truth_session else ""
+    if other_session:
         log.warning(
             "%s is a recording of session %r, the ground truth that of %r: compare a recording "
             "with its own session's ground truth",
@@ -461,6 +465,7 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
         tube_end=rec.tube_end,
         complete=rec.complete,
         damaged=rec.damaged,
+        other_session=other_session,
     )
     if rec.smoothed_centerlines_m is not None:
         smoothed = evaluate_centerlines(

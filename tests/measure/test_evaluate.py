@@ -358,8 +358,14 @@ def test_another_sessions_ground_truth_is_warned_of(
         evaluate_recording(recording, session_dir)
     assert "recording of session" not in caplog.text
     with caplog.at_level(logging.WARNING):
-        evaluate_recording(recording, other)
+        report = evaluate_recording(recording, other)
     assert "is a recording of session 'rod', the ground truth that of 'other'" in caplog.text
+    assert report.other_session == "rod" and not evaluate_recording(recording, session_dir).other_session
+    # The report is given, and the exit status says it may compare two sessions.
+    from pipeline.cli import EXIT_FRAMES_FAILED, main
+
+    assert main(["evaluate", str(recording), str(other)]) == EXIT_FRAMES_FAILED
+    assert main(["evaluate", str(recording), str(session_dir)]) == 0
 
 
 def test_a_folder_given_as_the_recording_is_named(partial_run: tuple[Path, Path]) -> None:
