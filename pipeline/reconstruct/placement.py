@@ -116,7 +116,8 @@ def spread_across(
     _, weights = sides.centres()
     own = np.einsum("kc,kci,kcj->kij", weights, np.nan_to_num(sides.rows), np.nan_to_num(sides.rows))
     # The weaker direction across of each sample's own information: the smallest
-    # eigenvalue of the across block (the tangent's own eigenvalue, 0, set above it).
+    # eigenvalue of the across block (the tangent's, 0, set to 1: where both directions
+    # across hold more, the bound says 1, still above their spread and far below the bar).
     weakest = np.linalg.eigvalsh(across @ own @ across + tangents[:, :, None] * tangents[:, None, :])[:, 0]
     spread = 1.0 / np.sqrt(np.maximum(weakest, 1e-12))
     if base_fixed:
