@@ -62,10 +62,11 @@ class Placement:
     base_fixed: bool
     smoothness: float
 
-    def spread(self) -> FloatArray:
-        """(K,) each sample's spread across the tube (see ``LOOSE_SPREAD``)."""
+    def spread(self, judged: NDArray[np.bool_] | None = None) -> FloatArray:
+        """(K,) each sample's spread across the tube (see ``LOOSE_SPREAD`` and
+        :func:`spread_across`, whose ``judged`` this is)."""
         return spread_across(
-            self.points_mm, self.sides, base_fixed=self.base_fixed, smoothness=self.smoothness
+            self.points_mm, self.sides, base_fixed=self.base_fixed, smoothness=self.smoothness, judged=judged
         )
 
     def loose_stretch(self, radius_mm: float) -> tuple[float, float] | None:
@@ -74,7 +75,7 @@ class Placement:
         radii ``radius_mm`` from the ends; None where there is none."""
         arc = polyline_arclength(self.points_mm)
         judged = (arc > _FROM_BASE_RADII * radius_mm) & (arc < arc[-1] - _FROM_TIP_RADII * radius_mm)
-        loose = judged & (self.spread() > LOOSE_SPREAD)
+        loose = judged & (self.spread(judged) > LOOSE_SPREAD)
         if not loose.any():
             return None
         # Runs of loose samples: their starts and ends (exclusive) in sample order.
@@ -97,7 +98,12 @@ class Placement:
 
 
 def spread_across(
-    points_mm: FloatArray, sides: SideReadings, *, base_fixed: bool, smoothness: float
+    points_mm: FloatArray,
+    sides: SideReadings,
+    *,
+    base_fixed: bool,
+    smoothness: float,
+    judged: NDArray[np.bool_] | None = None,
 ) -> FloatArray:
     """(K,) for each of the K samples ``points_mm`` (mm), the standard deviation of its place
     across the tube, in the direction the readings ``sides`` fix least, in units of one
@@ -107,7 +113,9 @@ def spread_across(
 
     Exact where it may exceed ``LOOSE_SPREAD``; elsewhere the bound a sample's own
     readings set (the readings of the other samples and the smoothness only narrow it):
-    only samples that their own views barely fix in some direction across are solved for.
+    only samples that their own views barely fix in some direction across are solved for,
+    and of those only the ``judged`` (K,) ones (default all; the others keep the bound:
+    the tip's zone, which no side reading reads, would otherwise be solved every frame).
     """
     pts = np.asarray(points_mm, dtype=np.float64)
     k = len(pts)
@@ -122,7 +130,7 @@ def spread_across(
     spread = 1.0 / np.sqrt(np.maximum(weakest, 1e-12))
     if base_fixed:
         spread[0] = 0.0  # held: its rows of the equations are the identity's, not readings
-    solve = np.flatnonzero(spread > LOOSE_SPREAD)
+    solve = np.flatnonzero((spread > LOOSE_SPREAD) & (True if judged is None else judged))
     if len(solve):
         band, _ = normal_equations(pts, sides, base_fixed=base_fixed, smoothness=smoothness)
         # Those samples' 3 x 3 blocks of the inverse: solved for their columns of the identity.
