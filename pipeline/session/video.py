@@ -193,7 +193,7 @@ def _probe(path: Path) -> VideoInfo:
 # FFmpeg's demuxers of bare video streams, which carry no frame rate or timestamps of
 # their own; and the file names of containers, which always do.
 BARE_STREAMS = frozenset({"m4v", "h264", "hevc", "mpegvideo", "h263", "mjpeg", "rawvideo", "vc1", "av1"})
-CONTAINER_SUFFIXES = frozenset({".mp4", ".mov", ".avi", ".mkv", ".webm", ".mpg", ".mpeg", ".ts"})
+CONTAINER_SUFFIXES = frozenset({".mp4", ".mov", ".avi", ".mkv", ".webm"})
 
 
 @dataclass(frozen=True, eq=False)
