@@ -10,7 +10,8 @@ uneven, and overshoots its end. The fit corrects all three from the grey images
   found to a fraction of a pixel. Their midpoint is where the axis must project.
   The per-camera 2-D offsets become one linear least-squares problem for the 3-D
   corrections of all samples (3 unknowns per sample, a smoothness term on the
-  corrections, none along the tangent), solved a few times (Gauss-Newton).
+  corrections, none along the tangent; :func:`pipeline.reconstruct.placement.normal_equations`),
+  solved a few times (Gauss-Newton).
 - Contamination. Where another part of the tube lies across or beside a sample in
   one view (the curve's projection passes near itself: loops, crossings), that
   camera's reading there is dropped; so is a reading whose width is not the
