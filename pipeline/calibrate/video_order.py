@@ -77,7 +77,7 @@ def check_video_order(
         return
     masks = [frame_silhouettes(images, model) for _, images in frames]
     # Frames with a view that is mostly silhouette fail on their own, named (their hull, the
-    # whole workspace, took minutes to carve and project in every order here).
+    # whole workspace, would take minutes to carve and project in every order here).
     masks = [frame for frame in masks if all(m.mean() <= MAX_SILHOUETTE_SHARE for m in frame)]
     if not any(all(m.any() for m in frame) for frame in masks):
         return  # no frame in which every view sees something: nothing to tell orders by

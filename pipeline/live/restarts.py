@@ -89,7 +89,7 @@ class RestartWorker:
         # The model goes to the worker as a file it maps, not through the pipe it is spawned
         # with: multiprocessing writes that pipe while it still holds the worker's end, so a
         # worker killed before it has read a model larger than the pipe (a terminal's signal
-        # to the whole group) left the run waiting on the write for good.
+        # to the whole group) would leave the run waiting on the write for good.
         self._model_file = contextlib.ExitStack()
         path = self._model_file.enter_context(shared_file(model))
         try:
@@ -97,8 +97,8 @@ class RestartWorker:
             # semaphore. A signal waits until the worker is under way, and both start with
             # Ctrl-C and a hang-up blocked, which a terminal sends its whole group: the run
             # handles them (the worker, still importing, would print a traceback; a tracker
-            # killed by the hang-up is started again by the run's exit, and its successor
-            # printed a KeyError per semaphore it was asked to forget).
+            # killed by the hang-up would be started again by the run's exit, and its
+            # successor print a KeyError per semaphore it is asked to forget).
             with deferred_signals(), signals_blocked_in_children():
                 self._pool = ProcessPoolExecutor(
                     max_workers=1,

@@ -138,10 +138,9 @@ def refit_tip(
             # parameter: three cameras, median tips summed 26.75 -> 17.91 mm, 13 of 24
             # sessions within 0.5 mm instead of 11, frames more than 2 mm off 323 -> 311;
             # two cameras, mean errors summed 10.39 -> 10.90 mm, median tips 49.9 ->
-            # 53.2 mm, frames off 674 -> 660. The flat-or-round choice changed its close
-            # calls: one clear session turned close (all 90 good frames flagged) and a
-            # spacer-disk one clear (its 86 frames off, flagged by the close call before,
-            # 25 flagged now).
+            # 53.2 mm, frames off 674 -> 660; of the flat-or-round choices, one clear one
+            # became a close call (its 90 good frames flagged) and a spacer-disk one
+            # became clear (its 86 frames off, 86 -> 25 flagged).
             reach_px = radius_mm * px_per_mm * (1.0 if cap == "round" else cos_view)
             estimates.append(back_along(line_px, u, lead + edge, reach_px) - lead)
             weights.append(sin_view**2)

@@ -806,8 +806,8 @@ if os.environ.get("FAULTS_LOADING_MARK") and sys.orig_argv[1:3] == ["-m", "pipel
         open(os.environ["FAULTS_LOADING_MARK"], "w").close()
         # A minute of loading, as Python runs it: a signal that the kernel hands another of
         # the run's threads (the workers' manager, the watch) is taken by the main thread at
-        # its next instruction. One C-level sleep of 60 s would hold it that long (a hang in
-        # a loaded CI run), which no real loading does.
+        # its next instruction. One C-level sleep of 60 s would hold it that long, which no
+        # real loading does.
         for _ in range(600):
             time.sleep(0.1)
 
