@@ -7,6 +7,13 @@ and says what to do. The CLI prints it as one line and exits with status 2.
 
 from __future__ import annotations
 
+from pathlib import Path
+
+# The file a synthetic render (``pipeline synth``, ``synth-calib``) keeps in its folder
+# while it writes there, and leaves behind if it stops part-way: a folder holding it is
+# neither the earlier render nor the new one, and no reader takes it for a whole one.
+UNFINISHED_RENDER = "UNFINISHED-RENDER.txt"
+
 
 class PipelineError(Exception):
     """Base class for every error the user can fix; the message is shown as is."""
@@ -42,3 +49,12 @@ class RecordingError(PipelineError):
 
 class Interrupted(KeyboardInterrupt):
     """A run stopped by Ctrl-C or a signal, after cleaning up; the message says what is left."""
+
+
+def refuse_unfinished_render(folder: Path, error: type[PipelineError]) -> None:
+    """Raise ``error`` naming ``folder`` where a synthetic render stopped part-way there
+    (it holds :data:`UNFINISHED_RENDER`)."""
+    if (folder / UNFINISHED_RENDER).is_file():
+        raise error(
+            f"{folder}: a synthetic render stopped part-way here ({UNFINISHED_RENDER}); render it again"
+        )

@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import CalibrationError, OutputError
+from ..errors import CalibrationError, OutputError, refuse_unfinished_render
 from ..geometry.camera import Camera
 from ..session.calibration_io import write_calibration
 from ..session.toml_file import load_toml
@@ -95,6 +95,7 @@ def calibrate_directory(
     calib_dir = Path(calib_dir)
     if not calib_dir.is_dir():
         raise CalibrationError(f"{calib_dir}: not a folder; expected CALIB_DIR/<camera>/intrinsics/*.png")
+    refuse_unfinished_render(calib_dir, CalibrationError)
     output = Path(output)
     _check_output(output, force=force)
     the_board = load_board(calib_dir, board=board, square_mm=square_mm, charuco=charuco)

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import EvaluationError
+from ..errors import EvaluationError, refuse_unfinished_render
 from ..geometry.polyline import polyline_arclength
 from ..session.folder import check_not_dangling
 
@@ -34,6 +34,9 @@ log = logging.getLogger(__name__)
 # A true centreline farther than this from the world origin (mm) is no workspace's: the
 # distances to it would overflow, and every figure be empty.
 MAX_TRUTH_MM = 1e6
+# A true centreline shorter than this (mm, the median over frames) is no robot's: a ground
+# truth in metres (a 250 mm tube as 0.25), whose every frame would read as a miss.
+MIN_TRUTH_LENGTH_MM = 1.0
 
 FloatArray = NDArray[np.float64]
 
@@ -315,6 +318,7 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
     """
     path = Path(path)
     file = path / "ground_truth.npz" if path.is_dir() else path  # a broken link is no folder
+    refuse_unfinished_render(file.parent, EvaluationError)
     check_not_dangling(file, EvaluationError)
     if file.exists() and not file.is_file():
         raise EvaluationError(
@@ -354,6 +358,10 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
         raise EvaluationError(
             f"{file}: 'centerlines' holds no {what} (shape {centerlines.shape}); render the session again"
         )
+    if centerlines.shape[1] < 2:
+        raise EvaluationError(
+            f"{file}: 'centerlines' holds 1 point a frame; a centreline needs 2 or more, base to tip"
+        )
     if not np.isfinite(centerlines).all():
         raise EvaluationError(
             f"{file}: 'centerlines' holds non-finite values; render the session again (pipeline synth)"
@@ -363,6 +371,13 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
         raise EvaluationError(
             f"{file}: 'centerlines' reach {farthest:.3g} mm from the origin, beyond any workspace "
             f"({MAX_TRUTH_MM:g} mm); is this a ground truth in millimetres? render the session again"
+        )
+    steps = np.linalg.norm(np.diff(centerlines, axis=1), axis=2)
+    length = float(np.median(steps.sum(axis=1)))
+    if length < MIN_TRUTH_LENGTH_MM:
+        raise EvaluationError(
+            f"{file}: its centrelines are {length:.3g} mm long (the median); ground truths are in "
+            "millimetres: is this one in metres? render the session again (pipeline synth)"
         )
     return centerlines, timestamps
 

@@ -23,7 +23,14 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import CalibrationError, PipelineError, SessionError, SettingsError, VideoError
+from ..errors import (
+    CalibrationError,
+    PipelineError,
+    SessionError,
+    SettingsError,
+    VideoError,
+    refuse_unfinished_render,
+)
 from ..geometry.camera import Camera
 from .calibration_io import read_calibration
 from .grey_levels import grey_8bit
@@ -90,6 +97,7 @@ def _load_session(directory: Path) -> Session:
         raise SessionError(f"{directory}: no such session directory{_where_looked(directory)}")
     if not any(directory.iterdir()):
         raise SessionError(f"{directory}: the session directory is empty")
+    refuse_unfinished_render(directory, SessionError)
     for name in ("session.toml", "calibration.toml"):
         check_not_dangling(directory / name)
     settings = load_settings(directory / "session.toml")

@@ -44,7 +44,7 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from ..errors import Interrupted, PipelineError
-from .out_dir import check_out_dir, left_behind, write_image
+from .out_dir import check_out_dir, left_behind, unfinished, write_image
 from .rig import WORKSPACE_CENTER_MM, SynthCamera, calibration_document, make_rig
 
 log = logging.getLogger(__name__)
@@ -178,13 +178,14 @@ def render_calibration_views(
 
     incomplete = f"the board images in {out_dir} are incomplete: render them again"
     try:
-        for path, ci, R, t in tqdm(jobs, desc="synth-calib", unit="image", disable=not progress):
-            image = _render(rays[ci], cams[ci], R, t, cols, rows, square_mm, rng, texture=texture)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            write_image(path, image)
-        (out_dir / "board.toml").write_text(tomli_w.dumps({**board_doc, "square_mm": float(square_mm)}))
-        truth = calibration_document(cams, metadata={"source": "synth-calib", "arrangement": arrangement})
-        (out_dir / TRUTH_FILE).write_text(tomli_w.dumps(truth))
+        with unfinished(out_dir):
+            for path, ci, R, t in tqdm(jobs, desc="synth-calib", unit="image", disable=not progress):
+                image = _render(rays[ci], cams[ci], R, t, cols, rows, square_mm, rng, texture=texture)
+                path.parent.mkdir(parents=True, exist_ok=True)
+                write_image(path, image)
+            (out_dir / "board.toml").write_text(tomli_w.dumps({**board_doc, "square_mm": float(square_mm)}))
+            truth = calibration_document(cams, metadata={"source": "synth-calib", "arrangement": arrangement})
+            (out_dir / TRUTH_FILE).write_text(tomli_w.dumps(truth))
     except OSError as exc:
         # A full disk or a folder that turned read-only: a render into a new folder leaves
         # nothing; one over an earlier render leaves it incomplete, and says so.

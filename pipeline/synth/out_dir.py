@@ -2,27 +2,31 @@
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import shutil
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import PipelineError
+from ..errors import UNFINISHED_RENDER, PipelineError
 
 
 def check_out_dir(out_dir: Path, *, command: str, contents: str, marker: str, kind: str) -> None:
     """Refuse ``out_dir`` unless it is new, empty, or an earlier render of ``command`` (it
-    holds ``marker``, a file only that render writes): never a folder of the user's own files.
+    holds ``marker``, a file only that render writes, or the mark of a render stopped
+    part-way, see :func:`unfinished`): never a folder of the user's own files.
 
     contents : what the render writes, for the message ("the session").
     kind : what an earlier render is called, for the message ("a synthetic session").
     """
     if out_dir.exists() and not out_dir.is_dir():
         raise PipelineError(f"{out_dir}: is a file; give {command} a directory to write {contents} in")
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not (out_dir / marker).is_file():
+    earlier = (out_dir / marker).is_file() or (out_dir / UNFINISHED_RENDER).is_file()
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not earlier:
         raise PipelineError(
             f"{out_dir}: holds files and is not {kind} (no {marker}); give {command} a new or empty directory"
         )
@@ -43,3 +47,16 @@ def left_behind(out_dir: Path, created: bool, incomplete: str) -> str:
         shutil.rmtree(out_dir, ignore_errors=True)
         return "nothing written"
     return incomplete
+
+
+@contextlib.contextmanager
+def unfinished(out_dir: Path) -> Iterator[None]:
+    """Mark ``out_dir`` (which exists) as a render in progress for the block: the mark
+    (``UNFINISHED_RENDER``) is removed only when the block finishes, so that a render
+    stopped part-way (an error, Ctrl-C, a kill) leaves a folder that every reader refuses."""
+    (out_dir / UNFINISHED_RENDER).write_text(
+        "A synthetic render is writing this folder, or stopped before it finished.\n"
+        "Its files are not a whole render: render it again.\n"
+    )
+    yield
+    (out_dir / UNFINISHED_RENDER).unlink()

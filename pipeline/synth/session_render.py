@@ -28,7 +28,7 @@ from .calib_error import perturbed_rig
 from .distractor import paint_distractor, place_distractor
 from .images import background_texture, flicker_gains, render_frame, threshold_for
 from .names import IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
-from .out_dir import check_out_dir, left_behind, write_image
+from .out_dir import check_out_dir, left_behind, unfinished, write_image
 from .poses import out_of_view, outside_box, self_contact
 from .radius_profiles import Disks, RadiusProfile, disks_of, radius_along
 from .random_shapes import draw_shape, shape_at
@@ -216,10 +216,10 @@ TRUTH_FILE = "ground_truth.npz"
 
 def _remove_earlier_views(out_dir: Path, names: set[str]) -> None:
     """An earlier render's videos and backgrounds of cameras this rig has not (a render of
-    three cameras replaced by one of two): left there, they would be taken for the rig's."""
-    if not (out_dir / TRUTH_FILE).is_file():
-        return
-    log.info("%s: replacing the synthetic session rendered there before", out_dir)
+    three cameras replaced by one of two): left there, they would be taken for the rig's.
+    ``out_dir`` holds no other files (see check_out_dir)."""
+    if (out_dir / TRUTH_FILE).is_file():
+        log.info("%s: replacing the synthetic session rendered there before", out_dir)
     for path in [*out_dir.glob("*.mp4"), *(out_dir / "background").glob("*.png")]:
         if path.stem not in names:
             path.unlink()
@@ -311,65 +311,70 @@ def render_session(
             (out_dir / "background").mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise PipelineError(f"{out_dir}: cannot create the session directory: {exc.strerror}") from None
-        _remove_earlier_views(out_dir, {cam.name for cam in cameras})
-        if options.calib_error_deg:
-            given = perturbed_rig(cameras, options.calib_error_deg, seed=seed)
-            source = f"pipeline synth (true cameras with a {options.calib_error_deg:g} deg calibration error)"
-        else:
-            given, source = cameras, "pipeline synth (true cameras)"
-        (out_dir / "calibration.toml").write_bytes(
-            tomli_w.dumps(
-                calibration_document(given, metadata={"source": source, "arrangement": arrangement})
-            ).encode()
-        )
-        (out_dir / "session.toml").write_bytes(
-            tomli_w.dumps(session_document(polarity=polarity, radius_mm=radius_mm)).encode()
-        )
-        backgrounds = [
-            background_texture(cam.width, cam.height, seed=seed, camera_index=i)
-            for i, cam in enumerate(cameras)
-        ]
-        blob = None
-        if options.distractor:
-            widest = max(float(radii.max()), 0.0 if disks is None else disks.radius_mm)
-            blob = place_distractor(cameras, centerlines, widest, seed=seed)
-            backgrounds[blob.camera_index] = paint_distractor(backgrounds[blob.camera_index], blob)
-        for cam, bg in zip(cameras, backgrounds, strict=True):
-            grey = 255.0 - bg if polarity == "bright" else bg
-            path = out_dir / "background" / f"{cam.name}.png"
-            write_image(path, np.rint(grey).astype(np.uint8))
-        gains = flicker_gains(seed, frames) if options.flicker else np.ones(frames)
-        write_npz_deterministic(
-            out_dir / TRUTH_FILE,
-            {
-                "centerlines": centerlines,
-                "timestamps_s": np.arange(frames) / FPS,
-                "radius_mm": np.float64(radius_mm),
-                "base_mm": BASE_MM,
-                "shape": np.str_(shape),
-                "fps": np.float64(FPS),
-                "camera_names": np.array([c.name for c in cameras]),
-                "K": np.stack([c.K for c in cameras]),
-                "dist": np.stack([c.dist for c in cameras]),
-                "R": np.stack([c.R for c in cameras]),
-                "t": np.stack([c.t for c in cameras]),
-                "image_size": np.array([cameras[0].width, cameras[0].height]),
-                "tip": np.str_(options.tip),
-                "profile": np.str_(profile.kind),
-                "radius_profile_mm": np.broadcast_to(radii, (frames, CENTERLINE_POINTS)),
-                "length_mm": np.float64(length),
-                "disk_arc_mm": np.zeros(0) if disks is None else disks.arc_mm,
-                "disk_radius_mm": np.float64(0.0 if disks is None else disks.radius_mm),
-                "disk_thickness_mm": np.float64(0.0 if disks is None else disks.thickness_mm),
-                "distractor_camera": np.int64(-1 if blob is None else blob.camera_index),
-                "flicker_gain": gains,
-                "calib_error_deg": np.float64(options.calib_error_deg),
-            },
-        )
-        # A uniform tube is drawn at its plain radius (the profile's values are that radius).
-        uniform = profile.kind == "uniform"
-        look = Look(radius_mm if uniform else radii, options.tip, disks, backgrounds, polarity, seed, gains)
-        _write_videos(out_dir, cameras, centerlines, look, progress, jobs)
+        with unfinished(out_dir):
+            _remove_earlier_views(out_dir, {cam.name for cam in cameras})
+            if options.calib_error_deg:
+                given = perturbed_rig(cameras, options.calib_error_deg, seed=seed)
+                source = (
+                    f"pipeline synth (true cameras with a {options.calib_error_deg:g} deg calibration error)"
+                )
+            else:
+                given, source = cameras, "pipeline synth (true cameras)"
+            (out_dir / "calibration.toml").write_bytes(
+                tomli_w.dumps(
+                    calibration_document(given, metadata={"source": source, "arrangement": arrangement})
+                ).encode()
+            )
+            (out_dir / "session.toml").write_bytes(
+                tomli_w.dumps(session_document(polarity=polarity, radius_mm=radius_mm)).encode()
+            )
+            backgrounds = [
+                background_texture(cam.width, cam.height, seed=seed, camera_index=i)
+                for i, cam in enumerate(cameras)
+            ]
+            blob = None
+            if options.distractor:
+                widest = max(float(radii.max()), 0.0 if disks is None else disks.radius_mm)
+                blob = place_distractor(cameras, centerlines, widest, seed=seed)
+                backgrounds[blob.camera_index] = paint_distractor(backgrounds[blob.camera_index], blob)
+            for cam, bg in zip(cameras, backgrounds, strict=True):
+                grey = 255.0 - bg if polarity == "bright" else bg
+                path = out_dir / "background" / f"{cam.name}.png"
+                write_image(path, np.rint(grey).astype(np.uint8))
+            gains = flicker_gains(seed, frames) if options.flicker else np.ones(frames)
+            write_npz_deterministic(
+                out_dir / TRUTH_FILE,
+                {
+                    "centerlines": centerlines,
+                    "timestamps_s": np.arange(frames) / FPS,
+                    "radius_mm": np.float64(radius_mm),
+                    "base_mm": BASE_MM,
+                    "shape": np.str_(shape),
+                    "fps": np.float64(FPS),
+                    "camera_names": np.array([c.name for c in cameras]),
+                    "K": np.stack([c.K for c in cameras]),
+                    "dist": np.stack([c.dist for c in cameras]),
+                    "R": np.stack([c.R for c in cameras]),
+                    "t": np.stack([c.t for c in cameras]),
+                    "image_size": np.array([cameras[0].width, cameras[0].height]),
+                    "tip": np.str_(options.tip),
+                    "profile": np.str_(profile.kind),
+                    "radius_profile_mm": np.broadcast_to(radii, (frames, CENTERLINE_POINTS)),
+                    "length_mm": np.float64(length),
+                    "disk_arc_mm": np.zeros(0) if disks is None else disks.arc_mm,
+                    "disk_radius_mm": np.float64(0.0 if disks is None else disks.radius_mm),
+                    "disk_thickness_mm": np.float64(0.0 if disks is None else disks.thickness_mm),
+                    "distractor_camera": np.int64(-1 if blob is None else blob.camera_index),
+                    "flicker_gain": gains,
+                    "calib_error_deg": np.float64(options.calib_error_deg),
+                },
+            )
+            # A uniform tube is drawn at its plain radius (the profile's values are that radius).
+            uniform = profile.kind == "uniform"
+            look = Look(
+                radius_mm if uniform else radii, options.tip, disks, backgrounds, polarity, seed, gains
+            )
+            _write_videos(out_dir, cameras, centerlines, look, progress, jobs)
         log.info("wrote synthetic session %s (%s, %d frames)", out_dir, shape, frames)
     except OSError as exc:
         # A full disk or a folder that turned read-only: a render into a new folder leaves

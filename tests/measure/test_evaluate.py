@@ -484,8 +484,13 @@ def test_accuracy_table_is_markdown_with_ours_smoothed_and_polyfit() -> None:
         (np.zeros((RUN_FRAMES, 0, 3)), r"'centerlines' holds no points"),
         (np.ones((RUN_FRAMES, 20, 3), dtype=bool), r"'centerlines' holds bool values"),
         (np.ones((RUN_FRAMES, 20, 3), dtype=complex), r"'centerlines' holds complex128 values"),
+        (np.ones((RUN_FRAMES, 1, 3)), r"'centerlines' holds 1 point a frame; a centreline needs 2"),
+        (
+            np.stack([rod_truth(i) for i in range(RUN_FRAMES)]) / 1000.0,
+            r"its centrelines are 0\.\d+ mm long .*is this one in metres\?",
+        ),
     ],
-    ids=["no-frames", "no-points", "bool", "complex"],
+    ids=["no-frames", "no-points", "bool", "complex", "one-point", "metres"],
 )
 def test_a_ground_truth_without_usable_centrelines_is_named(
     partial_run: tuple[Path, Path], tmp_path: Path, centerlines: NDArray[np.generic], message: str

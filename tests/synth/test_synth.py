@@ -978,6 +978,20 @@ def test_an_interrupted_render_leaves_no_half_made_session_or_says_so(
     assert not (tmp_path / "new").exists()
     with pytest.raises(Interrupted, match=r"earlier is incomplete: render it again"):
         render_session(tmp_path / "earlier", frames=2, progress=False, jobs=1)
+    # What it left is neither render: the readers refuse it, and a render finishes it.
+    from pipeline.errors import EvaluationError, SessionError
+    from pipeline.measure.evaluate import load_ground_truth
+    from pipeline.session.folder import load_session
+
+    unfinished = r"earlier: a synthetic render stopped part-way here \(UNFINISHED-RENDER\.txt\); render it"
+    with pytest.raises(SessionError, match=unfinished):
+        load_session(tmp_path / "earlier")
+    with pytest.raises(EvaluationError, match=unfinished):
+        load_ground_truth(tmp_path / "earlier")
+    monkeypatch.undo()
+    render_session(tmp_path / "earlier", frames=2, progress=False, jobs=1)
+    assert len(load_session(tmp_path / "earlier").cameras) == 3
+    assert not (tmp_path / "earlier" / "UNFINISHED-RENDER.txt").exists()
 
 
 def test_synth_draws_no_progress_bar_into_a_log(tmp_path: Path) -> None:

@@ -196,3 +196,36 @@ def test_an_interrupted_render_into_a_new_folder_leaves_nothing_and_says_so(
     with pytest.raises(Interrupted, match=r"^interrupted; nothing written$"):
         render_calibration_views(target, arrangement="ninety", views=4, progress=False)
     assert not target.exists()
+
+
+def test_an_interrupted_render_over_an_earlier_one_is_refused_by_calibrate(
+    ninety, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    earlier = tmp_path / "calib"
+    shutil.copytree(ninety, earlier)
+    real_imwrite = cv2.imwrite
+    written: list[str] = []
+
+    def interrupted_after_two(path: str, image: object) -> bool:
+        if len(written) == 2:
+            raise KeyboardInterrupt
+        written.append(path)
+        return bool(real_imwrite(path, image))
+
+    monkeypatch.setattr("pipeline.synth.boards.cv2.imwrite", interrupted_after_two)
+    assert main(["synth-calib", str(earlier), "--arrangement", "oblique"]) == 130
+    assert (
+        capsys.readouterr()
+        .err.strip()
+        .endswith(f"the board images in {earlier} are incomplete: render them again")
+    )
+    # Two new images among the earlier ones: calibrate refuses the mix, not calibrates it.
+    out = tmp_path / "calibration.toml"
+    assert main(["calibrate", str(earlier), "-o", str(out)]) == EXIT_BAD_INPUT
+    assert capsys.readouterr().err.splitlines() == [
+        f"error: {earlier}: a synthetic render stopped part-way here (UNFINISHED-RENDER.txt); render it again"
+    ]
+    assert not out.exists()
+    monkeypatch.undo()
+    render_calibration_views(earlier, arrangement="ninety", seed=1, views=4, progress=False)
+    assert not (earlier / "UNFINISHED-RENDER.txt").exists()
