@@ -90,8 +90,9 @@ class RestartWorker:
         # with: multiprocessing writes that pipe while it still holds the worker's end, so a
         # worker killed before it has read a model larger than the pipe (a terminal's signal
         # to the whole group) would leave the run waiting on the write for good.
-        self._model_file = contextlib.ExitStack()
-        path = self._model_file.enter_context(shared_file(model))
+        # What close() undoes, last first: the model's file, then the pool.
+        self._resources = contextlib.ExitStack()
+        path = self._resources.enter_context(shared_file(model))
         try:
             # The worker is spawned here, and the resource tracker with the pool's first
             # semaphore. A signal waits until the worker is under way, and both start with
@@ -107,11 +108,10 @@ class RestartWorker:
                     initializer=_take_model,
                     initargs=(str(path),),
                 )
+                self._resources.callback(self._pool.shutdown, wait=False, cancel_futures=True)
                 self._warm: Future[None] = self._pool.submit(_ready)
         except BaseException:
-            if hasattr(self, "_pool"):
-                self._pool.shutdown(wait=False, cancel_futures=True)
-            self._model_file.close()
+            self._resources.close()
             raise
         # The started track: the run's track before it, and its own frames, in order.
         self._before: list[FrameResult] = []
@@ -211,5 +211,4 @@ class RestartWorker:
     def close(self) -> None:
         """Stop the worker, without waiting for a start under way, and remove its model's
         file (a worker still running keeps its mapping)."""
-        self._pool.shutdown(wait=False, cancel_futures=True)
-        self._model_file.close()
+        self._resources.close()
