@@ -101,6 +101,33 @@ def test_an_empty_path_is_a_usage_error_not_the_current_folder(
     assert err.count("\n") == 1 and f"argument {argument}: an empty path" in err
 
 
+LONG = "s" * 300
+
+
+@pytest.mark.parametrize(
+    ("command", "argument"),
+    [
+        (["process", LONG], "video_dir"),
+        (["process", "s", "--json", f"out/{LONG}"], "--json"),
+        (["evaluate", "r.mcap", LONG], "ground_truth"),
+        (["calibrate", LONG, "-o", "c.toml"], "calib_dir"),
+        (["synth", f"{LONG}/s"], "out_dir"),
+        (["live", "--replay", LONG], "--replay"),
+    ],
+)
+def test_a_name_longer_than_any_file_system_takes_is_a_usage_error(
+    capsys: pytest.CaptureFixture[str], command: list[str], argument: str
+) -> None:
+    # The system refuses to look such a path up at all (ENAMETOOLONG), where a missing
+    # file's lookup answers "not there".
+    with pytest.raises(SystemExit) as exit_info:
+        main(command)
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert f"argument {argument}: the name {'s' * 24}... is 300 bytes long, and no file or folder name" in err
+
+
 def test_json_before_the_session_folder_takes_stdout_not_the_folder(tmp_path: Path) -> None:
     from pipeline.cli.parser import build_parser, with_json_before_a_folder
 
@@ -319,6 +346,38 @@ def test_json_to_a_missing_folder_fails_before_the_run(
     assert main(["process", "s", "--json", str(tmp_path / "file" / "summary.json")]) == EXIT_BAD_INPUT
     err = capsys.readouterr().err
     assert "file is a file, not a folder; give --json a file in a folder" in err and err.count("\n") == 1
+
+
+def test_json_that_cannot_be_opened_fails_before_the_run(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    fake = _fake_run(monkeypatch, OK_RUN)
+    target = tmp_path / "loop.json"
+    target.symlink_to(target)  # a link that leads back to itself
+    assert main(["process", "s", "--json", str(target)]) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert err == (
+        f"error: {target}: cannot be written (Too many levels of symbolic links); give --json a file "
+        "in a folder you can write to\n"
+    )
+    # A writable folder (by its permission bits) where no file can be made: /sys for root.
+    from pipeline.cli import commands
+
+    def refused(*args: object, **kwargs: object) -> None:
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(commands, "open", refused, raising=False)
+    summary = tmp_path / "summary.json"
+    assert main(["process", "s", "--json", str(summary)]) == EXIT_BAD_INPUT
+    assert capsys.readouterr().err == (
+        f"error: {summary}: cannot be written; give --json a file in a folder you can write to\n"
+    )
+    assert fake.kwargs == {}  # never started
+    monkeypatch.undo()
+    # Where it can, the check leaves no file behind: the run writes it.
+    fake = _fake_run(monkeypatch, OK_RUN)
+    assert main(["process", "s", "--json", str(summary)]) == 0
+    assert json.loads(summary.read_text())["exit_code"] == 0
 
 
 def test_interrupt_exits_130(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:

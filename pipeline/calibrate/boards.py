@@ -164,14 +164,17 @@ def load_board(
     if not _plausible_square(square):
         raise CalibrationError(
             f"{calib_dir}: square_mm must be a finite size in mm, {_SQUARE_MM[0]:g} to {_SQUARE_MM[1]:g}, "
-            f"got {square!r}"
+            f"got {square!r} ({_SQUARE_UNITS})"
         )
     return Board(int(cols), int(rows), float(square))
 
 
 # A board's square size (mm) is refused outside these bounds before any detection: OpenCV's
-# solvers fail on a NaN, an infinity or a size like 1e-300, once the boards are detected.
-_SQUARE_MM = (0.01, 10000.0)
+# solvers fail on a NaN, an infinity or a size like 1e-300, once the boards are detected; and
+# a size in metres typed for millimetres (0.025 for a 25 mm square) would calibrate a rig a
+# thousand times too small, which only fails later, every frame.
+_SQUARE_MM = (0.5, 10000.0)
+_SQUARE_UNITS = "a board's squares are in mm: 25 for 25 mm, not 0.025"
 
 
 def _plausible_square(square: object) -> bool:
@@ -203,7 +206,8 @@ def _load_charuco(
     if not _plausible_square(square):
         raise CalibrationError(
             f"{calib_dir}: ChArUco square size unknown or not a finite size in mm, {_SQUARE_MM[0]:g} to "
-            f"{_SQUARE_MM[1]:g} ({square!r}); write square_mm in {path.name} or pass --square-mm S"
+            f"{_SQUARE_MM[1]:g} ({square!r}; {_SQUARE_UNITS}); write square_mm in {path.name} or pass "
+            "--square-mm S"
         )
     square = float(square)  # type: ignore[arg-type]
     # board.toml's marker size belongs to its square size: not kept when --square-mm overrides it.

@@ -165,6 +165,14 @@ def _check_json_path(path: Path, outputs: tuple[Path, ...] = ()) -> None:
     """Before the run: the JSON summary can be written to ``path`` (its folder exists and is
     writable) without taking the place of a file that is not a JSON summary (a video, a
     calibration, a recording) or of one of the run's ``outputs``."""
+    try:
+        path.stat()
+    except (FileNotFoundError, NotADirectoryError):
+        pass  # a new file, or a file given as its folder: named below
+    except OSError as exc:  # a name too long, a loop of links, a folder this user cannot enter
+        raise OutputError(
+            f"{path}: cannot be written ({exc.strerror}); give --json a file in a folder you can write to"
+        ) from None
     if path.is_dir():
         raise OutputError(f"{path}: is a directory; give --json a file name (or - for stdout)")
     if path.exists() and not path.is_file():
@@ -181,8 +189,23 @@ def _check_json_path(path: Path, outputs: tuple[Path, ...] = ()) -> None:
         raise OutputError(
             f"{path}: exists and is not a JSON summary; give --json a new file name (or - for stdout)"
         )
-    if not os.access(path if path.exists() else path.parent, os.W_OK):
+    if not os.access(path if path.exists() else path.parent, os.W_OK) or _cannot_open(path):
         raise OutputError(f"{path}: cannot be written; give --json a file in a folder you can write to")
+
+
+def _cannot_open(path: Path) -> bool:
+    """Whether ``path`` cannot be opened for writing, found by opening it (to append: an
+    earlier summary is kept until the run replaces it) and removing it where it was not
+    there. Permission bits do not tell: root passes them in /sys, where nothing is created."""
+    existed = path.exists()
+    try:
+        with open(path, "ab"):
+            pass
+    except OSError:
+        return True
+    if not existed:
+        path.unlink(missing_ok=True)
+    return False
 
 
 def _holds_json(path: Path) -> bool:

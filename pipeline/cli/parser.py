@@ -49,12 +49,33 @@ def _frame_range(text: str) -> tuple[int, int | None]:
     return lo, hi
 
 
+# The longest file or folder name (bytes) Linux's file systems take.
+NAME_MAX = 255
+
+
 def _path(text: str) -> Path:
     """A path argument: an empty one (a shell variable left unset) is no path; Path("")
-    would be the current folder."""
+    would be the current folder. A name longer than any file system takes is no file's."""
     if not text:
         raise argparse.ArgumentTypeError("an empty path; give a file or folder")
+    _check_name_lengths(text)
     return Path(text)
+
+
+def _names_checked(text: str) -> str:
+    """A path argument kept as text ("" where it means the default's): its names checked."""
+    _check_name_lengths(text)
+    return text
+
+
+def _check_name_lengths(text: str) -> None:
+    for part in Path(text).parts:
+        size = len(os.fsencode(part))
+        if size > NAME_MAX:
+            raise argparse.ArgumentTypeError(
+                f"the name {part[:24]}... is {size} bytes long, and no file or folder name may pass "
+                f"{NAME_MAX}; give a shorter one"
+            )
 
 
 def _json_file(text: str) -> str:
@@ -63,6 +84,7 @@ def _json_file(text: str) -> str:
     waited on for good."""
     if text == "-":
         return text
+    _check_name_lengths(text)
     try:
         here, out = os.stat(text), os.fstat(sys.stdout.fileno())
     except (OSError, ValueError):
@@ -251,6 +273,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         "--replay",
         nargs="?",
         const="",
+        type=_names_checked,
         metavar="SESSION_DIR",
         help="play SESSION_DIR's videos at their frame rate as the cameras (default: RIG_DIR's own)",
     )
@@ -404,7 +427,8 @@ def with_json_before_a_folder(argv: Sequence[str]) -> list[str]:
     folders = [
         i
         for i, word in enumerate(out)
-        if Path(word).is_dir() and (i == 0 or out[i - 1] not in ("-o", "--out"))
+        # os.path's, not Path's: False for a name the system refuses (too long), not an error.
+        if os.path.isdir(word) and (i == 0 or out[i - 1] not in ("-o", "--out"))
     ]
     for i, arg in enumerate(out[:-1]):
         if arg == "--json" and folders == [i + 1]:

@@ -94,15 +94,24 @@ def source_identity(url: str) -> tuple[str | int, ...]:
     such as /dev/v4l/by-id/... and its /dev/videoN are one device), another path by its
     file (a relative path and its absolute one, a link and its target), and a path not
     there by where it leads; a URL by its text. The first item names the kind."""
-    if "://" in url:
+    path = local_path(url)
+    if path is None:
         return ("url", url)
     try:
-        status = os.stat(url)
+        status = os.stat(path)
     except (OSError, ValueError):
-        return ("path", os.path.realpath(url))
+        return ("path", os.path.realpath(path))
     if stat.S_ISCHR(status.st_mode) or stat.S_ISBLK(status.st_mode):
         return ("device", status.st_rdev)
     return ("file", status.st_dev, status.st_ino)
+
+
+def local_path(url: str) -> str | None:
+    """The path a source reads on this machine: the source itself, or an FFmpeg ``file:``
+    URL's path (``file:///dev/video0``, ``file:take/cam0.mp4``); None for a stream URL."""
+    if url.startswith("file:"):
+        return url[len("file:") :]  # FFmpeg's own reading: the rest is the path ("///x" is /x)
+    return None if "://" in url else url
 
 
 def _check_path(toml: Path, source: Source) -> None:
@@ -110,11 +119,12 @@ def _check_path(toml: Path, source: Source) -> None:
     one, and the other is read as fast as it decodes (and again when it ends), its frames
     matched with the other cameras' at random. A path not there (a camera unplugged, a pipe
     not made yet) is left to the run, which retries it."""
-    if "://" in source.url:
+    path = local_path(source.url)
+    if path is None:
         return
     try:
-        mode = Path(source.url).stat().st_mode
-    except OSError:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
         return
     where = f"{toml}: [live] {source.camera} = {source.url!r}"
     if stat.S_ISDIR(mode):

@@ -216,14 +216,18 @@ def prepare_outputs(out_dir: Path, name: str, force: bool) -> OutputTarget:
             out_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise OutputError(
-                f"{out_dir}: cannot create the output directory ({exc.strerror}); use --out"
+                f"{out_dir}: cannot create the output directory ({exc.strerror}); give --out a folder "
+                "this user can write in"
             ) from None
         if not os.access(out_dir, os.W_OK):
             raise OutputError(f"{out_dir}: output directory is not writable; use --out to choose another")
         try:
             target.lock()
         except OSError as exc:
-            raise OutputError(f"{out_dir}: cannot write in the output directory ({exc.strerror})") from None
+            raise OutputError(
+                f"{out_dir}: cannot write in the output directory ({exc.strerror}); give --out a folder "
+                "this user can write in"
+            ) from None
         for path in target.finals:
             # --force replaces recordings, not a folder (or a device) under their name.
             if path.exists() and not path.is_file():

@@ -117,7 +117,7 @@ def test_board_toml_and_flags(synth, tmp_path) -> None:
         load_board(tmp_path)
 
 
-@pytest.mark.parametrize("square", [float("nan"), float("inf"), 1e-300, -5.0, 0.0])
+@pytest.mark.parametrize("square", [float("nan"), float("inf"), 1e-300, -5.0, 0.0, 0.025])
 def test_a_square_size_that_is_no_size_is_refused_before_any_detection(tmp_path: Path, square: float) -> None:
     for flags in ({"board": (9, 6)}, {"charuco": (7, 5)}):
         with pytest.raises(CalibrationError, match="square"):
@@ -125,7 +125,10 @@ def test_a_square_size_that_is_no_size_is_refused_before_any_detection(tmp_path:
     (tmp_path / "board.toml").write_text(
         f'type = "chessboard"\ninner_corners = [9, 6]\nsquare_mm = {square!r}\n'
     )
-    with pytest.raises(CalibrationError, match=r"square_mm must be a finite size in mm, 0\.01 to 10000"):
+    with pytest.raises(
+        CalibrationError,
+        match=r"square_mm must be a finite size in mm, 0\.5 to 10000, got .* \(a board's squares are in",
+    ):
         load_board(tmp_path)
 
 

@@ -201,6 +201,16 @@ def test_a_rig_whose_live_table_misses_or_misnames_a_camera_is_refused(tmp_path:
         SettingsError, match=r"\[live\] cam1 = .*cam1.mp4. is a file, not a camera .*--replay"
     ):
         open_rig(rig, None)
+    # So is one named by FFmpeg's file: URL, and that URL and the path are one source.
+    for n, url in enumerate((f"file://{video}", f"file:{video}")):
+        rig = _rig(tmp_path / f"f{n}", session, {"cam0": 0, "cam1": url, "cam2": 2})
+        with pytest.raises(SettingsError, match=r"\[live\] cam1 = 'file:.*cam1.mp4. is a file, not a camera"):
+            open_rig(rig, None)
+    rig = _rig(tmp_path / "f2", session, {"cam0": "file:///dev/null", "cam1": 1, "cam2": "/dev/null"})
+    with pytest.raises(
+        SettingsError, match=r"cameras 'cam0' and 'cam2' the same source \(file:///dev/null and"
+    ):
+        open_rig(rig, None)
     # Two names of one device (a link to it, as udev's by-id links are) are one source.
     link = tmp_path / "by-id-cam0"
     link.symlink_to("/dev/null")
