@@ -305,6 +305,7 @@ def _run_with(
                 # spawn and import the per-frame modules while the parent builds the model.
                 start_local_workers(n_jobs)
             if frame_fn is None:
+                from ..calibrate.background_order import check_background_order
                 from ..calibrate.refine import refined_cameras, sample_session
                 from ..calibrate.video_order import check_video_order
                 from ..reconstruct.model import build_model
@@ -317,7 +318,11 @@ def _run_with(
                 frame_map = local_frame_map(n_jobs) if backend == "loky" else map_here
                 paths = session.video_paths
                 samples = sample_session(paths, start, stop)
-                # Videos in other cameras' places would be taken for cameras that moved: named first.
+                # Backgrounds, and videos, in other cameras' places would fail every frame, or be
+                # taken for cameras that moved: named first.
+                if session.settings.silhouette.method == "background":
+                    folder = session.directory / "background"
+                    check_background_order(session.backgrounds, samples, names, folder)
                 check_video_order(model, samples, paths)
                 cameras, refinement, tips = refined_cameras(model, samples, frame_map)
                 if cameras is not session.cameras:

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from pipeline.calibrate.background_order import check_background_order, scene_correlations
 from pipeline.calibrate.video_order import check_video_order
 from pipeline.errors import SessionError
 from pipeline.reconstruct.frame import build_model
@@ -103,3 +105,40 @@ def test_frames_with_a_view_that_is_mostly_silhouette_are_not_carved(
     # Frames that show a tube are still compared (the check is not switched off).
     check_video_order(build_model(loaded), frames, loaded.video_paths)
     assert carved
+
+
+# --- background images (pipeline.calibrate.background_order) -----------------------------
+
+
+def _check_backgrounds(directory: Path) -> None:
+    session = load_session(directory)
+    frames = decode_frames(session.video_paths, range(session.frame_count))
+    names = [c.name for c in session.cameras]
+    check_background_order(session.backgrounds, frames, names, directory / "background")
+
+
+def test_backgrounds_as_their_cameras_pass_and_match_their_own_scene_alone(session: Path) -> None:
+    _check_backgrounds(session)
+    loaded = load_session(session)
+    frames = decode_frames(loaded.video_paths, range(loaded.frame_count))
+    correlation = scene_correlations([b for b in loaded.backgrounds if b is not None], frames)
+    own = np.diag(correlation)
+    assert own.min() > 0.7  # the scene, with the moving tube left out by the median
+    assert np.abs(correlation[~np.eye(len(own), dtype=bool)]).max() < 0.35
+
+
+def test_two_backgrounds_swapped_are_named(session: Path, tmp_path: Path) -> None:
+    swapped = tmp_path / "take"
+    (swapped / "background").mkdir(parents=True)
+    for item in session.iterdir():
+        if item.name != "background":
+            (swapped / item.name).symlink_to(item)
+    for item in (session / "background").iterdir():
+        name = {"cam0.png": "cam2.png", "cam2.png": "cam0.png"}.get(item.name, item.name)
+        (swapped / "background" / name).symlink_to(item)
+    with pytest.raises(SessionError) as info:
+        _check_backgrounds(swapped)
+    message = str(info.value)
+    assert message.startswith(f"{swapped / 'background'}: the background images do not match their cameras: ")
+    assert "cam0.png looks like cam2's scene" in message and "cam2.png looks like cam0's scene" in message
+    assert "cam1.png" not in message and message.endswith("take each camera's background again")
