@@ -648,6 +648,13 @@ def test_a_view_that_is_all_silhouette_fails_its_frames_at_once(
     err = capsys.readouterr().err
     assert code == 1, err
     assert "camera 'cam1' sees 100 % of its image as tube" in err and "polarity and threshold" in err
+    # Every such view is named at once, not one per run (a grey level apart: two videos of
+    # the same bytes are refused before the run, as one video copied).
+    write_video(next(session.glob("cam2.*")), [np.full((240, 320), 5, np.uint8)] * n_frames)
+    code = main(_process(session, session.parent / "out2"))
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert "cameras 'cam1' and 'cam2' see 100 and 100 % of their images as tube; check their pictures" in err
 
 
 @pytest.mark.parametrize("kind", ["folder", "video", "session.toml"])

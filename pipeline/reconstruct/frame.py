@@ -154,17 +154,25 @@ def reconstruct_from_silhouettes(
                 unseen_by=cam.name,
                 timings_s=timings,
             )
-        share = float(np.count_nonzero(mask)) / mask.size
-        if share > MAX_SILHOUETTE_SHARE:
-            # A view that is mostly silhouette (a dark or covered lens, a threshold on the
-            # wrong side of the scene) has a hull of the whole workspace in it, which takes
-            # minutes to search and holds no tube.
-            return FrameResult.failed(
-                index,
-                f"camera {cam.name!r} sees {100 * share:.0f} % of its image as tube; check its "
-                "picture, and [silhouette] polarity and threshold in session.toml",
-                timings_s=timings,
-            )
+    # A view that is mostly silhouette (a dark or covered lens, a threshold on the wrong
+    # side of the scene) has a hull of the whole workspace in it, which takes minutes to
+    # search and holds no tube. Every such view is named: the user fixes them all at once.
+    shares = {
+        cam.name: float(np.count_nonzero(mask)) / mask.size
+        for cam, mask in zip(model.cameras, masks, strict=True)
+    }
+    covered = {name: share for name, share in shares.items() if share > MAX_SILHOUETTE_SHARE}
+    if covered:
+        if len(covered) == 1:
+            ((name, share),) = covered.items()
+            seen = f"camera {name!r} sees {100 * share:.0f} % of its image as tube; check its picture"
+        else:
+            names = _listed([repr(name) for name in covered])
+            percent = _listed([f"{100 * share:.0f}" for share in covered.values()])
+            seen = f"cameras {names} see {percent} % of their images as tube; check their pictures"
+        return FrameResult.failed(
+            index, f"{seen}, and [silhouette] polarity and threshold in session.toml", timings_s=timings
+        )
     points = voxel_centers_mm(model.settings.workspace, carve(model.grid, masks))
     timings["carve"] = time.perf_counter() - start
     if len(points) == 0:
@@ -423,3 +431,8 @@ def _polyfit() -> Callable[..., Any]:
     from ..baseline.curve import polyfit_centerline
 
     return polyfit_centerline
+
+
+def _listed(items: Sequence[str]) -> str:
+    """``a``, ``a and b``, ``a, b and c``."""
+    return items[0] if len(items) == 1 else f"{', '.join(items[:-1])} and {items[-1]}"

@@ -317,8 +317,9 @@ def _check_distinct_videos(paths: list[Path]) -> None:
             for earlier in same_size[:i]:
                 if filecmp.cmp(earlier, path, shallow=False):
                     raise SessionError(
-                        f"{path}: is the same file as {earlier.name}: one camera's video was "
-                        "copied under the other's name; put each camera's own video there"
+                        f"{path}: is the same file as {earlier.name}, byte for byte: one camera's "
+                        "video copied under the other's name, or two cameras that filmed one grey "
+                        "level alone (covered lenses, lights off); put each camera's own video there"
                     )
 
 
