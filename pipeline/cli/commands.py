@@ -295,5 +295,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     )
     # A recording cut short or damaged is named by the reading's own warning (on stderr):
     # the report is of the frames it holds, and the exit status says it is not the whole run.
-    # So is one of another session than the ground truth's: its figures may mean nothing.
-    return EXIT_OK if report.complete and not report.other_session else EXIT_FRAMES_FAILED
+    # So is one of another session than the ground truth's, or of other videos than those
+    # beside it: its figures may mean nothing.
+    return (
+        EXIT_OK
+        if report.complete and not report.other_session and not report.other_videos
+        else EXIT_FRAMES_FAILED
+    )

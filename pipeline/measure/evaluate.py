@@ -95,6 +95,8 @@ class EvaluationReport:
         error): the figures are those of the frames before the damage.
     other_session : the recording's session, where it is not the ground truth's (by their
         folders' names; a warning says so): the figures may compare two sessions.
+    other_videos : the videos beside the ground truth that are not those the recording
+        was made from (rendered or filmed again since; a warning says so), comma-separated.
     """
 
     label: str
@@ -119,6 +121,7 @@ class EvaluationReport:
     complete: bool = True
     damaged: bool = False
     other_session: str = ""
+    other_videos: str = ""
 
     @property
     def frames_off(self) -> int:
@@ -382,6 +385,20 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
     return centerlines, timestamps
 
 
+def _changed_videos(recorded: dict[str, str], ground_truth: Path) -> str:
+    """The videos (comma-separated names) in the ground truth's folder whose fingerprints are
+    not the ``recorded`` ones (file name -> fingerprint); "" where all that are there match."""
+    from ..session.video import video_fingerprint
+
+    folder = ground_truth if ground_truth.is_dir() else ground_truth.parent
+    changed = [
+        name
+        for name, fingerprint in recorded.items()
+        if (folder / name).is_file() and video_fingerprint(folder / name) not in ("", fingerprint)
+    ]
+    return ", ".join(changed)
+
+
 def _truth_session(ground_truth: Path) -> str:
     """The session a ground truth belongs to: its folder's name (the session directory given,
     or the one holding ground_truth.npz); "" for a file of another name."""
@@ -455,6 +472,14 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
             rec.session,
             truth_session,
         )
+    other_videos = _changed_videos(rec.videos, Path(ground_truth))
+    if other_videos:
+        log.warning(
+            "%s was made from other videos than %s beside the ground truth (the session was "
+            "rendered or filmed again since?): process the session again to compare them",
+            recording,
+            other_videos,
+        )
     truth = truth_mm[indices]
     if truth_times is not None and len(truth_times) == len(truth_mm):
         times = truth_times[indices]
@@ -481,6 +506,7 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
         complete=rec.complete,
         damaged=rec.damaged,
         other_session=other_session,
+        other_videos=other_videos,
     )
     if rec.smoothed_centerlines_m is not None:
         smoothed = evaluate_centerlines(

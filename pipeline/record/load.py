@@ -21,7 +21,7 @@ import logging
 import os
 import struct
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -77,6 +77,8 @@ class Recording:
     damaged : True when the file ends whole (its closing magic) but bytes inside it are not
         the recording's (a disk or copy error, not a run stopped while writing): the frames
         before the damage are read, ``complete`` is False.
+    videos : file name -> fingerprint of each video the frames came from
+        (:func:`pipeline.session.video.video_fingerprint`); {} when the file does not say.
     """
 
     path: Path
@@ -93,6 +95,7 @@ class Recording:
     tube_end: str = ""
     session: str = ""
     damaged: bool = False
+    videos: dict[str, str] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.frame_indices)
@@ -400,4 +403,17 @@ def _assemble(
         tube_end=metadata.get("tube_end", ""),
         session=metadata.get("session", ""),
         damaged=damaged,
+        videos=_videos(metadata.get("videos", "")),
     )
+
+
+def _videos(text: str) -> dict[str, str]:
+    """The recording's metadata "videos" (file name -> fingerprint, as JSON): {} where it
+    has none or it is not such a table (a recording of live cameras, or another program's)."""
+    try:
+        table = json.loads(text) if text else {}
+    except ValueError:
+        return {}
+    if not isinstance(table, dict):
+        return {}
+    return {str(k): v for k, v in table.items() if isinstance(v, str)}

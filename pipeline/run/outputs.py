@@ -28,6 +28,7 @@ from ..reconstruct.frame_result import NO_SHARED_VOXEL
 from ..reconstruct.frame_task import FrameOutput
 from ..reconstruct.quality import SUSPECT_SMOOTHED_MM, is_doubtful, off_smoothed, reaches_walls
 from ..session.folder import Session
+from ..session.video import video_fingerprint
 from .frame_log import FrameLog
 from .interrupts import deferred_signals, outputs_in_place
 from .output_target import OutputTarget, output_error
@@ -185,6 +186,10 @@ class Writers:
                 "centerline_method": session.settings.centerline.method,
                 "start_time": session.settings.session.start_time.isoformat(),
             }
+            if session.video_paths:
+                # What evaluate compares with the videos beside a ground truth: a session
+                # rendered or filmed again since has others.
+                meta["videos"] = json.dumps({p.name: video_fingerprint(p) for p in session.video_paths})
             if cameras_used:
                 meta["cameras_used"] = cameras_used
             if tube_end:

@@ -7,6 +7,7 @@ import io
 import json
 import logging
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -366,6 +367,29 @@ def test_another_sessions_ground_truth_is_warned_of(
 
     assert main(["evaluate", str(recording), str(other)]) == EXIT_FRAMES_FAILED
     assert main(["evaluate", str(recording), str(session_dir)]) == 0
+
+
+def test_a_session_filmed_again_since_its_recording_is_warned_of(
+    partial_run: tuple[Path, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # The same folder (so the same session name), its videos replaced: a render again.
+    recording, session_dir = partial_run
+    again = tmp_path / "rod"
+    shutil.copytree(session_dir, again)
+    video = next(p for p in sorted(again.iterdir()) if p.name.startswith("cam1."))
+    with caplog.at_level(logging.WARNING):
+        assert not evaluate_recording(recording, again).other_videos  # a copy is the same session
+    assert "other videos" not in caplog.text
+    data = bytearray(video.read_bytes())
+    data[-100] ^= 0xFF  # one byte of its last frame
+    video.write_bytes(bytes(data))
+    with caplog.at_level(logging.WARNING):
+        report = evaluate_recording(recording, again / "ground_truth.npz")
+    assert report.other_videos == video.name and not report.other_session
+    assert f"was made from other videos than {video.name} beside the ground truth" in caplog.text
+    from pipeline.cli import EXIT_FRAMES_FAILED, main
+
+    assert main(["evaluate", str(recording), str(again)]) == EXIT_FRAMES_FAILED
 
 
 def test_a_folder_given_as_the_recording_is_named(partial_run: tuple[Path, Path]) -> None:
