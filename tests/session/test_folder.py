@@ -181,6 +181,27 @@ def test_workspace_behind_a_camera_is_refused(session: Path) -> None:
         load_session(session)
 
 
+@pytest.mark.parametrize("unit_mm", [10.0, 25.4], ids=["cm", "inches"])
+def test_a_calibration_in_another_unit_is_named_by_a_camera_inside_the_box(
+    session: Path, unit_mm: float
+) -> None:
+    # The translations in cm or inches put every camera as many times nearer the world's origin.
+    import tomllib
+
+    import tomli_w
+
+    doc = tomllib.loads((session / "calibration.toml").read_text())
+    for table in doc.values():
+        if isinstance(table, dict) and "translation" in table:
+            table["translation"] = [v / unit_mm for v in table["translation"]]
+    (session / "calibration.toml").write_text(tomli_w.dumps(doc))
+    with pytest.raises(SessionError) as info:
+        load_session(session)
+    message = str(info.value)
+    assert "sits inside the workspace box" in message
+    assert "is calibration.toml's translation in another unit than mm (cm, inches)?" in message
+
+
 def test_a_folder_or_file_this_user_may_not_read_is_named(
     session: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
