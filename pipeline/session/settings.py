@@ -7,14 +7,18 @@ manipulator mounted at (128, 128, 0) mm.
 
 from __future__ import annotations
 
+import json
+import logging
 import math
 from dataclasses import dataclass, field, fields
-from datetime import UTC, datetime, timedelta
+from datetime import UTC, date, datetime, time, timedelta
 from pathlib import Path
 from typing import Any
 
 from ..errors import SettingsError
 from .toml_file import check_keys, read_toml
+
+log = logging.getLogger(__name__)
 
 SILHOUETTE_METHODS = ("threshold", "otsu", "background")
 POLARITIES = ("dark", "bright")
@@ -217,9 +221,25 @@ def _number(source: str, key: str, value: Any) -> float:
 
 
 def _short(value: Any) -> str:
-    """``repr(value)``, cut to one readable line (a fuzzed 300-digit integer is not)."""
-    text = repr(value)
+    """``value`` as TOML writes it, cut to one readable line (a fuzzed 300-digit integer is
+    not): the user's file speaks TOML, not Python (true, not True; 2026-01-01, not
+    datetime.date(2026, 1, 1))."""
+    text = _as_toml(value)
     return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _as_toml(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, date | time):  # datetime is a date
+        return value.isoformat()
+    if isinstance(value, str):
+        return json.dumps(value, ensure_ascii=False)
+    if isinstance(value, list):
+        return "[" + ", ".join(_as_toml(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "a table {" + ", ".join(f"{k} = {_as_toml(v)}" for k, v in value.items()) + "}"
+    return repr(value)
 
 
 def _vector3(source: str, key: str, value: Any) -> tuple[float, float, float]:
@@ -254,15 +274,23 @@ def _convert(source: str, section: str, key: str, value: Any) -> Any:
             raise SettingsError(f"{source}: {name} must be true or false, got {_short(value)}")
         return value
     if key == "start_time":
-        if isinstance(value, datetime):
-            return value if value.tzinfo else value.replace(tzinfo=UTC)
+        parsed = value if isinstance(value, datetime) else None
         if isinstance(value, str):
             try:
                 parsed = datetime.fromisoformat(value)
             except ValueError:
                 pass
-            else:
-                return parsed if parsed.tzinfo else parsed.replace(tzinfo=UTC)
+        if parsed is not None:
+            if parsed.tzinfo is None:
+                # Hours off where the clock it was read from was not UTC's: said, not guessed.
+                log.warning(
+                    "%s: %s %s has no UTC offset; taken as UTC (add Z, or the offset: +01:00)",
+                    source,
+                    name,
+                    parsed.isoformat(),
+                )
+                parsed = parsed.replace(tzinfo=UTC)
+            return parsed
         raise SettingsError(f"{source}: {name} must be an RFC 3339 date-time, got {_short(value)}")
     if not isinstance(value, str):
         raise SettingsError(f"{source}: {name} must be a string, got {_short(value)}")

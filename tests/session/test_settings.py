@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from datetime import UTC, datetime, timedelta, timezone
+import logging
+from datetime import UTC, date, datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any
 
@@ -38,9 +39,21 @@ def test_values_are_read_and_converted(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     "value", ["2024-03-01T12:00:00", datetime(2024, 3, 1, 12)], ids=["text", "toml-local-datetime"]
 )
-def test_start_time_without_zone_is_utc(value: Any) -> None:
-    s = settings_from_dict({"session": {"start_time": value}})
+def test_start_time_without_zone_is_utc_and_says_so(value: Any, caplog: pytest.LogCaptureFixture) -> None:
+    with caplog.at_level(logging.WARNING):
+        s = settings_from_dict({"session": {"start_time": value}})
     assert s.session.start_time == datetime(2024, 3, 1, 12, tzinfo=UTC)
+    assert "start_time 2024-03-01T12:00:00 has no UTC offset; taken as UTC (add Z" in caplog.text
+
+
+@pytest.mark.parametrize(
+    ("value", "shown"),
+    [(True, "got true"), (date(2026, 1, 1), "got 2026-01-01"), ({"x": 0}, "got a table {x = 0}")],
+    ids=["bool", "date", "table"],
+)
+def test_a_setting_of_the_wrong_type_is_shown_as_toml_writes_it(value: Any, shown: str) -> None:
+    with pytest.raises(SettingsError, match=rf"threshold must be .*, {shown}$"):
+        settings_from_dict({"silhouette": {"threshold": value}})
 
 
 def test_start_time_keeps_its_zone() -> None:
@@ -104,7 +117,7 @@ def test_a_base_in_the_box_or_just_below_its_floor_is_accepted(base_mm: list[flo
         ({"session": {"start_time": "1969-12-31T23:59:59Z"}}, ("1969-12-31", "1970-01-01..2262")),
         ({"session": {"start_time": "2300-01-01T00:00:00Z"}}, ("start_time", "2300-01-01", "give a date")),
         ({"manipulator": {"base_mm": "middle"}}, ("base_mm", "list of 3 numbers", '"auto"')),
-        ({"manipulator": {"radius_mm": "Auto"}}, ("radius_mm", 'a number (mm) or "auto"', "'Auto'")),
+        ({"manipulator": {"radius_mm": "Auto"}}, ("radius_mm", 'a number (mm) or "auto"', '"Auto"')),
         ({"manipulator": {"base_mm": [128, 128, -50]}}, ("base_mm [128.0, 128.0, -50.0]", "0..256 x")),
         ({"workspace": {"origin_mm": [0, 0, 40]}}, ("base_mm", "outside the workspace box", "40..296")),
         ({"centerline": {"method": "spline"}}, ("'spline'", "fit", "polyfit")),
