@@ -69,6 +69,8 @@ def _names_checked(text: str) -> str:
 
 
 def _check_name_lengths(text: str) -> None:
+    """A usage error where a file or folder name in the path ``text`` is longer than
+    ``NAME_MAX`` bytes: the system refuses to look such a path up at all."""
     for part in Path(text).parts:
         size = len(os.fsencode(part))
         if size > NAME_MAX:

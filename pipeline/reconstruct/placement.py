@@ -49,12 +49,12 @@ LOOSE_SPREAD = 6.0
 # is not held the spread only says the base is free. Judged up to 2 radii from the tip
 # instead, on 83 rendered sessions without disks (those of `accuracy_table` draws 2, 191,
 # 193, 197-203, 211, 223 and 227-231, and the bench's three shapes; 90 tracked frames
-# each, the true tube end; 2026-12-05), the
-# frame's own reasons and this one flag 11 more of the 88 three-camera frames more than
-# 2 mm off and 39 more of the 4,142 good ones (two cameras: 31 more of 507, 36 more of
-# 2,733). Nor does the longest run of samples that no view reads on both sides separate
-# them: on those frames, three-camera runs of 20 mm or more are 36 of the 70 unflagged
-# frames off and 510 of the good ones (crossings the fit follows rightly).
+# each, the true tube end; 2026-12-05), the frame's own reasons and this one flag 11
+# more of the 88 three-camera frames more than 2 mm off and 39 more of the 4,142 good
+# ones (two cameras: 31 more of 507, 36 more of 2,733). Nor does the longest run of
+# samples that no view reads on both sides separate them: on those frames, three-camera
+# runs of 20 mm or more are 36 of the 70 unflagged frames off and 510 of the good ones
+# (crossings the fit follows rightly).
 _FROM_BASE_RADII = 2.0
 _FROM_TIP_RADII = 3.0
 
