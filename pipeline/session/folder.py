@@ -475,16 +475,20 @@ def _check_workspace_visible(cameras: list[Camera], settings: Settings) -> None:
     axes = [np.linspace(a, b, 9) for a, b in zip(lo, hi, strict=True)]
     probe = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     for cam in cameras:
-        # A camera inside the box sees part of it from behind: no rig is built so. It is a
-        # calibration in another unit (cm, inches: the cameras as many times nearer the
-        # world's origin) or a box in the wrong place.
+        # A camera inside the box sees part of it from behind. Most likely the calibration
+        # is in another unit (cm, inches: the cameras as many times nearer the world's
+        # origin), and every frame will fail; a box drawn generously around the rig works,
+        # only slower. Said, not refused.
         centre = cam.center_mm
         if np.all((centre > lo) & (centre < hi)):
-            where = ", ".join(f"{v:.1f}" for v in centre)
-            raise SessionError(
-                f"camera {cam.name!r} sits inside the workspace box (at {where} mm; origin "
-                f"{ws.origin_mm} mm, size {ws.size_mm} mm): is calibration.toml's translation in "
-                "another unit than mm (cm, inches)? Else move [workspace] in session.toml"
+            log.warning(
+                "camera %r sits inside the workspace box (at %s mm; origin %s mm, size %s mm): is "
+                "calibration.toml's translation in another unit than mm (cm, inches)? Else shrink "
+                "[workspace] in session.toml to where the tube moves",
+                cam.name,
+                ", ".join(f"{v:.1f}" for v in centre),
+                ws.origin_mm,
+                ws.size_mm,
             )
         px = cam.project(probe)
         inside = (
