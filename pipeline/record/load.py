@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import struct
 from collections.abc import Callable, Sequence
@@ -173,8 +174,23 @@ def _column(values: list[Any]) -> NDArray[Any]:
     if complete and known and all(isinstance(v, bool) for v in known):
         return np.array(values, dtype=bool)
     if complete and known and all(isinstance(v, int) and not isinstance(v, bool) for v in known):
-        return np.array(values, dtype=np.int64)
-    return np.array([np.nan if v is None else float(v) for v in values], dtype=np.float64)
+        if all(_INT64_MIN <= v <= _MAX_FRAME for v in known):
+            return np.array(values, dtype=np.int64)
+    return np.array([_as_float(v) for v in values], dtype=np.float64)
+
+
+_INT64_MIN = int(np.iinfo(np.int64).min)
+
+
+def _as_float(value: Any) -> float:
+    """A figure as float64: NaN where unknown or not a number (another program's value: a
+    table, a list), +-inf past float64's range."""
+    if not isinstance(value, int | float):  # bool is an int
+        return math.nan
+    try:
+        return float(value)
+    except OverflowError:  # an integer past 1.8e308
+        return math.inf if value > 0 else -math.inf
 
 
 # What a truncated or torn file raises while its records are parsed (DecodeError: a
@@ -195,13 +211,17 @@ _TRUNCATION_ERRORS = (
 _RRD_MAGIC = b"RRF"
 
 
-def load_recording(path: Path | str, *, on_warning: Callable[[str], None] | None = None) -> Recording:
+def load_recording(path: Path | str | bytes, *, on_warning: Callable[[str], None] | None = None) -> Recording:
     """Read ``path`` (an MCAP written by the pipeline) into a :class:`Recording`.
 
     What is read but worth a word (a file cut short, the run that wrote it killed while
     putting its outputs in place, centrelines of different lengths) is a line naming the
     file, given to ``on_warning``; without it, each line is logged as a warning.
     """
+    if isinstance(path, bytes):  # a path as the system gives it
+        path = os.fsdecode(path)
+    if not str(path):  # Path("") would be the current folder
+        raise RecordingError("an empty path; give the recording's .mcap file")
     path = Path(path)
     # A line holds no %-formatting of its own: logged as it is (a path may hold a %).
     warn = on_warning if on_warning is not None else log.warning
@@ -252,22 +272,35 @@ def _read(stream: Any, path: Path, warn: Callable[[str], None]) -> Recording:
             elif isinstance(record, Message) and record.channel_id in channels:
                 channel = channels[record.channel_id]
                 topic = channel.topic
-                if topic == METRICS_TOPIC:
-                    frame, data = _frame_metrics(path, record.data)
-                    metrics[frame] = (record.log_time, data)
+                if topic not in (METRICS_TOPIC, POINTS_TOPIC, CENTERLINE_TOPIC, SMOOTHED_TOPIC):
                     continue
-                if topic not in (POINTS_TOPIC, CENTERLINE_TOPIC, SMOOTHED_TOPIC):
+                # A message the pipeline's readers cannot take is another program's where
+                # neither the pipeline's metadata nor a frame came before it; after them,
+                # damage the chunks' checksums missed (ValueError: read as far as it goes).
+                ours = bool(metadata or metrics)
+                if not 0 <= record.log_time <= _MAX_TIME_NS:
+                    raise _foreign(path, topic, f"its time {record.log_time} ns is past 2262")
+                if topic == METRICS_TOPIC:
+                    if channel.message_encoding != MessageEncoding.JSON:
+                        raise _foreign(path, topic, f"{channel.message_encoding or 'no'} encoding, not JSON")
+                    frame, data = _frame_metrics(path, record.data, ours=ours)
+                    metrics[frame] = (record.log_time, data)
                     continue
                 decode = decoders.decoder_for(channel.message_encoding, schemas.get(channel.schema_id))
                 if decode is None:
                     continue
-                message = decode(record.data)
-                if topic == POINTS_TOPIC:
-                    points[record.log_time] = _points_from_cloud(message)
-                elif topic == CENTERLINE_TOPIC:
-                    curves[record.log_time] = _curve_from_update(message)
-                else:
-                    smoothed[record.log_time] = _curve_from_update(message)
+                try:
+                    message = decode(record.data)
+                    if topic == POINTS_TOPIC:
+                        points[record.log_time] = _points_from_cloud(message)
+                    elif topic == CENTERLINE_TOPIC:
+                        curves[record.log_time] = _curve_from_update(message)
+                    else:
+                        smoothed[record.log_time] = _curve_from_update(message)
+                except _CONTENT_ERRORS as exc:
+                    if ours:
+                        raise ValueError(_why(exc)) from None
+                    raise _foreign(path, topic, _why(exc)) from None
     except _TRUNCATION_ERRORS as exc:
         damaged = _ends_whole(stream)
         if not metrics and not metadata:
@@ -316,30 +349,73 @@ def _ends_whole(stream: Any) -> bool:
 _MAX_FRAME = int(np.iinfo(np.int64).max)
 
 
-def _frame_metrics(path: Path, data: bytes) -> tuple[int, dict[str, Any]]:
+# Message times are int64 nanoseconds in the Recording's arrays (up to 2262).
+_MAX_TIME_NS = int(np.iinfo(np.int64).max)
+# What decoding another program's message as the pipeline's raises: bytes that are not
+# its schema's, JSON nested past Python's recursion limit, fields it lacks.
+_CONTENT_ERRORS = (
+    ValueError,
+    DecodeError,
+    KeyError,
+    AttributeError,
+    TypeError,
+    IndexError,
+    RecursionError,
+    OverflowError,
+    MemoryError,
+)
+
+
+def _why(exc: BaseException) -> str:
+    """What about a message ``exc`` says, in a few words."""
+    if isinstance(exc, KeyError):
+        return f"no field {exc}"
+    if isinstance(exc, AttributeError):
+        return f"another schema: no {exc.name}" if exc.name else "another schema"
+    return (" ".join(str(exc).split()) or type(exc).__name__)[:80]
+
+
+def _foreign(path: Path, topic: str, why: str) -> RecordingError:
+    return RecordingError(
+        f"{path}: {topic} holds a message that is not the pipeline's ({why}); give a recording "
+        "written by `pipeline process`"
+    )
+
+
+def _frame_metrics(path: Path, data: bytes, *, ours: bool) -> tuple[int, dict[str, Any]]:
     """One ``/reconstruction/metrics`` message -> (frame index, metrics).
 
-    RecordingError where the message is JSON but not the pipeline's metrics (an object with
+    RecordingError where the message is not the pipeline's metrics (JSON of an object with
     an integer ``frame`` and a string ``status``): another program's recording on the same
-    topic. JSON that does not parse raises ValueError, as the other damage does.
+    topic. Bytes that are not JSON raise ValueError, as damage does, in a file that is the
+    pipeline's (``ours``: its metadata or a frame came first).
     """
-    metrics = json.loads(data)
-    if not isinstance(metrics, dict):
-        reason = "not a JSON object"
-    elif (
-        not isinstance(frame := metrics.get("frame"), int)
-        or isinstance(frame, bool)
-        or not 0 <= frame <= _MAX_FRAME
-    ):
-        reason = f"no frame index: frame {str(frame)[:20]}"
-    elif not isinstance(metrics.get("status"), str):
-        reason = f"no status in frame {frame}"
+    try:
+        metrics = json.loads(data)
+    except (ValueError, RecursionError) as exc:  # not JSON, not UTF-8, nested past the limit
+        if ours:
+            raise ValueError(_why(exc)) from None
+        reason = f"not JSON: {_why(exc)}"
     else:
-        return frame, metrics
+        reason = _not_metrics(metrics)
+        if not reason:
+            return int(metrics["frame"]), metrics
     raise RecordingError(
         f"{path}: {METRICS_TOPIC} holds a message that is not the pipeline's metrics ({reason}); "
         "give a recording written by `pipeline process`"
     )
+
+
+def _not_metrics(metrics: Any) -> str:
+    """Why the parsed JSON ``metrics`` is not a frame's metrics; "" where it is one."""
+    if not isinstance(metrics, dict):
+        return "not a JSON object"
+    frame = metrics.get("frame")
+    if not isinstance(frame, int) or isinstance(frame, bool) or not 0 <= frame <= _MAX_FRAME:
+        return f"no frame index: frame {str(frame)[:20]}"
+    if not isinstance(metrics.get("status"), str):
+        return f"no status in frame {frame}"
+    return ""
 
 
 def _points_from_cloud(cloud: Any) -> NDArray[np.float32]:
@@ -383,7 +459,8 @@ def _assemble(
     times = [metrics[i][0] for i in frames]
     lengths = {len(c) for c in curves.values() if c is not None}
     declared = metadata.get("centerline_points", "")
-    n = max(lengths) if lengths else int(declared) if declared.isdecimal() else 0
+    # Without curves, the declared count sizes the (NaN) centrelines: a plausible one only.
+    n = max(lengths) if lengths else int(declared) if declared.isdecimal() and len(declared) <= 5 else 0
     if len(lengths) > 1:
         warn(f"{path}: centrelines of different lengths {sorted(lengths)}; shorter ones read as NaN")
     names = tuple(n for n in metadata.get("cameras", "").split(",") if n)

@@ -7,6 +7,7 @@ import io
 import json
 import logging
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -274,12 +275,103 @@ def _mcap_with_metrics(path: Path, messages: list[bytes], metadata: dict[str, st
         (b'{"frame": 0, "status": 5}', "no status"),
         (b"[1, 2]", "not a JSON object"),
     ],
-    ids=["no-frame", "null-frame", "float-frame", "huge-frame", "no-status", "int-status", "list"],
+    ids=[
+        "no-frame",
+        "null-frame",
+        "float-frame",
+        "huge-frame",
+        "no-status",
+        "int-status",
+        "list",
+    ],
 )
 def test_metrics_that_are_not_the_pipelines_are_named(tmp_path: Path, message: bytes, reason: str) -> None:
     path = _mcap_with_metrics(tmp_path / "other.mcap", [b'{"frame": 0, "status": "ok"}', message])
     with pytest.raises(PipelineError, match=rf"other\.mcap: .*not the pipeline's metrics \({reason}"):
         pipeline.load_recording(path)
+
+
+def _mcap_on_topic(
+    path: Path, topic: str, encoding: str, schema: object | None, data: bytes, time_ns: int
+) -> Path:
+    """A valid MCAP holding one message on ``topic`` (``schema`` a protobuf message class, or
+    None for a schema-less one), then one frame's metrics: another program's recording."""
+    from mcap.writer import Writer
+    from mcap_protobuf.schema import register_schema
+
+    with path.open("wb") as f:
+        writer = Writer(f)
+        writer.start()
+        schema_id = register_schema(writer, schema) if schema is not None else 0
+        channel = writer.register_channel(topic=topic, message_encoding=encoding, schema_id=schema_id)
+        writer.add_message(channel, log_time=time_ns, publish_time=0, data=data)
+        metrics = writer.register_channel(
+            topic="/reconstruction/metrics", message_encoding="json", schema_id=0
+        )
+        writer.add_message(metrics, log_time=T0_NS, publish_time=T0_NS, data=b'{"frame": 0, "status": "ok"}')
+        writer.finish()
+    return path
+
+
+def test_messages_of_another_program_on_the_pipelines_topics_are_named_not_called_damage(
+    tmp_path: Path,
+) -> None:
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+    cases = [
+        ("/reconstruction/metrics", "protobuf", None, b"\x08\x01", T0_NS, r"protobuf encoding, not JSON"),
+        (
+            "/reconstruction/metrics",
+            "json",
+            None,
+            b"[" * 100_000 + b"]" * 100_000,
+            T0_NS,
+            r"not JSON: maximum",
+        ),
+        ("/reconstruction/metrics", "json", None, b'{"frame": 1, "status": "\xff"}', T0_NS, r"not JSON"),
+        ("/reconstruction/metrics", "json", None, b'{"frame": 1, "status": "ok"}', 2**64 - 1, r"past 2262"),
+        (
+            "/reconstruction/points",
+            "protobuf",
+            PointCloud,
+            PointCloud(point_stride=12, data=bytes(24)).SerializeToString(),
+            T0_NS,
+            r"no field 'x'",
+        ),
+        (
+            "/reconstruction/points",
+            "protobuf",
+            SceneUpdate,
+            SceneUpdate().SerializeToString(),
+            T0_NS,
+            r"another schema",
+        ),
+    ]
+    for n, (topic, encoding, schema, data, time_ns, why) in enumerate(cases):
+        path = _mcap_on_topic(tmp_path / f"other{n}.mcap", topic, encoding, schema, data, time_ns)
+        with pytest.raises(PipelineError) as info:
+            pipeline.load_recording(path)
+        message = str(info.value)
+        assert re.search(
+            rf"other{n}\.mcap: {topic} holds a message that is not the pipeline's .*{why}", message
+        )
+        assert "damaged" not in message and message.endswith("give a recording written by `pipeline process`")
+
+
+def test_odd_figures_of_another_program_read_as_unknown_and_paths_as_the_system_gives_them(
+    tmp_path: Path,
+) -> None:
+    figures = {"frame": 0, "status": "ok", "length_m": {"a": 1}, "voxel_count": 10**40, "radius_m": [1, 2]}
+    path = _mcap_with_metrics(
+        tmp_path / "odd.mcap", [json.dumps(figures).encode()], {"centerline_points": "999999999999"}
+    )
+    recording = pipeline.load_recording(os.fsencode(path))  # bytes, as os.listdirb gives them
+    assert recording.centerlines_m.shape == (1, 0, 3)  # no curve, and no 1e12-point array of NaN
+    table = recording.metrics_table()
+    assert table["voxel_count"].dtype == np.float64 and table["voxel_count"][0] == 1e40
+    with pytest.raises(PipelineError, match=r"^an empty path; give the recording's \.mcap file$"):
+        pipeline.load_recording("")
 
 
 def test_a_centerline_length_in_the_metadata_that_is_not_a_number_is_ignored(tmp_path: Path) -> None:
