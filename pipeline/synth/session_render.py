@@ -83,14 +83,20 @@ def check_poses(
             )
 
 
+# The thinnest tube rendered (mm): thinner ones need voxels too fine for the workspace's
+# grid (process follows a tube with voxels of at most three radii).
+MIN_RADIUS_MM = 0.5
+
+
 def session_document(*, polarity: str, radius_mm: float) -> dict[str, Any]:
-    """session.toml suited to the render: workspace defaults and a threshold between
-    the tube's and the background's grey levels."""
+    """session.toml suited to the render: the workspace's defaults, with voxels of at most
+    three radii (a thin tube's), and a threshold between the tube's and the background's
+    grey levels."""
     return {
         "workspace": {
             "origin_mm": WORKSPACE_ORIGIN_MM.tolist(),
             "size_mm": WORKSPACE_SIZE_MM.tolist(),
-            "voxel_mm": VOXEL_MM,
+            "voxel_mm": min(VOXEL_MM, 3.0 * float(radius_mm)),
         },
         "silhouette": {"method": "threshold", "threshold": threshold_for(polarity), "polarity": polarity},
         "manipulator": {"base_mm": BASE_MM.tolist(), "radius_mm": float(radius_mm)},
@@ -188,8 +194,8 @@ def _validate(
         raise PipelineError(f"--seed must be 0 or more, got {seed}")
     if polarity not in ("dark", "bright"):
         raise PipelineError(f"polarity must be 'dark' or 'bright', got {polarity!r}")
-    if not 0 < radius_mm <= 20:
-        raise PipelineError(f"radius_mm must be in (0, 20] mm, got {radius_mm}")
+    if not MIN_RADIUS_MM <= radius_mm <= 20:
+        raise PipelineError(f"radius_mm must be in {MIN_RADIUS_MM:g}-20 mm, got {radius_mm}")
     if arrangement not in ARRANGEMENTS:
         raise PipelineError(f"unknown arrangement {arrangement!r}; use one of {', '.join(ARRANGEMENTS)}")
     if not 50 <= length_mm <= 250:
