@@ -76,7 +76,15 @@ def camera_dirs(calib_dir: Path) -> list[Path]:
 def _world_file(cam_dir: Path) -> Path | None:
     """The camera's world.* image, None without one; two of them are a CalibrationError
     (one board pose defines the world frame, and which file was meant cannot be told)."""
-    found = [cam_dir / f"world{ext}" for ext in IMAGE_EXTS if (cam_dir / f"world{ext}").is_file()]
+    # Any case, as the other images' suffixes are read (world.JPG, World.png from a camera's card).
+    found = sorted(
+        (
+            path
+            for path in cam_dir.iterdir()
+            if path.stem.lower() == WORLD and path.suffix.lower() in IMAGE_EXTS and path.is_file()
+        ),
+        key=lambda path: (IMAGE_EXTS.index(path.suffix.lower()), path.name),
+    )
     if len(found) > 1:
         raise CalibrationError(
             f"{cam_dir}: holds {len(found)} world images ({', '.join(p.name for p in found)}); "

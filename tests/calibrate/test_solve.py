@@ -116,6 +116,20 @@ def test_two_world_images_are_refused_before_detection(small_rig, tmp_path, monk
         calibrate_directory(root, tmp_path / "c.toml")
 
 
+def test_a_world_image_named_in_capitals_is_read(small_rig, tmp_path) -> None:
+    # Cameras' cards write WORLD.JPG; the other images' suffixes are read in any case too.
+    root = _copy(small_rig, tmp_path)
+    world = root / "cam1" / "world.png"
+    cv2.imwrite(str(root / "cam1" / "World.JPG"), cv2.imread(str(world)))
+    world.unlink()
+    result = calibrate_directory(root, tmp_path / "c.toml")
+    expected = calibrate_directory(_copy(small_rig, tmp_path / "as_png"), tmp_path / "c2.toml")
+    assert [c.name for c in result.cameras] == [c.name for c in expected.cameras]
+    cam1 = next(c for c in result.cameras if c.name == "cam1")
+    cam1_png = next(c for c in expected.cameras if c.name == "cam1")
+    assert np.allclose(cam1.center_mm, cam1_png.center_mm, atol=1.0)  # a JPEG's loss, no more
+
+
 def test_too_few_views(small_rig, tmp_path) -> None:
     root = _copy(small_rig, tmp_path)
     for path in sorted((root / "cam1" / "intrinsics").glob("*.png"))[:3]:
