@@ -21,7 +21,6 @@ one row per case with its description.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import logging
@@ -34,6 +33,7 @@ from typing import TYPE_CHECKING
 
 from ..errors import PipelineError
 from ..synth.names import SHAPES
+from .arguments import OneLineParser, at_least, not_a_session, stopped_in_one_line
 from .evaluate import TARGETS, EvaluationReport, evaluate_recording
 
 if TYPE_CHECKING:
@@ -247,12 +247,12 @@ def results_json(results: Sequence[CaseResult]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="python -m pipeline.accuracy_table",
         description="Render synthetic sessions, process them with our centreline and the original "
         "polyfit baseline, and print the accuracy table (Markdown); writes OUT/accuracy.json.",
     )
-    parser.add_argument("--frames", type=int, default=60, help="frames per session (default 60)")
+    parser.add_argument("--frames", type=at_least(2), default=60, help="frames per session (default 60)")
     parser.add_argument("--out", type=Path, default=Path("recordings/accuracy"), help="working directory")
     parser.add_argument("--jobs", type=int, default=-1, help="parallel workers (-1: one per core)")
     parser.add_argument(
@@ -263,7 +263,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument(
         "--draw",
-        type=int,
+        type=at_least(0),
         metavar="SEED",
         help="instead of the default cases, a random draw of the synthetic variety from SEED",
     )
@@ -285,8 +285,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.draw is not None:
         from ..synth.variety import draw_cases
 
-        if args.cases and (len(args.cases) != 1 or not args.cases[0].isdigit()):
-            parser.error(f"with --draw, --cases takes one number of cases, got {' '.join(args.cases)}")
+        if args.cases and (len(args.cases) != 1 or not args.cases[0].isdigit() or int(args.cases[0]) < 1):
+            parser.error(
+                f"with --draw, --cases takes one number of cases (1 or more), got {' '.join(args.cases)}"
+            )
         cases = draw_cases(args.draw, int(args.cases[0]) if args.cases else 10)
     elif args.cases:
         unknown = sorted(set(args.cases) - {c.name for c in cases})
@@ -309,11 +311,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             for c in cases
         ]
     refine = {"auto": "auto", "true": True, "false": False, None: None}[args.refine]
+    why = not_a_session(args.out, "the rendered sessions and accuracy.json")
+    if why:
+        parser.exit(2, f"error: {why}\n")
     try:
-        results = [
-            run_case(case, args.out, args.frames, jobs=args.jobs, polyfit=not args.no_polyfit, refine=refine)
-            for case in cases
-        ]
+        with stopped_in_one_line(parser.prog):
+            results = [
+                run_case(
+                    case, args.out, args.frames, jobs=args.jobs, polyfit=not args.no_polyfit, refine=refine
+                )
+                for case in cases
+            ]
     except PipelineError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -13,7 +13,8 @@ def test_draw_needs_one_number_of_cases(capsys: pytest.CaptureFixture[str]) -> N
     with pytest.raises(SystemExit) as exc:
         accuracy_table.main(["--draw", "3", "--cases", "loop", "helix"])
     assert exc.value.code == 2
-    assert "with --draw, --cases takes one number of cases, got loop helix" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "with --draw, --cases takes one number of cases (1 or more), got loop helix" in err
 
 
 def test_drawn_cases_are_labelled_by_their_description() -> None:

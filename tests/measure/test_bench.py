@@ -382,3 +382,54 @@ def test_live_rows_and_targets(tmp_path: Path) -> None:
     data = json.loads((tmp_path / "bench.json").read_text())
     assert data["live"][1]["dropped"] == 50 and data["live"][0]["latency_p99_ms"] == 31.5
     assert "live (`live --replay`" not in format_table(_fake_report())  # no live runs: no table
+
+
+@pytest.mark.parametrize(
+    ("tool", "args", "line"),
+    [
+        ("bench", ["--frames", "0"], "argument --frames: must be 1 or more, got 0"),
+        ("bench", ["--shape-repeats", "-1"], "argument --shape-repeats: must be 1 or more, got -1"),
+        ("bench", ["--original-frames", "x"], "argument --original-frames: expected an integer, got 'x'"),
+        ("bench", ["--bogus"], "unrecognized arguments: --bogus"),
+        ("accuracy", ["--draw", "-1"], "argument --draw: must be 0 or more, got -1"),
+        ("accuracy", ["--draw", "3", "--cases", "0"], "--cases takes one number of cases (1 or more), got 0"),
+    ],
+)
+def test_the_measuring_tools_say_a_usage_mistake_in_one_line(
+    tool: str, args: list[str], line: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from pipeline.measure import accuracy_table
+    from pipeline.measure.bench import run
+
+    main = run.main if tool == "bench" else accuracy_table.main
+    with pytest.raises(SystemExit) as exit_info:
+        main(args)
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and line in err and err.rstrip().endswith("--help)")
+
+
+def test_the_measuring_tools_refuse_a_session_folder_as_out_and_a_file_as_demo(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from pipeline.measure import accuracy_table
+    from pipeline.measure.bench import run
+
+    session = tmp_path / "s"
+    session.mkdir()
+    (session / "calibration.toml").write_text("")
+    (session / "cam0.mp4").write_bytes(b"")
+    for main, args in (
+        (accuracy_table.main, ["--draw", "3", "--cases", "1", "--out", str(session)]),
+        (run.main, ["--out", str(session)]),
+    ):
+        with pytest.raises(SystemExit) as exit_info:
+            main(args)
+        assert exit_info.value.code == 2
+        assert f"{session}: is a session's folder; give --out a folder of its own" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        run.main(["--demo", str(session / "cam0.mp4"), "--out", str(tmp_path / "b")])
+    assert (
+        capsys.readouterr().err == f"error: {session / 'cam0.mp4'}: is a file; give --demo a session folder\n"
+    )
+    assert sorted(p.name for p in session.iterdir()) == ["calibration.toml", "cam0.mp4"]

@@ -39,6 +39,7 @@ import numpy as np
 
 from ...errors import PipelineError
 from ...session.folder import load_session
+from ..arguments import OneLineParser, at_least, not_a_session, stopped_in_one_line
 from .chart import plot_report
 from .e2e import decode_floor, ensure_session, median_run, run_process, voxel_session
 from .live import run_live
@@ -221,11 +222,11 @@ def _live_runs(
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="python -m pipeline.measure.bench",
         description="Speed of the pipeline, side by side with the original algorithm.",
     )
-    parser.add_argument("--frames", type=int, default=DEMO_FRAMES, help="frames processed end to end")
+    parser.add_argument("--frames", type=at_least(1), default=DEMO_FRAMES, help="frames processed end to end")
     parser.add_argument(
         "--quick",
         action="store_true",
@@ -233,7 +234,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--shape-repeats",
-        type=int,
+        type=at_least(1),
         default=1,
         help="end-to-end runs of each shape beyond the demo, the median reported (default 1)",
     )
@@ -241,7 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-live", action="store_true", help="leave out the live replays (pipeline live)")
     parser.add_argument(
         "--original-frames",
-        type=int,
+        type=at_least(1),
         default=None,
         help="frames run through the original method and brute force (default 10, 3 with --quick)",
     )
@@ -282,11 +283,19 @@ def _run(args: argparse.Namespace) -> BenchReport:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    for why in (
+        not_a_session(args.out, "bench.json and bench.png"),
+        f"{args.demo}: is a file; give --demo a session folder" if args.demo.is_file() else "",
+    ):
+        if why:
+            parser.exit(2, f"error: {why}\n")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
     start = time.perf_counter()
     try:
-        report = _run(args)
+        with stopped_in_one_line(parser.prog):
+            report = _run(args)
     except PipelineError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

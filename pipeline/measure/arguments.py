@@ -1,0 +1,66 @@
+"""The measuring tools' command lines (`accuracy_table`, `bench`): argument types, one-line
+usage errors, and a stop by Ctrl-C or SIGTERM said in one line."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import signal
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, NoReturn
+
+# What a stopped run exits with (128 + SIGINT), as the pipeline's own commands.
+EXIT_INTERRUPTED = 130
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse, with a usage mistake on one line (exit status 2) pointing to ``--help``."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"error: {self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def at_least(lowest: int) -> Any:
+    """An argparse type: an integer of at least ``lowest``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < lowest:
+            raise argparse.ArgumentTypeError(f"must be {lowest} or more, got {value}")
+        return value
+
+    return parse
+
+
+def not_a_session(out: Path, what: str) -> str:
+    """Why ``out`` cannot take ``what`` (it is a file, or a session's own folder, whose
+    files it would mix with its own); "" where it can."""
+    if out.exists() and not out.is_dir():
+        return f"{out}: is a file; give --out a folder for {what}"
+    if (out / "calibration.toml").is_file():
+        return f"{out}: is a session's folder; give --out a folder of its own for {what}"
+    return ""
+
+
+@contextlib.contextmanager
+def stopped_in_one_line(prog: str) -> Iterator[None]:
+    """Ctrl-C and SIGTERM end the block with one line and exit status 130 (temporary
+    folders removed on the way out, as on any exception), not a traceback."""
+    previous = signal.getsignal(signal.SIGTERM)
+
+    def interrupt(*_: object) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    except KeyboardInterrupt:
+        print(f"error: {prog}: interrupted; its output is not written", file=sys.stderr)
+        raise SystemExit(EXIT_INTERRUPTED) from None
+    finally:
+        signal.signal(signal.SIGTERM, previous)
