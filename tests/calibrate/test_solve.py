@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import re
 import shutil
 import struct
@@ -231,15 +232,19 @@ def test_a_16_bit_board_image_reads_at_a_backgrounds_levels(tmp_path, top: int, 
         assert int(as_board.max()) == (117 if top == 30000 else 255)
 
 
-def test_a_camera_with_shared_views_alone_is_calibrated(tmp_path) -> None:
-    """cam2 keeps only shared/ (no intrinsics/, no world.png): it is one of the rig's cameras."""
+def test_a_camera_with_shared_views_alone_is_calibrated_and_said_to_be_loose(tmp_path, caplog) -> None:
+    """cam2 keeps only shared/ (no intrinsics/, no world.png): it is one of the rig's cameras,
+    and the run says that its lens rests on those few views."""
     root = tmp_path / "calib"
     render_calibration_views(root, arrangement="oblique", seed=0, views=6, progress=False)
     shutil.rmtree(root / "cam2" / "intrinsics")
     (root / "cam2" / "world.png").unlink()
-    result = calibrate_directory(root, tmp_path / "c.toml")
+    with caplog.at_level(logging.WARNING):
+        result = calibrate_directory(root, tmp_path / "c.toml")
     assert [c.name for c in result.cameras] == ["cam0", "cam1", "cam2"]
     assert result.camera_mean_px()["cam2"] < 0.2
+    warned = [r.getMessage() for r in caplog.records if "has no intrinsics/ image" in r.getMessage()]
+    assert len(warned) == 1 and warned[0].startswith("camera 'cam2' has no intrinsics/ image")
 
 
 def test_wrong_board_size_is_named(small_rig, tmp_path) -> None:
