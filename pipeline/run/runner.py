@@ -422,12 +422,23 @@ def _frame_span(session: Session, frames: tuple[int, int | None] | None) -> tupl
     if frames is None:
         return 0, n
     start, stop = frames
+    # Where the videos differ in length, the session is its shortest video's: named.
+    shortest = ""
+    if len(set(session.frame_counts)) > 1:
+        path = session.video_paths[session.frame_counts.index(n)]
+        shortest = f", as long as its shortest video, {path.name}"
     if stop is not None and stop > n and start < n:
-        log.warning("--frames %d:%d reaches past the session's %d frames; running to its end", start, stop, n)
+        log.warning(
+            "--frames %d:%d reaches past the session's %d frames%s; running to its end",
+            start,
+            stop,
+            n,
+            shortest,
+        )
     stop = n if stop is None else min(stop, n)
     if not 0 <= start < stop:
         raise SessionError(
             f"{session.directory}: --frames {start}:{frames[1] or ''} selects no frame "
-            f"(the session has {n} frames, 0-{n - 1})"
+            f"(the session has {n} frames, 0-{n - 1}{shortest})"
         )
     return start, stop

@@ -317,6 +317,21 @@ def test_frames_outside_the_session_are_refused(short_session: Path, tmp_path: P
     assert list(tmp_path.iterdir()) == []
 
 
+def test_frames_past_a_short_video_name_it(short_session: Path, tmp_path: Path) -> None:
+    import shutil
+
+    from conftest import write_video
+
+    session = tmp_path / "short"
+    shutil.copytree(short_session, session)
+    video = next(p for p in sorted(session.iterdir()) if p.stem == "cam1")
+    write_video(video, [np.zeros((240, 320), np.uint8)] * 9)  # 9 frames, the others 12
+    with pytest.raises(SessionError, match=r"has 9 frames, 0-8, as long as its shortest video, cam1\."):
+        runner.process_session(
+            load_session(session), out_dir=tmp_path / "out", frames=(10, 12), frame_fn=fixed_rod
+        )
+
+
 def test_frames_past_the_end_run_to_it_with_a_note(
     short_session: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
