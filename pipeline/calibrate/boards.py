@@ -115,6 +115,8 @@ def load_board(
         raise CalibrationError(f"{calib_dir}: give --board (a chessboard) or --charuco, not both")
     path = Path(calib_dir) / "board.toml"
     doc: dict[str, object] = {}
+    if path.exists() and not path.is_file():
+        raise CalibrationError(f"{path}: is not a file (a folder?); write the board's description there")
     if path.is_file():
         doc = read_toml(path, error=CalibrationError)
         check_keys(doc, BOARD_KEYS, str(path), error=CalibrationError)

@@ -191,10 +191,13 @@ def detect_directory(calib_dir: Path, board: Board) -> list[View]:
         sizes = {(im.shape[1], im.shape[0]) for _, _, im in images}
         if len(sizes) > 1:
             first = images[0]
-            odd = next(src for _, src, im in images if (im.shape[1], im.shape[0]) != first[2].shape[::-1])
+            odd, odd_image = next(
+                (src, im) for _, src, im in images if (im.shape[1], im.shape[0]) != first[2].shape[::-1]
+            )
             raise CalibrationError(
                 f"camera {cam!r}: images of different sizes ({first[1]} is "
-                f"{first[2].shape[1]}x{first[2].shape[0]}, {odd} is not); one camera, one size"
+                f"{first[2].shape[1]}x{first[2].shape[0]}, {odd} {odd_image.shape[1]}x{odd_image.shape[0]}); "
+                "one camera, one size"
             )
         # Threads: OpenCV releases the GIL, and images are independent.
         found = Parallel(n_jobs=-1, prefer="threads")(delayed(detect)(im, board) for _, _, im in images)

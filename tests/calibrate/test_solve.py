@@ -143,7 +143,16 @@ def test_inconsistent_image_sizes(small_rig, tmp_path) -> None:
     root = _copy(small_rig, tmp_path)
     path = root / "cam0" / "intrinsics" / "00.png"
     cv2.imwrite(str(path), cv2.resize(cv2.imread(str(path)), (640, 480)))
-    with pytest.raises(CalibrationError, match="camera 'cam0': images of different sizes"):
+    with pytest.raises(
+        CalibrationError,
+        match=r"camera 'cam0': images of different sizes \(.*00\.png is 640x480, .*\.png 320x240\)",
+    ):
+        calibrate_directory(root, tmp_path / "c.toml")
+    # A folder where board.toml goes is named, not read as no board description.
+    (root / "cam0" / "intrinsics" / "00.png").unlink()
+    (root / "board.toml").unlink(missing_ok=True)
+    (root / "board.toml").mkdir()
+    with pytest.raises(CalibrationError, match=r"board\.toml: is not a file \(a folder\?\)"):
         calibrate_directory(root, tmp_path / "c.toml")
 
 
