@@ -25,6 +25,8 @@ log = logging.getLogger(__name__)
 DEFAULT_VIEWER_PORT = 9876  # Rerun's
 DEFAULT_FOXGLOVE = "127.0.0.1:8765"  # Foxglove's usual WebSocket address
 CONNECT_TIMEOUT_S = 2.0
+# The longest the run waits for the Foxglove server's clients to close when it stops.
+STOP_TIMEOUT_S = 5.0
 
 
 def grpc_url(address: str) -> str:
@@ -196,7 +198,18 @@ class FoxgloveServer:
             target.log(static[0], log_time=static[1])
 
     def stop(self) -> None:
-        self._server.stop()
+        """Close the server, waiting at most ``STOP_TIMEOUT_S`` for its clients: the SDK's
+        stop waits for each to close, and a client that stopped reading (a stalled network,
+        a frozen app) would hold the run (and its signals: the wait is in native code) until
+        it goes. Past the wait the server is left to the process' exit, with a warning."""
+        closing = threading.Thread(target=self._server.stop, name="foxglove-stop", daemon=True)
+        closing.start()
+        closing.join(STOP_TIMEOUT_S)
+        if closing.is_alive():
+            log.warning(
+                "Foxglove: a client did not close within %g s (it stopped reading?); left to the exit",
+                STOP_TIMEOUT_S,
+            )
 
 
 def _is_static(topic: str) -> bool:

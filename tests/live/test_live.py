@@ -747,6 +747,31 @@ def test_live_to_a_viewer_nobody_runs_is_refused_before_the_run(
     assert len(err.splitlines()) == 1 and not (tmp_path / "out").exists()
 
 
+def test_a_foxglove_client_that_stopped_reading_does_not_hold_the_run(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    # The SDK's stop waits for every client to close; one that stopped reading never does
+    # (until its own timeout, a minute or more), and the wait is in native code.
+    from pipeline.live import stream
+
+    server = stream.FoxgloveServer("127.0.0.1", 0, name="test")
+    real_stop, released = server._server.stop, threading.Event()
+
+    class Stalled:
+        def stop(self) -> None:
+            released.wait()  # a client that never closes
+            real_stop()
+
+    server._server = Stalled()
+    monkeypatch.setattr(stream, "STOP_TIMEOUT_S", 0.2)
+    started = time.monotonic()
+    with caplog.at_level(logging.WARNING):
+        server.stop()
+    assert time.monotonic() - started < 5.0  # not held until the client goes
+    assert "Foxglove: a client did not close within 0.2 s" in caplog.text
+    released.set()
+
+
 def test_a_foxglove_port_already_taken_is_refused_before_the_run(
     session: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
