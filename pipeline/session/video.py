@@ -230,8 +230,9 @@ class _ContainerFacts:
     streams (0 where the first cannot be demuxed as far as its timestamps are read).
     ``stamps_s``, ``tick_s``: the first stream's frame timestamps (s, ascending, at most
     VFR_FRAMES) and their tick (s).
-    ``packet_count``: its packets, where the container keeps no frame count (None where
-    it keeps one, or where the stream cannot be demuxed to its end). ``creation_text``:
+    ``packet_count``: its packets, where the container keeps no frame count or one its
+    duration belies (None where it keeps one, or where the stream cannot be demuxed to its
+    end). ``creation_text``:
     the container's creation_time tag, else its first video stream's ("" for none).
     """
 
@@ -270,7 +271,7 @@ def _read_container(path: Path) -> _ContainerFacts:
             time_base = float(stream.time_base or Fraction(1, 1000))
             index = _FrameIndex.of(stream)
             ticks, count = _demuxed(
-                container, stream, ticks_wanted=index is None, count_wanted=stream.frames <= 0
+                container, stream, ticks_wanted=index is None, count_wanted=not _count_kept(stream)
             )
             if index is not None:
                 ticks = [index[k].timestamp for k in range(min(stream.frames, VFR_FRAMES))]
@@ -285,6 +286,18 @@ def _read_container(path: Path) -> _ContainerFacts:
             )
     except (av.error.FFmpegError, OSError):
         return _ContainerFacts()
+
+
+def _count_kept(stream: av.video.stream.VideoStream) -> bool:
+    """Whether ``stream``'s own frame count is the frames it shows: it keeps one, and that
+    one agrees (within a frame) with its duration at its average rate. An MP4 whose edit
+    list hides frames (a trim made without re-encoding) keeps the count of all it stores."""
+    if stream.frames <= 0:
+        return False
+    if not (stream.duration and stream.time_base and stream.average_rate):
+        return True
+    shown = float(stream.duration * stream.time_base * stream.average_rate)
+    return abs(stream.frames - shown) <= 1.0
 
 
 def _demuxed(

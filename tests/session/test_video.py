@@ -455,3 +455,48 @@ def test_a_probe_opens_the_file_once_per_library_and_an_unchanged_file_not_again
     assert video.probe_video(path) == first and len(opened) == 2  # the same file: no opening
     write_video(path, _moving_texture(7), fourcc="MJPG")  # rewritten where it is
     assert video.probe_video(path).frame_count == 7 and len(opened) == 4
+
+
+def _edit_listed_mp4(path: Path, shown: list[NDArray[np.uint8]], hidden: int) -> Path:
+    """An MP4 storing ``hidden`` frames before ``shown`` that its edit list hides (what a trim
+    without re-encoding writes): stored with negative timestamps."""
+    from fractions import Fraction
+
+    tick = Fraction(1, 15360)
+    step = 512  # ticks a frame at 30 fps
+    with av.open(str(path), "w") as out:
+        stream = out.add_stream("mpeg4", rate=30)
+        stream.width, stream.height, stream.pix_fmt = shown[0].shape[1], shown[0].shape[0], "yuv420p"
+        stream.codec_context.time_base = tick
+        stream.time_base = tick
+        stream.codec_context.gop_size = 1
+
+        def mux(packets: list[av.Packet]) -> None:
+            for packet in packets:
+                packet.pts -= hidden * step
+                packet.dts -= hidden * step
+                out.mux(packet)
+
+        frames = [np.full_like(shown[0], 255)] * hidden + list(shown)
+        for i, image in enumerate(frames):
+            frame = av.VideoFrame.from_ndarray(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR), format="bgr24")
+            frame.pts, frame.time_base = i * step, tick
+            mux(stream.encode(frame))
+        mux(stream.encode())
+    return path
+
+
+def test_frames_an_edit_list_hides_are_not_counted(tmp_path: Path) -> None:
+    # The container stores 23 frames and shows 20 (its duration's): the session is 20 long,
+    # as its reader and every player show it; counted as 23, the other cameras' videos
+    # were called short.
+    rng = np.random.default_rng(0)
+    shown = [rng.integers(0, 200, (48, 64), dtype=np.uint8) for _ in range(20)]
+    path = _edit_listed_mp4(tmp_path / "trimmed.mp4", shown, hidden=3)
+    with av.open(str(path)) as container:
+        assert container.streams.video[0].frames == 23  # what the container keeps
+    info = video.probe_video(path)
+    assert info.frame_count == 20
+    read = [image for _, image in read_frames(path, 0, info.frame_count)]
+    assert len(read) == 20 and all(image is not None for image in read)
+    assert np.abs(read[0].astype(int) - shown[0]).mean() < 12  # the first shown, not a hidden one
