@@ -230,9 +230,9 @@ class _ContainerFacts:
     streams (0 where the first cannot be demuxed as far as its timestamps are read).
     ``stamps_s``, ``tick_s``: the first stream's frame timestamps (s, ascending, at most
     VFR_FRAMES) and their tick (s).
-    ``packet_count``: its packets, where the container keeps no frame count or one its
-    duration belies (None where it keeps one, or where the stream cannot be demuxed to its
-    end). ``creation_text``:
+    ``packet_count``: its packets, where the container keeps no frame count, or an MP4
+    keeps one of frames its edit list hides (None where it keeps one, or where the stream
+    cannot be demuxed to its end). ``creation_text``:
     the container's creation_time tag, else its first video stream's ("" for none).
     """
 
@@ -270,8 +270,9 @@ def _read_container(path: Path) -> _ContainerFacts:
             stream = streams[0]
             time_base = float(stream.time_base or Fraction(1, 1000))
             index = _FrameIndex.of(stream)
+            edited = "mp4" in name.split(",") and _hides_frames(stream)
             ticks, count = _demuxed(
-                container, stream, ticks_wanted=index is None, count_wanted=not _count_kept(stream)
+                container, stream, ticks_wanted=index is None, count_wanted=stream.frames <= 0 or edited
             )
             if index is not None:
                 ticks = [index[k].timestamp for k in range(min(stream.frames, VFR_FRAMES))]
@@ -288,16 +289,14 @@ def _read_container(path: Path) -> _ContainerFacts:
         return _ContainerFacts()
 
 
-def _count_kept(stream: av.video.stream.VideoStream) -> bool:
-    """Whether ``stream``'s own frame count is the frames it shows: it keeps one, and that
-    one agrees (within a frame) with its duration at its average rate. An MP4 whose edit
-    list hides frames (a trim made without re-encoding) keeps the count of all it stores."""
-    if stream.frames <= 0:
+def _hides_frames(stream: av.video.stream.VideoStream) -> bool:
+    """Whether an MP4 ``stream`` keeps a count of more frames than its duration shows at its
+    average rate (by more than one): an edit list hides some (a trim made without
+    re-encoding), which the demuxer drops, and the reader with it."""
+    if stream.frames <= 0 or not (stream.duration and stream.time_base and stream.average_rate):
         return False
-    if not (stream.duration and stream.time_base and stream.average_rate):
-        return True
     shown = float(stream.duration * stream.time_base * stream.average_rate)
-    return abs(stream.frames - shown) <= 1.0
+    return stream.frames > shown + 1.0
 
 
 def _demuxed(
