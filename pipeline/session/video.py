@@ -232,8 +232,8 @@ class _ContainerFacts:
     VFR_FRAMES) and their tick (s).
     ``packet_count``: its packets, where the container keeps no frame count, or an MP4
     keeps one of frames its edit list hides (None where it keeps one, or where the stream
-    cannot be demuxed to its end). ``creation_text``:
-    the container's creation_time tag, else its first video stream's ("" for none).
+    cannot be demuxed to its end). ``creation_text``: the container's creation_time tag,
+    else its first video stream's ("" for none).
     """
 
     still_kind: str = ""
