@@ -1,15 +1,16 @@
 """The measuring tools' command lines (`accuracy_table`, `bench`): argument types, one-line
-usage errors, and a stop by Ctrl-C or SIGTERM said in one line."""
+usage errors, and a stop by Ctrl-C, SIGTERM or SIGHUP said in one line."""
 
 from __future__ import annotations
 
 import argparse
 import contextlib
-import signal
 import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, NoReturn
+
+from ..run.interrupts import signals_interrupt
 
 # What a stopped run exits with (128 + SIGINT), as the pipeline's own commands.
 EXIT_INTERRUPTED = 130
@@ -49,18 +50,13 @@ def not_a_session(out: Path, what: str) -> str:
 
 @contextlib.contextmanager
 def stopped_in_one_line(prog: str) -> Iterator[None]:
-    """Ctrl-C and SIGTERM end the block with one line and exit status 130 (temporary
-    folders removed on the way out, as on any exception), not a traceback."""
-    previous = signal.getsignal(signal.SIGTERM)
-
-    def interrupt(*_: object) -> None:
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, interrupt)
+    """The pipeline's signal policy for the block (:func:`pipeline.run.interrupts.signals_interrupt`:
+    Ctrl-C, SIGTERM and SIGHUP raise KeyboardInterrupt, so that temporary folders are
+    removed on the way out), and a stop said in one line with exit status 130, not a
+    traceback."""
     try:
-        yield
+        with signals_interrupt():
+            yield
     except KeyboardInterrupt:
         print(f"error: {prog}: interrupted; its output is not written", file=sys.stderr)
         raise SystemExit(EXIT_INTERRUPTED) from None
-    finally:
-        signal.signal(signal.SIGTERM, previous)

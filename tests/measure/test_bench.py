@@ -433,3 +433,18 @@ def test_the_measuring_tools_refuse_a_session_folder_as_out_and_a_file_as_demo(
         capsys.readouterr().err == f"error: {session / 'cam0.mp4'}: is a file; give --demo a session folder\n"
     )
     assert sorted(p.name for p in session.iterdir()) == ["calibration.toml", "cam0.mp4"]
+
+
+def test_the_measuring_tools_end_on_sigterm_in_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    import os
+    import signal
+
+    from pipeline.measure.arguments import EXIT_INTERRUPTED, stopped_in_one_line
+
+    handler = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(SystemExit) as exit_info, stopped_in_one_line("bench"):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the signal ends the block first
+    assert exit_info.value.code == EXIT_INTERRUPTED
+    assert capsys.readouterr().err == "error: bench: interrupted; its output is not written\n"
+    assert signal.getsignal(signal.SIGTERM) is handler  # the policy ends with the block
