@@ -366,7 +366,7 @@ def test_odd_figures_of_another_program_read_as_unknown_and_paths_as_the_system_
     path = _mcap_with_metrics(
         tmp_path / "odd.mcap", [json.dumps(figures).encode()], {"centerline_points": "999999999999"}
     )
-    recording = pipeline.load_recording(os.fsencode(path))  # bytes, as os.listdirb gives them
+    recording = pipeline.load_recording(os.fsencode(path))  # bytes, as os.listdir(bytes) gives paths
     assert recording.centerlines_m.shape == (1, 0, 3)  # no curve, and no 1e12-point array of NaN
     table = recording.metrics_table()
     assert table["voxel_count"].dtype == np.float64 and table["voxel_count"][0] == 1e40
