@@ -33,6 +33,7 @@ from .tracking import (
     judge_fit,
     predict_axis,
     predict_length,
+    prediction_miss_mm,
     track_tube,
     usual_misfit,
     velocity_pair,
@@ -304,7 +305,10 @@ def _curve_and_quality(
         contrasts = frame_contrasts(images, model)
 
         def track(
-            start_mm: NDArray[np.float64], radius_mm: float, radii_mm: NDArray[np.float64] | None
+            start_mm: NDArray[np.float64],
+            radius_mm: float,
+            radii_mm: NDArray[np.float64] | None,
+            miss_mm: float = 0.0,
         ) -> TrackedFit:
             return track_tube(
                 start_mm,
@@ -318,11 +322,14 @@ def _curve_and_quality(
                 n_points=n_points,
                 usual_misfit=usual_misfit(previous),
                 length_mm=held_length(previous),
+                prediction_miss_mm=miss_mm,
             )
 
         held = None
         if predicted is not None:
-            held = track(predicted, previous[-1].radius_mm, previous[-1].radii_mm)
+            held = track(
+                predicted, previous[-1].radius_mm, previous[-1].radii_mm, prediction_miss_mm(previous)
+            )
         if held is not None and held.curve is not None and (not held.lost or not restart_here):
             best, tracked, lost = held, True, held.lost
         else:
@@ -379,6 +386,7 @@ def _curve_and_quality(
         # tube should be: one that holds the last curve still (after a suspect frame)
         # misses a moving tube by a frame's motion (see SUSPECT_JUMP_RADII).
         predicted_mm=predicted if velocity_pair(previous) is not None else None,
+        prediction_miss_mm=prediction_miss_mm(previous),
         expected_length_mm=predict_length(previous, index),
         usual_misfit=usual_misfit(previous),
     )

@@ -69,7 +69,13 @@ SUSPECT_CLOSEST_RADII = 1.5
 # two coils made from draw 97's disk case, the demo; 90 frames each, 2026-12-03),
 # against judging every frame after an unsuspect one: good frames flagged for a jump 11
 # against 39 (all reasons 245 against 263 of ~3,100), frames more than 2 mm off 370
-# against 377, 179 of them flagged against 176 ...
+# against 377, 179 of them flagged against 176. The radii count beyond how far the
+# track's last frame lay from its own prediction (tracking.prediction_miss_mm): a tube
+# that speeds up or turns misses a constant-velocity prediction by about as much each
+# frame. Against the radii alone, on 99 sessions (83 without spacer disks from
+# `accuracy_table` draws, 16 `synth --frames 20` and `--frames 40` renders whose tube sweeps
+# and turns by up to a radius a frame; 2026-12-05): good frames flagged 132 -> 110 of
+# 7,340, frames more than 2 mm off flagged 141 -> 144 of 608 -> 610 (docs/accuracy.md) ...
 SUSPECT_JUMP_RADII = 1.0
 # ... or where its length is more than this far from the length its track predicts
 # (pipeline.reconstruct.tracking.predict_length): a tip cut short or run on along its own
@@ -335,6 +341,7 @@ def suspect_reason(
     iou: Sequence[float],
     misfit: Sequence[float],
     predicted_mm: FloatArray | None = None,
+    prediction_miss_mm: float = 0.0,
     expected_length_mm: float = math.nan,
     usual_misfit: float = 0.0,
 ) -> str:
@@ -345,9 +352,10 @@ def suspect_reason(
     frames usually leave, ``usual_misfit``; both per camera, from
     :func:`tube_figures`); it passes through itself; it
     lies far from what the track predicted (``predicted_mm``, (M, 3) mm, None
-    where the frame was not tracked); or its length is not the one its track
-    predicts (``expected_length_mm``, NaN where none does). ``radius_mm``: one, or (N,) along the
-    curve. The reasons found are joined by "; ".
+    where the frame was not tracked), farther than the track's last frame lay from
+    its own prediction (``prediction_miss_mm``) by ``SUSPECT_JUMP_RADII``; or its length
+    is not the one its track predicts (``expected_length_mm``, NaN where none does).
+    ``radius_mm``: one, or (N,) along the curve. The reasons found are joined by "; ".
     """
     names = [cam.name for cam in cameras]
     reasons = []
@@ -363,7 +371,7 @@ def suspect_reason(
         reasons.append("the tube passes through itself")
     if predicted_mm is not None:
         gap = axis_gap_mm(centerline_mm, predicted_mm)
-        if gap > SUSPECT_JUMP_RADII * radius:
+        if gap > SUSPECT_JUMP_RADII * radius + prediction_miss_mm:
             reasons.append(f"{gap:.1f} mm from its track's prediction")
     length = float(polyline_arclength(centerline_mm)[-1])
     if abs(length - expected_length_mm) > SUSPECT_LENGTH_MM:

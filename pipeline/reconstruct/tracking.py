@@ -85,7 +85,9 @@ TRACK_CROWD_MARGIN_PX = 4.0
 LOST_MISFIT = 0.01
 # ... passes through itself (parts' axes closer than this many radii) ...
 LOST_CLOSEST_RADII = 1.5
-# ... or moved farther than this many radii from its prediction in one frame.
+# ... or moved farther than this many radii from its prediction in one frame, beyond
+# how far the frame before lay from its own (prediction_miss_mm; see
+# pipeline.reconstruct.quality.SUSPECT_JUMP_RADII).
 LOST_JUMP_RADII = 1.5
 # The tracked tip is refined to the grey levels where it meets another part of the
 # tube in at least this many views (pipeline.reconstruct.tip_bend.tip_meets_tube), or
@@ -193,6 +195,23 @@ def velocity_pair(previous: Sequence[FrameResult]) -> tuple[FloatArray, int] | N
     if before.centerline_mm.shape != last.centerline_mm.shape:
         return None
     return np.asarray(before.centerline_mm, dtype=np.float64), apart
+
+
+def prediction_miss_mm(previous: Sequence[FrameResult]) -> float:
+    """How far (mm, :func:`axis_gap_mm`) the track's last curve lay from the prediction
+    the frames before it made of it with their velocity (:func:`predict_axis`): how
+    much the track's velocity changed over its last frame. A tube that speeds up, slows
+    down or turns misses a constant-velocity prediction by about as much again in the
+    next frame. 0 where the frames before the last give no velocity
+    (:func:`velocity_pair`) or the last is suspect. ``previous``: the track's results
+    so far, oldest first."""
+    if len(previous) < 3 or previous[-1].suspect or velocity_pair(previous[:-1]) is None:
+        return 0.0
+    last = previous[-1].centerline_mm
+    predicted = predict_axis(previous[:-1], previous[-1].index)
+    if last is None or predicted is None:
+        return 0.0
+    return axis_gap_mm(np.asarray(last, dtype=np.float64), predicted)
 
 
 def predict_length(previous: Sequence[FrameResult], index: int) -> float:
@@ -339,6 +358,7 @@ def track_tube(
     n_points: int = 64,
     usual_misfit: float = 0.0,
     length_mm: float = np.nan,
+    prediction_miss_mm: float = 0.0,
 ) -> TrackedFit:
     """The tube fitted from its prediction (N, 3) mm, and whether the track holds.
 
@@ -356,7 +376,9 @@ def track_tube(
     ``n_points``: samples of the curve judged (:func:`judge_fit`); ``usual_misfit``:
     the share of a silhouette the track's frames usually leave unexplained
     (:func:`usual_misfit`), beyond which the misfit is judged; ``length_mm``: the
-    length the tube keeps where no view reads its end (:func:`held_length`).
+    length the tube keeps where no view reads its end (:func:`held_length`);
+    ``prediction_miss_mm``: how far the track's last frame lay from its own prediction
+    (:func:`prediction_miss_mm`), beyond which a jump is judged.
     """
     if not (np.isfinite(radius_mm) and radius_mm > 0):
         return TrackedFit(None, lost="no radius to track")
@@ -434,6 +456,6 @@ def track_tube(
         lost = "leaves part of a silhouette unexplained"
     elif self_intersects(fit.points_mm, fit.radius_mm, closest_radii=LOST_CLOSEST_RADII):
         lost = "passes through itself"
-    elif axis_gap_mm(fit.points_mm, predicted_mm) > LOST_JUMP_RADII * fit.radius_mm:
+    elif axis_gap_mm(fit.points_mm, predicted_mm) > LOST_JUMP_RADII * fit.radius_mm + prediction_miss_mm:
         lost = "jumped from its prediction"
     return replace(judged, lost=lost)

@@ -198,6 +198,31 @@ def test_a_tube_that_matches_its_silhouettes_and_its_track_is_not_suspect() -> N
     assert reason == ""
 
 
+def test_a_jump_is_judged_beyond_what_the_track_last_missed_its_prediction_by() -> None:
+    cams = rig_cameras()
+    axis = _arc_mm()
+    masks = quality.tube_masks(cams, axis, 6.0)
+    iou, misfit = quality.tube_figures(cams, masks, axis, 6.0)
+    predicted = axis + np.array([0.0, 10.0, 0.0])  # missed by 10 mm: more than a radius
+
+    def reason(last_miss_mm: float) -> str:
+        return quality.suspect_reason(
+            cams,
+            masks,
+            axis,
+            6.0,
+            iou=iou,
+            misfit=misfit,
+            predicted_mm=predicted,
+            prediction_miss_mm=last_miss_mm,
+        )
+
+    # A track that steadily accelerates misses each frame's prediction by about as much.
+    assert reason(0.0) == "10.0 mm from its track's prediction"
+    assert reason(5.0) == ""
+    assert "prediction" in reason(3.0)
+
+
 @pytest.mark.parametrize(
     ("change", "expected"),
     [

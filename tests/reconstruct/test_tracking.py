@@ -23,6 +23,7 @@ from pipeline.reconstruct.tracking import (
     held_length,
     predict_axis,
     predict_length,
+    prediction_miss_mm,
     segment_start,
     track_start,
     track_tube,
@@ -89,6 +90,47 @@ def test_a_fast_tube_is_judged_against_its_velocity_not_against_a_prediction_hel
     assert result.centerline_mm is not None
     assert np.abs(result.centerline_mm[-1] - truth[8][-1]).max() < 2.0
     assert "prediction" not in result.suspect_reason
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_prediction_miss_is_how_much_the_velocity_changed(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    axis = np.column_stack([np.zeros(8), np.zeros(8), np.linspace(0.0, 70.0, 8)])
+    velocity, change = rng.normal(0.0, 5.0, 3), rng.normal(0.0, 2.0, 3)
+    steady = [_ok(i, axis + i * velocity) for i in range(3)]
+    assert prediction_miss_mm(steady) == pytest.approx(0.0, abs=1e-9)
+    # Sped up or turned in the last frame: its prediction missed it by the change.
+    turned = [*steady[:2], _ok(2, axis + 2 * velocity + change)]
+    assert prediction_miss_mm(turned) == pytest.approx(float(np.linalg.norm(change)))
+    # Over a gap, the velocity per frame carried across it.
+    gap = [*steady[:2], _ok(4, axis + 4 * velocity + change)]
+    assert prediction_miss_mm(gap) == pytest.approx(float(np.linalg.norm(change)))
+    # No velocity to have missed by: too few frames, or a suspect one among them.
+    assert prediction_miss_mm(turned[1:]) == 0.0
+    assert prediction_miss_mm([replace(turned[0], suspect_reason="a reason"), *turned[1:]]) == 0.0
+    assert prediction_miss_mm([*turned[:2], replace(turned[2], suspect_reason="a reason")]) == 0.0
+
+
+@pytest.mark.parametrize(("shape", "seed"), [("bend_rotate", 0), ("random", 1), ("random", 2)])
+def test_a_tube_whose_sweep_speeds_up_and_turns_is_not_flagged_for_it(
+    tmp_path: Path, shape: str, seed: int
+) -> None:
+    # A 20-frame render plays its whole motion in those frames: the tube sweeps and turns
+    # by up to a radius or more a frame, and misses each constant-velocity prediction by
+    # about as much as the frame before missed its own.
+    render_session(tmp_path, shape=shape, frames=20, seed=seed, progress=False, jobs=1)
+    session = load_session(tmp_path)
+    truth = np.load(tmp_path / "ground_truth.npz")["centerlines"]
+    names = tuple(camera.name for camera in session.cameras)
+    outputs = list(process_range(build_model(session), session.video_paths, names, 0, 20, images=False))
+    jumps = [o.result.index for o in outputs if "prediction" in o.result.suspect_reason]
+    off = [
+        o.result.index
+        for o in outputs
+        if o.result.centerline_mm is None
+        or centerline_distances(truth[o.result.index], o.result.centerline_mm).max() > 2.0
+    ]
+    assert not [index for index in jumps if index not in off]
 
 
 def _lengths(indices: np.ndarray, lengths_mm: np.ndarray) -> list[FrameResult]:
