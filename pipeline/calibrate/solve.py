@@ -103,16 +103,20 @@ def calibrate_directory(
     if not shared_intrinsics:
         _warn_of_shared_views_alone(views)
     result = calibrate_views(views, the_board, shared_intrinsics=shared_intrinsics)
+    world_problems: list[str]
+    used, world_problems = views, []
+    if _problems(result):
+        result, used, world_problems = _without_odd_world_view(result, views, the_board, shared_intrinsics)
     outliers = find_outliers(result.image_errors)
     if drop_outliers and outliers:
         drop = {(e.camera, e.key) for e in outliers if e.key != WORLD}
         log.info("dropping %d outlier image(s) and recalibrating", len(drop))
-        kept = [v for v in views if (v.camera, v.key) not in drop]
-        result = calibrate_views(kept, the_board, shared_intrinsics=shared_intrinsics)
+        used = [v for v in used if (v.camera, v.key) not in drop]
+        result = calibrate_views(used, the_board, shared_intrinsics=shared_intrinsics)
         result.dropped = sorted(e.source for e in outliers if e.key != WORLD)
         outliers = find_outliers(result.image_errors)
     result.outliers = outliers
-    result.problems = _problems(result)
+    result.problems = world_problems + _problems(result)
     metadata = {
         "source": "pipeline calibrate",
         "calib_dir": str(calib_dir),
@@ -157,6 +161,64 @@ def _warn_of_shared_views_alone(views: list[View]) -> None:
             camera,
             count,
         )
+
+
+def _without_odd_world_view(
+    result: CalibrationResult, views: list[View], board: Board, shared_intrinsics: bool
+) -> tuple[CalibrationResult, list[View], list[str]]:
+    """``result``, which does not fit one rig (:func:`_problems`), calibrated again without the
+    world image that the others and the shared views disagree with, where there is one.
+
+    Each camera's world image is left out in turn. Where the cameras then fit one rig
+    without exactly one of them, that image is the odd one (turned, mirrored, or of another
+    placement of the board): it is left out of the world frame and named. Where they fit
+    without any of several, the world images disagree and no vote says which is wrong:
+    they are named together, and ``result`` stands. Returns the calibration, the views it
+    used, and the problem lines to put first.
+    """
+    world = [v for v in views if v.key == WORLD]
+    if len(world) < 2:
+        return result, views, []
+    fits: list[tuple[View, CalibrationResult]] = []
+    for odd in world:
+        kept = [v for v in views if v is not odd]
+        try:
+            without = calibrate_views(kept, board, shared_intrinsics=shared_intrinsics)
+        except CalibrationError:  # the camera is linked to the others by its world image alone
+            continue
+        if not _problems(without):
+            fits.append((odd, without))
+    if len(fits) == 1:
+        odd, without = fits[0]
+        camera = next(c for c in without.cameras if c.name == odd.camera)
+        # The world frame is the world image's board: its corners' world coordinates are the
+        # board's own.
+        off_px = float(
+            np.linalg.norm(camera.project(board.object_points()[odd.ids]) - odd.corners_px, axis=1).mean()
+        )
+        return (
+            without,
+            [v for v in views if v is not odd],
+            [
+                f"{odd.source}: its board lies {off_px:.0f} px from where the other cameras' world "
+                "images and the shared views put it, so it was left out of the world frame; check "
+                "that it shows the board where the world frame should be (not turned or mirrored), "
+                "or remove it, and calibrate again"
+            ],
+        )
+    if len(fits) > 1:
+        sources = [odd.source for odd, _ in fits]
+        listed = f"{', '.join(sources[:-1])} and {sources[-1]}"
+        return (
+            result,
+            views,
+            [
+                f"the world images {listed} do not agree on where the board lies: one of "
+                "them is turned, mirrored or of another placement of the board; remove it, or add "
+                "a world image in a third camera to tell which, and calibrate again"
+            ],
+        )
+    return result, views, []
 
 
 def _problems(result: CalibrationResult) -> list[str]:

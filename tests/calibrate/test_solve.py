@@ -427,3 +427,30 @@ def test_a_calibration_whose_images_do_not_fit_one_rig_says_so_and_exits_1(
     # The calibration and its report are written whole, for the user to look at; it says it is unfit.
     assert tomllib.loads(out.read_text())["metadata"]["problems"]
     assert (tmp_path / "reprojection_errors.png").is_file()
+
+
+@pytest.mark.parametrize(("odd", "turn"), [("cam0", "turned"), ("cam2", "mirrored")])
+def test_the_one_world_image_that_disagrees_with_the_others_is_named_and_left_out(
+    tmp_path, capsys: pytest.CaptureFixture[str], odd: str, turn: str
+) -> None:
+    """A world image turned 180 degrees or mirrored moves the board of the world frame in that
+    camera; against the other cameras' world images and the shared views, the rig cannot
+    fit all of them. Without it the others agree: it is named, and the calibration written
+    is the others' (cam0 is also the joint solver's reference camera)."""
+    from pipeline.cli import main
+
+    root = tmp_path / "calib"
+    render_calibration_views(root, arrangement="oblique", seed=11, views=6, progress=False)
+    world = root / odd / "world.png"
+    image = cv2.imread(str(world))
+    cv2.imwrite(str(world), cv2.rotate(image, cv2.ROTATE_180) if turn == "turned" else cv2.flip(image, 1))
+    out = tmp_path / "c.toml"
+    code = main(["calibrate", str(root), "-o", str(out)])
+    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning: ")]
+    assert code == 1, warnings
+    assert warnings[0].startswith(f"warning: {world}: its board lies"), warnings
+    assert not [w for w in warnings[1:] if "world.png" in w], warnings
+    truth = {c.name: c for c in read_calibration(root / "truth_calibration.toml")}
+    for camera in read_calibration(out):
+        assert np.linalg.norm(camera.center_mm - truth[camera.name].center_mm) < 2.0, camera.name
+    assert tomllib.loads(out.read_text())["metadata"]["problems"][0].startswith(f"{world}: its board lies")
