@@ -320,6 +320,34 @@ def test_json_summary_to_stdout_or_a_file(
     assert "frames: 4 processed" in capsys.readouterr().out
 
 
+def test_a_json_summary_is_written_whole_or_not_at_all(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    from pipeline.cli import commands
+
+    _fake_run(monkeypatch, FAILED_RUN)
+    target = tmp_path / "summary.json"
+    target.write_text('{"an": "earlier summary"}\n')
+
+    def full_disk(*args: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(commands.os, "replace", full_disk)
+    assert main(["process", "s", "--json", str(target)]) == EXIT_BAD_INPUT
+    assert capsys.readouterr().err.endswith(
+        f"error: {target}: cannot write the JSON summary (No space left on device)\n"
+    )
+    assert target.read_text() == '{"an": "earlier summary"}\n'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["summary.json"]
+    # Through a link, the file it leads to is written, and the link kept.
+    monkeypatch.undo()
+    _fake_run(monkeypatch, FAILED_RUN)
+    link = tmp_path / "link.json"
+    link.symlink_to(target)
+    assert main(["process", "s", "--json", str(link)]) == EXIT_FRAMES_FAILED
+    assert link.is_symlink() and json.loads(target.read_text()) == FAILED_RUN.to_dict()
+
+
 def test_json_to_a_missing_folder_fails_before_the_run(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:

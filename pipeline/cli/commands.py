@@ -81,9 +81,16 @@ def _report(summary: Any, json_to: str | None) -> None:
     if json_to == "-":
         say(json.dumps(summary.to_dict(), indent=2), result="the JSON summary")
     elif json_to is not None:
+        # Written whole under a name of this run's, then renamed into place: a full disk
+        # leaves the earlier file, and two runs given the same file leave one whole summary.
+        target = Path(os.path.realpath(json_to))
+        partial = target.with_name(f".{target.name}.{os.getpid()}.partial")
         try:
-            Path(json_to).write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
+            with open(partial, "x", encoding="utf-8") as file:
+                file.write(json.dumps(summary.to_dict(), indent=2) + "\n")
+            os.replace(partial, target)
         except OSError as exc:  # the recordings are written; only the summary file is lost
+            partial.unlink(missing_ok=True)
             raise OutputError(f"{json_to}: cannot write the JSON summary ({exc.strerror or exc})") from None
 
 
