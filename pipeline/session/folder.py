@@ -331,7 +331,8 @@ def _common_fps(infos: list[VideoInfo]) -> float:
                 odd, other = (infos[0], info) if infos[0].variable_rate else (info, infos[0])
                 raise VideoError(
                     f"{odd.path}: has a variable frame rate ({odd.variable_rate}; {odd.fps:g} fps "
-                    f"on average), {other.path.name} {other.fps:g} fps; re-export it at a constant rate"
+                    f"on average, against {other.fps:g} fps of {other.path.name}); re-export it at a "
+                    "constant rate"
                 )
             raise VideoError(
                 f"{info.path}: {info.fps:g} fps but {infos[0].path.name} has {fps:g} fps; "

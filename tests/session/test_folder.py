@@ -314,3 +314,19 @@ def test_a_video_whose_first_stream_is_not_the_cameras_says_so(tmp_path: Path) -
         VideoError, match=rf"frames are {width // 2}x{height // 2} \(the first of its 2 video streams"
     ):
         load_session(directory)
+
+
+def test_a_variable_rate_video_whose_average_rate_is_not_the_others_is_named_against_them() -> None:
+    from pipeline.errors import VideoError
+    from pipeline.session.folder import _common_fps
+    from pipeline.session.video import VideoInfo
+
+    steady = VideoInfo(Path("s/cam0.mp4"), 320, 240, 30.0, 90)
+    uneven = VideoInfo(Path("s/cam1.mp4"), 320, 240, 24.2, 73, variable_rate="frames 33.3-66.7 ms apart")
+    for infos in ([steady, uneven], [uneven, steady]):
+        with pytest.raises(VideoError) as raised:
+            _common_fps(infos)
+        assert str(raised.value) == (
+            "s/cam1.mp4: has a variable frame rate (frames 33.3-66.7 ms apart; 24.2 fps on average, "
+            "against 30 fps of cam0.mp4); re-export it at a constant rate"
+        )
