@@ -9,6 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
+from ..measure.arguments import OneLineParser
 from .commands import (
     EXIT_BAD_INPUT,
     cmd_calibrate,
@@ -103,10 +104,11 @@ def _board(text: str) -> tuple[int, int]:
     return int(cols), int(rows)
 
 
-class _Parser(argparse.ArgumentParser):
+class _Parser(OneLineParser):
     """argparse, with a usage mistake on one line like every other error (exit status 2),
-    pointing to ``--help`` instead of printing the whole usage above it; where the words
-    being parsed hold a path that starts with "-", the line says how to give it instead.
+    pointing to ``--help`` instead of printing the whole usage above it (as the measuring
+    tools' :class:`~pipeline.measure.arguments.OneLineParser`); where the words being
+    parsed hold a path that starts with "-", the line says how to give it instead.
     Subcommands' parsers are of this class too (argparse makes them of their parent's)."""
 
     _words: Sequence[str] = ()
@@ -127,7 +129,7 @@ class _Parser(argparse.ArgumentParser):
                 f"error: {self.prog}: {word} is read as an option; to give the {kind} {word}, "
                 f"write ./{word} (or -- {word})\n",
             )
-        self.exit(EXIT_BAD_INPUT, f"error: {self.prog}: {message} (see {self.prog} --help)\n")
+        super().error(message)
 
     def _option_like_path(self) -> str | None:
         """The first of the words being parsed (before any ``--``) that argparse reads as an

@@ -17,7 +17,8 @@ EXIT_INTERRUPTED = 130
 
 
 class OneLineParser(argparse.ArgumentParser):
-    """argparse, with a usage mistake on one line (exit status 2) pointing to ``--help``."""
+    """argparse, with a usage mistake on one line (exit status 2) pointing to ``--help``; the
+    pipeline's own commands' parser (``pipeline.cli.parser``) builds on it."""
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"error: {self.prog}: {message} (see {self.prog} --help)\n")
