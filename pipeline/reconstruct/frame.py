@@ -294,6 +294,8 @@ def _curve_and_quality(
         ws = settings.workspace
         base = infer_base(pts, np.asarray(ws.origin_mm), np.asarray(ws.size_mm), radius_mm=radius_guess)
     n_points = settings.centerline.points
+    # How far the track's last frame lay from its own prediction: a jump is judged beyond it.
+    missed_mm = prediction_miss_mm(previous)
     tracked = False
     lost = ""
     if settings.centerline.method == "polyfit":
@@ -327,9 +329,7 @@ def _curve_and_quality(
 
         held = None
         if predicted is not None:
-            held = track(
-                predicted, previous[-1].radius_mm, previous[-1].radii_mm, prediction_miss_mm(previous)
-            )
+            held = track(predicted, previous[-1].radius_mm, previous[-1].radii_mm, missed_mm)
         if held is not None and held.curve is not None and (not held.lost or not restart_here):
             best, tracked, lost = held, True, held.lost
         else:
@@ -386,7 +386,7 @@ def _curve_and_quality(
         # tube should be: one that holds the last curve still (after a suspect frame)
         # misses a moving tube by a frame's motion (see SUSPECT_JUMP_RADII).
         predicted_mm=predicted if velocity_pair(previous) is not None else None,
-        prediction_miss_mm=prediction_miss_mm(previous),
+        prediction_miss_mm=missed_mm,
         expected_length_mm=predict_length(previous, index),
         usual_misfit=usual_misfit(previous),
     )
