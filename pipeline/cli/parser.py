@@ -161,7 +161,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         description="3-D centreline of a continuum manipulator from three calibrated cameras. "
         "Geometry in millimetres in the world frame of calibration.toml (metres in the .mcap); "
         "frame ranges START:STOP include START and exclude STOP.",
-        epilog=f"Global options may also follow the command. '{prog} COMMAND --help' for a command's "
+        epilog=f"--debug may also follow the command. '{prog} COMMAND --help' for a command's "
         "options. Exit status: 0 done; 1 some frames failed, or no tube in any frame; 2 bad input; "
         "3 internal error (a bug); 130 interrupted.",
     )

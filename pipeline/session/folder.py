@@ -330,7 +330,7 @@ def _common_fps(infos: list[VideoInfo]) -> float:
             if infos[0].variable_rate or info.variable_rate:  # an average rate is no camera's rate
                 odd, other = (infos[0], info) if infos[0].variable_rate else (info, infos[0])
                 raise VideoError(
-                    f"{odd.path}: has a variable frame rate ({odd.variable_rate}; {odd.fps:g} fps "
+                    f"{odd.path}: has a variable frame rate ({odd.variable_rate}; {odd.fps:.1f} fps "
                     f"on average, against {other.fps:g} fps of {other.path.name}); re-export it at a "
                     "constant rate"
                 )

@@ -322,7 +322,7 @@ def test_a_variable_rate_video_whose_average_rate_is_not_the_others_is_named_aga
     from pipeline.session.video import VideoInfo
 
     steady = VideoInfo(Path("s/cam0.mp4"), 320, 240, 30.0, 90)
-    uneven = VideoInfo(Path("s/cam1.mp4"), 320, 240, 24.2, 73, variable_rate="frames 33.3-66.7 ms apart")
+    uneven = VideoInfo(Path("s/cam1.mp4"), 320, 240, 24.1963, 73, variable_rate="frames 33.3-66.7 ms apart")
     for infos in ([steady, uneven], [uneven, steady]):
         with pytest.raises(VideoError) as raised:
             _common_fps(infos)
