@@ -348,6 +348,17 @@ def test_a_json_summary_is_written_whole_or_not_at_all(
     assert link.is_symlink() and json.loads(target.read_text()) == FAILED_RUN.to_dict()
 
 
+def test_json_into_the_out_folder_that_the_run_makes(tmp_path: Path) -> None:
+    from conftest import build_session
+
+    session_dir = build_session(tmp_path / "s", frames=3)
+    out = tmp_path / "new" / "out"  # made by the run, parents and all
+    code = main(["process", str(session_dir), "-o", str(out), "--json", str(out / "summary.json")])
+    assert code in (0, 1)
+    assert json.loads((out / "summary.json").read_text())["exit_code"] == code
+    assert (out / "s.mcap").is_file()
+
+
 def test_json_to_a_missing_folder_fails_before_the_run(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:

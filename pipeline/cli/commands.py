@@ -170,8 +170,9 @@ def _rig_dir_after_viewer(args: argparse.Namespace) -> None:
 
 def _check_json_path(path: Path, outputs: tuple[Path, ...] = ()) -> None:
     """Before the run: the JSON summary can be written to ``path`` (its folder exists and is
-    writable) without taking the place of a file that is not a JSON summary (a video, a
-    calibration, a recording) or of one of the run's ``outputs``."""
+    writable, or is the folder of the run's ``outputs``, which the run makes) without taking
+    the place of a file that is not a JSON summary (a video, a calibration, a recording) or
+    of one of the run's ``outputs``."""
     try:
         path.stat()
     except (FileNotFoundError, NotADirectoryError):
@@ -187,6 +188,8 @@ def _check_json_path(path: Path, outputs: tuple[Path, ...] = ()) -> None:
     if path.parent.exists() and not path.parent.is_dir():
         raise OutputError(f"{path}: {path.parent} is a file, not a folder; give --json a file in a folder")
     if not path.parent.is_dir():
+        if any(os.path.abspath(path.parent) == os.path.abspath(out.parent) for out in outputs):
+            return  # the run's --out folder, which the run makes (and checks) before any work
         raise OutputError(
             f"{path}: folder {path.parent} does not exist; give --json a file in an existing one"
         )
