@@ -726,11 +726,26 @@ def test_a_declared_radius_far_from_the_tubes_is_named(
 
     render_session(tmp_path / "s", frames=3, radius_mm=6.0, progress=False, jobs=1)
     _edit_toml(tmp_path / "s" / "session.toml", lambda d: d["manipulator"].update(radius_mm=60.0))
+    # Named once, before any frame: not a failed line for every estimate the frames give.
     code = main(_process(tmp_path / "s", tmp_path / "out"))
-    err = capsys.readouterr().err
-    assert code == 1, err
-    assert "[manipulator] radius_mm = 60 mm, but the silhouettes show a tube of about" in err
-    assert "correct radius_mm in session.toml" in err
+    err = capsys.readouterr().err.splitlines()
+    assert code == EXIT_BAD_INPUT and len(err) == 1, err
+    assert err[0].startswith(
+        f"error: {tmp_path / 's' / 'session.toml'}: [manipulator] radius_mm = 60 mm, but the silhouettes "
+        "show a tube of about"
+    )
+    assert err[0].endswith("mm; correct radius_mm, or leave it out to take the silhouettes'")
+    assert not (tmp_path / "out").exists()
+    # A frame started from the hull says so too (a live camera's, which has no sample frames).
+    from pipeline.reconstruct.frame import reconstruct_frame
+    from pipeline.reconstruct.frame_task import decode_frames
+    from pipeline.reconstruct.model import build_model
+    from pipeline.session.folder import load_session
+
+    session = load_session(tmp_path / "s")
+    ((_, images),) = decode_frames(session.video_paths, range(1))
+    result = reconstruct_frame(0, images, build_model(session))
+    assert result.status == "failed" and "radius_mm = 60 mm, but the silhouettes show" in result.reason
 
 
 def test_a_video_link_that_leads_back_to_itself_is_named(

@@ -267,6 +267,7 @@ def _model(rig: Session, sources: Sequence[Source]) -> tuple[Any, str, str]:
     end assumed and how it was chosen (for the recordings' metadata)."""
     from ..calibrate.refine import sample_session, sample_tips
     from ..calibrate.video_order import check_video_order
+    from ..reconstruct.frame import check_declared_radius
     from ..reconstruct.model import build_model
     from ..reconstruct.tip_shape import end_assumed, with_session_tip
 
@@ -284,6 +285,7 @@ def _model(rig: Session, sources: Sequence[Source]) -> tuple[Any, str, str]:
         frames = min(probe_video(p).frame_count for p in paths)
         samples = sample_session(paths, 0, frames)
         check_video_order(model, samples, paths)
+        check_declared_radius(model, samples, rig.directory / "session.toml")
         model, choice = with_session_tip(model, paths, 0, frames, read=sample_tips(model, samples))
         return model, choice.doubt if choice is not None else "", end_assumed(model, choice)
     return model, "", end_assumed(model, None)

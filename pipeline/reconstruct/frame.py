@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -19,6 +20,7 @@ from numpy.typing import NDArray
 
 from ..carve.hull import carve, voxel_centers_mm
 from ..carve.silhouette import extract_silhouette
+from ..errors import SettingsError
 from ..geometry.camera import Camera, project_in_views
 from .centerline import fit_centerline
 from .frame_result import NO_SHARED_VOXEL, NOTHING_SEEN, FrameResult
@@ -413,6 +415,37 @@ def _curve_and_quality(
         loose_reason=loose,
         timings_s=timings,
     )
+
+
+def check_declared_radius(
+    model: SessionModel, frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]], source: Path
+) -> None:
+    """SettingsError before a run where session.toml's (``source``) ``[manipulator]
+    radius_mm`` is more than ``RADIUS_AGREEMENT`` times off the tube the sample ``frames``
+    ((index, per camera grey image)) show: the median of their silhouettes' rough readings
+    (those of frames in which every view sees part of a tube). Every frame started from
+    the hull would fail for it (:func:`_check_declared_radius`); named once, up front."""
+    declared = model.settings.manipulator.radius_mm
+    if not declared:
+        return
+    seen = []
+    for _, images in frames:
+        masks = frame_silhouettes(images, model)
+        if not all(m.any() and np.count_nonzero(m) <= MAX_SILHOUETTE_SHARE * m.size for m in masks):
+            continue
+        points = voxel_centers_mm(model.settings.workspace, carve(model.grid, masks)).astype(np.float64)
+        if len(points) >= MIN_VOXELS:
+            masks = tube_blobs(masks, points, model)
+            seen.append(radius_from_silhouettes(model.cameras, masks, points.mean(axis=0)))
+    seen = [r for r in seen if np.isfinite(r) and r > 0]
+    if not seen:
+        return
+    typical = float(np.median(seen))
+    if not 1.0 / RADIUS_AGREEMENT <= declared / typical <= RADIUS_AGREEMENT:
+        raise SettingsError(
+            f"{source}: [manipulator] radius_mm = {declared:g} mm, but the silhouettes show a tube of "
+            f"about {typical:.1f} mm; correct radius_mm, or leave it out to take the silhouettes'"
+        )
 
 
 def _check_declared_radius(

@@ -308,6 +308,7 @@ def _run_with(
                 from ..calibrate.background_order import check_background_order
                 from ..calibrate.refine import refined_cameras, sample_session
                 from ..calibrate.video_order import check_video_order
+                from ..reconstruct.frame import check_declared_radius
                 from ..reconstruct.model import build_model
                 from ..reconstruct.tip_shape import end_assumed, with_session_tip
 
@@ -324,6 +325,7 @@ def _run_with(
                     folder = session.directory / "background"
                     check_background_order(session.backgrounds, samples, names, folder)
                 check_video_order(model, samples, paths)
+                check_declared_radius(model, samples, session.directory / "session.toml")
                 cameras, refinement, tips = refined_cameras(model, samples, frame_map)
                 if cameras is not session.cameras:
                     session = dataclasses.replace(session, cameras=cameras)
