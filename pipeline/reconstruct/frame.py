@@ -296,7 +296,7 @@ def _curve_and_quality(
         ws = settings.workspace
         base = infer_base(pts, np.asarray(ws.origin_mm), np.asarray(ws.size_mm), radius_mm=radius_guess)
     n_points = settings.centerline.points
-    # How far the track's last frame lay from its own prediction: a jump is judged beyond it.
+    # How far the track's last frames lay from their own predictions: a jump is judged beyond it.
     missed_mm = prediction_miss_mm(previous)
     tracked = False
     lost = ""

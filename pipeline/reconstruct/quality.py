@@ -70,12 +70,12 @@ SUSPECT_CLOSEST_RADII = 1.5
 # against judging every frame after an unsuspect one: good frames flagged for a jump 11
 # against 39 (all reasons 245 against 263 of ~3,100), frames more than 2 mm off 370
 # against 377, 179 of them flagged against 176. The radii count beyond how far the
-# track's last frame lay from its own prediction (tracking.prediction_miss_mm): a tube
-# that speeds up or turns misses a constant-velocity prediction by about as much each
-# frame. Against the radii alone, on 99 sessions (83 without spacer disks from
-# `accuracy_table` draws, 16 `synth --frames 20` and `--frames 40` renders whose tube sweeps
-# and turns by up to a radius a frame; 2026-12-05): good frames flagged 132 -> 110 of
-# 7,340, frames more than 2 mm off flagged 141 -> 144 of 608 -> 610 (docs/accuracy.md) ...
+# track's last frames each lay from their own prediction (tracking.prediction_miss_mm): a
+# tube that speeds up or turns misses a constant-velocity prediction by about as much
+# each frame. Against the radii alone, on 116 sessions (`accuracy_table` draws with and
+# without spacer disks, 16 `synth --frames 20` and `--frames 40` renders whose tube sweeps
+# and turns by up to a radius a frame; 90 frames, 2026-12-05): good frames flagged 185 ->
+# 165 of ~7,880, frames more than 2 mm off flagged 600 -> 611 of ~1,600 (docs/accuracy.md) ...
 SUSPECT_JUMP_RADII = 1.0
 # ... or where its length is more than this far from the length its track predicts
 # (pipeline.reconstruct.tracking.predict_length): a tip cut short or run on along its own

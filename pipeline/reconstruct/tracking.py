@@ -86,9 +86,14 @@ LOST_MISFIT = 0.01
 # ... passes through itself (parts' axes closer than this many radii) ...
 LOST_CLOSEST_RADII = 1.5
 # ... or moved farther than this many radii from its prediction in one frame, beyond
-# how far the frame before lay from its own (prediction_miss_mm; see
+# how far the frames before lay from their own (prediction_miss_mm; see
 # pipeline.reconstruct.quality.SUSPECT_JUMP_RADII).
 LOST_JUMP_RADII = 1.5
+# A track's prediction is expected to miss by the least of its last this many frames'
+# misses of their own (prediction_miss_mm): the last alone let a track that jumps about
+# (two cameras, spacer disks) go unflagged after each wide miss (see
+# pipeline.reconstruct.quality.SUSPECT_JUMP_RADII).
+MISS_FRAMES = 3
 # The tracked tip is refined to the grey levels where it meets another part of the
 # tube in at least this many views (pipeline.reconstruct.tip_bend.tip_meets_tube), or
 # lies against it in space ...
@@ -198,20 +203,24 @@ def velocity_pair(previous: Sequence[FrameResult]) -> tuple[FloatArray, int] | N
 
 
 def prediction_miss_mm(previous: Sequence[FrameResult]) -> float:
-    """How far (mm, :func:`axis_gap_mm`) the track's last curve lay from the prediction
-    the frames before it made of it with their velocity (:func:`predict_axis`): how
-    much the track's velocity changed over its last frame. A tube that speeds up, slows
-    down or turns misses a constant-velocity prediction by about as much again in the
-    next frame. 0 where the frames before the last give no velocity
-    (:func:`velocity_pair`) or the last is suspect. ``previous``: the track's results
-    so far, oldest first."""
-    if len(previous) < 3 or previous[-1].suspect or velocity_pair(previous[:-1]) is None:
-        return 0.0
-    last = previous[-1].centerline_mm
-    predicted = predict_axis(previous[:-1], previous[-1].index)
-    if last is None or predicted is None:
-        return 0.0
-    return axis_gap_mm(np.asarray(last, dtype=np.float64), predicted)
+    """How far (mm, :func:`axis_gap_mm`) the track's last ``MISS_FRAMES`` curves each lay,
+    at least, from the prediction the frames before it made of it with their velocity
+    (:func:`predict_axis`): how much the track's velocity keeps changing from frame to
+    frame. A tube that speeds up, slows down or turns misses a constant-velocity
+    prediction by about as much again in the next frame; a track that jumps about
+    misses some of its predictions by little. 0 where any of those frames, or the two
+    before the first, is suspect or gives no velocity (:func:`velocity_pair`).
+    ``previous``: the track's results so far, oldest first."""
+    misses = []
+    for end in range(len(previous), len(previous) - MISS_FRAMES, -1):
+        track = previous[:end]
+        if end < 3 or track[-1].suspect or velocity_pair(track[:-1]) is None:
+            return 0.0
+        last, predicted = track[-1].centerline_mm, predict_axis(track[:-1], track[-1].index)
+        if last is None or predicted is None:
+            return 0.0
+        misses.append(axis_gap_mm(np.asarray(last, dtype=np.float64), predicted))
+    return min(misses)
 
 
 def predict_length(previous: Sequence[FrameResult], index: int) -> float:
