@@ -14,6 +14,7 @@ no frame-set reached writes nothing.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -46,6 +47,9 @@ POLL_S = 0.05
 RESTARTS_READY_S = 30.0
 # Readers blocked in a read get this long, together, to notice the stop (their reads time out).
 JOIN_S = 3.0
+# The cameras a live run reconstructs with, as its summary and recordings say: a refinement
+# needs a session's frames spread over the run, which a live run does not have ahead.
+LIVE_CAMERAS = "given (a live run does not refine them from the silhouettes)"
 
 
 @dataclass(frozen=True)
@@ -321,6 +325,7 @@ def _run(
             images=images,
             viewer_url=viewer_url,
             mirror=server,
+            cameras_used=LIVE_CAMERAS,
             tube_end=tube_end,
             frame_doubt=doubt,
         )
@@ -374,7 +379,7 @@ def _run(
         if server is not None:
             server.stop()
     return LiveSummary(
-        run=writer.summary(time.perf_counter() - t0),
+        run=dataclasses.replace(writer.summary(time.perf_counter() - t0), tip=tube_end, cameras=LIVE_CAMERAS),
         latencies_ms=np.asarray(latencies, dtype=np.float64),
         dropped=queue.dropped,
         stopped_by=stopped_by,

@@ -434,6 +434,9 @@ def test_a_replay_records_what_process_records(
     assert mean_gap_mm(live, processed) < 0.05
     # The replay chooses its tube end from its videos as process does, and says so.
     assert live.tube_end == processed.tube_end != ""
+    # ... and which cameras it used: the given ones, in the summary and the recording alike.
+    assert f"  tube end: {live.tube_end}" in summary.lines()
+    assert live.cameras.startswith("given") and f"  cameras: {live.cameras}" in summary.lines()
     assert live.smoothed_centerlines_m is not None
     _verify_rrd(tmp_path / "take.rrd")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["take.mcap", "take.rrd"]
