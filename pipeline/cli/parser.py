@@ -261,7 +261,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     p.add_argument(
         "--viewer",
         nargs="+",
-        metavar="MODE",
+        metavar=("spawn|none|connect", "ADDRESS"),
         help="Rerun viewer: spawn one (default, where a window can open), none, or connect to a "
         "running one's gRPC address (PORT, HOST:PORT or rerun+http://HOST:PORT/proxy)",
     )

@@ -253,7 +253,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         "polyfit baseline, and print the accuracy table (Markdown); writes OUT/accuracy.json.",
     )
     parser.add_argument("--frames", type=at_least(2), default=60, help="frames per session (default 60)")
-    parser.add_argument("--out", type=Path, default=Path("recordings/accuracy"), help="working directory")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("recordings/accuracy"),
+        help="working directory (default recordings/accuracy)",
+    )
     parser.add_argument("--jobs", type=int, default=-1, help="parallel workers (-1: one per core)")
     parser.add_argument(
         "--cases",
@@ -265,7 +270,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--draw",
         type=at_least(0),
         metavar="SEED",
-        help="instead of the default cases, a random draw of the synthetic variety from SEED",
+        help="instead of the default cases, a random draw of the synthetic variety from SEED (the "
+        "cases drawn depend on how many are drawn: --draw 2 --cases 4 is not the first four of "
+        "--draw 2 --cases 10)",
     )
     parser.add_argument("--no-polyfit", action="store_true", help="skip the polyfit baseline")
     parser.add_argument(
