@@ -103,8 +103,8 @@ def calibrate_directory(
     if not shared_intrinsics:
         _warn_of_shared_views_alone(views)
     result = calibrate_views(views, the_board, shared_intrinsics=shared_intrinsics)
-    world_problems: list[str]
-    used, world_problems = views, []
+    used = views
+    world_problems: list[str] = []
     if _problems(result):
         result, used, world_problems = _without_odd_world_view(result, views, the_board, shared_intrinsics)
     outliers = find_outliers(result.image_errors)
