@@ -198,14 +198,14 @@ def test_a_tube_that_matches_its_silhouettes_and_its_track_is_not_suspect() -> N
     assert reason == ""
 
 
-def test_a_jump_is_judged_beyond_what_the_track_last_missed_its_prediction_by() -> None:
+def test_a_jump_is_judged_beyond_what_the_track_keeps_missing_its_predictions_by() -> None:
     cams = rig_cameras()
     axis = _arc_mm()
     masks = quality.tube_masks(cams, axis, 6.0)
     iou, misfit = quality.tube_figures(cams, masks, axis, 6.0)
     predicted = axis + np.array([0.0, 10.0, 0.0])  # missed by 10 mm: more than a radius
 
-    def reason(last_miss_mm: float) -> str:
+    def reason(miss_mm: float) -> str:
         return quality.suspect_reason(
             cams,
             masks,
@@ -214,7 +214,7 @@ def test_a_jump_is_judged_beyond_what_the_track_last_missed_its_prediction_by() 
             iou=iou,
             misfit=misfit,
             predicted_mm=predicted,
-            prediction_miss_mm=last_miss_mm,
+            prediction_miss_mm=miss_mm,
         )
 
     # A track that steadily accelerates misses each frame's prediction by about as much.
