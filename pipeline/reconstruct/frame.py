@@ -22,6 +22,7 @@ from ..carve.hull import carve, voxel_centers_mm
 from ..carve.silhouette import extract_silhouette
 from ..errors import SettingsError
 from ..geometry.camera import Camera, project_in_views
+from ..geometry.polyline import axis_gap_mm
 from .centerline import fit_centerline
 from .frame_result import NO_SHARED_VOXEL, NOTHING_SEEN, FrameResult
 from .model import SessionModel
@@ -377,6 +378,12 @@ def _curve_and_quality(
     iou, misfits = figures if figures is not None else tube_figures(cameras, masks, curve.points_mm, radius)
     draw_radius = radius if np.isfinite(radius) else radius_guess
     drawn = radii if radii is not None and np.isfinite(radii).all() else draw_radius
+    # Only a prediction that carries the track's velocity says where this frame's tube
+    # should be: one that holds the last curve still (after a suspect frame) misses a
+    # moving tube by a frame's motion (see SUSPECT_JUMP_RADII).
+    jump = float("nan")
+    if predicted is not None and velocity_pair(previous) is not None:
+        jump = axis_gap_mm(curve.points_mm, predicted)
     reason = suspect_reason(
         cameras,
         masks,
@@ -384,10 +391,7 @@ def _curve_and_quality(
         drawn,
         iou=iou,
         misfit=misfits,
-        # Only a prediction that carries the track's velocity says where this frame's
-        # tube should be: one that holds the last curve still (after a suspect frame)
-        # misses a moving tube by a frame's motion (see SUSPECT_JUMP_RADII).
-        predicted_mm=predicted if velocity_pair(previous) is not None else None,
+        jump_mm=jump,
         prediction_miss_mm=missed_mm,
         expected_length_mm=predict_length(previous, index),
         usual_misfit=usual_misfit(previous),
@@ -411,6 +415,7 @@ def _curve_and_quality(
         misfits=tuple(misfits),
         tracked=tracked,
         lost=lost,
+        jump_mm=jump,
         suspect_reason=reason,
         loose_reason=loose,
         timings_s=timings,

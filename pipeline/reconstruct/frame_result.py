@@ -50,6 +50,10 @@ class FrameResult:
     lost : why the track was lost at this frame, where the frame kept the lost track's
         fit instead of starting again from the hull (a live run starts it again on
         another core, :mod:`pipeline.live.restarts`); "" otherwise.
+    jump_mm : how far the curve lies from its track's prediction at the track's velocity
+        (:func:`pipeline.geometry.polyline.axis_gap_mm`; see
+        :func:`pipeline.reconstruct.tracking.velocity_pair`), mm; NaN where the prediction
+        carried no velocity.
     suspect_reason : why the curve may be wrong, judged without ground truth
         (:func:`pipeline.reconstruct.quality.suspect_reason`); "" when nothing says so.
     loose_reason : where the views barely fix the curve's course across it, as a suspect
@@ -75,6 +79,7 @@ class FrameResult:
     misfits: tuple[float, ...] = ()
     tracked: bool = False
     lost: str = ""
+    jump_mm: float = float("nan")
     suspect_reason: str = ""
     loose_reason: str = ""
     timings_s: dict[str, float] = field(default_factory=dict)

@@ -17,7 +17,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..geometry.camera import Camera, project_in_views
 from ..geometry.polyline import (
-    axis_gap_mm,
     polyline_arclength,
     resample_polyline,
     self_intersects,
@@ -340,7 +339,7 @@ def suspect_reason(
     *,
     iou: Sequence[float],
     misfit: Sequence[float],
-    predicted_mm: FloatArray | None = None,
+    jump_mm: float = math.nan,
     prediction_miss_mm: float = 0.0,
     expected_length_mm: float = math.nan,
     usual_misfit: float = 0.0,
@@ -351,9 +350,9 @@ def suspect_reason(
     silhouette unexplained (``misfit``, ``SUSPECT_MISFIT`` beyond the share its track's
     frames usually leave, ``usual_misfit``; both per camera, from
     :func:`tube_figures`); it passes through itself; it
-    lies far from what the track predicted (``predicted_mm``, (M, 3) mm, None
-    where the frame was not tracked), farther than the track's last frame lay from
-    its own prediction (``prediction_miss_mm``) by ``SUSPECT_JUMP_RADII``; or its length
+    lies far from what its track predicted at its velocity (``jump_mm``, NaN where the
+    prediction carried none), farther than the track's last frames lay from their own
+    predictions (``prediction_miss_mm``) by ``SUSPECT_JUMP_RADII``; or its length
     is not the one its track predicts (``expected_length_mm``, NaN where none does).
     ``radius_mm``: one, or (N,) along the curve. The reasons found are joined by "; ".
     """
@@ -369,10 +368,8 @@ def suspect_reason(
     radius = float(np.median(radius_mm))  # the tube's, for the distances below
     if self_intersects(centerline_mm, radius, closest_radii=SUSPECT_CLOSEST_RADII):
         reasons.append("the tube passes through itself")
-    if predicted_mm is not None:
-        gap = axis_gap_mm(centerline_mm, predicted_mm)
-        if gap > SUSPECT_JUMP_RADII * radius + prediction_miss_mm:
-            reasons.append(f"{gap:.1f} mm from its track's prediction")
+    if jump_mm > SUSPECT_JUMP_RADII * radius + prediction_miss_mm:
+        reasons.append(f"{jump_mm:.1f} mm from its track's prediction")
     length = float(polyline_arclength(centerline_mm)[-1])
     if abs(length - expected_length_mm) > SUSPECT_LENGTH_MM:
         reasons.append(f"length {length:.1f} mm, {length - expected_length_mm:+.1f} mm from its track's")

@@ -203,24 +203,17 @@ def velocity_pair(previous: Sequence[FrameResult]) -> tuple[FloatArray, int] | N
 
 
 def prediction_miss_mm(previous: Sequence[FrameResult]) -> float:
-    """How far (mm, :func:`axis_gap_mm`) the track's last ``MISS_FRAMES`` curves each lay,
-    at least, from the prediction the frames before it made of it with their velocity
-    (:func:`predict_axis`): how much the track's velocity keeps changing from frame to
+    """How far (mm) the track's last ``MISS_FRAMES`` curves each lay, at least, from the
+    prediction the frames before it made of it with their velocity (their
+    ``FrameResult.jump_mm``): how much the track's velocity keeps changing from frame to
     frame. A tube that speeds up, slows down or turns misses a constant-velocity
-    prediction by about as much again in the next frame; a track that jumps about
-    misses some of its predictions by little. 0 where any of those frames, or the two
-    before the first, is suspect or gives no velocity (:func:`velocity_pair`).
-    ``previous``: the track's results so far, oldest first."""
-    misses = []
-    for end in range(len(previous), len(previous) - MISS_FRAMES, -1):
-        track = previous[:end]
-        if end < 3 or track[-1].suspect or velocity_pair(track[:-1]) is None:
-            return 0.0
-        last, predicted = track[-1].centerline_mm, predict_axis(track[:-1], track[-1].index)
-        if last is None or predicted is None:
-            return 0.0
-        misses.append(axis_gap_mm(np.asarray(last, dtype=np.float64), predicted))
-    return min(misses)
+    prediction by about as much again in the next frame; a track that jumps about misses
+    some of its predictions by little. 0 where any of those frames is suspect or was not
+    predicted with a velocity. ``previous``: the track's results so far, oldest first."""
+    last = previous[-MISS_FRAMES:]
+    if len(last) < MISS_FRAMES or any(r.suspect or not math.isfinite(r.jump_mm) for r in last):
+        return 0.0
+    return min(r.jump_mm for r in last)
 
 
 def predict_length(previous: Sequence[FrameResult], index: int) -> float:

@@ -193,7 +193,7 @@ def test_a_tube_that_matches_its_silhouettes_and_its_track_is_not_suspect() -> N
     iou, misfit = quality.tube_figures(cams, masks, axis, 6.0)
     length = float(np.linalg.norm(np.diff(axis, axis=0), axis=1).sum())
     reason = quality.suspect_reason(
-        cams, masks, axis, 6.0, iou=iou, misfit=misfit, predicted_mm=axis + 0.5, expected_length_mm=length + 2
+        cams, masks, axis, 6.0, iou=iou, misfit=misfit, jump_mm=0.5, expected_length_mm=length + 2
     )
     assert reason == ""
 
@@ -203,18 +203,10 @@ def test_a_jump_is_judged_beyond_what_the_track_keeps_missing_its_predictions_by
     axis = _arc_mm()
     masks = quality.tube_masks(cams, axis, 6.0)
     iou, misfit = quality.tube_figures(cams, masks, axis, 6.0)
-    predicted = axis + np.array([0.0, 10.0, 0.0])  # missed by 10 mm: more than a radius
 
-    def reason(miss_mm: float) -> str:
+    def reason(miss_mm: float) -> str:  # the prediction missed by 10 mm: more than a radius
         return quality.suspect_reason(
-            cams,
-            masks,
-            axis,
-            6.0,
-            iou=iou,
-            misfit=misfit,
-            predicted_mm=predicted,
-            prediction_miss_mm=miss_mm,
+            cams, masks, axis, 6.0, iou=iou, misfit=misfit, jump_mm=10.0, prediction_miss_mm=miss_mm
         )
 
     # A track that steadily accelerates misses each frame's prediction by about as much.
@@ -237,7 +229,7 @@ def test_each_sign_of_a_wrong_curve_makes_it_suspect(change: str, expected: str)
     axis = _arc_mm()
     length = float(np.linalg.norm(np.diff(axis, axis=0), axis=1).sum())
     masks = quality.tube_masks(cams, axis, 6.0)
-    predicted, expected_length = axis, length
+    jump, expected_length = 0.0, length
     if change == "silhouette":  # another part of the tube the curve does not explain
         masks = [
             m | o
@@ -246,7 +238,7 @@ def test_each_sign_of_a_wrong_curve_makes_it_suspect(change: str, expected: str)
             )
         ]
     elif change == "prediction":  # 3 radii from where the track said
-        predicted = axis + np.array([0.0, 18.0, 0.0])
+        jump = 18.0
     elif change == "length":  # 5 mm longer than its track has it
         expected_length = length - 5.0
     else:  # the curve comes back through its own start
@@ -259,7 +251,7 @@ def test_each_sign_of_a_wrong_curve_makes_it_suspect(change: str, expected: str)
         6.0,
         iou=iou,
         misfit=misfit,
-        predicted_mm=predicted,
+        jump_mm=jump,
         expected_length_mm=expected_length,
     )
     assert expected in reason
