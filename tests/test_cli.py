@@ -327,7 +327,8 @@ def test_a_json_summary_is_written_whole_or_not_at_all(
 
     _fake_run(monkeypatch, FAILED_RUN)
     target = tmp_path / "summary.json"
-    target.write_text('{"an": "earlier summary"}\n')
+    earlier = json.dumps({**OK_RUN.to_dict(), "wall_s": 1.5}) + "\n"
+    target.write_text(earlier)
 
     def full_disk(*args: object) -> None:
         raise OSError(28, "No space left on device")
@@ -337,7 +338,7 @@ def test_a_json_summary_is_written_whole_or_not_at_all(
     assert capsys.readouterr().err.endswith(
         f"error: {target}: cannot write the JSON summary (No space left on device)\n"
     )
-    assert target.read_text() == '{"an": "earlier summary"}\n'
+    assert target.read_text() == earlier
     assert sorted(p.name for p in tmp_path.iterdir()) == ["summary.json"]
     # Through a link, the file it leads to is written, and the link kept.
     monkeypatch.undo()
@@ -346,6 +347,30 @@ def test_a_json_summary_is_written_whole_or_not_at_all(
     link.symlink_to(target)
     assert main(["process", "s", "--json", str(link)]) == EXIT_FRAMES_FAILED
     assert link.is_symlink() and json.loads(target.read_text()) == FAILED_RUN.to_dict()
+    # ... and so through a link to a file yet to be made.
+    ahead = tmp_path / "ahead.json"
+    ahead.symlink_to(tmp_path / "made" / "later.json")
+    (tmp_path / "made").mkdir()
+    assert main(["process", "s", "--json", str(ahead)]) == EXIT_FRAMES_FAILED
+    assert ahead.is_symlink() and json.loads(ahead.read_text()) == FAILED_RUN.to_dict()
+    assert sorted(p.name for p in (tmp_path / "made").iterdir()) == ["later.json"]
+
+
+def test_json_never_takes_the_place_of_a_recording_or_another_json_file(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    fake = _fake_run(monkeypatch, OK_RUN)
+    # A recording of this run, in an --out folder the run would make.
+    for name in ("s.mcap", "s.rrd"):
+        target = tmp_path / "new" / "out" / name
+        assert main(["process", "s", "-o", str(target.parent), "--json", str(target)]) == EXIT_BAD_INPUT
+        assert "is where this run writes a recording" in capsys.readouterr().err
+    # A JSON file that is not a summary (a layout, a settings file).
+    layout = tmp_path / "layout.json"
+    layout.write_text('{"layout": {"panels": []}}\n')
+    assert main(["process", "s", "--json", str(layout)]) == EXIT_BAD_INPUT
+    assert "exists and is not a JSON summary" in capsys.readouterr().err
+    assert layout.read_text() == '{"layout": {"panels": []}}\n' and fake.kwargs == {}
 
 
 def test_json_into_the_out_folder_that_the_run_makes(tmp_path: Path) -> None:

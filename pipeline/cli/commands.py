@@ -169,63 +169,76 @@ def _rig_dir_after_viewer(args: argparse.Namespace) -> None:
 
 
 def _check_json_path(path: Path, outputs: tuple[Path, ...] = ()) -> None:
-    """Before the run: the JSON summary can be written to ``path`` (its folder exists and is
-    writable, or is the folder of the run's ``outputs``, which the run makes) without taking
-    the place of a file that is not a JSON summary (a video, a calibration, a recording) or
-    of one of the run's ``outputs``."""
+    """Before the run: the JSON summary can be written to ``path`` (through a link, to the
+    file it leads to) without taking the place of one of the run's ``outputs`` or of a file
+    that is not a JSON summary (a video, a calibration, a layout), and its folder takes a
+    new file (:func:`_report` writes one and renames it into place). A folder that does not
+    exist yet is accepted where it is the folder of the run's ``outputs``: the run makes it."""
     try:
         path.stat()
     except (FileNotFoundError, NotADirectoryError):
-        pass  # a new file, or a file given as its folder: named below
+        pass  # a new file (or a link to one), or a file given as its folder: named below
     except OSError as exc:  # a name too long, a loop of links, a folder this user cannot enter
         raise OutputError(
             f"{path}: cannot be written ({exc.strerror}); give --json a file in a folder you can write to"
         ) from None
-    if path.is_dir():
+    target = Path(os.path.realpath(path))
+    if any(target == Path(os.path.realpath(out)) for out in outputs):
+        raise OutputError(f"{path}: is where this run writes a recording; give --json another file name")
+    if target.is_dir():
         raise OutputError(f"{path}: is a directory; give --json a file name (or - for stdout)")
-    if path.exists() and not path.is_file():
+    if target.exists() and not target.is_file():
         raise OutputError(f"{path}: is not a regular file (a pipe or device); give --json a file name (or -)")
-    if path.parent.exists() and not path.parent.is_dir():
+    if target.parent.exists() and not target.parent.is_dir():
         raise OutputError(f"{path}: {path.parent} is a file, not a folder; give --json a file in a folder")
-    if not path.parent.is_dir():
-        if any(os.path.abspath(path.parent) == os.path.abspath(out.parent) for out in outputs):
+    if not target.parent.is_dir():
+        if any(target.parent == Path(os.path.realpath(out.parent)) for out in outputs):
             return  # the run's --out folder, which the run makes (and checks) before any work
         raise OutputError(
             f"{path}: folder {path.parent} does not exist; give --json a file in an existing one"
         )
-    if any(path.resolve() == out.resolve() for out in outputs):
-        raise OutputError(f"{path}: is where this run writes a recording; give --json another file name")
-    if path.exists() and not _holds_json(path):
+    if target.exists() and not _holds_summary(target):
         raise OutputError(
             f"{path}: exists and is not a JSON summary; give --json a new file name (or - for stdout)"
         )
-    if not os.access(path if path.exists() else path.parent, os.W_OK) or _cannot_open(path):
+    if not _takes_a_new_file(target.parent):
         raise OutputError(f"{path}: cannot be written; give --json a file in a folder you can write to")
 
 
-def _cannot_open(path: Path) -> bool:
-    """Whether ``path`` cannot be opened for writing, found by opening it (to append: an
-    earlier summary is kept until the run replaces it) and removing it where it was not
-    there. Permission bits do not tell: root passes them in /sys, where nothing is created."""
-    existed = path.exists()
+def _takes_a_new_file(folder: Path) -> bool:
+    """Whether a file can be made in ``folder``, found by making one and removing it.
+    Permission bits do not tell: root passes them in /sys, and in a folder made immutable,
+    where nothing is created."""
+    probe = folder / f".pipeline-json-probe.{os.getpid()}"
     try:
-        with open(path, "ab"):
+        with open(probe, "xb"):
             pass
     except OSError:
-        return True
-    if not existed:
-        path.unlink(missing_ok=True)
-    return False
+        return False
+    probe.unlink(missing_ok=True)
+    return True
 
 
-def _holds_json(path: Path) -> bool:
-    """Whether the file at ``path`` is empty or starts as a JSON object does."""
+# A JSON summary is far smaller than this; a larger file is something else.
+_SUMMARY_MAX_BYTES = 1 << 20
+
+
+def _holds_summary(path: Path) -> bool:
+    """Whether the file at ``path`` is empty or holds a JSON summary (an object with the
+    ``exit_code`` every summary has)."""
     try:
-        with open(path, "rb") as f:
-            head = f.read(64).lstrip()
+        if path.stat().st_size > _SUMMARY_MAX_BYTES:
+            return False
+        text = path.read_bytes()
     except OSError:
         return False
-    return not head or head.startswith(b"{")
+    if not text.strip():
+        return True
+    try:
+        summary = json.loads(text)
+    except (ValueError, RecursionError):
+        return False
+    return isinstance(summary, dict) and "exit_code" in summary
 
 
 def _recordings(out_dir: Path, name: str) -> tuple[Path, ...]:
