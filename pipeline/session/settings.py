@@ -337,7 +337,7 @@ def _check_voxel_fits_the_tube(s: Settings, source: str) -> None:
         raise SettingsError(
             f"{source}: [workspace] voxel_mm {voxel:g} is more than {MAX_VOXEL_RADII:g} times the tube's "
             f"radius ([manipulator] radius_mm {radius:g}), too coarse to follow it; use at most "
-            f"{MAX_VOXEL_RADII * radius:g}"
+            f"{MAX_VOXEL_RADII * radius:g}, or correct radius_mm if the tube is thicker"
         )
     narrowest = min(s.workspace.size_mm)
     if voxel * MIN_VOXELS_ACROSS > narrowest:
