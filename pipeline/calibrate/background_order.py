@@ -45,11 +45,9 @@ def scene_correlations(
 
 
 def _correlation(a: NDArray[np.generic], b: NDArray[np.generic]) -> float:
-    x = np.asarray(a, dtype=np.float64).ravel()
-    y = np.asarray(b, dtype=np.float64).ravel()
-    x, y = x - x.mean(), y - y.mean()
-    norm = float(np.sqrt((x @ x) * (y @ y)))
-    return float(x @ y) / norm if norm > 0 else float("nan")
+    """Pearson's correlation of two images' pixels; NaN where either is flat."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return float(np.corrcoef(np.ravel(a), np.ravel(b))[0, 1])
 
 
 def check_background_order(

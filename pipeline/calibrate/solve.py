@@ -189,17 +189,12 @@ def _without_odd_world_view(
         return result, views, []
     without: list[tuple[View, CalibrationResult]] = []
     for odd in world:
+        kept = [v for v in views if v is not odd]
         try:
-            without.append(
-                (
-                    odd,
-                    calibrate_views(
-                        [v for v in views if v is not odd], board, shared_intrinsics=shared_intrinsics
-                    ),
-                )
-            )
+            fit = calibrate_views(kept, board, shared_intrinsics=shared_intrinsics)
         except CalibrationError:  # the camera is linked to the others by its world image alone
             continue
+        without.append((odd, fit))
     without.sort(key=lambda item: item[1].rms_px)
     better = [
         (odd, fit)

@@ -174,12 +174,9 @@ def _column(values: list[Any]) -> NDArray[Any]:
     if complete and known and all(isinstance(v, bool) for v in known):
         return np.array(values, dtype=bool)
     if complete and known and all(isinstance(v, int) and not isinstance(v, bool) for v in known):
-        if all(_INT64_MIN <= v <= _MAX_FRAME for v in known):
+        if all(_INT64.min <= v <= _INT64.max for v in known):
             return np.array(values, dtype=np.int64)
     return np.array([_as_float(v) for v in values], dtype=np.float64)
-
-
-_INT64_MIN = int(np.iinfo(np.int64).min)
 
 
 def _as_float(value: Any) -> float:
@@ -345,12 +342,13 @@ def _ends_whole(stream: Any) -> bool:
         return False
 
 
-# Frame indices are int64 in the Recording's arrays.
-_MAX_FRAME = int(np.iinfo(np.int64).max)
+# Frame indices, message times and integer metrics are int64 in the Recording's arrays.
+_INT64 = np.iinfo(np.int64)
+_MAX_FRAME = _INT64.max
 
 
-# Message times are int64 nanoseconds in the Recording's arrays (up to 2262).
-_MAX_TIME_NS = int(np.iinfo(np.int64).max)
+# Message times are nanoseconds (up to 2262).
+_MAX_TIME_NS = _INT64.max
 # What decoding another program's message as the pipeline's raises: bytes that are not
 # its schema's, JSON nested past Python's recursion limit, fields it lacks.
 _CONTENT_ERRORS = (

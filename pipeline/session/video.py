@@ -12,6 +12,7 @@ from __future__ import annotations
 import bisect
 import dataclasses
 import functools
+import hashlib
 import logging
 import math
 import os
@@ -114,8 +115,6 @@ def video_fingerprint(path: Path) -> str:
     """A short text that changes when the video's content does (its size, and a hash of its
     first and last 64 KiB: a video rendered or filmed again differs there), and not when
     it is copied or moved; "" where the file cannot be read."""
-    import hashlib
-
     try:
         with open(path, "rb") as f:
             size = os.fstat(f.fileno()).st_size
