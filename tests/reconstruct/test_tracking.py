@@ -118,13 +118,18 @@ def test_a_frame_records_how_far_it_lies_from_its_tracks_prediction(tmp_path: Pa
     previous: list[FrameResult] = []
     for index, images in decode_frames(session.video_paths, range(6)):
         previous.append(frame_module.reconstruct_with_silhouettes(index, images, model, previous)[0])
-    # The first two frames have no velocity to predict them with; the others lie as far from
-    # the last curve moved on at its velocity as the flag judges.
-    assert np.isnan([r.jump_mm for r in previous[:2]]).all()
-    for k in range(2, 6):
+    # A frame whose two before it give the track's velocity lies as far from the last curve
+    # moved on at that velocity as the flag judges; the others (the first two, and those
+    # after a suspect frame) were predicted with no velocity: NaN.
+    judged = 0
+    for k in range(6):
         predicted = predict_axis(previous[:k])
-        assert predicted is not None and not previous[k - 1].suspect and not previous[k - 2].suspect
-        assert previous[k].jump_mm == axis_gap_mm(previous[k].centerline_mm, predicted)
+        if velocity_pair(previous[:k]) is None or predicted is None:
+            assert np.isnan(previous[k].jump_mm), k
+        else:
+            assert previous[k].jump_mm == axis_gap_mm(previous[k].centerline_mm, predicted), k
+            judged += 1
+    assert judged >= 2
 
 
 @pytest.mark.parametrize(("shape", "seed"), [("bend_rotate", 0), ("random", 1), ("random", 2)])
