@@ -7,6 +7,7 @@ interpolated between samples. Also the projection's Jacobian, by finite differen
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import cv2
@@ -251,6 +252,28 @@ def median_1d(values: FloatArray) -> float:
     if n % 2:
         return float(ordered[n // 2])
     return float((ordered[n // 2 - 1] + ordered[n // 2]) / 2)
+
+
+def theil_sen_slope(x: FloatArray, y: FloatArray) -> float:
+    """The Theil-Sen slope of (N,) ``y`` over (N,) ``x``: the median of the slopes between
+    every two points apart in ``x``, which outliers barely move while they are fewer
+    than about three in ten; NaN where no two points are apart.
+
+    ``scipy.stats.theilslopes``'s slope, without the confidence interval it also works
+    out (5 us against its 230 on a few tens of points: this runs in every side reading
+    and every tracked frame).
+    """
+    i, j = _pairs(len(x))
+    run = x[j] - x[i]
+    apart = run != 0
+    return median_1d((y[j] - y[i])[apart] / run[apart]) if apart.any() else float("nan")
+
+
+@functools.lru_cache(maxsize=64)
+def _pairs(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Every pair (i < j) of ``n`` points, as two index arrays (the same for every call)."""
+    i, j = np.triu_indices(n, 1)
+    return i, j
 
 
 def nanmedian_rows(values: FloatArray) -> FloatArray:

@@ -10,7 +10,7 @@ readings another part of the tube contaminates dropped (:func:`centre_across`,
 
 from __future__ import annotations
 
-import functools
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
@@ -26,6 +26,7 @@ from .profiles import (
     project_with_jacobians,
     sample_lines_in,
     side_edges,
+    theil_sen_slope,
 )
 from .tube_tip import END_SPAN_MM, MIN_SIN_VIEW, tip_zone
 
@@ -367,10 +368,8 @@ def _end_radius(arc_mm: FloatArray, half_mm: FloatArray, both: NDArray[np.bool_]
     if len(seen) < 3:
         return float("nan")
     last = seen[-(2 * _PROFILE_HALF_SPAN + 1) :]
-    # The taper: the median of the slopes between the narrowest readings of the samples
-    # over twice that window (Theil-Sen: scipy.stats.theilslopes's slope, without its
-    # confidence interval, in 5 us against its 230, as this runs in every side reading),
-    # which the disks' samples (fewer than half) do not move; only
+    # The taper: the Theil-Sen slope of the narrowest readings of the samples over twice
+    # that window, which the disks' samples (fewer than half) do not move; only
     # a tube narrowing towards its end is carried (one widening there is a disk's or a
     # step's reading, which the lower quartile leaves). A tapered end read without it was
     # 6-7 % too wide (random shapes, 320x240, r 5 and 7.5 mm tapered to 0.6, ten hull
@@ -388,11 +387,8 @@ def _end_radius(arc_mm: FloatArray, half_mm: FloatArray, both: NDArray[np.bool_]
     # went 1.38 -> 5.47, 1.98 -> 5.78 and 4.64 -> 9.86 mm.
     span = seen[-4 * _PROFILE_HALF_SPAN - 2 :]
     narrowest = np.where(both[span], half_mm[span], np.inf).min(axis=1)
-    at = arc_mm[span]
-    i, j = _pairs(len(span))
-    run = at[j] - at[i]
-    apart = run > 0
-    slope = min(median_1d((narrowest[j] - narrowest[i])[apart] / run[apart]), 0.0) if apart.any() else 0.0
+    taper = theil_sen_slope(arc_mm[span], narrowest)
+    slope = min(taper, 0.0) if math.isfinite(taper) else 0.0
     # The steepest taper a tube of this median radius can have: a cone from twice it to
     # nothing over the tube's length. A steeper slope is the readings' scatter (a few
     # samples of a lost fit), not a taper.
@@ -401,13 +397,6 @@ def _end_radius(arc_mm: FloatArray, half_mm: FloatArray, both: NDArray[np.bool_]
     to_end = arc_mm[last] - arc_mm[-1]  # (W,) <= 0
     radius = percentile_1d((half_mm[last] - slope * to_end[:, None])[both[last]], 0.25)
     return radius if radius > 0 else float("nan")  # carried past nothing: no reading
-
-
-@functools.lru_cache(maxsize=8)
-def _pairs(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """Every pair (i < j) of ``n`` samples, as two index arrays (the same for every read)."""
-    i, j = np.triu_indices(n, 1)
-    return i, j
 
 
 # The same limit along the whole tube, with the radius profile from each window's shorth

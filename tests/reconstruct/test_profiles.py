@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+import scipy.stats
 
-from pipeline.reconstruct.profiles import _run_lower_quartile, lower_quartile, nanmedian_rows
+from pipeline.reconstruct.profiles import _run_lower_quartile, lower_quartile, nanmedian_rows, theil_sen_slope
 
 
 def test_run_lower_quartile_equals_the_masked_lower_quartile() -> None:
@@ -32,3 +33,23 @@ def test_nanmedian_rows_equals_numpys_nanmedian() -> None:
         values[rng.random((rows, cols)) < rng.random()] = np.nan
         values[:, rng.integers(cols)] = rng.normal(size=rows)  # every row has a value
         np.testing.assert_array_equal(nanmedian_rows(values), np.nanmedian(values, axis=1))
+
+
+def test_theil_sen_slope_equals_scipys() -> None:
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        n = int(rng.integers(2, 40))
+        x = rng.integers(0, 12, size=n).astype(np.float64)  # repeats, in any order
+        y = rng.normal(size=n)
+        if np.ptp(x) == 0:
+            assert np.isnan(theil_sen_slope(x, y))
+            continue
+        # The same slopes' median: exactly equal, no tolerance.
+        assert theil_sen_slope(x, y) == scipy.stats.theilslopes(y, x).slope
+
+
+def test_theil_sen_slope_ignores_a_few_outliers() -> None:
+    x = np.arange(20, dtype=np.float64)
+    y = 0.5 * x + 3.0
+    y[[4, 11, 17]] += [40.0, -25.0, 60.0]
+    assert theil_sen_slope(x, y) == 0.5
