@@ -57,6 +57,16 @@ VIEWER_FLUSH_S = 2.0
 _STUCK_STREAMS: list[Any] = []
 
 
+def _leave_to_exit(stream: Any) -> None:
+    """Keep a Rerun stream that cannot close (its file's writer stuck on a full disk, its
+    viewer not answering) from holding up the exit: Rerun's own handler at exit, and
+    dropping it (``RecordingStream.__del__``), would wait for it."""
+    import rerun as rr
+
+    rr.unregister_shutdown()
+    _STUCK_STREAMS.append(stream)
+
+
 def _within(seconds: float, call: Callable[[], object]) -> bool:
     """Run ``call`` in a daemon thread: True once it has returned (re-raising here what it
     raised), False if it has not within ``seconds``; it is then left to the exit."""
@@ -353,8 +363,26 @@ class Writers:
             log.warning(
                 "the Rerun viewer did not take the last frames (%s)", " ".join(str(exc).split())[:160]
             )
-        self._viewer_stream.disconnect()
         self.viewer = None
+        self._disconnect_viewer()
+
+    def _disconnect_viewer(self) -> None:
+        """Close the viewer's connection within VIEWER_FLUSH_S: one that takes the
+        connection but never answers (a hung viewer, another service on its port) would
+        hold the run, deaf to Ctrl-C, for as long as it stays; it is left to the exit."""
+        stream, self._viewer_stream = self._viewer_stream, None
+        if stream is None:
+            return
+        try:
+            closed = _within(VIEWER_FLUSH_S, stream.disconnect)
+        except Exception as exc:
+            log.debug("closing the viewer's stream failed: %s", exc)
+            return
+        if not closed:
+            log.warning(
+                "the Rerun viewer did not close its connection within %g s: left open", VIEWER_FLUSH_S
+            )
+            _leave_to_exit(stream)
 
     def abort(self) -> None:
         """Close everything and remove the temporary files; finished outputs are untouched.
@@ -373,14 +401,8 @@ class Writers:
             except Exception as exc:
                 log.debug("closing the Rerun stream failed: %s", exc)
         if self._stalled:
-            import rerun as rr
-
-            rr.unregister_shutdown()
-            # Dropping the stream waits for its writer too (RecordingStream.__del__): keep it.
-            _STUCK_STREAMS.append(self._stream)
-        if self._viewer_stream is not None:
-            with contextlib.suppress(Exception):
-                _within(RERUN_WAIT_S, self._viewer_stream.disconnect)
+            _leave_to_exit(self._stream)
+        self._disconnect_viewer()
         for path in (self.mcap_path, self.rrd_path):
             with contextlib.suppress(OSError):  # not there (never created) or not removable
                 self.target.partial(path).unlink()

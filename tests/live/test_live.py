@@ -480,6 +480,33 @@ def test_a_rerun_grpc_server_receives_the_stream(session: Path, tmp_path: Path) 
     assert sorted(frames) == list(range(FRAMES))
 
 
+def test_a_viewer_that_takes_the_connection_but_never_answers_does_not_hold_the_run(
+    session: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A hung viewer, or another service on its port: the connection is taken (the listen
+    # queue's), nothing is ever read. Closing the viewer's stream would wait for it, in
+    # native code, for as long as it stays.
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        rig, sources = open_rig(None, session)
+        url = grpc_url(str(listener.getsockname()[1]))
+        done: list[Any] = []
+        run = threading.Thread(
+            target=lambda: done.append(run_live(rig, sources, out_dir=tmp_path / "out", viewer_url=url)),
+            daemon=True,
+        )
+        run.start()
+        run.join(120.0)  # a bound on a hang, not a speed target: the run takes seconds
+        assert not run.is_alive(), "the run waits for the viewer"
+    assert done[0].run.frames_ok == FRAMES
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
+        f"{session.name}.mcap",
+        f"{session.name}.rrd",
+    ]
+    assert "the Rerun viewer did not close its connection" in caplog.text
+
+
 def _wait_for_port(port: int) -> None:
     for _ in range(200):
         try:
