@@ -93,7 +93,8 @@ class Refinement:
     seconds : the refinement's wall time, the frames' first reconstruction included.
     mount_shift_mm : how far the refined rig was then moved to see the tube's base at
         the mount (:mod:`pipeline.calibrate.mount`); None when it was not, and
-        ``mount_note`` says why.
+        ``mount_note`` says why. Where the given cameras are kept, ``mount_note`` says
+        where they see the base, if not at the mount ("" where they do).
     """
 
     applied: bool
@@ -127,17 +128,21 @@ class Refinement:
         return f"refined ({figures}): " + "; ".join(c.describe() for c in self.changes) + f"; {frame}"
 
     def warnings(self) -> list[str]:
-        """A line per camera that seems to have moved since it was calibrated, and one if
-        the tube's base is seen far from the mount's place in the settings."""
-        lines = [
+        """A line per camera that seems to have moved since it was calibrated (the run
+        corrected it)."""
+        return [
             f"camera {c.name} seems to have moved since it was calibrated: its image of the tube is "
             f"{c.image_px:.1f} px off; recalibrate it, or keep [calibration] refine on"
             for c in self.changes
             if self.applied and c.image_px > MOVED_PX
         ]
+
+    def problems(self) -> list[str]:
+        """A line if the tube's base is seen far from the mount's place in the settings:
+        every frame was fitted to start there, bent by as much."""
         if self.mount_note.endswith(CHECK_BASE):
-            lines.append(f"{self.mount_note} (its frames are fitted to start there)")
-        return lines
+            return [f"{self.mount_note} (its frames are fitted to start there)"]
+        return []
 
 
 def camera_change(given: Camera, refined: Camera, points_mm: FloatArray) -> CameraChange:
@@ -233,13 +238,15 @@ def refine(
     reading, which looks along the tube and a radius across it.
     """
     given = model.cameras
+    base = model.settings.manipulator.base_mm
     poses = distinct_poses(tubes)
     if mode == "auto" and poses < _MIN_POSES:
         reason = (
             f"the tube took {poses} distinct pose{'s' if poses != 1 else ''} in the {len(tubes)} frames "
             f"sampled; refining needs {_MIN_POSES} or more, {_POSE_APART_MM:g} mm apart"
         )
-        return given, Refinement(False, len(tubes), float("nan"), float("nan"), (), reason)
+        note = _given_mount_note(given, tubes, base)
+        return given, Refinement(False, len(tubes), float("nan"), float("nan"), (), reason, mount_note=note)
     # The tubes' bases free, as they were reconstructed (see sample_tubes).
     adjustment = adjust_cameras(given, tubes, base_mm=None, rounds=ROUNDS)
     points = np.concatenate([t.points_mm for t in adjustment.tubes])
@@ -255,13 +262,14 @@ def refine(
         reason = f"refining moves no camera's image by more than {moved:.2f} px"
     applied = not reason
     cameras = list(adjustment.cameras)
-    shift, held_by = None, "no [manipulator] base_mm"
-    base = model.settings.manipulator.base_mm
+    shift = None
     if applied and base is not None:
         shift, held_by = mount_shift(cameras, refit(cameras), np.asarray(base))
         if shift is not None:
             cameras = moved_to_mount(cameras, shift)
             points = points - shift
+    else:
+        held_by = _given_mount_note(given, tubes, base)
     changes = tuple(camera_change(g, r, points) for g, r in zip(given, cameras, strict=True))
     report = Refinement(
         applied,
@@ -274,6 +282,18 @@ def refine(
         mount_note=held_by,
     )
     return (tuple(cameras) if applied else given), report
+
+
+def _given_mount_note(given: Sequence[Camera], tubes: Sequence[Tube], base_mm: Sequence[float] | None) -> str:
+    """Where the given cameras see the ``tubes``' base end (they were reconstructed with
+    them, the base free) against ``[manipulator] base_mm``: "" where they see it there, or
+    the note of :func:`~pipeline.calibrate.mount.mount_shift` (a base seen farther than a
+    calibration's error puts it ends in ``CHECK_BASE``: every frame is fitted to start at
+    a wrong place, silently bent). Read once a run, on the frames refined on."""
+    if base_mm is None:
+        return "no [manipulator] base_mm"
+    shift, note = mount_shift(given, tubes, np.asarray(base_mm, dtype=np.float64))
+    return "" if shift is not None else note
 
 
 def sample_session(

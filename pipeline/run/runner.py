@@ -414,7 +414,7 @@ def _run_with(
         tip=tip,
         cameras=refinement.describe() if refinement is not None else "",
         camera_warnings=refinement.warnings() if refinement is not None else [],
-        session_problems=list(session.problems),
+        session_problems=list(session.problems) + (refinement.problems() if refinement is not None else []),
         outputs=summary.outputs + written,
     )
 

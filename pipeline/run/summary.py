@@ -29,8 +29,9 @@ class RunSummary:
     tip : the tube end the fit assumed, and how it was chosen ("" when not told).
     cameras : the cameras reconstructed with, given or refined, and why ("" when not told).
     camera_warnings : a line per camera that seems to have moved since its calibration.
-    session_problems : a line per problem of the session's videos that the run went on
-        with (``Session.problems``: a video much shorter than the others).
+    session_problems : a line per problem of the session that the run went on with
+        (``Session.problems``: a video much shorter than the others; a mount set far from
+        where the cameras see the tube's base, :meth:`pipeline.calibrate.refine.Refinement.problems`).
     exit_code : 0 when every frame is ok or empty, 1 when some failed, none holds a tube,
         or the session has problems.
     """

@@ -143,7 +143,25 @@ def test_an_exact_calibration_is_kept(sampled: Sampled) -> None:
     model, (cameras, report) = _refined(sampled, 0.0)
     assert not report.applied and report.reason
     assert cameras is model.cameras
-    assert report.warnings() == []
+    assert report.warnings() == [] and report.problems() == []
+
+
+@pytest.mark.parametrize("off_mm", [(15.0, 0.0, 0.0), (0.0, 0.0, -15.0)])
+def test_a_mount_set_far_from_the_base_is_named_where_the_cameras_are_kept(
+    sampled: Sampled, off_mm: tuple[float, float, float]
+) -> None:
+    """An exact calibration is kept, and a base_mm 15 mm from where its cameras see the
+    tube's base is named: every frame would be fitted to start there."""
+    model, tubes, refit = sampled[0.0]
+    base = np.asarray(model.settings.manipulator.base_mm, dtype=np.float64) + off_mm
+    manipulator = replace(model.settings.manipulator, base_mm=tuple(base))
+    moved = replace(model, settings=replace(model.settings, manipulator=manipulator))
+    for frames in (tubes, [tubes[0]] * 6):  # kept for agreeing, and for one pose
+        cameras, report = refine(moved, frames, "auto", refit)
+        assert cameras is model.cameras and not report.applied
+        (line,) = report.problems()
+        assert "the tube's base is seen 1" in line and "check base_mm" in line
+        assert report.warnings() == []
 
 
 def test_a_tube_that_stands_still_is_not_refined_on(sampled: Sampled) -> None:
@@ -207,7 +225,7 @@ def test_the_base_end_is_seen_where_the_rig_puts_it(sampled: Sampled) -> None:
     far, why = mount_shift(model.cameras, tubes, base + np.array([0.0, 20.0, 0.0]))
     assert far is None and "check base_mm" in why
     report = Refinement(True, 12, 0.3, 0.1, (), mount_note=why)
-    assert any("check base_mm" in line for line in report.warnings())
+    assert any("check base_mm" in line for line in report.problems())
 
 
 def test_zero_parameters_leave_a_camera_as_it_is() -> None:
@@ -244,6 +262,21 @@ def test_process_writes_the_refined_calibration_beside_the_outputs(
     assert any(
         not np.allclose(r.translation_mm, g.translation_mm) for r, g in zip(refined, given, strict=True)
     )
+
+
+def test_a_run_whose_mount_is_set_elsewhere_says_so_and_exits_1(
+    sessions: dict[float, Path], tmp_path: Path
+) -> None:
+    from pipeline import process_session
+
+    session = load_session(sessions[0.0])
+    base = np.asarray(session.settings.manipulator.base_mm) + np.array([0.0, 15.0, 0.0])
+    manipulator = replace(session.settings.manipulator, base_mm=tuple(base))
+    moved = replace(session, settings=replace(session.settings, manipulator=manipulator))
+    summary = process_session(moved, out_dir=tmp_path, jobs=1, progress=False, frames=(0, 12))
+    assert summary.exit_code == 1 and summary.frames_ok == 12
+    (line,) = [line for line in summary.problem_lines() if "check base_mm" in line]
+    assert "the tube's base is seen 1" in line
 
 
 def test_two_cameras_are_kept_and_the_summary_says_why(tmp_path: Path) -> None:
