@@ -181,6 +181,8 @@ class Writers:
         self.empty_unseen: dict[str, int] = {}  # camera -> empty frames in which it saw nothing
         self.failed: list[tuple[int, str]] = []
         self.doubtful: list[int] = []
+        # camera -> doubtful frames it re-projects worst in
+        self.doubtful_cameras: dict[str, int] = {}
         self.suspect: list[tuple[int, str]] = []
         self.at_walls: list[int] = []
         # A reason every ok frame is suspect for, written with its own (the tube's end a
@@ -270,6 +272,8 @@ class Writers:
             self.empty_unseen[result.unseen_by] = self.empty_unseen.get(result.unseen_by, 0) + 1
         if result.status == "ok" and is_doubtful(result.iou):
             self.doubtful.append(result.index)
+            worst = self.session.cameras[int(np.argmin(result.iou))].name
+            self.doubtful_cameras[worst] = self.doubtful_cameras.get(worst, 0) + 1
         if result.status == "ok" and result.suspect:
             self.suspect.append((result.index, result.suspect_reason))
         if curve is not None and len(curve):
@@ -422,6 +426,7 @@ class Writers:
             fps=n / wall_s if wall_s > 0 else 0.0,
             outputs=[(p, p.stat().st_size) for p in written],
             frames_doubtful=list(self.doubtful),
+            doubtful_cameras=dict(self.doubtful_cameras),
             frames_at_walls=list(self.at_walls),
             frames_suspect=list(self.suspect),
         )

@@ -22,6 +22,7 @@ class RunSummary:
     outputs : (path, size in bytes) of each file written.
     frames_doubtful : indices of "ok" frames whose tube re-projects poorly onto some
         camera's silhouette (``quality.is_doubtful``), in order.
+    doubtful_cameras : camera name -> how many of the doubtful frames it re-projects worst in.
     frames_at_walls : indices of "ok" frames whose hull lies against a wall of the
         workspace box other than the base's (``quality.reaches_walls``), in order.
     frames_suspect : (frame index, reason) of "ok" frames whose curve may be wrong
@@ -43,6 +44,7 @@ class RunSummary:
     fps: float
     outputs: list[tuple[Path, int]] = field(default_factory=list)
     frames_doubtful: list[int] = field(default_factory=list)
+    doubtful_cameras: dict[str, int] = field(default_factory=dict)
     frames_at_walls: list[int] = field(default_factory=list)
     frames_suspect: list[tuple[int, str]] = field(default_factory=list)
     tip: str = ""
@@ -94,10 +96,13 @@ class RunSummary:
                 f"(frame {first}: {why}); each frame's metrics say why (suspect_reason)"
             )
         if self.frames_doubtful:
+            worst = sorted(self.doubtful_cameras.items(), key=lambda item: -item[1])
+            named = "".join(f", camera {name!r} in {count}" for name, count in worst)
             out.append(
                 f"  doubtful: {len(self.frames_doubtful)} of the ok frames ({_spans(self.frames_doubtful)}) "
-                f"re-project poorly onto a camera's silhouette (IoU < {DOUBTFUL_IOU:g}): check "
-                "[silhouette] method, threshold and polarity in session.toml"
+                f"re-project poorly onto a camera's silhouette (IoU < {DOUBTFUL_IOU:g}{named}): check "
+                "[silhouette] method, threshold and polarity in session.toml, and that the camera's "
+                "calibration is this rig's and its picture neither mirrored nor turned"
             )
         if self.frames_at_walls:
             out.append(
@@ -142,6 +147,7 @@ class RunSummary:
             "failed": [{"frame": index, "reason": reason} for index, reason in self.frames_failed],
             "suspect": [{"frame": index, "reason": reason} for index, reason in self.frames_suspect],
             "doubtful": list(self.frames_doubtful),
+            "doubtful_cameras": dict(self.doubtful_cameras),
             "at_walls": list(self.frames_at_walls),
             "tip": self.tip,
             "cameras": self.cameras,

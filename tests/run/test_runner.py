@@ -554,3 +554,8 @@ def test_a_run_counts_the_frames_whose_tube_misses_a_silhouette(short_session: P
         frame_fn=poorly_fitting_rod,
     )
     assert summary.frames_doubtful == [3, 5, 7] and summary.frames_ok == 6
+    # The camera that re-projects worst is named, with its calibration to check.
+    cam = load_session(short_session).cameras[1].name
+    assert summary.doubtful_cameras == {cam: 3} and summary.to_dict()["doubtful_cameras"] == {cam: 3}
+    (line,) = [line for line in summary.problem_lines() if "doubtful" in line]
+    assert f"(IoU < 0.7, camera {cam!r} in 3)" in line and "calibration is this rig's" in line
