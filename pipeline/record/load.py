@@ -317,6 +317,12 @@ def _read(stream: Any, path: Path, warn: Callable[[str], None]) -> Recording:
         else:
             warn(f"{path}: cut short {where} (the run did not finish){read}")
     else:
+        if not metadata and not metrics:
+            # The pipeline writes its metadata first: an MCAP without it is another program's.
+            raise RecordingError(
+                f"{path}: not a recording written by `pipeline process` (none of its metadata or "
+                "frames); give the .mcap a run wrote"
+            )
         if not complete:
             warn(f"{path}: no footer (the run did not finish); {len(metrics)} frames read")
     return _assemble(path, metadata, metrics, points, curves, smoothed, complete, damaged, warn)

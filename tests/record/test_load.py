@@ -291,6 +291,23 @@ def test_metrics_that_are_not_the_pipelines_are_named(tmp_path: Path, message: b
         pipeline.load_recording(path)
 
 
+@pytest.mark.parametrize("topic", [None, "/foo"])
+def test_another_programs_mcap_is_named_not_the_pipelines(tmp_path: Path, topic: str | None) -> None:
+    from mcap.writer import Writer
+
+    path = tmp_path / "other.mcap"
+    with path.open("wb") as f:
+        writer = Writer(f)
+        writer.start()
+        if topic is not None:  # a message on another topic, or none at all
+            schema = writer.register_schema(name="x", encoding="jsonschema", data=b"{}")
+            channel = writer.register_channel(topic=topic, message_encoding="json", schema_id=schema)
+            writer.add_message(channel_id=channel, log_time=T0_NS, publish_time=T0_NS, data=b"{}")
+        writer.finish()
+    with pytest.raises(PipelineError, match=r"other\.mcap: not a recording written by `pipeline process`"):
+        pipeline.load_recording(path)
+
+
 def _mcap_on_topic(
     path: Path, topic: str, encoding: str, schema: object | None, data: bytes, time_ns: int
 ) -> Path:
