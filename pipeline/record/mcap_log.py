@@ -298,16 +298,24 @@ def camera_transform(camera: Camera, time_ns: int) -> FrameTransform:
 
 
 def camera_calibration(camera: Camera, time_ns: int) -> CameraCalibration:
-    """The camera's intrinsics (pixels) with its OpenCV distortion, in its own frame."""
+    """The camera's intrinsics (pixels) with its OpenCV distortion, in its own frame.
+
+    OpenCV's coefficients under their ROS model names, which Foxglove reads: 4 or 5
+    (k1, k2, p1, p2[, k3]) as "plumb_bob", padded to 5; 8 (k4, k5, k6 too) as
+    "rational_polynomial". 12 or 14 (thin prism s1-s4, tilt tx, ty) have no name of their
+    own: they go as "rational_polynomial" whole, which OpenCV-based readers (ROS's
+    image_geometry) take as they are and Foxglove reads the first 8 of."""
     k = np.asarray(camera.matrix, dtype=np.float64)
     projection = np.hstack([k, np.zeros((3, 1))])  # P = [K | 0]: no rectification
+    coefficients = [float(v) for v in camera.distortions]
+    plumb_bob = len(coefficients) <= 5
     return CameraCalibration(
         timestamp=_timestamp(time_ns),
         frame_id=camera.name,
         width=camera.width,
         height=camera.height,
-        distortion_model="plumb_bob",  # k1, k2, p1, p2, k3: OpenCV's model under its ROS name
-        D=[float(v) for v in camera.distortions],
+        distortion_model="plumb_bob" if plumb_bob else "rational_polynomial",
+        D=coefficients + [0.0] * (5 - len(coefficients)) if plumb_bob else coefficients,
         K=[float(v) for v in k.ravel()],
         R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
         P=[float(v) for v in projection.ravel()],

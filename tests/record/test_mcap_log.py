@@ -6,6 +6,7 @@ plain mcap reader (and, once, converted by the `rerun` CLI).
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import os
@@ -26,7 +27,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from scipy.spatial.transform import Rotation
 
 from pipeline.reconstruct.frame_result import FrameResult
-from pipeline.record.mcap_log import METRICS_SCHEMA, McapRecorder
+from pipeline.record.mcap_log import METRICS_SCHEMA, McapRecorder, camera_calibration
 
 T0_NS = 1_700_000_000_000_000_000
 DT_NS = 33_333_333
@@ -224,6 +225,25 @@ def test_camera_calibration_holds_k_d_and_p(mcap_bytes: bytes) -> None:
         np.testing.assert_array_equal(calib.D, cam.distortions)
         np.testing.assert_array_equal(np.reshape(calib.P, (3, 4))[:, :3], cam.matrix)
         np.testing.assert_array_equal(np.reshape(calib.R, (3, 3)), np.eye(3))
+
+
+@pytest.mark.parametrize(
+    ("count", "model"),
+    [
+        (4, "plumb_bob"),
+        (5, "plumb_bob"),
+        (8, "rational_polynomial"),
+        (12, "rational_polynomial"),
+        (14, "rational_polynomial"),
+    ],
+)
+def test_each_count_of_distortion_coefficients_is_named_by_its_model(count: int, model: str) -> None:
+    coefficients = np.random.default_rng(count).normal(0.0, 0.01, count)
+    cam = dataclasses.replace(rig_cameras()[0], distortions=coefficients)
+    calib = camera_calibration(cam, 0)
+    assert calib.distortion_model == model
+    # The coefficients as given, k3 = 0 added where OpenCV's four leave it out.
+    np.testing.assert_array_equal(calib.D, np.concatenate([coefficients, np.zeros(max(5 - count, 0))]))
 
 
 def test_images_are_jpeg_in_the_camera_frame(mcap_bytes: bytes) -> None:
