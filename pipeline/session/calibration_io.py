@@ -21,6 +21,9 @@ from ..geometry.camera import Camera
 from .toml_file import read_toml
 
 REQUIRED_KEYS = ("name", "size", "matrix", "distortions", "rotation", "translation")
+# aniposelib's marks its fisheye cameras; every other key is a typo of one of these (a
+# misspelt "fisheye" would pass a fisheye lens off as a standard one).
+KNOWN_KEYS = (*REQUIRED_KEYS, "fisheye")
 
 
 def read_calibration(path: Path) -> list[Camera]:
@@ -83,7 +86,17 @@ def _camera(source: str, key: str, table: Any) -> Camera:
     # A quoted TOML key may hold a newline; the message must stay one line.
     label = f"[{key}]" if key.isprintable() else f"[{key!r}]"
     if not isinstance(table, dict):
+        if not isinstance(table, list | dict):  # a bare key above the first table
+            raise CalibrationError(
+                f"{source}: {label[1:-1]} = ... is not in a table; a camera's keys go under its [cam_N] "
+                "table, other notes under [metadata]"
+            )
         raise CalibrationError(f"{source}: {label} must be a table")
+    unknown = [k for k in table if k not in KNOWN_KEYS]
+    if unknown:
+        raise CalibrationError(
+            f"{source}: {label} has unknown key {unknown[0]!r}; a camera's keys are {', '.join(KNOWN_KEYS)}"
+        )
     missing = [k for k in REQUIRED_KEYS if k not in table]
     if missing:
         raise CalibrationError(

@@ -106,7 +106,8 @@ def _set(table: str, key: str, value: Any) -> dict[str, Any]:
     [
         ({}, ("no camera tables",)),
         ({"metadata": {"a": 1}}, ("no camera tables",)),
-        ({"cam_0": 5}, ("[cam_0] must be a table",)),
+        ({"cam_0": 5}, ("cam_0 = ... is not in a table", "[cam_N]")),
+        ({"cam_0": [5]}, ("[cam_0] must be a table",)),
         ({"cam_0": {"name": "c"}}, ("[cam_0] is missing key(s) size, matrix",)),
         (_set("cam_2", "name", ""), ("[cam_2] name", "non-empty string")),
         (_set("cam_2", "size", [320.0, 240.0]), ("camera 'cam2'", "size", "positive integers")),
@@ -124,6 +125,9 @@ def _set(table: str, key: str, value: Any) -> dict[str, Any]:
         (_set("cam_2", "translation", [0, 0, 10**400]), ("translation", "numbers")),
         (_set("cam_2", "translation", [0, 0, float("-inf")]), ("translation", "non-finite")),
         (_set("cam_1", "name", "cam2"), ("'cam2' appears more than once",)),
+        # A misspelt key, which would otherwise be dropped without a word.
+        (_set("cam_1", "fishye", True), ("[cam_1] has unknown key 'fishye'", "fisheye")),
+        ({**_doc(), "units": "mm"}, ("units = ... is not in a table",)),
     ],
 )
 def test_mistakes_name_the_camera_and_key(doc: dict[str, Any], needles: tuple[str, ...]) -> None:
