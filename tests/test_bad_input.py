@@ -255,13 +255,20 @@ def test_random_bytes_video(session: Path, capsys: pytest.CaptureFixture[str]) -
     assert_rejected(session, capsys, "cam0.mp4", "cannot be opened as a video")
 
 
-@pytest.mark.parametrize("kind", ["png", "jpg"])
+@pytest.mark.parametrize("kind", ["png", "jpg", "gif"])
 def test_a_still_image_as_a_video(session: Path, capsys: pytest.CaptureFixture[str], kind: str) -> None:
-    # FFmpeg opens it as a one-frame video at 25 fps: it is named for what it is.
-    ok, encoded = cv2.imencode(f".{kind}", rod_image(rig_cameras()[1]))
-    assert ok
-    (session / "cam1.avi").write_bytes(encoded.tobytes())
-    line = assert_rejected(session, capsys, "cam1.avi", "is a still", "image, not a video")
+    # FFmpeg opens it as a one-frame video (at 25 fps, a GIF at 100): it is named for what
+    # it is, and not taken for a camera recorded at another rate.
+    if kind == "gif":  # OpenCV writes no GIF: the smallest one, a pixel
+        encoded = bytes.fromhex(
+            "4749463839610100010080000000000000ffffff21f90401000000002c00000000010001000002024401003b"
+        )
+    else:
+        ok, array = cv2.imencode(f".{kind}", rod_image(rig_cameras()[1]))
+        assert ok
+        encoded = array.tobytes()
+    (session / "cam0.avi").write_bytes(encoded)
+    line = assert_rejected(session, capsys, "cam0.avi", "is a still", "image, not a video")
     assert "fps" not in line
 
 

@@ -257,8 +257,9 @@ def _read_container(path: Path) -> _ContainerFacts:
     try:
         with av.open(str(path)) as container:
             name = container.format.name
-            # FFmpeg's demuxers of single images are all named "<kind>_pipe" (png_pipe, ...).
-            still = name.removesuffix("_pipe").upper() if name.endswith("_pipe") else ""
+            # FFmpeg's demuxers of single images are all named "<kind>_pipe" (png_pipe, ...);
+            # a GIF's is "gif", and a GIF, animated or not, is no camera's recording.
+            still = name.removesuffix("_pipe").upper() if name.endswith("_pipe") or name == "gif" else ""
             bare = name if name in BARE_STREAMS and path.suffix.lower() in CONTAINER_SUFFIXES else ""
             streams = container.streams.video
             text = container.metadata.get("creation_time") or (
