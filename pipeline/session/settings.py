@@ -357,7 +357,8 @@ def _validate(s: Settings, source: str) -> None:
     per_axis = [s / ws.voxel_mm for s in ws.size_mm]
     need = ws.estimated_bytes(3) if math.prod(per_axis) < 2**62 else math.inf
     if need > MAX_GRID_BYTES:
-        nx, ny, nz = (f"{n:.6g}" for n in per_axis)
+        # The voxel counts as the grid rounds them (Workspace.shape), where they are countable.
+        nx, ny, nz = (f"{max(1, round(n))}" if n < 1e15 else f"{n:.3g}" for n in per_axis)
         raise SettingsError(
             f"{source}: a {nx}x{ny}x{nz} grid needs about {need / 1024**3:.1f} GiB "
             f"(limit {MAX_GRID_BYTES / 1024**3:.0f} GiB); raise voxel_mm or shrink size_mm"
