@@ -370,7 +370,11 @@ def suspect_reason(
     worst = int(np.argmax(misfit))
     if misfit[worst] > SUSPECT_MISFIT + usual_misfit:
         share = 100 * misfit[worst]
-        reasons.append(f"camera {names[worst]} sees {share:.0f} % of its silhouette unexplained")
+        # Silhouette pixels the tube misses and tube pixels off the silhouette, against the
+        # silhouette's area: past 100 % where the tube is drawn elsewhere in that view.
+        reasons.append(
+            f"camera {names[worst]}'s silhouette and the tube drawn in it differ by {share:.0f} % of its area"
+        )
     radius = float(np.median(radius_mm))  # the tube's, for the distances below
     if self_intersects(centerline_mm, radius, closest_radii=SUSPECT_CLOSEST_RADII):
         reasons.append("the tube passes through itself")

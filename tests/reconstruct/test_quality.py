@@ -218,7 +218,7 @@ def test_a_jump_is_judged_beyond_what_the_track_keeps_missing_its_predictions_by
 @pytest.mark.parametrize(
     ("change", "expected"),
     [
-        ("silhouette", "unexplained"),
+        ("silhouette", "the tube drawn in it differ by"),
         ("prediction", "from its track's prediction"),
         ("length", "length"),
         ("crossing", "passes through itself"),
@@ -275,7 +275,7 @@ def test_a_silhouette_left_unexplained_counts_beyond_what_the_track_usually_leav
         quality.suspect_reason(cams, masks, axis, 6.0, iou=iou, misfit=misfit, usual_misfit=usual)
         for usual in (0.0, share - 0.005, share - quality.SUSPECT_MISFIT - 0.005)
     ]
-    assert ["unexplained" in reason for reason in judged] == [True, False, True]
+    assert ["differ by" in reason for reason in judged] == [True, False, True]
     # The track's usual share: the median of its last 30 frames' worst views, capped; a
     # frame without figures (failed) says nothing.
     frames = [
