@@ -11,6 +11,7 @@ import contextlib
 import dataclasses
 import errno
 import filecmp
+import glob
 import logging
 import math
 import os
@@ -349,9 +350,13 @@ def _backgrounds(
     if settings.silhouette.method == "background":
         missing = [c.name for c, b in zip(cameras, backgrounds, strict=True) if b is None]
         if missing:
+            name = missing[0]
+            # An image of another kind under the camera's name: said, with what to do.
+            others = sorted(p.name for p in (directory / "background").glob(f"{glob.escape(name)}.*"))
+            found = f"; background/{others[0]} is there: save it as a PNG" if others else ""
             raise SessionError(
                 f"{directory / 'background'}: silhouette method 'background' needs "
-                f"background/{missing[0]}.png (missing for camera {missing[0]!r})"
+                f"background/{name}.png (missing for camera {name!r}{found})"
             )
     return backgrounds
 

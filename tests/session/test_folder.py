@@ -136,6 +136,11 @@ def test_background_method_needs_every_background(session: Path) -> None:
     cv2.imwrite(str(session / "background" / "cam0.png"), np.full((240, 320), 150, np.uint8))
     with pytest.raises(SessionError, match=r"background/cam1\.png \(missing for camera 'cam1'\)"):
         load_session(session)
+    # A JPEG under the camera's name is named, with what to do.
+    cv2.imwrite(str(session / "background" / "cam1.jpg"), np.full((240, 320), 150, np.uint8))
+    with pytest.raises(SessionError, match=r"\(missing for camera 'cam1'; background/cam1\.jpg is there"):
+        load_session(session)
+    (session / "background" / "cam1.jpg").unlink()
     for name in ("cam1", "cam2"):
         cv2.imwrite(str(session / "background" / f"{name}.png"), np.full((240, 320), 150, np.uint8))
     s = load_session(session)
