@@ -306,6 +306,11 @@ def _read(stream: Any, path: Path, warn: Callable[[str], None]) -> Recording:
                 raise RecordingError(
                     f"{path}: {damage_line('before its first frame')}; {REWRITE} ({why})"
                 ) from None
+            if _starts_whole(stream):
+                raise RecordingError(
+                    f"{path}: an MCAP cut short before its first frame (the run that wrote it did "
+                    "not finish), nothing to read; run `pipeline process` on its session again"
+                ) from None
             raise RecordingError(f"{path}: not a readable MCAP recording ({why})") from None
         where, read = (
             (f"after frame {max(metrics)}", "; read what precedes it")
@@ -338,13 +343,26 @@ def damage_line(where: str) -> str:
 REWRITE = "run `pipeline process` on its session again to write it anew"
 
 
+def _starts_whole(stream: Any) -> bool:
+    """Whether the file starts as an MCAP does, with its opening magic."""
+    try:
+        stream.seek(0)
+        return bool(stream.read(len(MCAP0_MAGIC)) == MCAP0_MAGIC)
+    except (OSError, ValueError):
+        return False
+
+
 def _ends_whole(stream: Any) -> bool:
     """Whether the file ends as a finished MCAP does, with its closing magic: one that does
     but cannot be read through was damaged inside, not cut short while being written."""
     try:
+        # The opening magic alone (a file cut right after it) is the same bytes: a whole
+        # file holds both.
+        if stream.seek(0, os.SEEK_END) < 2 * len(MCAP0_MAGIC):
+            return False
         stream.seek(-len(MCAP0_MAGIC), os.SEEK_END)
         return bool(stream.read(len(MCAP0_MAGIC)) == MCAP0_MAGIC)
-    except (OSError, ValueError):  # shorter than the magic
+    except (OSError, ValueError):
         return False
 
 

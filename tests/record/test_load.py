@@ -181,6 +181,17 @@ def test_a_file_cut_mid_write_reads_up_to_its_last_complete_chunk(
     assert counts == sorted(counts) and counts[-1] == N_FRAMES and 0 < counts[2] < N_FRAMES
 
 
+@pytest.mark.parametrize("size", [8, 100])
+def test_a_file_cut_before_its_first_frame_is_named_cut_short(
+    written: tuple[Path, list[FrameResult]], tmp_path: Path, size: int
+) -> None:
+    path, _ = written
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:size])  # the opening magic alone, or a little more
+    with pytest.raises(PipelineError, match=r"cut\.mcap: an MCAP cut short before its first frame"):
+        pipeline.load_recording(cut)
+
+
 def test_bytes_overwritten_inside_a_file_are_read_as_damage_not_as_a_cut(
     written: tuple[Path, list[FrameResult]], tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
