@@ -181,8 +181,8 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         help="reconstruct every frame of a session into .mcap and .rrd",
         description="Decode the session's videos, reconstruct every frame in parallel and write "
         "OUT/<session>.mcap and OUT/<session>.rrd, then a summary (failures and warnings on "
-        "stderr). Exit 0: all frames ok or empty, some tube found; 1: some frames failed, or no "
-        "tube in any frame; 2: bad input (nothing written).",
+        "stderr). Exit 0: all frames ok or empty, some tube found; 1: some frames failed, no "
+        "tube in any frame, or the summary names another problem; 2: bad input (nothing written).",
     )
     p.add_argument("video_dir", type=_path, help="session directory: calibration.toml + one video per camera")
     p.add_argument(
@@ -245,8 +245,8 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         "device index or a stream URL), reconstruct every matched frame-set as it arrives, stream it "
         "to a Rerun viewer (and a Foxglove server with --foxglove), and write OUT/<rig>.mcap and "
         "OUT/<rig>.rrd, renamed into place when the run stops: Ctrl-C, SIGTERM, --duration, or the "
-        "end of a replay. Exit 0: frames reconstructed, some tube found; 1: some frames failed, or "
-        "no tube in any frame; 2: bad input (nothing written).",
+        "end of a replay. Exit 0: frames reconstructed, some tube found; 1: some frames failed, no "
+        "tube in any frame, or the summary names another problem; 2: bad input (nothing written).",
     )
     p.add_argument(
         "rig_dir",

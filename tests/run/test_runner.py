@@ -519,6 +519,12 @@ def test_the_summary_names_doubtful_frames_and_a_run_without_any_tube() -> None:
     (line,) = [line for line in doubtful.lines() if "doubtful" in line]
     assert "4 of the ok frames (2-4, 9)" in line and "[silhouette] method, threshold and polarity" in line
     assert doubtful.exit_code == 0  # a hint, not a failure: the curves are still recorded
+    # In most of the frames, it is the run's failure (a camera's calibration another rig's).
+    most = dataclasses.replace(doubtful, frames_doubtful=list(range(11)), doubtful_cameras={"cam1": 11})
+    (line,) = [line for line in most.problem_lines() if "doubtful" in line]
+    assert "11 of the 20 ok frames" in line and "camera 'cam1' in 11" in line and "not to be trusted" in line
+    assert most.exit_code == 1
+    assert dataclasses.replace(most, frames_doubtful=list(range(10))).exit_code == 0
     empty = runner.RunSummary(frames_ok=0, frames_empty=5, frames_failed=[], wall_s=1.0, fps=5.0)
     assert any("no tube in any frame" in line and "polarity" in line for line in empty.problem_lines())
     assert empty.exit_code == 1  # nothing found is not a success
