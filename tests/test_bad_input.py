@@ -272,6 +272,31 @@ def test_a_still_image_as_a_video(session: Path, capsys: pytest.CaptureFixture[s
     assert "fps" not in line
 
 
+def _grey16_video(path: Path, frames: list[np.ndarray]) -> None:
+    """An FFV1 video of 16-bit grey (H, W) uint16 ``frames``, as a machine-vision camera's."""
+    import av
+
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("ffv1", rate=30)
+        stream.width, stream.height, stream.pix_fmt = frames[0].shape[1], frames[0].shape[0], "gray16le"
+        for image in frames:
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(image, format="gray16le")))
+        container.mux(stream.encode())
+
+
+def test_a_16_bit_video_of_unscaled_10_bit_values_is_named(
+    session: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # A camera's 10-bit values stored in 16-bit samples as they are: read as 16-bit, every
+    # frame is black (and all tube). Scaled to the full range, the same video is read.
+    image = rod_image(rig_cameras()[0]).astype(np.uint16)
+    (session / "cam0.avi").unlink()
+    _grey16_video(session / "cam0.mkv", [image * 4] * 3)
+    assert_rejected(session, capsys, "cam0.mkv", "16-bit grey video", "10- or 12-bit data stored unscaled")
+    _grey16_video(session / "cam0.mkv", [image * 257] * 3)
+    assert len(load_session(session).cameras) == 3
+
+
 def test_zero_byte_video(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (session / "cam2.avi").write_bytes(b"")
     assert_rejected(session, capsys, "cam2.avi", "cannot be opened as a video")

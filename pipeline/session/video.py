@@ -175,9 +175,17 @@ def _probe(path: Path) -> VideoInfo:
         height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
         fps = float(cap.get(cv2.CAP_PROP_FPS))
         count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-        ok, _ = cap.read()
+        ok, first = cap.read()
         if not ok or width <= 0 or height <= 0:
             raise VideoError(f"{path}: holds no decodable frame; re-copy or re-export it")
+        if facts.pixel_format in DEEP_GREY and int(first.max()) < _DEEP_GREY_DARKEST:
+            # 10- or 12-bit camera data stored in 16-bit samples without being scaled up
+            # (a camera's raw output): read as 16-bit, every frame is nearly black.
+            raise VideoError(
+                f"{path}: a 16-bit grey video whose first frame reaches only {int(first.max())} of 255 "
+                "levels: its values look like 10- or 12-bit data stored unscaled; re-export it with "
+                "its values scaled to the full 16 bits, or as 8-bit video"
+            )
         if not fps > 0:
             raise VideoError(f"{path}: has no frame rate; re-export it with a fixed fps")
     finally:
@@ -211,6 +219,12 @@ def _probe(path: Path) -> VideoInfo:
     )
 
 
+# 16-bit grey pixel formats, and the brightest level (of 255, read as 8-bit) below which
+# a first frame holds values of 12 bits or fewer: 4095 of 65535.
+DEEP_GREY = frozenset({"gray16le", "gray16be"})
+_DEEP_GREY_DARKEST = 16
+
+
 # FFmpeg's demuxers of bare video streams, which carry no frame rate or timestamps of
 # their own; and the file names of containers, which always do.
 BARE_STREAMS = frozenset({"m4v", "h264", "hevc", "mpegvideo", "h263", "mjpeg", "rawvideo", "vc1", "av1"})
@@ -232,7 +246,8 @@ class _ContainerFacts:
     ``packet_count``: its packets, where the container keeps no frame count, or an MP4
     keeps one of frames its edit list hides (None where it keeps one, or where the stream
     cannot be demuxed to its end). ``creation_text``: the container's creation_time tag,
-    else its first video stream's ("" for none).
+    else its first video stream's ("" for none). ``pixel_format``: the first video stream's
+    pixel format as its codec states it ("gray16le", ...; "" where it states none).
     """
 
     still_kind: str = ""
@@ -242,6 +257,7 @@ class _ContainerFacts:
     tick_s: float = 0.0
     packet_count: int | None = None
     creation_text: str = ""
+    pixel_format: str = ""
 
 
 def _read_container(path: Path) -> _ContainerFacts:
@@ -284,6 +300,7 @@ def _read_container(path: Path) -> _ContainerFacts:
                 tick_s=time_base if ticks is not None else 0.0,
                 packet_count=count,
                 creation_text=text or "",
+                pixel_format=stream.codec_context.pix_fmt or "",
             )
     except (av.error.FFmpegError, OSError):
         return _ContainerFacts()
