@@ -165,7 +165,10 @@ class CameraReader:
         self._thread.start()
 
     def join(self, timeout_s: float) -> None:
-        self._thread.join(timeout_s)
+        """Wait up to ``timeout_s`` for the reader to stop; at once if it never started (a
+        signal while the run started its readers)."""
+        if self._thread.ident is not None:
+            self._thread.join(timeout_s)
 
     @property
     def alive(self) -> bool:

@@ -1242,6 +1242,27 @@ def test_a_reader_still_blocked_in_its_source_after_the_stop_is_named(
     assert not caplog.records
 
 
+def test_ctrl_c_while_the_readers_start_stops_the_run_and_removes_its_files(
+    session: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The signal lands after the first reader has started, before the others have.
+    start = CameraReader.start
+    started: list[int] = []
+
+    def start_then_interrupt(self: CameraReader) -> None:
+        if started:
+            raise KeyboardInterrupt
+        started.append(1)
+        start(self)
+
+    monkeypatch.setattr(CameraReader, "start", start_then_interrupt)
+    rig, sources = open_rig(None, session)
+    with pytest.raises(KeyboardInterrupt):
+        run_live(rig, sources, out_dir=tmp_path / "out", viewer_url=None)
+    assert started == [1]
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
 def test_a_run_whose_recordings_fail_to_finish_stops_its_readers_once(
     session: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
