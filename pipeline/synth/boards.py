@@ -118,6 +118,8 @@ def render_calibration_views(
     views : intrinsics views per camera.
     progress : show a progress bar.
     """
+    if seed < 0:  # before anything is written
+        raise PipelineError(f"--seed must be 0 or more, got {seed}")
     texture: _CharucoTexture | None = None
     if board_type == "chessboard":
         cols, rows = board or (9, 6)

@@ -131,6 +131,14 @@ def test_synth_calib_writes_into_a_new_or_empty_folder_or_over_its_own_render_on
     assert {p: p.read_bytes() for p in ninety.rglob("*.png")} == before
 
 
+def test_a_negative_seed_is_refused_before_anything_is_written(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["synth-calib", str(tmp_path / "new"), "--seed", "-1"]) == EXIT_BAD_INPUT
+    assert capsys.readouterr().err.splitlines() == ["error: --seed must be 0 or more, got -1"]
+    assert not (tmp_path / "new").exists()
+
+
 def test_a_folder_synth_calib_cannot_create_is_named(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
