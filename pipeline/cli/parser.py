@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from ..measure.arguments import OneLineParser
+from ..measure.arguments import OneLineParser, worker_jobs
 from .commands import (
     EXIT_BAD_INPUT,
     cmd_calibrate,
@@ -23,18 +23,6 @@ from .commands import (
 # How the program names itself in usage and error lines: the console script's name;
 # ``python -m pipeline`` passes its own (pipeline.__main__).
 PROG = "pipeline"
-
-
-def _jobs(text: str) -> int:
-    """--jobs: a count of workers (1, 2, ...) or, as joblib counts them, -1 for one per
-    core, -2 for all cores but one, and so on; 0 is neither."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if value == 0:
-        raise argparse.ArgumentTypeError("0 workers cannot run; give 1 or more, or -1 for one per core")
-    return value
 
 
 def _frame_range(text: str) -> tuple[int, int | None]:
@@ -191,7 +179,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     p.add_argument(
         "-j",
         "--jobs",
-        type=_jobs,
+        type=worker_jobs,
         default=-1,
         help="parallel workers; -1 = one per core (default), -2 = all cores but one",
     )

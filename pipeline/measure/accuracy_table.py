@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING
 
 from ..errors import PipelineError
 from ..synth.names import SHAPES
-from .arguments import OneLineParser, at_least, not_a_session, stopped_in_one_line
+from .arguments import OneLineParser, at_least, not_a_session, stopped_in_one_line, worker_jobs
 from .evaluate import TARGETS, EvaluationReport, evaluate_recording
 
 if TYPE_CHECKING:
@@ -259,7 +259,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=Path("recordings/accuracy"),
         help="working directory (default recordings/accuracy)",
     )
-    parser.add_argument("--jobs", type=int, default=-1, help="parallel workers (-1: one per core)")
+    parser.add_argument("--jobs", type=worker_jobs, default=-1, help="parallel workers (-1: one per core)")
     parser.add_argument(
         "--cases",
         nargs="+",

@@ -39,6 +39,18 @@ def at_least(lowest: int) -> Any:
     return parse
 
 
+def worker_jobs(text: str) -> int:
+    """An argparse type for --jobs: a count of workers (1, 2, ...) or, as joblib counts
+    them, -1 for one per core, -2 for all cores but one, and so on; 0 is neither."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value == 0:
+        raise argparse.ArgumentTypeError("0 workers cannot run; give 1 or more, or -1 for one per core")
+    return value
+
+
 def not_a_session(out: Path, what: str) -> str:
     """Why ``out`` cannot take ``what`` (it is a file, or a session's own folder, whose
     files it would mix with its own); "" where it can."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from pipeline.measure import accuracy_table
@@ -15,6 +17,17 @@ def test_draw_needs_one_number_of_cases(capsys: pytest.CaptureFixture[str]) -> N
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert "with --draw, --cases takes one number of cases (1 or more), got loop helix" in err
+
+
+def test_zero_jobs_is_a_usage_error_before_anything_is_rendered(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    with pytest.raises(SystemExit) as exc:
+        accuracy_table.main(["--jobs", "0", "--cases", "helix", "--out", str(tmp_path / "acc")])
+    assert exc.value.code == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert "--jobs: 0 workers cannot run" in line
+    assert not (tmp_path / "acc").exists()
 
 
 def test_drawn_cases_are_labelled_by_their_description() -> None:
