@@ -468,6 +468,25 @@ def test_a_json_summary_that_a_full_stdout_cannot_take_is_an_error(session: Path
     assert (out / "session.mcap").is_file() and (out / "session.rrd").is_file()
 
 
+def test_a_json_summary_to_a_stdout_the_caller_closed_is_refused_before_the_run(session: Path) -> None:
+    # `--json >&-`: the summary a script asked for would go to the null device, exit 0.
+    out = session.parent / "out"
+    command = [sys.executable, "-m", "pipeline", *_process(session, out), "--json"]
+    proc = subprocess.run(
+        command,
+        preexec_fn=lambda: os.close(1),
+        stderr=subprocess.PIPE,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert proc.returncode == EXIT_BAD_INPUT, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        "error: stdout: closed (>&-), so it cannot take the JSON summary; leave it open, or send it to a file"
+    ]
+    assert not out.exists()
+
+
 def test_a_current_directory_that_no_longer_exists_is_named(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

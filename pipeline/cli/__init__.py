@@ -21,7 +21,14 @@ from typing import NoReturn
 
 from ..errors import Interrupted, PipelineError
 from ..run.interrupts import signals_interrupt
-from .commands import EXIT_BAD_INPUT, EXIT_FRAMES_FAILED, EXIT_INTERNAL_ERROR, EXIT_OK, null_onto
+from .commands import (
+    CLOSED_BY_CALLER,
+    EXIT_BAD_INPUT,
+    EXIT_FRAMES_FAILED,
+    EXIT_INTERNAL_ERROR,
+    EXIT_OK,
+    null_onto,
+)
 from .parser import PROG, build_parser, with_json_before_a_folder, with_negative_frames
 from .shutdown import exit_fast
 
@@ -71,6 +78,7 @@ def _open_closed_std_streams() -> None:
     for fd, name in ((1, "stdout"), (2, "stderr")):
         if getattr(sys, name) is None:
             null_onto(fd, name)
+            CLOSED_BY_CALLER.add(name)
 
 
 def _main(argv: Sequence[str] | None, prog: str) -> int:

@@ -58,6 +58,20 @@ def say(text: str, stream: TextIO | None = None, *, result: str = "") -> None:
             ) from None
 
 
+# The standard streams the caller closed (``>&-``), opened on the null device at the start.
+CLOSED_BY_CALLER: set[str] = set()
+
+
+def check_stdout_takes(result: str) -> None:
+    """Before the run: stdout, where ``result`` goes (a script asked for it there), is open.
+    Closed by the caller it was put on the null device, and the result would be lost with
+    exit status 0."""
+    if "stdout" in CLOSED_BY_CALLER:
+        raise OutputError(
+            f"stdout: closed (>&-), so it cannot take {result}; leave it open, or send it to a file"
+        )
+
+
 def null_onto(fd: int, name: str) -> None:
     """Open the null device on descriptor ``fd``, and the Python stream ``name`` ("stdout" or
     "stderr") on that where the stream is closed or missing: what is written there is dropped."""
@@ -98,7 +112,9 @@ def cmd_process(args: argparse.Namespace) -> int:
     from ..run.workers import started_early
 
     started_at = _process_started_at()
-    if args.json not in (None, "-"):
+    if args.json == "-":
+        check_stdout_takes("the JSON summary")
+    elif args.json is not None:
         # A session is named after its folder (pipeline.session.folder.load_session).
         name = Path(args.video_dir).resolve().name
         _check_json_path(Path(args.json), _recordings(Path(args.out), name))
@@ -139,7 +155,9 @@ def cmd_live(args: argparse.Namespace) -> int:
     if args.rig_dir is None and replay is None:
         args.usage_error("give RIG_DIR, or --replay SESSION_DIR")
     rig, sources = open_rig(args.rig_dir, replay)
-    if args.json not in (None, "-"):
+    if args.json == "-":
+        check_stdout_takes("the JSON summary")
+    elif args.json is not None:
         _check_json_path(Path(args.json), _recordings(Path(args.out), rig.name))
     foxglove = None if args.foxglove is None else parse_host_port(args.foxglove or DEFAULT_FOXGLOVE)
     if foxglove is not None:
@@ -311,6 +329,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from ..measure.evaluate import evaluate_recording, format_report
 
+    check_stdout_takes(f"the report of {args.recording.name}")
     report = evaluate_recording(args.recording, args.ground_truth)
     say(
         report.to_json() if args.json else format_report(report),

@@ -546,6 +546,21 @@ def test_a_named_pipe_is_refused_not_waited_on_nor_called_missing(
         evaluate_recording(recording, pipe)
 
 
+def test_a_report_to_a_stdout_the_caller_closed_is_refused(
+    partial_run: tuple[Path, Path], capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # `evaluate ... >&-`: the report is all the command makes.
+    from pipeline.cli import EXIT_BAD_INPUT, commands, main
+
+    recording, session_dir = partial_run
+    monkeypatch.setattr(commands, "CLOSED_BY_CALLER", {"stdout"})
+    assert main(["evaluate", str(recording), str(session_dir)]) == EXIT_BAD_INPUT
+    assert capsys.readouterr().err.splitlines() == [
+        "error: stdout: closed (>&-), so it cannot take the report of rod.mcap; leave it open, "
+        "or send it to a file"
+    ]
+
+
 @pytest.mark.parametrize("as_json", [False, True], ids=["table", "json"])
 def test_a_report_that_stdout_cannot_take_is_an_error_not_a_success(
     partial_run: tuple[Path, Path],
