@@ -30,6 +30,10 @@ FloatArray = NDArray[np.float64]
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 VIDEO_EXTS = (".mp4", ".avi", ".mkv", ".mov")
 MIN_VIEWS = 5
+# An intrinsics view whose corners all lie within this many pixels of another's sees the
+# same board pose (a copied file, a video of a board held still): it adds no evidence but
+# the corners' noise, and weighs its pose again in the fit.
+REPEAT_PX = 0.5
 VIDEO_SAMPLES = 30  # frames taken, evenly spaced, from an intrinsics video
 WORLD = "world"
 
@@ -209,13 +213,51 @@ def detect_directory(calib_dir: Path, board: Board) -> list[View]:
                 continue
             ids, corners = detection
             views.append(View(cam, key, source, corners, (image.shape[1], image.shape[0]), ids))
+        views = _without_repeats(views, cam)
         usable = sum(v.camera == cam for v in views)
         if usable < MIN_VIEWS:
             raise CalibrationError(
-                f"camera {cam!r}: board found in only {usable} image(s) of {len(images)}; "
+                f"camera {cam!r}: board found in only {usable} distinct view(s) of {len(images)} images; "
                 f"need at least {MIN_VIEWS} (more views, whole board visible, check --board)"
             )
     return views
+
+
+def _without_repeats(views: list[View], cam: str) -> list[View]:
+    """``views`` with camera ``cam``'s intrinsics views that repeat an earlier one's board pose
+    (every corner within ``REPEAT_PX``) left out, and named in one warning."""
+    kept: list[View] = []
+    repeats: dict[str, list[str]] = {}  # the kept view's source -> the sources repeating it
+    for view in views:
+        if view.camera == cam and not view.shared:
+            same = next((k for k in kept if k.camera == cam and not k.shared and _same_pose(k, view)), None)
+            if same is not None:
+                repeats.setdefault(same.source, []).append(Path(view.source).name)
+                continue
+        kept.append(view)
+    if repeats:
+        count = sum(map(len, repeats.values()))
+        first, names = next(iter(repeats.items()))
+        shown = ", ".join(names[:3]) + (", ..." if count > 3 else "")
+        log.warning(
+            "camera %r: %d intrinsics image(s) show the board where another does (%s repeat %s: "
+            "copies, or a board held still), each pose counted once; move the board between views",
+            cam,
+            count,
+            shown,
+            Path(first).name,
+        )
+    return kept
+
+
+def _same_pose(a: View, b: View) -> bool:
+    """Whether two views of one camera see the board in the same place: the same corners,
+    each within ``REPEAT_PX``."""
+    return bool(
+        np.array_equal(a.ids, b.ids)
+        and a.corners_px.size > 0
+        and float(np.max(np.abs(a.corners_px - b.corners_px))) <= REPEAT_PX
+    )
 
 
 def _not_found(board: Board) -> str:

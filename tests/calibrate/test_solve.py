@@ -135,7 +135,26 @@ def test_too_few_views(small_rig, tmp_path) -> None:
     root = _copy(small_rig, tmp_path)
     for path in sorted((root / "cam1" / "intrinsics").glob("*.png"))[:3]:
         path.unlink()
-    with pytest.raises(CalibrationError, match="camera 'cam1': board found in only 4 image"):
+    with pytest.raises(CalibrationError, match="camera 'cam1': board found in only 4 distinct view"):
+        calibrate_directory(root, tmp_path / "c.toml")
+
+
+def test_copies_of_one_view_count_once(small_rig, tmp_path, caplog) -> None:
+    # Byte copies of one image (or a video of a board held still) add no pose: counted
+    # once, and named; with too few poses left, the camera is not calibrated on them.
+    root = _copy(small_rig, tmp_path)
+    images = sorted((root / "cam1" / "intrinsics").glob("*.png"))
+    for i in range(3):
+        shutil.copyfile(images[0], root / "cam1" / "intrinsics" / f"copy{i}.png")
+    board = load_board(root)
+    with caplog.at_level(logging.WARNING):
+        views = detect_directory(root, board)
+    assert sum(v.camera == "cam1" for v in views) == len(images) + 1  # its 6 poses and world.png
+    (line,) = [m for m in caplog.messages if "show the board where another does" in m]
+    assert line.startswith("camera 'cam1': 3 intrinsics image(s)") and f"repeat {images[0].name}" in line
+    for path in images[1:4]:
+        path.unlink()
+    with pytest.raises(CalibrationError, match="camera 'cam1': board found in only 4 distinct view"):
         calibrate_directory(root, tmp_path / "c.toml")
 
 
