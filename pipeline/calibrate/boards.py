@@ -130,9 +130,16 @@ def load_board(
         return _load_charuco(calib_dir, path, doc, charuco, square_mm)
     if kind != "chessboard":
         raise CalibrationError(f"{path}: board type {kind!r} is not supported; use 'chessboard' or 'charuco'")
-    if doc.get("type", "chessboard") != "chessboard":
+    described = str(doc.get("type", "chessboard"))
+    if described != "chessboard":
         doc = {}  # --board overrides a ChArUco board.toml entirely
     cols_rows, square = board, square_mm
+    if cols_rows is not None and square is None and described != "chessboard":
+        raise CalibrationError(
+            f"{path}: describes a {described} board, and --board {cols_rows[0]}x{cols_rows[1]} asks "
+            f"for a chessboard without its --square-mm; drop --board to use {path.name}, or give "
+            "--square-mm S too"
+        )
     if doc:
         corners = doc.get("inner_corners")
         if cols_rows is None and corners is not None:

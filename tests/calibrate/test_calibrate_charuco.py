@@ -108,6 +108,9 @@ def test_board_toml_and_flags(synth, tmp_path) -> None:
     )
     # --board overrides a ChArUco board.toml.
     assert load_board(root, board=(9, 6), square_mm=20.0) == Board(9, 6, 20.0)
+    # ... given whole: without its square size, the board.toml is named, not called missing.
+    with pytest.raises(CalibrationError, match=r"board\.toml: describes a charuco board, and --board 9x6"):
+        load_board(root, board=(9, 6))
     with pytest.raises(CalibrationError, match="not both"):
         load_board(root, board=(9, 6), charuco=(7, 5))
     (tmp_path / "board.toml").write_text(
