@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 
 from ..errors import VideoError
 from ..session.video import Greyer
-from .reasons import ffmpeg_text, outage_reason
+from .reasons import ffmpeg_text, outage_reason, unresolved_host
 from .sources import V4L2_FORMAT, Source
 from .sync import CapturedFrame
 
@@ -188,6 +188,9 @@ class CameraReader:
                 except SOURCE_ERRORS as exc:
                     if self.source.is_replay:
                         why = ffmpeg_text(exc)
+                    elif host := unresolved_host(self.source.url):
+                        why = f"cannot resolve the host {host!r}"
+                        check = "check the URL's host name and the network"
                     else:
                         why, check = outage_reason(
                             exc, opened=self._opened, open_timeout_s=OPEN_TIMEOUT_S, stall_s=self._stall_s

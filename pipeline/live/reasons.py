@@ -9,6 +9,8 @@ its source itself; these functions give what went wrong, and what to check.
 from __future__ import annotations
 
 import errno
+import socket
+from urllib.parse import urlsplit
 
 import av
 
@@ -63,3 +65,20 @@ def outage_reason(
     if not code:  # neither FFmpeg's error nor the system's: its text says it
         return ffmpeg_text(exc), ""
     return f"FFmpeg: {ffmpeg_text(exc)}", "check the camera's source in [live] and that the camera is on"
+
+
+def unresolved_host(url: str) -> str:
+    """The host name of the network source ``url`` where the system cannot resolve it ("" for
+    a device, a file, an address, or a name that resolves): FFmpeg reports that as an
+    input/output error, as it does a camera's failing cable."""
+    try:
+        host = urlsplit(url).hostname
+    except ValueError:
+        return ""
+    if not host or "://" not in url:
+        return ""
+    try:
+        socket.getaddrinfo(host, None)
+    except (socket.gaierror, UnicodeError):
+        return host
+    return ""

@@ -890,6 +890,21 @@ def test_ffmpegs_errors_are_worded_for_the_camera_without_its_error_numbers() ->
         assert "Errno" not in text and str(abs(exc.errno)) not in text, text
 
 
+def test_a_host_the_system_cannot_resolve_is_named_not_taken_for_a_cable() -> None:
+    from pipeline.live.reasons import unresolved_host
+
+    # .invalid never resolves (RFC 2606): no network is asked for an answer that could change.
+    assert unresolved_host("http://nosuchhost.invalid/x.mp4") == "nosuchhost.invalid"
+    for url in (
+        "udp://127.0.0.1:5002",
+        "rtsp://localhost:8554/cam",
+        "/dev/video0",
+        "pipe.ts",
+        "http://[::1]:80/",
+    ):
+        assert unresolved_host(url) == "", url
+
+
 def test_a_source_of_a_scheme_ffmpeg_does_not_read_stops_the_run_named(session: Path, tmp_path: Path) -> None:
     # A typo for rtsp://: it would never open, however often it was tried.
     live = {"cam0": f"tcp://127.0.0.1:{_free_port()}", "cam1": "rtps://127.0.0.1:1/x", "cam2": 2}
