@@ -161,9 +161,9 @@ def _warn_of_shared_views_alone(views: list[View]) -> None:
     for camera in sorted({v.camera for v in views} - own):
         count = sum(v.camera == camera for v in views)
         log.warning(
-            "camera %r has no intrinsics/ image: its focal length and distortion rest on its %d "
-            "world and shared views alone, which pin them loosely; add intrinsics images of the "
-            "board filling the view at many angles",
+            "camera %r has no intrinsics/ image the board was found in: its focal length and "
+            "distortion rest on its %d world and shared views alone, which pin them loosely; add "
+            "intrinsics images of the board filling the view at many angles",
             camera,
             count,
         )
