@@ -44,7 +44,7 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from ..errors import Interrupted, PipelineError
-from .out_dir import check_out_dir, left_behind, unfinished, write_image
+from .out_dir import check_out_dir, left_behind, unfinished, write_advice, write_image
 from .rig import WORKSPACE_CENTER_MM, SynthCamera, calibration_document, make_rig
 
 log = logging.getLogger(__name__)
@@ -193,7 +193,7 @@ def render_calibration_views(
         # nothing; one over an earlier render leaves it incomplete, and says so.
         raise PipelineError(
             f"{exc.filename or out_dir}: cannot be written ({exc.strerror or exc}); "
-            f"{left_behind(out_dir, created, incomplete)}, after freeing space or in another directory"
+            f"{left_behind(out_dir, created, incomplete)}; {write_advice(exc)}"
         ) from None
     except KeyboardInterrupt:  # Ctrl-C, SIGTERM or a hang-up: the same
         raise Interrupted(f"interrupted; {left_behind(out_dir, created, incomplete)}") from None

@@ -41,12 +41,24 @@ def write_image(path: Path, image: NDArray[np.uint8]) -> None:
 
 def left_behind(out_dir: Path, created: bool, incomplete: str) -> str:
     """What a render into ``out_dir`` that stopped part-way leaves, for its message: "nothing
-    written" where the render made the folder (it is removed here), else ``incomplete``
-    (the earlier render it partly replaced, and what to do)."""
+    written" where the render made the folder (it is removed here); the earlier render
+    unchanged where the render stopped before marking it (:func:`unfinished`: a folder
+    that takes no file); else ``incomplete`` (the earlier render it partly replaced, and
+    what to do)."""
     if created:
         shutil.rmtree(out_dir, ignore_errors=True)
         return "nothing written"
+    if not (out_dir / UNFINISHED_RENDER).exists():
+        return f"the earlier render in {out_dir} is unchanged"
     return incomplete
+
+
+def write_advice(exc: OSError) -> str:
+    """What to do where ``exc`` stopped a render's writing: a folder that takes no file
+    (read-only, not this user's) wants another; anything else may be a full disk."""
+    if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+        return "give a directory you can write to"
+    return "free space, or give another directory"
 
 
 @contextlib.contextmanager

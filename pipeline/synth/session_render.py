@@ -28,7 +28,7 @@ from .calib_error import perturbed_rig
 from .distractor import paint_distractor, place_distractor
 from .images import background_texture, flicker_gains, render_frame, threshold_for
 from .names import IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
-from .out_dir import check_out_dir, left_behind, unfinished, write_image
+from .out_dir import check_out_dir, left_behind, unfinished, write_advice, write_image
 from .poses import out_of_view, outside_box, self_contact
 from .radius_profiles import Disks, RadiusProfile, disks_of, radius_along
 from .random_shapes import draw_shape, shape_at
@@ -387,7 +387,7 @@ def render_session(
         # nothing; one over an earlier render leaves it incomplete, and says so.
         raise PipelineError(
             f"{out_dir}: cannot write the session ({exc.strerror or exc}); "
-            f"{left_behind(out_dir, created, incomplete)}, after freeing space or in another directory"
+            f"{left_behind(out_dir, created, incomplete)}; {write_advice(exc)}"
         ) from None
     except KeyboardInterrupt:
         raise Interrupted(f"interrupted; {left_behind(out_dir, created, incomplete)}") from None

@@ -3,10 +3,13 @@ never against the reconstruction modules."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import errno
 import itertools
 import math
 import tomllib
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -1022,6 +1025,29 @@ def test_a_background_opencv_does_not_write_is_named_and_leaves_nothing(
     ):
         render_session(tmp_path / "new", frames=2, progress=False, jobs=1)
     assert not (tmp_path / "new").exists()
+
+
+def test_an_earlier_render_on_a_read_only_file_system_is_left_as_it_was(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The folder takes no file (a read-only mount): the render stops before marking the
+    # earlier one unfinished, which is unchanged, and says so (not "free space").
+    earlier = tmp_path / "earlier"
+    render_session(earlier, frames=2, progress=False, jobs=1)
+    before = {p: p.read_bytes() for p in earlier.rglob("*") if p.is_file()}
+
+    @contextlib.contextmanager
+    def read_only(out_dir: Path) -> Iterator[None]:
+        raise OSError(errno.EROFS, "Read-only file system", str(out_dir / "UNFINISHED-RENDER.txt"))
+        yield
+
+    monkeypatch.setattr("pipeline.synth.session_render.unfinished", read_only)
+    with pytest.raises(
+        PipelineError,
+        match=r"\(Read-only file system\); the earlier render in .*earlier is unchanged; give a directory",
+    ):
+        render_session(earlier, frames=2, progress=False, jobs=1)
+    assert {p: p.read_bytes() for p in earlier.rglob("*") if p.is_file()} == before
 
 
 def test_a_thin_tubes_session_has_voxels_fine_enough_for_process(tmp_path: Path) -> None:

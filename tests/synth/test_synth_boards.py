@@ -162,8 +162,8 @@ def test_an_image_that_cannot_be_written_over_an_earlier_render_is_named(
     assert main(["synth-calib", str(earlier), "--arrangement", "ninety", "--seed", "1"]) == EXIT_BAD_INPUT
     assert capsys.readouterr().err.splitlines() == [
         f"error: {blocked}: cannot be written (OpenCV wrote no image: a full disk, or a folder in its "
-        f"place?); the board images in {earlier} are incomplete: render them again, after freeing space "
-        "or in another directory"
+        f"place?); the board images in {earlier} are incomplete: render them again; free space, or give "
+        "another directory"
     ]
 
 
@@ -179,7 +179,7 @@ def test_an_image_that_cannot_be_written_into_a_new_folder_leaves_nothing(
     monkeypatch.setattr("pipeline.synth.boards.cv2.imwrite", full_disk_after_two)
     target = tmp_path / "calib"
     with pytest.raises(
-        PipelineError, match=r"intrinsics/02\.png: cannot be written .*; nothing written, after"
+        PipelineError, match=r"intrinsics/02\.png: cannot be written .*; nothing written; free space"
     ):
         render_calibration_views(target, arrangement="ninety", views=4, progress=False)
     assert not target.exists()
