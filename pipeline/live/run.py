@@ -393,7 +393,7 @@ def _run(
                 down_at_end=reader.down,
                 cut_short=reader.cut_short if reader.source.is_replay else None,
             )
-            for name, reader, unmatched in zip(names, readers, matcher.unmatched, strict=True)
+            for name, reader, unmatched in zip(names, readers, matcher.unmatched_at_end, strict=True)
         ),
     )
 

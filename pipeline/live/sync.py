@@ -77,6 +77,13 @@ class FrameMatcher:
         self._next_index = 0
         self.unmatched = [0] * cameras  # per camera, frames dropped without a set
 
+    @property
+    def unmatched_at_end(self) -> list[int]:
+        """Per camera, its frames in no set once the run has stopped: those dropped, and
+        those still waiting for a camera that sent no more (a replay's shorter video)."""
+        pairs = zip(self.unmatched, self._waiting, strict=True)
+        return [dropped + len(waiting) for dropped, waiting in pairs]
+
     def add(self, frame: CapturedFrame) -> list[FrameSet]:
         waiting = self._waiting[frame.camera]
         waiting.append(frame)

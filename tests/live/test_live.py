@@ -93,6 +93,8 @@ def test_a_stalled_camera_keeps_the_others_waiting_frames_bounded() -> None:
     for k in range(50):
         assert matcher.add(_frame(0, k * PERIOD_NS)) == []
     assert matcher.unmatched == [50 - MAX_WAITING_FRAMES, 0]
+    # Stopped now, the frames still waiting for it are unmatched too: every frame is counted.
+    assert matcher.unmatched_at_end == [50, 0]
     # When the other camera comes back, the waiting frames it cannot match are dropped too.
     (frame_set,) = matcher.add(_frame(1, 49 * PERIOD_NS))
     assert frame_set.arrived_ns == (49 * PERIOD_NS, 49 * PERIOD_NS)
