@@ -41,7 +41,7 @@ from ..session.calibration_io import write_calibration
 from ..session.toml_file import load_toml
 from .boards import Board, load_board
 from .result import CalibrationResult, ImageError
-from .views import WORLD, View, detect_directory
+from .views import WORLD, View, camera_dirs, detect_directory
 
 log = logging.getLogger(__name__)
 
@@ -104,6 +104,7 @@ def calibrate_directory(
     refuse_unfinished_render(calib_dir, CalibrationError)
     output = Path(output)
     _check_output(output, force=force)
+    _check_not_among_the_images(report_dir or output.parent, calib_dir)
     the_board = load_board(calib_dir, board=board, square_mm=square_mm, charuco=charuco)
     views = detect_directory(calib_dir, the_board)
     if not shared_intrinsics:
@@ -280,6 +281,20 @@ def _check_output(output: Path, *, force: bool) -> None:
         raise OutputError(
             f"{output}: cannot be written in {folder} ({why}); give -o a file in a folder you can write to"
         )
+
+
+def _check_not_among_the_images(report_dir: Path, calib_dir: Path) -> None:
+    """Refuse report pictures written in a camera's folder of board images (intrinsics/,
+    shared/, or the camera folder beside world.*): the next calibration would read them as
+    board images (and stop at their size)."""
+    report = Path(os.path.realpath(report_dir))
+    for cam_dir in camera_dirs(calib_dir):
+        cam = Path(os.path.realpath(cam_dir))
+        if report == cam or cam in report.parents:
+            raise OutputError(
+                f"{report_dir}: holds board images (camera {cam_dir.name!r}), where the report's pictures "
+                f"would be read as board images next time; give -o a file outside {cam_dir}"
+            )
 
 
 def _cannot_create_in(folder: Path) -> str:

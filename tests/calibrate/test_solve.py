@@ -19,7 +19,7 @@ from pipeline.calibrate.boards import detect_corners, load_board
 from pipeline.calibrate.report import format_table
 from pipeline.calibrate.solve import CalibrationResult, calibrate_directory, calibrate_views, detect_directory
 from pipeline.calibrate.views import _read_grey
-from pipeline.errors import CalibrationError
+from pipeline.errors import CalibrationError, OutputError
 from pipeline.session.calibration_io import read_calibration
 from pipeline.session.folder import _read_grey_8bit
 from pipeline.synth.boards import render_calibration_views
@@ -137,6 +137,16 @@ def test_too_few_views(small_rig, tmp_path) -> None:
         path.unlink()
     with pytest.raises(CalibrationError, match="camera 'cam1': board found in only 4 distinct view"):
         calibrate_directory(root, tmp_path / "c.toml")
+
+
+def test_a_calibration_written_among_a_cameras_images_is_refused(small_rig, tmp_path) -> None:
+    # Its report pictures would be read as board images by the next calibration.
+    root = _copy(small_rig, tmp_path)
+    for inside in (root / "cam0" / "intrinsics" / "c.toml", root / "cam1" / "c.toml"):
+        with pytest.raises(OutputError, match=r"holds board images \(camera 'cam[01]'\), where the report"):
+            calibrate_directory(root, inside)
+        assert not inside.exists()
+    assert not list(root.glob("*/**/*.toml"))
 
 
 def test_copies_of_one_view_count_once(small_rig, tmp_path, caplog) -> None:
