@@ -142,6 +142,21 @@ def load_board(
         )
     if doc:
         corners = doc.get("inner_corners")
+        if (
+            cols_rows is not None
+            and isinstance(corners, list)
+            and list(cols_rows[::-1]) == corners != list(cols_rows)
+        ):
+            # Taken as given (the flag overrides), but a board read the other way round
+            # turns the world frame a quarter turn and moves its origin a board's side.
+            log.warning(
+                "--board %dx%d is %s's %dx%d the other way round: the world frame turns with it; "
+                "give --board %dx%d, or none, for the board.toml's frame",
+                *cols_rows,
+                path,
+                *corners,
+                *corners,
+            )
         if cols_rows is None and corners is not None:
             if not (
                 isinstance(corners, list) and len(corners) == 2 and all(isinstance(v, int) for v in corners)

@@ -149,6 +149,19 @@ def test_a_calibration_written_among_a_cameras_images_is_refused(small_rig, tmp_
     assert not list(root.glob("*/**/*.toml"))
 
 
+def test_a_board_size_given_the_other_way_round_is_named(small_rig, caplog) -> None:
+    # The flag overrides board.toml, as documented; read the other way round, the board
+    # turns the world frame a quarter turn: said, in case it was a slip.
+    with caplog.at_level(logging.WARNING):
+        assert load_board(small_rig, board=(6, 9), square_mm=20.0).cols == 6
+    (line,) = [m for m in caplog.messages if "other way round" in m]
+    assert line.startswith("--board 6x9 is ") and "board.toml's 9x6 the other way round" in line
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        load_board(small_rig, board=(9, 6), square_mm=20.0)
+    assert not caplog.messages
+
+
 def test_copies_of_one_view_count_once(small_rig, tmp_path, caplog) -> None:
     # Byte copies of one image (or a video of a board held still) add no pose: counted
     # once, and named; with too few poses left, the camera is not calibrated on them.
