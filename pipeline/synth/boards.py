@@ -190,7 +190,8 @@ def render_calibration_views(
             (out_dir / TRUTH_FILE).write_text(tomli_w.dumps(truth))
     except OSError as exc:
         # A full disk or a folder that turned read-only: a render into a new folder leaves
-        # nothing; one over an earlier render leaves it incomplete, and says so.
+        # nothing; one over an earlier render leaves it incomplete (unchanged where the
+        # folder took no file), and says so.
         raise PipelineError(
             f"{exc.filename or out_dir}: cannot be written ({exc.strerror or exc}); "
             f"{left_behind(out_dir, created, incomplete)}; {write_advice(exc)}"

@@ -384,7 +384,8 @@ def render_session(
         log.info("wrote synthetic session %s (%s, %d frames)", out_dir, shape, frames)
     except OSError as exc:
         # A full disk or a folder that turned read-only: a render into a new folder leaves
-        # nothing; one over an earlier render leaves it incomplete, and says so.
+        # nothing; one over an earlier render leaves it incomplete (unchanged where the
+        # folder took no file), and says so.
         raise PipelineError(
             f"{out_dir}: cannot write the session ({exc.strerror or exc}); "
             f"{left_behind(out_dir, created, incomplete)}; {write_advice(exc)}"
