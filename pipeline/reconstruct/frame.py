@@ -299,6 +299,9 @@ def _curve_and_quality(
     n_points = settings.centerline.points
     # How far the track's last frames lay from their own predictions: a jump is judged beyond it.
     missed_mm = prediction_miss_mm(previous)
+    # The share of a silhouette the track's frames usually leave unexplained, and the length
+    # its tube keeps where no view places its end.
+    usual, kept_length = usual_misfit(previous), held_length(previous)
     tracked = False
     lost = ""
     if settings.centerline.method == "polyfit":
@@ -325,8 +328,8 @@ def _curve_and_quality(
                 cap=model.tip,
                 radii_mm=radii_mm,
                 n_points=n_points,
-                usual_misfit=usual_misfit(previous),
-                length_mm=held_length(previous),
+                usual_misfit=usual,
+                length_mm=kept_length,
                 prediction_miss_mm=miss_mm,
             )
 
@@ -394,7 +397,7 @@ def _curve_and_quality(
         jump_mm=jump,
         prediction_miss_mm=missed_mm,
         expected_length_mm=predict_length(previous, index),
-        usual_misfit=usual_misfit(previous),
+        usual_misfit=usual,
     )
     if lost:
         reason = "; ".join(filter(None, [f"its track was lost here ({lost})", reason]))

@@ -44,7 +44,7 @@ DOUBTFUL_IOU = 0.7
 # to 160 and from 38 of 65 to 37. The usual share itself is no sign of a wrong curve:
 # flagging every frame of a track whose frames usually leave over 1 % unexplained (the
 # robot has parts the drawn tube lacks), on the 19 spacer-disk sessions of `accuracy_table`
-# draws 2 and 191-307 (`process`, 90-150 frames, 2026-12-05), flagged 6 more of 318
+# draws 2, 191-223 and 307 (`process`, 90-150 frames, 2026-12-05), flagged 6 more of 318
 # three-camera frames more than 2 mm off (299 were flagged: the smoothed curve's test
 # catches most) at 53 more of 222 good ones, and on two cameras 81 more of 940 off at 64
 # more of 290 good ...

@@ -377,8 +377,8 @@ def track_tube(
     the share of a silhouette the track's frames usually leave unexplained
     (:func:`usual_misfit`), beyond which the misfit is judged; ``length_mm``: the
     length the tube keeps where no view reads its end (:func:`held_length`);
-    ``prediction_miss_mm``: how far the track's last frame lay from its own prediction
-    (:func:`prediction_miss_mm`), beyond which a jump is judged.
+    ``prediction_miss_mm``: how far the track's last frames each lay, at least, from their
+    own predictions (:func:`prediction_miss_mm`), beyond which a jump is judged.
     """
     if not (np.isfinite(radius_mm) and radius_mm > 0):
         return TrackedFit(None, lost="no radius to track")

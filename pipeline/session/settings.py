@@ -87,8 +87,9 @@ class ManipulatorSettings:
 
 
 # The curve's samples, [centerline] points: the fit tracks, draws and judges the curve at
-# them. On a tight loop (`synth --shape loop --frames 20`, 2026-12-05) 16 gave 0.63 mm mean
-# and the wrong tube end, 32 0.25 mm, 64 0.19 mm; 1,024 cost 130 ms more a frame. More than
+# them. On a tight loop (`synth --shape loop --frames 20 --seed 5`, `process`, `evaluate`;
+# 2026-12-05) 16 gave 0.63 mm mean and the wrong tube end, 32 0.25 mm, 64 0.19 mm; on the
+# default `synth --frames 20`, 1,024 cost 130 ms more a frame (one worker). More than
 # the default 64 is no better: 128 on 124 rendered sessions (90 tracked frames each, same
 # day) gave three-camera mean errors summed 10.62 -> 10.58 mm and 107 -> 114 frames more
 # than 2 mm off, 23 sessions better and 18 worse by more than 0.005 mm, at the same CPU time.
