@@ -81,6 +81,17 @@ def write_video(
     return path
 
 
+def grey16_video(path: Path, frames: Sequence[NDArray[np.uint16]]) -> Path:
+    """An FFV1 video of 16-bit grey (H, W) uint16 ``frames``, as a machine-vision camera's."""
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("ffv1", rate=30)
+        stream.width, stream.height, stream.pix_fmt = frames[0].shape[1], frames[0].shape[0], "gray16le"
+        for image in frames:
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(image, format="gray16le")))
+        container.mux(stream.encode())
+    return path
+
+
 def build_session(
     directory: Path,
     *,

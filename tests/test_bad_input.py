@@ -20,10 +20,11 @@ import cv2
 import numpy as np
 import pytest
 import tomli_w
-from conftest import build_session, rig_cameras, rod_image, write_video
+from conftest import build_session, grey16_video, rig_cameras, rod_image, write_video
 
 from pipeline.cli import EXIT_BAD_INPUT, main
 from pipeline.session.folder import load_session
+from pipeline.session.video import read_frames
 
 
 @pytest.fixture(scope="module")
@@ -272,29 +273,20 @@ def test_a_still_image_as_a_video(session: Path, capsys: pytest.CaptureFixture[s
     assert "fps" not in line
 
 
-def _grey16_video(path: Path, frames: list[np.ndarray]) -> None:
-    """An FFV1 video of 16-bit grey (H, W) uint16 ``frames``, as a machine-vision camera's."""
-    import av
-
-    with av.open(str(path), "w") as container:
-        stream = container.add_stream("ffv1", rate=30)
-        stream.width, stream.height, stream.pix_fmt = frames[0].shape[1], frames[0].shape[0], "gray16le"
-        for image in frames:
-            container.mux(stream.encode(av.VideoFrame.from_ndarray(image, format="gray16le")))
-        container.mux(stream.encode())
-
-
-def test_a_16_bit_video_of_unscaled_10_bit_values_is_named(
-    session: Path, capsys: pytest.CaptureFixture[str]
+@pytest.mark.parametrize("bits", [10, 12])
+def test_a_16_bit_video_of_unscaled_camera_values_is_read_at_their_depth(
+    session: Path, caplog: pytest.LogCaptureFixture, bits: int
 ) -> None:
-    # A camera's 10-bit values stored in 16-bit samples as they are: read as 16-bit, every
-    # frame is black (and all tube). Scaled to the full range, the same video is read.
-    image = rod_image(rig_cameras()[0]).astype(np.uint16)
+    # A camera's 10- or 12-bit values stored in 16-bit samples as they are: read as 16-bit,
+    # every frame would be black (and all tube); read at their depth, it is the scene.
+    image = rod_image(rig_cameras()[0])
     (session / "cam0.avi").unlink()
-    _grey16_video(session / "cam0.mkv", [image * 4] * 3)
-    assert_rejected(session, capsys, "cam0.mkv", "16-bit grey video", "10- or 12-bit data stored unscaled")
-    _grey16_video(session / "cam0.mkv", [image * 257] * 3)
-    assert len(load_session(session).cameras) == 3
+    grey16_video(session / "cam0.mkv", [image.astype(np.uint16) << (bits - 8)] * 3)
+    with caplog.at_level("WARNING"):
+        assert len(load_session(session).cameras) == 3
+    assert f"cam0.mkv: a 16-bit grey video whose first frame holds {bits}-bit values" in caplog.text
+    ((_, read),) = read_frames(session / "cam0.mkv", 1, 2)
+    assert read is not None and np.abs(read.astype(int) - image).max() <= 1
 
 
 def test_zero_byte_video(session: Path, capsys: pytest.CaptureFixture[str]) -> None:

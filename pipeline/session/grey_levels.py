@@ -30,10 +30,11 @@ def full_scale_level(image: NDArray[np.generic]) -> float:
     return float(2 ** STORED_DEPTHS_BITS[-1] - 1)
 
 
-def grey_8bit(image: NDArray[np.generic]) -> NDArray[np.uint8]:
+def grey_8bit(image: NDArray[np.generic], full_scale: float | None = None) -> NDArray[np.uint8]:
     """(H, W) grey levels of any depth (uint8, uint16, float) as (H, W) uint8 levels.
 
-    uint8 is returned as it is. Other levels are scaled from :func:`full_scale_level` to
+    uint8 is returned as it is. Other levels are scaled from ``full_scale`` (default
+    :func:`full_scale_level` of ``image``: a video's frames share their first's) to
     255 and rounded: a 16-bit file holding 8-bit values reads as those values, one holding
     a 12-bit sensor's as its levels x 255 / 4095, one using the full 16-bit range as its
     levels / 257, and floating-point levels up to 1 as their levels x 255. Levels beyond
@@ -41,5 +42,6 @@ def grey_8bit(image: NDArray[np.generic]) -> NDArray[np.uint8]:
     """
     if image.dtype == np.uint8:
         return np.asarray(image, dtype=np.uint8)
-    levels = np.asarray(image, dtype=np.float64) * (255.0 / full_scale_level(image))
+    white = full_scale_level(image) if full_scale is None else full_scale
+    levels = np.asarray(image, dtype=np.float64) * (255.0 / white)
     return np.clip(np.round(np.nan_to_num(levels)), 0, 255).astype(np.uint8)

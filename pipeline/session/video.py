@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import VideoError
+from .grey_levels import full_scale_level, grey_8bit
 
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mkv", ".mov", ".m4v")
 
@@ -105,6 +106,7 @@ class VideoInfo:
     variable_rate: str = ""
     notes: tuple[str, ...] = ()
     streams: int = 1
+    grey_full_scale: int | None = None
 
 
 # A video's fingerprint reads this many bytes at each end of the file (with its size).
@@ -175,23 +177,24 @@ def _probe(path: Path) -> VideoInfo:
         height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
         fps = float(cap.get(cv2.CAP_PROP_FPS))
         count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-        ok, first = cap.read()
+        ok, _ = cap.read()
         if not ok or width <= 0 or height <= 0:
             raise VideoError(f"{path}: holds no decodable frame; re-copy or re-export it")
-        if facts.pixel_format in DEEP_GREY and int(first.max()) < _DEEP_GREY_DARKEST:
-            # 10- or 12-bit camera data stored in 16-bit samples without being scaled up
-            # (a camera's raw output): read as 16-bit, every frame is nearly black.
-            raise VideoError(
-                f"{path}: a 16-bit grey video whose first frame reaches only {int(first.max())} of 255 "
-                "levels: its values look like 10- or 12-bit data stored unscaled; re-export it with "
-                "its values scaled to the full 16 bits, or as 8-bit video"
-            )
         if not fps > 0:
             raise VideoError(f"{path}: has no frame rate; re-export it with a fixed fps")
     finally:
         cap.release()
     count = facts.packet_count or count
     notes = []
+    full_scale = _deep_grey_full_scale(path) if facts.pixel_format in DEEP_GREY else None
+    if full_scale is not None and full_scale < _FULL_16_BITS:
+        # A camera's 10- or 12-bit values stored in 16-bit samples as they are: read as
+        # 16-bit levels, every frame would be nearly black.
+        notes.append(
+            f"{path}: a 16-bit grey video whose first frame holds {full_scale.bit_length()}-bit "
+            f"values; every frame is read as its levels x 255 / {full_scale} (a later frame "
+            "brighter than that depth reads as white where it is)"
+        )
     if rotation_deg % 360:
         notes.append(
             f"{path}: carries a {rotation_deg % 360:g}-degree rotation tag that is not applied; the "
@@ -216,13 +219,27 @@ def _probe(path: Path) -> VideoInfo:
         variable_rate=variable,
         notes=tuple(notes),
         streams=facts.streams,
+        grey_full_scale=full_scale,
     )
 
 
-# 16-bit grey pixel formats, and the brightest level (of 255, read as 8-bit) below which
-# a first frame holds values of 12 bits or fewer: 4095 of 65535.
+# 16-bit grey pixel formats, and the level of their full range.
 DEEP_GREY = frozenset({"gray16le", "gray16be"})
-_DEEP_GREY_DARKEST = 16
+_FULL_16_BITS = 65535
+
+
+def _deep_grey_full_scale(path: Path) -> int | None:
+    """The level that stands for white in the 16-bit grey video ``path``: 2**bits - 1 of
+    the shallowest stored depth that holds its first frame's brightest pixel (as a 16-bit
+    background image is read: :func:`~pipeline.session.grey_levels.full_scale_level`);
+    None where no frame decodes."""
+    try:
+        with av.open(str(path)) as container:
+            for frame in container.decode(video=0):
+                return int(full_scale_level(frame.to_ndarray()))
+    except (av.error.FFmpegError, OSError):
+        pass
+    return None
 
 
 # FFmpeg's demuxers of bare video streams, which carry no frame rate or timestamps of
@@ -421,7 +438,11 @@ def read_frames(
     try:
         expected = start
         if container.streams.video:
-            for index, image in _decode(container, container.streams.video[0], start, stop, found):
+            stream = container.streams.video[0]
+            # A 16-bit grey video's depth is its first frame's, whichever frames are read.
+            deep = stream.codec_context.pix_fmt in DEEP_GREY
+            full_scale = _deep_grey_full_scale(path) if deep else None
+            for index, image in _decode(container, stream, start, stop, found, full_scale):
                 if index < expected:  # a repeated timestamp: keep the first
                     continue
                 for lost in range(expected, index):
@@ -584,8 +605,10 @@ def _decode(
     start: int,
     stop: int,
     problems: dict[int, str],
+    full_scale: int | None,
 ) -> Iterator[tuple[int, NDArray[np.uint8]]]:
-    """Yield ``(index, grey image)`` for the frames from ``start`` that decode cleanly, ascending.
+    """Yield ``(index, grey image)`` for the frames from ``start`` that decode cleanly, ascending;
+    ``full_scale``: of a 16-bit grey stream (see :class:`Greyer`).
 
     Frames that do not come out are left out (the caller fills the gaps with None)
     and their reason goes into ``problems`` (frame index -> reason). An inter-coded
@@ -594,7 +617,7 @@ def _decode(
     """
     stream.codec_context.options = {"err_detect": "explode"}  # a damaged packet fails, not a garbled picture
     clock = _Clock.of(stream)
-    grey = Greyer()
+    grey = Greyer(full_scale)
     broken = True  # no reference picture until a keyframe: at the start, after a seek or damage
     keyframe_pts: int | None = None  # of the last keyframe sent to the decoder
     previous = start - 1
@@ -642,12 +665,24 @@ class Greyer:
     reformatted frame per picture would cost a fresh 230 kB allocation each.
     The graph is built for the first frame's size, format, colour space and range
     (a stream does not always state the last two, and the frames do).
+
+    16-bit grey frames of fewer bits than 16 (a 10- or 12-bit camera's values stored
+    as they are) are read as their levels x 255 / ``full_scale`` instead, rounded and
+    clipped: ``full_scale`` is the video's (:attr:`VideoInfo.grey_full_scale`), or where
+    None, decided from the first such frame seen, as a whole video's is from its first.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, full_scale: int | None = None) -> None:
         self._graph: av.filter.Graph | None = None  # kept: its filters die with it
+        self._full_scale = full_scale
 
     def __call__(self, frame: av.VideoFrame) -> NDArray[np.uint8]:
+        if frame.format.name in DEEP_GREY:
+            levels = frame.to_ndarray()
+            if self._full_scale is None:
+                self._full_scale = int(full_scale_level(levels))
+            if self._full_scale < _FULL_16_BITS:
+                return grey_8bit(levels, self._full_scale)
         if self._graph is None:
             self._graph = av.filter.Graph()
             source = self._graph.add(

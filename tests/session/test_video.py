@@ -19,7 +19,7 @@ import av
 import cv2
 import numpy as np
 import pytest
-from conftest import remux_with_creation_time, write_video
+from conftest import grey16_video, remux_with_creation_time, write_video
 from numpy.typing import NDArray
 
 from pipeline.session import video
@@ -500,3 +500,35 @@ def test_frames_an_edit_list_hides_are_not_counted(tmp_path: Path) -> None:
     read = [image for _, image in read_frames(path, 0, info.frame_count)]
     assert len(read) == 20 and all(image is not None for image in read)
     assert np.abs(read[0].astype(int) - shown[0]).mean() < 12  # the first shown, not a hidden one
+
+
+@pytest.mark.parametrize("bits", [8, 10, 12, 16])
+def test_a_16_bit_grey_video_reads_at_its_first_frames_depth_in_any_range(tmp_path: Path, bits: int) -> None:
+    rng = np.random.default_rng(bits)
+    scene = rng.integers(0, 256, (48, 64), dtype=np.uint16)
+    white = 2**bits - 1
+    # The first frame's values fill ``bits``; the third is twice as bright (it clips).
+    deep = [np.round(scene * (white / 255)).astype(np.uint16), scene * 0, scene * 0]
+    deep[2] = np.minimum(deep[0].astype(np.int64) * 2, 65535).astype(np.uint16)
+    path = grey16_video(tmp_path / "deep.mkv", deep)
+    info = video.probe_video(path)
+    assert info.grey_full_scale == white
+    assert bool(info.notes) == (bits < 16)
+    frames = [image for _, image in read_frames(path, 0, 3)]
+    assert frames[0] is not None and np.abs(frames[0].astype(int) - scene).max() <= 1
+    assert frames[1] is not None and not frames[1].any()
+    # A range that starts at the bright frame reads it at the first frame's depth too:
+    # the levels do not depend on how a run splits the video.
+    ((_, alone),) = read_frames(path, 2, 3)
+    np.testing.assert_array_equal(alone, frames[2])
+    if bits < 16:
+        assert alone is not None and (alone[scene >= 128] == 255).all()
+
+
+def test_a_live_greyer_takes_its_first_deep_frames_depth() -> None:
+    scene = np.arange(64 * 48, dtype=np.uint16).reshape(48, 64) % 256
+    greyer = video.Greyer()
+    first = greyer(av.VideoFrame.from_ndarray(scene << 2, format="gray16le"))  # 10-bit values
+    brighter = greyer(av.VideoFrame.from_ndarray(scene << 4, format="gray16le"))
+    assert np.abs(first.astype(int) - scene).max() <= 1
+    assert (brighter[scene >= 64] == 255).all()
