@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import shutil
 import threading
 import time
 from collections.abc import Sequence
@@ -25,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import SessionError
+from ..errors import OutputError, SessionError
 from ..reconstruct.frame_task import Tracker
 from ..run.interrupts import deferred_signals, signals_interrupt
 from ..run.output_target import OutputTarget, prepare_outputs
@@ -50,6 +51,13 @@ JOIN_S = 3.0
 # The cameras a live run reconstructs with, as its summary and recordings say: a refinement
 # needs a session's frames spread over the run, which a live run does not have ahead.
 LIVE_CAMERAS = "given (a live run does not refine them from the silhouettes)"
+# A live run stops while the disk that holds its recordings still has room to finish them,
+# rather than lose every frame when it fills (its cameras cannot film the take again).
+# Finishing writes the smoothed curves and their flags (2.7 KiB a frame-set in the demo's
+# recordings, 2026-12-05), the MCAP's index and what Rerun still holds.
+FINISH_ROOM_BYTES = 32 << 20
+FINISH_ROOM_PER_SET_BYTES = 8 << 10
+STOPPED_FOR_ROOM = "the disk filling up"
 
 
 @dataclass(frozen=True)
@@ -101,9 +109,10 @@ class LiveSummary:
     latencies_ms : (F,) per frame written, from the capture of its last image to its
         result being written, ms.
     dropped : frame-sets dropped because the reconstruction fell behind.
-    stopped_by : "a signal" (Ctrl-C, SIGTERM, SIGHUP), "--duration", "the end of the replay"
-        or "the cameras ending".
+    stopped_by : "a signal" (Ctrl-C, SIGTERM, SIGHUP), "--duration", "the end of the replay",
+        "the cameras ending" or ``STOPPED_FOR_ROOM``.
     cameras : per camera, in calibration order, how it went.
+    room_line : where the run stopped for room on its disk, the line that says so ("" otherwise).
     """
 
     run: RunSummary
@@ -111,6 +120,7 @@ class LiveSummary:
     dropped: int
     stopped_by: str = ""
     cameras: tuple[CameraSummary, ...] = ()
+    room_line: str = ""
 
     def camera(self, name: str) -> CameraSummary:
         """The camera named ``name``."""
@@ -118,15 +128,16 @@ class LiveSummary:
 
     @property
     def exit_code(self) -> int:
-        """The run's; 1 at least where a camera delivered nothing or a replay ended short."""
+        """The run's; 1 at least where a camera delivered nothing, a replay ended short or the
+        disk filled up."""
         silent = any(c.silent for c in self.cameras)
-        return max(self.run.exit_code, int(silent or bool(self.replay_lines())))
+        return max(self.run.exit_code, int(silent or bool(self.replay_lines()) or bool(self.room_line)))
 
     def latency_ms(self, percentile: float) -> float:
         return float(np.percentile(self.latencies_ms, percentile)) if len(self.latencies_ms) else float("nan")
 
     def outage_lines(self) -> list[str]:
-        lines = []
+        lines = [self.room_line] if self.room_line else []
         if not self.run.frames_total:
             by_stop = self.stopped_by in ("--duration", "a signal")
             when = f" before the run was stopped by {self.stopped_by}" if by_stop else ""
@@ -307,6 +318,12 @@ def _run(
 ) -> LiveSummary:
     t0 = time.perf_counter()
     names = [c.name for c in rig.cameras]
+    free = free_bytes(target.out_dir)
+    if free < finish_room_bytes(0):
+        raise OutputError(
+            f"{target.out_dir}: its disk has {_mib(free)} free, and a live run keeps "
+            f"{_mib(finish_room_bytes(0))} to finish its recordings in; free space or choose another --out"
+        )
     model, doubt, tube_end = _model(rig, sources)
     server = None
     writer: Writers | None = None
@@ -357,6 +374,13 @@ def _run(
             target.rrd_path,
         )
         latencies, stopped_by = _loop(readers, queue, writer, model, names, images, duration_s, restarts)
+        room_line = ""
+        if stopped_by == STOPPED_FOR_ROOM:
+            room_line = (
+                f"  {target.out_dir}: its disk had {_mib(free_bytes(target.out_dir))} left: the run stopped "
+                f"after {len(latencies)} frame-sets to finish its recordings with them; free space or "
+                "choose another --out"
+            )
         try:
             with deferred_signals():  # from here a signal waits for the recordings to be complete
                 _stop_readers(stop, readers)
@@ -383,6 +407,7 @@ def _run(
         latencies_ms=np.asarray(latencies, dtype=np.float64),
         dropped=queue.dropped,
         stopped_by=stopped_by,
+        room_line=room_line,
         cameras=tuple(
             CameraSummary(
                 name=name,
@@ -444,8 +469,24 @@ def _loop(
                 )
                 latencies.append(latency_ms)
                 queue.settle()
+            if free_bytes(writer.target.out_dir) < finish_room_bytes(len(latencies)):
+                return latencies, STOPPED_FOR_ROOM
     except KeyboardInterrupt:
         return latencies, "a signal"
+
+
+def finish_room_bytes(frame_sets: int) -> int:
+    """The room (bytes) a live run keeps on its disk to finish recordings of ``frame_sets``."""
+    return FINISH_ROOM_BYTES + FINISH_ROOM_PER_SET_BYTES * frame_sets
+
+
+def free_bytes(directory: Path) -> int:
+    """The bytes this user may still write on the disk that holds ``directory``."""
+    return shutil.disk_usage(directory).free
+
+
+def _mib(size_bytes: int) -> str:
+    return f"{size_bytes / (1 << 20):.1f} MiB"
 
 
 def _stop_readers(stop: threading.Event, readers: Sequence[CameraReader]) -> None:

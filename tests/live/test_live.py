@@ -29,7 +29,7 @@ import pytest
 import tomli_w
 
 import pipeline
-from pipeline.errors import SessionError, SettingsError
+from pipeline.errors import OutputError, SessionError, SettingsError
 from pipeline.live import run as live_run
 from pipeline.live.capture import CameraReader
 from pipeline.live.handoff import DroppingQueue
@@ -442,6 +442,42 @@ def test_a_replay_records_what_process_records(
     assert live.smoothed_centerlines_m is not None
     _verify_rrd(tmp_path / "take.rrd")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["take.mcap", "take.rrd"]
+
+
+def test_a_disk_filling_up_stops_the_run_with_the_frames_so_far_recorded(
+    session: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The disk's free space as the run asks for it: plenty before the first frame-set and
+    # after each of the next four, then, after the fifth, less than the run keeps to finish
+    # its recordings.
+    asked: list[Path] = []
+
+    def free_bytes(directory: Path) -> int:
+        asked.append(directory)
+        room = live_run.finish_room_bytes(FRAMES)
+        return 10 * room if len(asked) <= 5 else room // 2
+
+    monkeypatch.setattr(live_run, "free_bytes", free_bytes)
+    rig, sources = open_rig(None, session)
+    summary = run_live(rig, sources, out_dir=tmp_path, queue_sets=FRAMES)
+    assert set(asked) == {tmp_path}
+    assert summary.stopped_by == live_run.STOPPED_FOR_ROOM and summary.exit_code == 1
+    assert summary.run.frames_total == 5
+    (line,) = [line for line in summary.problem_lines() if "free space" in line]
+    assert f"{tmp_path}: its disk had" in line and "stopped after 5 frame-sets" in line
+    recording = pipeline.load_recording(tmp_path / "take.mcap")
+    assert recording.complete and recording.frame_indices.tolist() == [0, 1, 2, 3, 4]
+    _verify_rrd(tmp_path / "take.rrd")
+
+
+def test_a_disk_without_room_to_finish_is_refused_before_the_run(
+    session: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(live_run, "free_bytes", lambda directory: live_run.finish_room_bytes(0) - 1)
+    rig, sources = open_rig(None, session)
+    with pytest.raises(OutputError, match=r"out: its disk has 32\.0 MiB free, and a live run keeps 32\.0"):
+        run_live(rig, sources, out_dir=tmp_path / "out", duration_s=5.0)
+    assert not (tmp_path / "out").exists()
 
 
 def _free_port(kind: int = socket.SOCK_STREAM) -> int:
