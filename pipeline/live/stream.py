@@ -50,16 +50,52 @@ def grpc_url(address: str) -> str:
 
 
 def check_viewer(url: str) -> None:
-    """Refuse, before the run, a viewer address where nothing listens (the stream would pile up)."""
+    """Refuse, before the run, a viewer address where no gRPC server answers: nothing
+    listens (the stream would pile up), or what listens is no viewer (a web server, a
+    service that never answers). A plain ``rerun+http`` address is asked for an HTTP/2
+    greeting, which a Rerun viewer answers at once; a ``rerun+https`` one only connected to."""
     parts = urlsplit(url)
     assert parts.hostname is not None and parts.port is not None  # grpc_url's
     try:
-        socket.create_connection((parts.hostname, parts.port), timeout=CONNECT_TIMEOUT_S).close()
+        with socket.create_connection((parts.hostname, parts.port), timeout=CONNECT_TIMEOUT_S) as conn:
+            wrong = "" if parts.scheme == "rerun+https" else _not_http2(conn)
     except OSError as exc:
         raise SettingsError(
             f"--viewer connect {url}: no Rerun viewer answers there ({exc.strerror or exc}); start one "
             "(rerun, or rerun --serve-grpc) or use --viewer spawn or none"
         ) from None
+    if wrong:
+        raise SettingsError(
+            f"--viewer connect {url}: {wrong}, so it is no Rerun viewer; give the viewer's gRPC port "
+            f"(rerun's is {DEFAULT_VIEWER_PORT}), or use --viewer spawn or none"
+        )
+
+
+# The greeting an HTTP/2 client opens with (RFC 9113, 3.4): the preface and an empty SETTINGS
+# frame. A server answers with a SETTINGS frame of its own: 9 header bytes, type 4 fourth.
+_H2_GREETING = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes((0, 0, 0, 4, 0, 0, 0, 0, 0))
+_H2_SETTINGS = 4
+
+
+def _not_http2(conn: socket.socket) -> str:
+    """What the server on ``conn`` does instead of answering HTTP/2's greeting ("" if it answers)."""
+    conn.sendall(_H2_GREETING)
+    answer = b""
+    try:
+        while len(answer) < 4:
+            more = conn.recv(64)
+            if not more:
+                break
+            answer += more
+    except TimeoutError:
+        return f"the server there took the connection but did not answer within {CONNECT_TIMEOUT_S:g} s"
+    if len(answer) >= 4 and answer[3] == _H2_SETTINGS:
+        return ""
+    if answer.startswith((b"HTTP/", b"<")):  # a status line, or an HTTP/0.9 error page
+        status = answer.splitlines()[0][:60].decode(errors="replace")
+        return f"the server there answers as a web server ({status})"
+    closed = "" if answer else " (it closed the connection)"
+    return f"the server there does not answer as a gRPC server{closed}"
 
 
 def has_display() -> bool:

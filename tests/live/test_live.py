@@ -36,7 +36,7 @@ from pipeline.live.handoff import DroppingQueue
 from pipeline.live.restarts import RestartWorker
 from pipeline.live.run import CameraSummary, LiveSummary, run_live
 from pipeline.live.sources import V4L2_FORMAT, Source, open_rig, parse_source
-from pipeline.live.stream import grpc_url, parse_host_port
+from pipeline.live.stream import check_viewer, grpc_url, parse_host_port
 from pipeline.live.sync import MAX_WAITING_FRAMES, CapturedFrame, FrameMatcher, FrameSet, head_action
 from pipeline.measure.bench.live import mean_gap_mm
 from pipeline.session.settings import settings_from_dict
@@ -504,6 +504,7 @@ def test_a_rerun_grpc_server_receives_the_stream(session: Path, tmp_path: Path) 
     )
     try:
         _wait_for_port(port)
+        check_viewer(grpc_url(str(port)))  # a viewer, as `--viewer connect PORT` asks it
         rig, sources = open_rig(None, session)
         summary = run_live(
             rig, sources, out_dir=tmp_path / "out", viewer_url=grpc_url(str(port)), queue_sets=FRAMES
@@ -813,6 +814,30 @@ def test_live_to_a_viewer_nobody_runs_is_refused_before_the_run(
     err = capsys.readouterr().err.strip()
     assert f"--viewer connect rerun+http://127.0.0.1:{port}/proxy: no Rerun viewer answers there" in err
     assert len(err.splitlines()) == 1 and not (tmp_path / "out").exists()
+
+
+def test_a_viewer_address_where_something_else_listens_is_refused_naming_it() -> None:
+    import http.server
+
+    # A web server on the port (another tool's, or the viewer's web port for its gRPC one).
+    web = http.server.HTTPServer(("127.0.0.1", 0), http.server.BaseHTTPRequestHandler)
+    threading.Thread(target=web.serve_forever, daemon=True).start()
+    try:
+        url = grpc_url(str(web.server_port))
+        with pytest.raises(SettingsError) as refused:
+            check_viewer(url)
+    finally:
+        web.shutdown()
+        web.server_close()
+    line = str(refused.value)
+    assert line.startswith(f"--viewer connect {url}: the server there answers as a web server (")
+    assert "so it is no Rerun viewer; give the viewer's gRPC port (rerun's is 9876)" in line
+    # A service that takes the connection and never answers (a hung viewer).
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        with pytest.raises(SettingsError, match="took the connection but did not answer within 2 s"):
+            check_viewer(grpc_url(str(listener.getsockname()[1])))
 
 
 def test_a_foxglove_client_that_stopped_reading_does_not_hold_the_run(
