@@ -22,12 +22,11 @@ from typing import NoReturn
 from ..errors import Interrupted, PipelineError
 from ..run.interrupts import signals_interrupt
 from .commands import (
-    CLOSED_BY_CALLER,
     EXIT_BAD_INPUT,
     EXIT_FRAMES_FAILED,
     EXIT_INTERNAL_ERROR,
     EXIT_OK,
-    null_onto,
+    open_closed_std_streams,
 )
 from .parser import PROG, build_parser, with_json_before_a_folder, with_negative_frames
 from .shutdown import exit_fast
@@ -54,7 +53,7 @@ def run(prog: str = PROG) -> NoReturn:
 
 
 def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
-    _open_closed_std_streams()
+    open_closed_std_streams()
     try:
         os.getcwd()
     except FileNotFoundError:
@@ -69,16 +68,6 @@ def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
             message = str(exc) if isinstance(exc, Interrupted) else "interrupted; nothing written"
             print(message, file=sys.stderr)
             return 130
-
-
-def _open_closed_std_streams() -> None:
-    """A standard stream the caller closed (``>&-``) is opened on the null device: Python
-    leaves it None, and the first print (or a worker process inheriting the descriptor)
-    would fail. What goes to it is dropped, as a closed stream asks."""
-    for fd, name in ((1, "stdout"), (2, "stderr")):
-        if getattr(sys, name) is None:
-            null_onto(fd, name)
-            CLOSED_BY_CALLER.add(name)
 
 
 def _main(argv: Sequence[str] | None, prog: str) -> int:

@@ -59,17 +59,27 @@ def say(text: str, stream: TextIO | None = None, *, result: str = "") -> None:
 
 
 # The standard streams the caller closed (``>&-``), opened on the null device at the start.
-CLOSED_BY_CALLER: set[str] = set()
+_CLOSED_BY_CALLER: set[str] = set()
 
 
 def check_stdout_takes(result: str) -> None:
     """Before the run: stdout, where ``result`` goes (a script asked for it there), is open.
     Closed by the caller it was put on the null device, and the result would be lost with
     exit status 0."""
-    if "stdout" in CLOSED_BY_CALLER:
+    if "stdout" in _CLOSED_BY_CALLER:
         raise OutputError(
             f"stdout: closed (>&-), so it cannot take {result}; leave it open, or send it to a file"
         )
+
+
+def open_closed_std_streams() -> None:
+    """A standard stream the caller closed (``>&-``) is opened on the null device: Python
+    leaves it None, and the first print (or a worker process inheriting the descriptor)
+    would fail. What goes to it is dropped, as a closed stream asks."""
+    for fd, name in ((1, "stdout"), (2, "stderr")):
+        if getattr(sys, name) is None:
+            null_onto(fd, name)
+            _CLOSED_BY_CALLER.add(name)
 
 
 def null_onto(fd: int, name: str) -> None:

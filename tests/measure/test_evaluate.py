@@ -553,7 +553,7 @@ def test_a_report_to_a_stdout_the_caller_closed_is_refused(
     from pipeline.cli import EXIT_BAD_INPUT, commands, main
 
     recording, session_dir = partial_run
-    monkeypatch.setattr(commands, "CLOSED_BY_CALLER", {"stdout"})
+    monkeypatch.setattr(commands, "_CLOSED_BY_CALLER", {"stdout"})
     assert main(["evaluate", str(recording), str(session_dir)]) == EXIT_BAD_INPUT
     assert capsys.readouterr().err.splitlines() == [
         "error: stdout: closed (>&-), so it cannot take the report of rod.mcap; leave it open, "
