@@ -116,11 +116,7 @@ def calibrate_directory(
         result, used, world_problems = _without_odd_world_view(result, views, the_board, shared_intrinsics)
     outliers = find_outliers(result.image_errors)
     if drop_outliers and outliers:
-        drop = {(e.camera, e.key) for e in outliers if e.key != WORLD}
-        log.info("dropping %d outlier image(s) and recalibrating", len(drop))
-        used = [v for v in used if (v.camera, v.key) not in drop]
-        result = calibrate_views(used, the_board, shared_intrinsics=shared_intrinsics)
-        result.dropped = sorted(e.source for e in outliers if e.key != WORLD)
+        result = _without_outliers(result, used, outliers, the_board, shared_intrinsics)
         outliers = find_outliers(result.image_errors)
     result.outliers = outliers
     result.problems = world_problems + _problems(result)
@@ -150,6 +146,50 @@ def calibrate_directory(
             f"{report}: wrote {output}, but not its report pictures ({exc.strerror or exc}); free space "
             "or give -o a folder with room for them"
         ) from None
+    return result
+
+
+def _without_outliers(
+    result: CalibrationResult,
+    views: list[View],
+    outliers: list[ImageError],
+    board: Board,
+    shared_intrinsics: bool,
+) -> CalibrationResult:
+    """``result`` calibrated again without its outlier images (``--drop-outliers``): the view
+    of the image that stands out most dropped first, one view at a time while any stands out,
+    at most as many as ``outliers`` (those that stood out at first; the world views are
+    kept). A shared view goes with every camera's image of it: they saw one board pose, and
+    one image that does not fit it cannot say which of them is wrong (a mirrored image kept
+    alone still fits a pose of its own, and pulls its camera's focal length).
+
+    One at a time, because one image far off (mirrored, of another rig) pulls the whole rig,
+    and good images stand out beside it: on the real stereo pairs with one image mirrored,
+    dropping every image that stood out dropped six to nine good ones of the other camera.
+    """
+    from .report import find_outliers
+
+    dropped: list[str] = []
+    for _ in range(len(outliers)):
+        standing_out = [e for e in find_outliers(result.image_errors) if e.key != WORLD]
+        if not standing_out:
+            break
+        # With the worst image of each camera unfit for use: one image far off (mirrored)
+        # can wreck the whole calibration, every camera's errors tens of pixels, and then
+        # stand out in none (its camera's spread is as wide) while being the worst of all.
+        worst = max(standing_out + _worst_of_unfit_cameras(result), key=lambda e: e.mean_px)
+        instant = next(v.instant for v in views if (v.camera, v.key) == (worst.camera, worst.key))
+        gone = [v for v in views if v.instant == instant]
+        log.info(
+            "dropping %s (%.3f px)%s and calibrating again",
+            worst.source,
+            worst.mean_px,
+            f" with the {len(gone) - 1} other camera(s)' image(s) of its board pose" if len(gone) > 1 else "",
+        )
+        views = [v for v in views if v.instant != instant]
+        result = calibrate_views(views, board, shared_intrinsics=shared_intrinsics)
+        dropped += [v.source for v in gone]
+    result.dropped = sorted(dropped)
     return result
 
 
@@ -238,18 +278,35 @@ def _without_odd_world_view(
     )
 
 
-def _problems(result: CalibrationResult) -> list[str]:
-    """A line per camera whose mean re-projection error exceeds its bar (``MAX_CAMERA_MEAN_PX``,
-    or ``MEAN_PX_PER_DIAGONAL_PX`` of its image's diagonal where that is more), with its
-    worst image."""
-    lines = []
+def _unfit_cameras(result: CalibrationResult) -> list[tuple[Camera, float, float, ImageError]]:
+    """(camera, mean px, bar px, worst image) of each camera whose mean re-projection error
+    exceeds its bar: ``MAX_CAMERA_MEAN_PX``, or ``MEAN_PX_PER_DIAGONAL_PX`` of its image's
+    diagonal where that is more."""
+    unfit = []
     means = result.camera_mean_px()
     for cam in result.cameras:
         mean = means[cam.name]
         bar = max(MAX_CAMERA_MEAN_PX, MEAN_PX_PER_DIAGONAL_PX * float(np.hypot(*cam.size_px)))
-        if mean <= bar:
-            continue
-        worst = max((e for e in result.image_errors if e.camera == cam.name), key=lambda e: e.mean_px)
+        if mean > bar:
+            worst = max((e for e in result.image_errors if e.camera == cam.name), key=lambda e: e.mean_px)
+            unfit.append((cam, mean, bar, worst))
+    return unfit
+
+
+def _worst_of_unfit_cameras(result: CalibrationResult) -> list[ImageError]:
+    """The worst image, not a world view, of each camera :func:`_unfit_cameras` names."""
+    worst = []
+    for cam, _, _, _ in _unfit_cameras(result):
+        mine = [e for e in result.image_errors if e.camera == cam.name and e.key != WORLD]
+        if mine:
+            worst.append(max(mine, key=lambda e: e.mean_px))
+    return worst
+
+
+def _problems(result: CalibrationResult) -> list[str]:
+    """A line per camera of :func:`_unfit_cameras`, with its worst image."""
+    lines = []
+    for cam, mean, bar, worst in _unfit_cameras(result):
         lines.append(
             f"camera {cam.name!r}: mean re-projection error {mean:.1f} px (above {bar:.2g} px; "
             f"worst {worst.source}, {worst.mean_px:.1f} px): the images do not fit one rig; look for an "

@@ -390,6 +390,33 @@ def test_real_stereo_pairs_agree_with_opencv_stereo(tmp_path) -> None:
     assert rotation_angle_deg(R_rel, R) < 0.05
 
 
+@pytest.mark.skipif(not STEREO.is_dir(), reason="real stereo images not available")
+def test_drop_outliers_drops_a_mirrored_image_and_its_pair_not_the_other_cameras_good_ones(
+    tmp_path,
+) -> None:
+    """One real image mirrored (a board seen in a mirror, an export flipped) pulls the rig,
+    and the other camera's good images stand out beside it until it is gone."""
+    root = tmp_path / "stereo"
+    for side in ("left", "right"):
+        (root / side / "shared").mkdir(parents=True)
+        (root / side / "world.jpg").symlink_to(STEREO / f"{side}01.jpg")
+        for i in range(2, 14):
+            (root / side / "shared" / f"{i:02d}.jpg").symlink_to(STEREO / f"{side}{i:02d}.jpg")
+    clean = calibrate_directory(root, tmp_path / "clean.toml", board=(9, 6), square_mm=24.0)
+    mirrored = root / "left" / "shared" / "03.jpg"
+    mirrored.unlink()
+    cv2.imwrite(str(mirrored), cv2.flip(cv2.imread(str(STEREO / "left03.jpg")), 1))
+    result = calibrate_directory(root, tmp_path / "c.toml", board=(9, 6), square_mm=24.0, drop_outliers=True)
+    # The mirrored image goes with its pair's other image (one board pose, which of the two
+    # is wrong the pose alone cannot say), and nothing else but the pairs of the images that
+    # stand out without it.
+    pair = {str(mirrored), str(root / "right" / "shared" / "03.jpg")}
+    standing_out = {Path(e.source).stem for e in clean.outliers}
+    assert pair <= set(result.dropped)
+    assert {Path(source).stem for source in result.dropped} <= {"03"} | standing_out
+    assert max(result.camera_mean_px().values()) <= 0.3
+
+
 @pytest.mark.slow
 def test_reconstruction_with_calibrated_cameras(synth, tmp_path) -> None:
     """synth-calib -> calibrate -> process -> evaluate: calibrated cameras cost <= 0.2 mm."""
