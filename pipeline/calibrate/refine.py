@@ -311,9 +311,11 @@ def refined_cameras(
     map_frames: FrameMap = map_here,
 ) -> tuple[tuple[Camera, ...], Refinement | None, ReadTips | None]:
     """The cameras to reconstruct the session with, under the settings' ``[calibration]
-    refine``, and the refinement's report (None when not asked for, or when too few frames
-    show the tube to refine on), from its sample ``frames`` (:func:`sample_session`).
-    ``map_frames`` runs their reconstructions.
+    refine``, and the refinement's report, from its sample ``frames`` (:func:`sample_session`).
+    The report, where the cameras are kept without refining (``refine = false``, two
+    cameras), says why and where they see the tube's base (:func:`_kept_as_given`); it is
+    None where the centreline is not the tube fit, or too few frames show the tube to refine
+    on. ``map_frames`` runs their reconstructions.
 
     Third, where the settings leave the tube's end to the frames (``[manipulator] tip =
     "auto"``) and the given cameras are kept: the sample frames' ends, read on the same
@@ -321,19 +323,42 @@ def refined_cameras(
     bases are free, which moves a fit near its base, not at its end); else None."""
     started = time.perf_counter()
     mode = model.settings.calibration.refine
-    if mode is False or model.settings.centerline.method != "fit":
+    if model.settings.centerline.method != "fit":
         return model.cameras, None, None
+    if mode is False:
+        return model.cameras, _kept_as_given(model, frames, map_frames, "[calibration] refine = false"), None
     if len(model.cameras) < 3:
         # Each sample of a tube's sides is read once per view, across it: two views give
         # exactly the two numbers that place it, and nothing is left to tell the cameras by.
         reason = "two views of a tube's sides say nothing about the cameras; refining needs three or more"
-        return model.cameras, Refinement(False, 0, float("nan"), float("nan"), (), reason), None
+        return model.cameras, _kept_as_given(model, frames, map_frames, reason), None
     tubes, read = _sampled(model, frames, map_frames)
     if len(tubes) < 3:
         return model.cameras, None, read
     cameras, report = refine(model, tubes, mode, refitter(model, frames, map_frames))
     report = dataclasses.replace(report, seconds=time.perf_counter() - started)
     return cameras, report, read if cameras is model.cameras else None
+
+
+def _kept_as_given(
+    model: SessionModel,
+    frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
+    map_frames: FrameMap,
+    reason: str,
+) -> Refinement:
+    """The report of cameras kept as given without a refinement (for ``reason``), with where
+    they see the tube's base against ``[manipulator] base_mm``, read on the tubes of the
+    sample ``frames`` as where a refinement keeps them (:func:`_given_mount_note`). On the
+    51 two-camera sessions of ``accuracy_table`` draws 2, 191-231 and 307 (2026-12-05), the
+    true base_mm was never called wrong (41 seen there, 10 whose base end the frames see
+    unalike), and base_mm 15 mm off in x or z, or 8 mm in y, was named in those 41."""
+    note = ""
+    if model.settings.manipulator.base_mm is not None:
+        samples = map_frames(_sample, frames, _base_free(model))
+        tubes = [tube for tube, _ in samples if tube is not None]
+        if len(tubes) >= 3:
+            note = _given_mount_note(model.cameras, tubes, model.settings.manipulator.base_mm)
+    return Refinement(False, 0, float("nan"), float("nan"), (), reason, mount_note=note)
 
 
 def sample_tips(

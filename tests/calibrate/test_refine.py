@@ -18,6 +18,7 @@ from pipeline.calibrate.refine import (
     Refinement,
     distinct_poses,
     refine,
+    refined_cameras,
     refitter,
     sample_session,
     sample_tubes,
@@ -162,6 +163,46 @@ def test_a_mount_set_far_from_the_base_is_named_where_the_cameras_are_kept(
         (line,) = report.problems()
         assert "the tube's base is seen 1" in line and "check base_mm" in line
         assert report.warnings() == []
+
+
+@pytest.mark.parametrize("kept_by", ["two cameras", "refine = false"])
+def test_a_mount_set_far_from_the_base_is_named_where_nothing_is_refined(
+    sessions: dict[float, Path], tmp_path: Path, kept_by: str
+) -> None:
+    """Cameras that are not refined (two of them, or ``[calibration] refine = false``) are
+    still read for where they see the tube's base: a base_mm 15 mm off is named."""
+    if kept_by == "two cameras":
+        session_dir = tmp_path / "two"
+        render_session(
+            session_dir,
+            shape="random",
+            frames=FRAMES,
+            seed=29,
+            radius_mm=6.0,
+            options=SceneOptions(cameras=2),
+            progress=False,
+            jobs=1,
+        )
+    else:
+        session_dir = sessions[0.0]
+    session = load_session(session_dir)
+    frames = decode_frames(session.video_paths, sample_frames(0, FRAMES, 12))
+    for off_mm in (0.0, 15.0):
+        base = np.add(session.settings.manipulator.base_mm, [off_mm, 0.0, 0.0])
+        settings = replace(
+            session.settings,
+            manipulator=replace(session.settings.manipulator, base_mm=tuple(base)),
+            calibration=replace(session.settings.calibration, refine=kept_by == "two cameras"),
+        )
+        model = build_model(replace(session, settings=settings))
+        cameras, report, _ = refined_cameras(model, frames)
+        assert cameras is model.cameras and report is not None and not report.applied
+        assert report.describe().startswith("given (") and report.warnings() == []
+        if off_mm:
+            (line,) = report.problems()
+            assert "the tube's base is seen 1" in line and "check base_mm" in line
+        else:
+            assert report.problems() == []
 
 
 def test_a_tube_that_stands_still_is_not_refined_on(sampled: Sampled) -> None:
