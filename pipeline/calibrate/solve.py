@@ -164,8 +164,12 @@ def _without_outliers(
     alone still fits a pose of its own, and pulls its camera's focal length).
 
     One at a time, because one image far off (mirrored, of another rig) pulls the whole rig,
-    and good images stand out beside it: on the real stereo pairs with one image mirrored,
-    dropping every image that stood out dropped six to nine good ones of the other camera.
+    and good images stand out beside it. On the real stereo pairs (world view 01, shared
+    views 02-25), each of the 48 shared images mirrored in turn (2026-12-05): dropping every
+    image that stood out at once dropped 6-9 good images in 35 of the 48 runs, and left a
+    camera centre up to 1.53 mm (median 0.81) from the clean images' calibration; one view
+    at a time drops none but the mirrored pair and pair 15 (which stands out among the clean
+    images too), the centres within 0.95 mm (median 0.35).
     """
     from .report import find_outliers
 
