@@ -18,6 +18,9 @@ from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 
+# The world frame's name, beside the cameras' (each its own name) in the recordings' frames.
+WORLD_FRAME = "world"
+
 # Fewer points than this are projected view by view with cv2.projectPoints: the
 # array version's ~30 calls cost more than three small projectPoints calls.
 _MIN_POINTS_IN_VIEWS = 48

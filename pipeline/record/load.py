@@ -16,6 +16,7 @@ Other MCAP readers decode the metrics channel (JSON) with :class:`JsonDecoderFac
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -457,6 +458,17 @@ def _curve_from_update(update: Any) -> NDArray[np.float64] | None:
     return None
 
 
+def _camera_names(text: str) -> tuple[str, ...]:
+    """The cameras of the metadata's "cameras": a JSON list of names, or (in recordings
+    written before names could hold commas) the names joined by commas."""
+    if text.startswith("["):
+        with contextlib.suppress(ValueError):
+            names = json.loads(text)
+            if isinstance(names, list) and all(isinstance(n, str) for n in names):
+                return tuple(names)
+    return tuple(n for n in text.split(",") if n)
+
+
 def _stack(curves: dict[int, NDArray[np.float64] | None], times: list[int], n: int) -> NDArray[np.float64]:
     out = np.full((len(times), n, 3), np.nan)
     for row, t in enumerate(times):
@@ -485,7 +497,7 @@ def _assemble(
     n = max(lengths) if lengths else int(declared) if declared.isdecimal() and len(declared) <= 5 else 0
     if len(lengths) > 1:
         warn(f"{path}: centrelines of different lengths {sorted(lengths)}; shorter ones read as NaN")
-    names = tuple(n for n in metadata.get("cameras", "").split(",") if n)
+    names = _camera_names(metadata.get("cameras", ""))
     return Recording(
         path=path,
         camera_names=names,

@@ -52,10 +52,9 @@ from mcap_protobuf.schema import build_file_descriptor_set, register_schema
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from ..geometry.camera import Camera
+from ..geometry.camera import WORLD_FRAME, Camera
 from ..reconstruct.frame_result import FrameResult
 
-WORLD_FRAME = "world"
 POINTS_TOPIC = "/reconstruction/points"
 CENTERLINE_TOPIC = "/reconstruction/centerline"
 SMOOTHED_TOPIC = "/reconstruction/centerline_smoothed"
@@ -356,7 +355,8 @@ class McapRecorder:
         self._schemas: dict[str, int] = {}
         self._statics_written = False
         self._finished = False
-        meta = {"cameras": ",".join(self._names), "units": "metres", "frame_id": WORLD_FRAME}
+        # The names as a JSON list: a name may hold any character, a comma too.
+        meta = {"cameras": json.dumps(self._names), "units": "metres", "frame_id": WORLD_FRAME}
         meta.update(metadata or {})
         # Metadata goes first so that even a file truncated early names its cameras.
         self._writer.add_metadata(METADATA_NAME, meta)

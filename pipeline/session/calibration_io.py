@@ -17,13 +17,16 @@ import numpy as np
 import tomli_w
 
 from ..errors import CalibrationError
-from ..geometry.camera import Camera
+from ..geometry.camera import WORLD_FRAME, Camera
 from .toml_file import read_toml
 
 REQUIRED_KEYS = ("name", "size", "matrix", "distortions", "rotation", "translation")
 # aniposelib's marks its fisheye cameras; every other key is a typo of one of these (a
 # misspelt "fisheye" would pass a fisheye lens off as a standard one).
 KNOWN_KEYS = (*REQUIRED_KEYS, "fisheye")
+# A camera's name is its video's file stem, and its frame's name in the recordings: a path
+# separator splits the first, and the world frame's own name (WORLD_FRAME) would loop the second.
+NAME_FORBIDS = ("/", "\\", "\0")
 
 
 def read_calibration(path: Path) -> list[Camera]:
@@ -106,13 +109,27 @@ def _camera(source: str, key: str, table: Any) -> Camera:
     if not isinstance(name, str) or not name:
         raise CalibrationError(f"{source}: {label} name must be a non-empty string")
     where = f"{label} (camera {name!r})"
+    if any(c in name for c in NAME_FORBIDS) or name in (".", ".."):
+        raise CalibrationError(
+            f"{source}: {where} name cannot hold / or \\ or be . or ..: it names the camera's video "
+            "file (cam0 -> cam0.mp4); rename the camera and its video"
+        )
+    if name == WORLD_FRAME:
+        raise CalibrationError(
+            f"{source}: {where} name {WORLD_FRAME!r} is the recordings' own frame (the one the "
+            "hull and the centreline are in); rename the camera and its video"
+        )
     size = table["size"]
+    # Whole numbers, as integers or as floats (aniposelib's resized cameras write 320.0).
     if (
         not isinstance(size, list)
         or len(size) != 2
-        or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)
+        or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in size)
+        or not all(v > 0 and float(v).is_integer() for v in size)
     ):
         raise CalibrationError(f"{source}: {where} size must be [width, height] positive integers")
+    if not isinstance(table.get("fisheye", False), bool):
+        raise CalibrationError(f"{source}: {where} fisheye must be true or false, got {table['fisheye']!r}")
     if table.get("fisheye") is True:
         raise CalibrationError(
             f"{source}: {where} is a fisheye calibration, which this pipeline does not model; "

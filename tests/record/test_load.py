@@ -3,6 +3,7 @@ with files cut short mid-write."""
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import logging
@@ -400,6 +401,23 @@ def test_odd_figures_of_another_program_read_as_unknown_and_paths_as_the_system_
     assert table["voxel_count"].dtype == np.float64 and table["voxel_count"][0] == 1e40
     with pytest.raises(PipelineError, match=r"^an empty path; give the recording's \.mcap file$"):
         pipeline.load_recording("")
+
+
+def test_camera_names_with_commas_come_back_whole(tmp_path: Path) -> None:
+    names = ["a,b", "c", "d"]
+    cameras = [dataclasses.replace(cam, name=name) for cam, name in zip(rig_cameras(), names, strict=True)]
+    buf = io.BytesIO()
+    recorder = McapRecorder(buf, cameras)
+    recorder.write_frame(_result(0, np.random.default_rng(0)), T0_NS, jpegs=[b"jpeg"] * 3)
+    recorder.finish()
+    (tmp_path / "r.mcap").write_bytes(buf.getvalue())
+    rec = pipeline.load_recording(tmp_path / "r.mcap")
+    assert rec.camera_names == ("a,b", "c", "d")
+    assert {"iou/a,b", "iou/c", "iou/d"} <= set(rec.metrics_table())
+    # A recording written when the names were joined by commas reads as it did.
+    empty = [b'{"frame": 0, "status": "empty"}']
+    older = _mcap_with_metrics(tmp_path / "o.mcap", empty, {"cameras": "x,y,z"})
+    assert pipeline.load_recording(older).camera_names == ("x", "y", "z")
 
 
 def test_a_centerline_length_in_the_metadata_that_is_not_a_number_is_ignored(tmp_path: Path) -> None:

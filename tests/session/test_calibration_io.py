@@ -38,6 +38,12 @@ def _doc() -> dict[str, Any]:
     return calibration_dict(rig_cameras())
 
 
+def test_a_size_of_whole_floats_is_read_as_integers() -> None:
+    # As aniposelib's resized cameras write it.
+    cameras = cameras_from_dict(_set("cam_2", "size", [320.0, 240.0]))
+    assert cameras[2].size_px == (320, 240) and all(isinstance(v, int) for v in cameras[2].size_px)
+
+
 def test_rotation_matrix_is_accepted_as_rodrigues() -> None:
     doc = _doc()
     rvec = np.array(doc["cam_1"]["rotation"])
@@ -110,7 +116,8 @@ def _set(table: str, key: str, value: Any) -> dict[str, Any]:
         ({"cam_0": [5]}, ("[cam_0] must be a table",)),
         ({"cam_0": {"name": "c"}}, ("[cam_0] is missing key(s) size, matrix",)),
         (_set("cam_2", "name", ""), ("[cam_2] name", "non-empty string")),
-        (_set("cam_2", "size", [320.0, 240.0]), ("camera 'cam2'", "size", "positive integers")),
+        (_set("cam_2", "size", [320.5, 240.0]), ("camera 'cam2'", "size", "positive integers")),
+        (_set("cam_2", "size", [True, 240]), ("camera 'cam2'", "size", "positive integers")),
         (_set("cam_2", "size", [320, 0]), ("camera 'cam2'", "size")),
         (_set("cam_2", "matrix", [["300", 0, 160], [0, 300, 120], [0, 0, 1]]), ("matrix", "numbers")),
         (_set("cam_2", "matrix", [[300, 0, 160], [0, 300, 120], [0, 0, 2]]), ("matrix", "fx, fy > 0")),
@@ -128,6 +135,13 @@ def _set(table: str, key: str, value: Any) -> dict[str, Any]:
         # A misspelt key, which would otherwise be dropped without a word.
         (_set("cam_1", "fishye", True), ("[cam_1] has unknown key 'fishye'", "fisheye")),
         ({**_doc(), "units": "mm"}, ("units = ... is not in a table",)),
+        # A misspelt value, which would otherwise pass a fisheye lens off as a standard one.
+        (_set("cam_1", "fisheye", "true"), ("camera 'cam1'", "fisheye must be true or false, got 'true'")),
+        (_set("cam_1", "fisheye", 1), ("fisheye must be true or false, got 1",)),
+        # A name is its video's file stem, and its frame's name in the recordings.
+        (_set("cam_1", "name", "top/cam1"), ("camera 'top/cam1'", "cannot hold / or", "video file")),
+        (_set("cam_1", "name", ".."), ("camera '..'", "be . or ..")),
+        (_set("cam_1", "name", "world"), ("camera 'world'", "the recordings' own frame")),
     ],
 )
 def test_mistakes_name_the_camera_and_key(doc: dict[str, Any], needles: tuple[str, ...]) -> None:
