@@ -235,6 +235,31 @@ def test_camera_without_video(session: Path, capsys: pytest.CaptureFixture[str])
     assert_rejected(session, capsys, "camera 'cam2'", "has no video")
 
 
+def test_a_camera_whose_video_is_of_a_kind_not_read_is_named_with_it(
+    session: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (session / "cam2.avi").rename(session / "cam2.wmv")
+    line = assert_rejected(session, capsys, "cam2.wmv: is not read as the video of camera 'cam2'")
+    assert ".mp4, .avi, .mkv, .mov, .m4v, .webm, .ts, .mts, .m2ts" in line
+
+
+def test_video_names_spelt_decomposed_match_the_calibrations_composed_ones(session: Path) -> None:
+    # macOS copies keep an accented file name decomposed (NFD); the calibration spells it
+    # composed (NFC), as typed.
+    import unicodedata
+
+    composed = unicodedata.normalize("NFC", "cámara")
+    _edit_toml(session / "calibration.toml", lambda doc: doc["cam_0"].update(name=composed))
+    (session / "cam0.avi").rename(session / (unicodedata.normalize("NFD", composed) + ".avi"))
+    cameras = load_session(session).cameras
+    assert cameras[0].name == composed
+
+
+def test_a_webm_video_is_read(session: Path) -> None:
+    (session / "cam2.avi").rename(session / "cam2.webm")
+    assert load_session(session).video_paths[2].name == "cam2.webm"
+
+
 def test_two_videos_for_one_camera(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
     write_video(session / "cam1.mp4", [rod_image(rig_cameras()[1])] * 3)
     assert_rejected(session, capsys, "two videos for camera 'cam1'", "cam1.avi", "cam1.mp4")

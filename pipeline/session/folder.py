@@ -15,6 +15,7 @@ import glob
 import logging
 import math
 import os
+import unicodedata
 from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
@@ -271,36 +272,54 @@ def _rig_cameras(path: Path) -> list[Camera]:
 
 
 def _find_videos(directory: Path, names: list[str]) -> dict[str, Path]:
+    """Each camera's video in ``directory``: the file whose stem is the camera's name (the
+    two compared in Unicode's composed form: a file copied from macOS may spell an accented
+    name decomposed) and whose suffix is one of ``VIDEO_EXTENSIONS``."""
+    by_spelling = {_composed(name): name for name in names}
     found: dict[str, Path] = {}
     for path in sorted(directory.iterdir()):
-        if path.name.startswith(".") and path.stem not in names:
+        name = by_spelling.get(_composed(path.stem))
+        if path.name.startswith(".") and name is None:
             continue  # hidden: a file manager's own (macOS's ._cam0.mp4), not a camera's video
         if path.suffix.lower() in VIDEO_EXTENSIONS:
             check_not_dangling(path)
         if not path.is_file() or path.suffix.lower() not in VIDEO_EXTENSIONS:
             continue
-        if path.stem not in names:
+        if name is None:
             raise SessionError(
                 f"{path}: no camera named {path.stem!r} in calibration.toml "
                 f"(cameras: {', '.join(names)}); rename the video or add its calibration"
             )
-        if path.stem in found:
+        if name in found:
             raise SessionError(
-                f"{directory}: two videos for camera {path.stem!r} "
-                f"({found[path.stem].name}, {path.name}); keep one"
+                f"{directory}: two videos for camera {name!r} ({found[name].name}, {path.name}); keep one"
             )
-        found[path.stem] = path
+        found[name] = path
+    kinds = ", ".join(VIDEO_EXTENSIONS)
     for name in names:
-        if name not in found:
-            for path in sorted(directory.glob(f"{name}.*")):
-                if path.suffix.lower() in VIDEO_EXTENSIONS:  # there, but a folder, pipe or device
-                    raise SessionError(
-                        f"{path}: is not a regular file; put camera {name!r}'s video file there"
-                    )
-            raise SessionError(
-                f"{directory}: camera {name!r} in calibration.toml has no video ({name}.mp4, .avi or .mkv)"
-            )
+        if name in found:
+            continue
+        same_stem = [p for p in sorted(directory.iterdir()) if _composed(p.stem) == _composed(name)]
+        for path in same_stem:
+            if path.suffix.lower() in VIDEO_EXTENSIONS:  # there, but a folder, pipe or device
+                raise SessionError(
+                    f"{path}: is not a regular file; put the video file of camera {name!r} there"
+                )
+        for path in same_stem:
+            if path.is_file():
+                raise SessionError(
+                    f"{path}: is not read as the video of camera {name!r}: a video's name ends in one of "
+                    f"{kinds}; re-export it as .mp4 or .mkv, or rename it if it is one of those kinds"
+                )
+        raise SessionError(
+            f"{directory}: camera {name!r} in calibration.toml has no video ({name} + one of {kinds})"
+        )
     return found
+
+
+def _composed(text: str) -> str:
+    """``text`` in Unicode's composed form (NFC)."""
+    return unicodedata.normalize("NFC", text)
 
 
 def _check_distinct_videos(paths: list[Path]) -> None:

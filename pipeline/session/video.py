@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from ..errors import VideoError
 from .grey_levels import full_scale_level, grey_8bit
 
-VIDEO_EXTENSIONS = (".mp4", ".avi", ".mkv", ".mov", ".m4v")
+VIDEO_EXTENSIONS = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".ts", ".mts", ".m2ts")
 
 log = logging.getLogger(__name__)
 
