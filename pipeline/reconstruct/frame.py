@@ -24,7 +24,7 @@ from ..errors import SettingsError
 from ..geometry.camera import Camera, project_in_views
 from ..geometry.polyline import axis_gap_mm
 from .centerline import fit_centerline
-from .frame_result import NO_SHARED_VOXEL, NOTHING_SEEN, FrameResult
+from .frame_result import NO_SHARED_VOXEL, FrameResult, nothing_seen
 from .model import SessionModel
 from .model import build_model as build_model  # re-exported: build the model, then reconstruct frames
 from .ordering import infer_base
@@ -149,15 +149,11 @@ def reconstruct_from_silhouettes(
     """
     timings: dict[str, float] = {}
     start = time.perf_counter()
-    for cam, mask in zip(model.cameras, masks, strict=True):
-        if not mask.any():
-            return FrameResult(
-                index=index,
-                status="empty",
-                reason=NOTHING_SEEN.format(name=cam.name),
-                unseen_by=cam.name,
-                timings_s=timings,
-            )
+    blind = tuple(cam.name for cam, mask in zip(model.cameras, masks, strict=True) if not mask.any())
+    if blind:
+        return FrameResult(
+            index=index, status="empty", reason=nothing_seen(blind), unseen_by=blind, timings_s=timings
+        )
     # A view that is mostly silhouette (a dark or covered lens, a threshold on the wrong
     # side of the scene) has a hull of the whole workspace in it, which takes minutes to
     # search and holds no tube. Every such view is named: the user fixes them all at once.

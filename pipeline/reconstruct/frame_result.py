@@ -6,6 +6,7 @@ so it holds no images, only the hull points and the curve.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -17,8 +18,15 @@ STATUSES = ("ok", "empty", "failed")
 # The reason of an "empty" frame whose every view saw something: the silhouettes' cones do
 # not meet inside the workspace box (a box that misses the tube, another rig's calibration).
 NO_SHARED_VOXEL = "the silhouettes share no voxel of the workspace"
-# The reason of an "empty" frame in which a camera sees no silhouette at all, naming it.
-NOTHING_SEEN = "nothing seen by camera {name!r}"
+
+
+def nothing_seen(names: Sequence[str]) -> str:
+    """The reason of an "empty" frame in which the cameras ``names`` see no silhouette at
+    all, naming each (the user mends them all at once)."""
+    if len(names) == 1:
+        return f"nothing seen by camera {names[0]!r}"
+    quoted = [repr(name) for name in names]
+    return f"nothing seen by cameras {', '.join(quoted[:-1])} and {quoted[-1]}"
 
 
 @dataclass(frozen=True, eq=False)
@@ -30,8 +38,8 @@ class FrameResult:
     index : frame index in the session (0-based).
     status : "ok", "empty" (nothing to reconstruct) or "failed" (see ``reason``).
     reason : why the frame is empty or failed; "" when ok.
-    unseen_by : the camera whose view holds no silhouette, for an "empty" frame
-        (:data:`NOTHING_SEEN`); "" otherwise.
+    unseen_by : the cameras whose views hold no silhouette, for an "empty" frame
+        (:func:`nothing_seen`); () otherwise.
     points_mm : (P, 3) float32 occupied voxel centres, world frame, mm.
     centerline_mm : (N, 3) float64 curve ordered base -> tip, uniform in arc
         length, world frame, mm; None unless status is "ok".
@@ -66,7 +74,7 @@ class FrameResult:
     index: int
     status: str
     reason: str = ""
-    unseen_by: str = ""
+    unseen_by: tuple[str, ...] = ()
     points_mm: NDArray[np.float32] = field(default_factory=lambda: np.zeros((0, 3), np.float32))
     centerline_mm: NDArray[np.float64] | None = None
     tangents: NDArray[np.float64] | None = None

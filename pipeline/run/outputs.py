@@ -268,8 +268,8 @@ class Writers:
             self.counts[result.status] = self.counts.get(result.status, 0) + 1
         if result.status == "empty" and result.reason == NO_SHARED_VOXEL:
             self.empty_apart += 1
-        if result.status == "empty" and result.unseen_by:
-            self.empty_unseen[result.unseen_by] = self.empty_unseen.get(result.unseen_by, 0) + 1
+        for name in result.unseen_by if result.status == "empty" else ():
+            self.empty_unseen[name] = self.empty_unseen.get(name, 0) + 1
         if result.status == "ok" and is_doubtful(result.iou):
             self.doubtful.append(result.index)
             worst = self.session.cameras[int(np.argmin(result.iou))].name

@@ -132,10 +132,13 @@ class RunSummary:
         elif self.frames_ok == 0 and 2 * sum(self.frames_empty_unseen.values()) >= self.frames_empty > 0:
             blind = sorted(self.frames_empty_unseen.items(), key=lambda item: -item[1])
             cameras = ", ".join(f"camera {name!r} in {count}" for name, count in blind)
+            who, whose = (
+                ("a camera sees", "its") if len(blind) == 1 else (f"{len(blind)} cameras see", "their")
+            )
             out.append(
-                f"  no tube in any frame: a camera sees no silhouette ({cameras} of the "
-                f"{self.frames_empty} empty frames): check its picture, and [silhouette] polarity "
-                "(dark or bright tube) and threshold in session.toml"
+                f"  no tube in any frame: {who} no silhouette ({cameras} of the {self.frames_empty} "
+                f"empty frames): check {whose} pictures, and [silhouette] polarity (dark or bright "
+                "tube) and threshold in session.toml"
             )
         elif self.frames_ok == 0 and self.frames_empty:
             out.append(

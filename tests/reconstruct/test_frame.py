@@ -101,12 +101,19 @@ def test_polyfit_method_gives_the_baseline_curve(model: SessionModel, tube: tupl
     assert np.isnan(result.fit_residual_mm)  # the baseline fits no tube
 
 
-def test_nothing_in_view_is_empty(model: SessionModel) -> None:
+def test_nothing_in_view_is_empty(model: SessionModel, tube: tuple) -> None:
     images = [np.full((240, 320), 170, np.uint8) for _ in range(3)]
     result = reconstruct_frame(3, images, model)
     assert result.status == "empty"
-    assert result.index == 3 and "'cam0'" in result.reason and result.unseen_by == "cam0"
+    # Every camera that sees nothing is named: the user mends them all at once.
+    assert result.index == 3 and result.unseen_by == ("cam0", "cam1", "cam2")
+    assert result.reason == "nothing seen by cameras 'cam0', 'cam1' and 'cam2'"
     assert result.centerline_mm is None and np.isnan(result.length_mm)
+    seen = list(tube[1])
+    seen[2] = images[2]  # cam2 alone sees nothing
+    result = reconstruct_frame(3, seen, model)
+    assert result.status == "empty" and result.unseen_by == ("cam2",)
+    assert result.reason == "nothing seen by camera 'cam2'"
 
 
 def test_silhouettes_that_share_no_voxel_are_empty(model: SessionModel) -> None:
@@ -115,7 +122,7 @@ def test_silhouettes_that_share_no_voxel_are_empty(model: SessionModel) -> None:
     masks[0][:10, :10] = masks[1][-10:, :10] = masks[2][:10, -10:] = True
     images = [np.full((240, 320), 170, np.uint8) for _ in range(3)]
     result = reconstruct_from_silhouettes(4, images, masks, model)
-    assert result.status == "empty" and "no voxel" in result.reason and result.unseen_by == ""
+    assert result.status == "empty" and "no voxel" in result.reason and result.unseen_by == ()
 
 
 def test_an_undecodable_image_fails_naming_the_camera(model: SessionModel, tube: tuple) -> None:

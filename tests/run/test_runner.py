@@ -533,6 +533,10 @@ def test_the_summary_names_doubtful_frames_and_a_run_without_any_tube() -> None:
         frames_ok=0, frames_empty=6, frames_failed=[], wall_s=1.0, fps=6.0, frames_empty_unseen={"cam1": 4}
     )
     assert any("(camera 'cam1' in 4 of the 6 empty frames)" in line for line in blind.problem_lines())
+    every = dataclasses.replace(blind, frames_empty_unseen={"cam0": 6, "cam1": 6, "cam2": 6})
+    (line,) = [line for line in every.problem_lines() if "no tube" in line]
+    assert "3 cameras see no silhouette (camera 'cam0' in 6, camera 'cam1' in 6, camera 'cam2' in 6 " in line
+    assert "check their pictures" in line
     few = dataclasses.replace(blind, frames_empty_unseen={"cam1": 2})
     assert not any("cam1" in line for line in few.problem_lines())
     assert any("no tube in any frame: check [silhouette] polarity" in line for line in few.problem_lines())
