@@ -29,6 +29,7 @@ from __future__ import annotations
 import logging
 import os
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -37,7 +38,7 @@ from numpy.typing import NDArray
 
 from ..errors import CalibrationError, OutputError, refuse_unfinished_render
 from ..geometry.camera import Camera
-from ..session.calibration_io import write_calibration
+from ..session.calibration_io import calibration_dict, cameras_from_dict, write_calibration
 from ..session.toml_file import load_toml
 from .boards import Board, load_board
 from .result import CalibrationResult, ImageError
@@ -119,7 +120,7 @@ def calibrate_directory(
         result = _without_outliers(result, used, outliers, the_board, shared_intrinsics)
         outliers = find_outliers(result.image_errors)
     result.outliers = outliers
-    result.problems = world_problems + _problems(result)
+    result.problems = world_problems + _problems(result) + _refused_by_process(result.cameras)
     metadata = {
         "source": "pipeline calibrate",
         "calib_dir": str(calib_dir),
@@ -317,6 +318,17 @@ def _problems(result: CalibrationResult) -> list[str]:
             "image of another session or camera, or a mirrored one, and calibrate again"
         )
     return lines
+
+
+def _refused_by_process(cameras: Sequence[Camera]) -> list[str]:
+    """Why ``process`` would refuse the calibration of ``cameras`` as it is written (its
+    checks of calibration.toml: a distortion that folds the image, a field of view past a
+    lens's, ...), as a line; none where it would take it."""
+    try:
+        cameras_from_dict(calibration_dict(list(cameras)), source="the calibration")
+    except CalibrationError as exc:
+        return [f"{exc}; process refuses it: calibrate again from more, and more varied, board images"]
+    return []
 
 
 def _check_output(output: Path, *, force: bool) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import re
 import shutil
@@ -13,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import assert_meets_calibration_targets, rotation_angle_deg
+from conftest import assert_meets_calibration_targets, rig_cameras, rotation_angle_deg
 
 from pipeline.calibrate.boards import detect_corners, load_board
 from pipeline.calibrate.report import format_table
@@ -304,10 +305,34 @@ def test_wrong_board_size_is_named(small_rig, tmp_path) -> None:
         calibrate_directory(small_rig, tmp_path / "c.toml", board=(8, 5), square_mm=20.0)
 
 
-def test_drop_outliers_removes_a_foreign_view(small_rig, tmp_path) -> None:
-    """An intrinsics image from the other camera stands out and --drop-outliers removes it."""
+def test_an_image_copied_from_another_cameras_folder_is_refused_naming_both(small_rig, tmp_path) -> None:
+    """Two cameras never see one board alike: cam1's image beside cam0's own is a copy."""
     root = _copy(small_rig, tmp_path)
     shutil.copy(root / "cam1" / "intrinsics" / "02.png", root / "cam0" / "intrinsics" / "99.png")
+    with pytest.raises(CalibrationError) as refused:
+        calibrate_directory(root, tmp_path / "c.toml")
+    message = str(refused.value)
+    assert "cam1/intrinsics/02.png: shows the board exactly where" in message
+    assert "cam0/intrinsics/99.png does, an image of camera 'cam0'" in message
+    assert "copied into another's folder" in message and not (tmp_path / "c.toml").exists()
+
+
+def test_a_calibration_process_would_refuse_is_a_problem_of_the_run() -> None:
+    from pipeline.calibrate.solve import _refused_by_process
+
+    cameras = rig_cameras()
+    assert _refused_by_process(cameras) == []
+    folded = dataclasses.replace(cameras[0], distortions=np.array([-0.9, 0.0, 0.0, 0.0, 0.0]))
+    (line,) = _refused_by_process([folded, *cameras[1:]])
+    assert "camera 'cam0'" in line and "folds the image" in line and "process refuses it" in line
+
+
+def test_drop_outliers_removes_a_foreign_view(small_rig, tmp_path) -> None:
+    """An intrinsics image from the other camera (moved by a few pixels: not a copy) stands
+    out and --drop-outliers removes it."""
+    root = _copy(small_rig, tmp_path)
+    foreign = np.roll(cv2.imread(str(root / "cam1" / "intrinsics" / "02.png")), 4, axis=1)
+    cv2.imwrite(str(root / "cam0" / "intrinsics" / "99.png"), foreign)
     kept = calibrate_directory(root, tmp_path / "a.toml")
     assert any(e.key == "intrinsics/99.png" for e in kept.outliers)
     dropped = calibrate_directory(root, tmp_path / "b.toml", drop_outliers=True)
