@@ -54,6 +54,9 @@ class RunSummary:
     frames_empty_apart: int = 0
     # camera -> empty frames in which it saw no silhouette at all
     frames_empty_unseen: dict[str, int] = field(default_factory=dict)
+    # The empty frames in which some cameras saw nothing while the others saw something
+    # (a lens covered for a while, a camera whose picture dropped out): no curve was drawn.
+    frames_blind: list[int] = field(default_factory=list)
 
     @property
     def frames_total(self) -> int:
@@ -73,7 +76,7 @@ class RunSummary:
         # tube matches a camera's silhouettes in fewer than half its frames nothing to trust:
         # not a success.
         failing = self.frames_failed or self.frames_ok == 0 or self.session_problems or self.mostly_doubtful
-        return 1 if failing else 0
+        return 1 if failing or self.blind_line() else 0
 
     def lines(self) -> list[str]:
         """The closing summary, one line per fact; :meth:`problem_lines` among them."""
@@ -91,6 +94,20 @@ class RunSummary:
         out += [f"wrote {path} ({_human_size(size)})" for path, size in self.outputs]
         return out
 
+    def blind_line(self) -> str:
+        """The line naming the frames some camera saw nothing in while the others saw the
+        tube, where other frames hold a tube ("" otherwise: a run with no tube anywhere has
+        a line of its own)."""
+        if not self.frames_blind or self.frames_ok == 0:
+            return ""
+        blind = sorted(self.frames_empty_unseen.items(), key=lambda item: -item[1])
+        cameras = ", ".join(f"camera {name!r} in {count}" for name, count in blind)
+        return (
+            f"  blind: in {len(self.frames_blind)} frames ({_spans(self.frames_blind)}) a camera saw "
+            f"nothing while the others saw the tube ({cameras}), and those frames have no curve: "
+            "check that camera's picture there (a lens covered, a picture that dropped out)"
+        )
+
     def problem_lines(self) -> list[str]:
         """The summary's failure and warning lines: the session's problems (a video much
         shorter than the others), failed frames, moved cameras, suspect frames, doubtful
@@ -98,6 +115,8 @@ class RunSummary:
         out = [f"  {line}" for line in self.session_problems]
         out += [f"  failed {span}: {reason}" for span, reason in compress_failures(self.frames_failed)]
         out += [f"  {line}" for line in self.camera_warnings]
+        if self.blind_line():
+            out.append(self.blind_line())
         if self.frames_suspect:
             first, why = self.frames_suspect[0]
             frames = [i for i, _ in self.frames_suspect]
@@ -149,8 +168,8 @@ class RunSummary:
 
     def to_dict(self) -> dict[str, Any]:
         """The summary as JSON-ready data (``process --json``): the counts, the failed frames
-        with their reasons, the suspect frames with theirs, the doubtful frames and those at
-        the walls, the tube end assumed, the problem lines,
+        with their reasons, the suspect frames with theirs, the doubtful frames, those at
+        the walls and those a camera saw nothing in, the tube end assumed, the problem lines,
         wall time (s), frames per second, the outputs (path, bytes) and the exit status."""
         return {
             "frames": {
@@ -164,6 +183,7 @@ class RunSummary:
             "doubtful": list(self.frames_doubtful),
             "doubtful_cameras": dict(self.doubtful_cameras),
             "at_walls": list(self.frames_at_walls),
+            "blind": list(self.frames_blind),
             "tip": self.tip,
             "cameras": self.cameras,
             "problems": [line.strip() for line in self.problem_lines()],

@@ -537,6 +537,21 @@ def test_the_summary_names_doubtful_frames_and_a_run_without_any_tube() -> None:
     (line,) = [line for line in every.problem_lines() if "no tube" in line]
     assert "3 cameras see no silhouette (camera 'cam0' in 6, camera 'cam1' in 6, camera 'cam2' in 6 " in line
     assert "check their pictures" in line
+    # A camera that saw nothing in some frames of a run whose other frames hold a tube.
+    covered = runner.RunSummary(
+        frames_ok=20,
+        frames_empty=10,
+        frames_failed=[],
+        wall_s=1.0,
+        fps=30.0,
+        frames_empty_unseen={"cam1": 10},
+        frames_blind=list(range(10, 20)),
+    )
+    (line,) = [line for line in covered.problem_lines() if "blind" in line]
+    assert line.startswith("  blind: in 10 frames (10-19) a camera saw nothing while the others saw the tube")
+    assert "(camera 'cam1' in 10)" in line and covered.exit_code == 1
+    assert covered.to_dict()["blind"] == list(range(10, 20))
+    assert dataclasses.replace(covered, frames_blind=[]).exit_code == 0
     few = dataclasses.replace(blind, frames_empty_unseen={"cam1": 2})
     assert not any("cam1" in line for line in few.problem_lines())
     assert any("no tube in any frame: check [silhouette] polarity" in line for line in few.problem_lines())
