@@ -71,7 +71,7 @@ def rig_sources(rig: Session) -> list[Source]:
                 f"{toml}: [live] gives no source for camera {cam.name!r}; add "
                 f'{cam.name} = "/dev/videoN" (or a device index, or a stream URL)'
             )
-        source = parse_source(cam.name, text)
+        source = parse_source(cam.name, _anchored(text, rig.directory))
         _check_path(toml, source)
         identity = source_identity(source.url)
         other = sources.get(identity)
@@ -87,6 +87,16 @@ def rig_sources(rig: Session) -> list[Source]:
             )
         sources[identity] = source
     return list(sources.values())
+
+
+def _anchored(text: str, directory: Path) -> str:
+    """A ``[live]`` path as the rig means it: ``~`` expanded, and relative to the rig's
+    folder (where session.toml is), not to wherever the run was started; device indices
+    and URLs (``file:`` ones too, FFmpeg's own) as they are."""
+    if text.isdigit() or "://" in text or text.startswith("file:"):
+        return text
+    path = Path(text).expanduser()
+    return str(path if path.is_absolute() else directory / path)
 
 
 def source_identity(url: str) -> tuple[str | int, ...]:

@@ -183,6 +183,20 @@ def _rig(directory: Path, session: Path, live: dict[str, str | int] | None) -> P
     return directory
 
 
+def test_live_paths_are_taken_from_the_rigs_folder_with_home_expanded(
+    tmp_path: Path, session: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    rig = _rig(tmp_path / "rig", session, {"cam0": "cam0.pipe", "cam1": "~/cam1.pipe", "cam2": 2})
+    os.mkfifo(rig / "cam0.pipe")
+    os.mkfifo(home / "cam1.pipe")
+    monkeypatch.chdir(tmp_path)  # not the rig's folder
+    _, sources = open_rig(rig, None)
+    assert [s.url for s in sources] == [str(rig / "cam0.pipe"), str(home / "cam1.pipe"), "/dev/video2"]
+
+
 def test_a_rig_whose_live_table_misses_or_misnames_a_camera_is_refused(tmp_path: Path, session: Path) -> None:
     rig = _rig(tmp_path / "a", session, {"cam0": 0, "cam1": 1})
     with pytest.raises(SettingsError, match=r"\[live\] gives no source for camera 'cam2'; add cam2 ="):
