@@ -611,6 +611,22 @@ def test_a_16_bit_background_is_read_at_the_videos_depth(session: Path, scale: f
 # --- the command line --------------------------------------------------------------------
 
 
+def test_a_stdout_that_cannot_spell_a_path_still_gets_every_line(session: Path, tmp_path: Path) -> None:
+    # An ASCII locale and an output folder named in another script: the "wrote" lines come
+    # out with escapes, not lost after the first one that cannot be encoded.
+    out = tmp_path / "sortie über"
+    run = subprocess.run(
+        [sys.executable, "-m", "pipeline", *_process(session, out)],
+        env={**os.environ, "PYTHONIOENCODING": "ascii"},
+        capture_output=True,
+        text=True,
+        encoding="ascii",
+    )
+    assert run.returncode == 0, run.stderr
+    wrote = [line for line in run.stdout.splitlines() if line.startswith("wrote ")]
+    assert len(wrote) == 2 and all("sortie \\xfcber" in line for line in wrote)
+
+
 def test_negative_frames_say_what_is_wrong(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = session.parent / "out"
     with pytest.raises(SystemExit) as exited:  # argparse's own exit, with our one line

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
 import sys
@@ -75,11 +76,18 @@ def check_stdout_takes(result: str) -> None:
 def open_closed_std_streams() -> None:
     """A standard stream the caller closed (``>&-``) is opened on the null device: Python
     leaves it None, and the first print (or a worker process inheriting the descriptor)
-    would fail. What goes to it is dropped, as a closed stream asks."""
+    would fail. What goes to it is dropped, as a closed stream asks.
+
+    An open one whose encoding cannot spell every character (an ASCII or Latin-1 locale, a
+    path in another script) writes those as escapes (``\\xfc``): strictly encoded, the
+    first such line would fail, and the lines after it ("wrote ...") would be lost."""
     for fd, name in ((1, "stdout"), (2, "stderr")):
-        if getattr(sys, name) is None:
+        stream = getattr(sys, name)
+        if stream is None:
             null_onto(fd, name)
             _CLOSED_BY_CALLER.add(name)
+        elif isinstance(stream, io.TextIOWrapper) and stream.errors == "strict":
+            stream.reconfigure(errors="backslashreplace")
 
 
 def null_onto(fd: int, name: str) -> None:
