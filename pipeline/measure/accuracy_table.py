@@ -246,6 +246,25 @@ def results_json(results: Sequence[CaseResult]) -> str:
     )
 
 
+def _not_our_results(path: Path) -> str:
+    """Why the table may not replace ``path`` (a file there that is not an earlier table's
+    results: another tool's, a user's notes); "" where it may."""
+    if not path.exists():
+        return ""
+    try:
+        earlier = json.loads(path.read_text())
+        ours = isinstance(earlier, list) and all(
+            isinstance(r, dict) and {"case", "ours"} <= r.keys() for r in earlier
+        )
+    except (OSError, ValueError):
+        ours = False
+    return (
+        ""
+        if ours
+        else f"{path}: exists and is not an accuracy table's results; move it, or give another --out"
+    )
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = OneLineParser(
         prog="python -m pipeline.accuracy_table",
@@ -318,7 +337,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             for c in cases
         ]
     refine = {"auto": "auto", "true": True, "false": False, None: None}[args.refine]
-    why = not_a_session(args.out, "the rendered sessions and accuracy.json")
+    why = not_a_session(args.out, "the rendered sessions and accuracy.json") or _not_our_results(
+        args.out / "accuracy.json"
+    )
     if why:
         parser.exit(2, f"error: {why}\n")
     try:
@@ -333,7 +354,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "accuracy.json").write_text(results_json(results))
+    # Whole or not at all: written beside, then renamed over an earlier table's.
+    partial = args.out / ".accuracy.json.partial"
+    partial.write_text(results_json(results))
+    partial.replace(args.out / "accuracy.json")
     print(format_table(results))
     return 0
 

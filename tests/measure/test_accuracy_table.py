@@ -30,6 +30,22 @@ def test_zero_jobs_is_a_usage_error_before_anything_is_rendered(
     assert not (tmp_path / "acc").exists()
 
 
+def test_another_files_accuracy_json_is_not_replaced(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    (tmp_path / "accuracy.json").write_text("my notes")
+    with pytest.raises(SystemExit) as exc:
+        accuracy_table.main(["--cases", "helix", "--frames", "5", "--out", str(tmp_path)])
+    assert exc.value.code == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith(f"error: {tmp_path / 'accuracy.json'}: exists and is not an accuracy table's")
+    assert (tmp_path / "accuracy.json").read_text() == "my notes"
+    assert sorted(tmp_path.iterdir()) == [tmp_path / "accuracy.json"]  # nothing rendered
+    # An earlier table's results may be replaced.
+    (tmp_path / "accuracy.json").write_text('[{"case": {}, "frames": 5, "ours": {}, "polyfit": null}]')
+    assert accuracy_table._not_our_results(tmp_path / "accuracy.json") == ""
+
+
 def test_drawn_cases_are_labelled_by_their_description() -> None:
     case = draw_cases(3, 1)[0]
     assert isinstance(case, DrawnCase)
