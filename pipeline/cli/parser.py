@@ -395,8 +395,12 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         description="Compare the centrelines in RECORDING.mcap with GROUND_TRUTH.npz (or a session "
         "directory holding ground_truth.npz): centreline, tip, base and length errors, jitter.",
     )
-    p.add_argument("recording", type=_path)
-    p.add_argument("ground_truth", type=_path)
+    p.add_argument("recording", type=_path, help="the .mcap that process or live wrote")
+    p.add_argument(
+        "ground_truth",
+        type=_path,
+        help="ground_truth.npz, or the synthetic session's folder that holds it (synth writes it)",
+    )
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=cmd_evaluate)
     return parser
