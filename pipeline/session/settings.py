@@ -335,9 +335,11 @@ def _check_base_in_workspace(s: Settings, source: str) -> None:
 # A hull of voxels wider than this many tube radii is too coarse to follow the tube: on a
 # rendered r 6 session (`pipeline synth`, 10 frames; 2026-12-04) 8 and 12 mm voxels gave
 # the same curves as 2 mm ones (0.106 mm mean), 20 mm voxels failed 7 frames of 10 and
-# 40 mm every frame. Without a radius given, a grid needs MIN_VOXELS_ACROSS voxels across
-# its narrowest side.
-MAX_VOXEL_RADII = 3.0
+# 40 mm every frame; on `synth --frames 30` (r 6, 2026-12-05) 6, 9 and 12 mm voxels gave
+# 0.101 mm and 14 mm failed 9 frames of 30 (too few voxels for a curve), and a tapered
+# r 4.5 loop's 45 frames at 9 mm came within 0.153 mm (2 mm voxels: 0.159). Without a
+# radius given, a grid needs MIN_VOXELS_ACROSS voxels across its narrowest side.
+MAX_VOXEL_RADII = 2.0
 MIN_VOXELS_ACROSS = 4
 
 

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from ..errors import Interrupted, PipelineError
+from ..session.settings import MAX_VOXEL_RADII
 from .calib_error import perturbed_rig
 from .distractor import paint_distractor, place_distractor
 from .images import background_texture, flicker_gains, render_frame, threshold_for
@@ -84,19 +85,19 @@ def check_poses(
 
 
 # The thinnest tube rendered (mm): thinner ones need voxels too fine for the workspace's
-# grid (process follows a tube with voxels of at most three radii).
+# grid (process follows a tube with voxels of at most MAX_VOXEL_RADII radii).
 MIN_RADIUS_MM = 0.5
 
 
 def session_document(*, polarity: str, radius_mm: float) -> dict[str, Any]:
     """session.toml suited to the render: the workspace's defaults, with voxels of at most
-    three radii (a thin tube's), and a threshold between the tube's and the background's
-    grey levels."""
+    ``MAX_VOXEL_RADII`` radii (a thin tube's), and a threshold between the tube's and the
+    background's grey levels."""
     return {
         "workspace": {
             "origin_mm": WORKSPACE_ORIGIN_MM.tolist(),
             "size_mm": WORKSPACE_SIZE_MM.tolist(),
-            "voxel_mm": min(VOXEL_MM, 3.0 * float(radius_mm)),
+            "voxel_mm": min(VOXEL_MM, MAX_VOXEL_RADII * float(radius_mm)),
         },
         "silhouette": {"method": "threshold", "threshold": threshold_for(polarity), "polarity": polarity},
         "manipulator": {"base_mm": BASE_MM.tolist(), "radius_mm": float(radius_mm)},

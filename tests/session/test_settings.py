@@ -108,7 +108,7 @@ def test_a_base_in_the_box_or_just_below_its_floor_is_accepted(base_mm: list[flo
         ({"manipulator": {"radius_mm": 6000}}, ("radius_mm", "0.1-100", "got 6000")),
         (
             {"workspace": {"voxel_mm": 60}, "manipulator": {"radius_mm": 6}},
-            ("voxel_mm 60 is more than 3 times", "radius_mm 6", "at most 18, or correct radius_mm"),
+            ("voxel_mm 60 is more than 2 times", "radius_mm 6", "at most 12, or correct radius_mm"),
         ),
         (
             {"workspace": {"voxel_mm": 100}, "manipulator": {"radius_mm": "auto"}},

@@ -1051,13 +1051,13 @@ def test_an_earlier_render_on_a_read_only_file_system_is_left_as_it_was(
 
 
 def test_a_thin_tubes_session_has_voxels_fine_enough_for_process(tmp_path: Path) -> None:
-    # process follows a tube with voxels of at most three radii: a session synth writes for a
+    # process follows a tube with voxels of at most two radii: a session synth writes for a
     # thin tube must not be one that process refuses.
     from pipeline.errors import PipelineError
     from pipeline.session.folder import load_session
 
     render_session(tmp_path / "thin", frames=2, radius_mm=0.5, progress=False, jobs=1)
-    assert load_session(tmp_path / "thin").settings.workspace.voxel_mm == pytest.approx(1.5)
+    assert load_session(tmp_path / "thin").settings.workspace.voxel_mm == pytest.approx(1.0)
     render_session(tmp_path / "usual", frames=2, radius_mm=6.0, progress=False, jobs=1)
     assert load_session(tmp_path / "usual").settings.workspace.voxel_mm == 2.0
     with pytest.raises(PipelineError, match=r"radius_mm must be in 0\.5-20 mm, got 0\.05"):
