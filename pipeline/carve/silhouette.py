@@ -103,7 +103,10 @@ def _cuts_thin_parts(fg: NDArray[np.uint8], opened: NDArray[np.uint8], min_area_
     kept = cv2.countNonZero(opened)
     if kept < _THIN_SHARE * cv2.countNonZero(fg):
         return True
-    return kept > 0 and _blob_count(opened, min_area_px) > _blob_count(fg, min_area_px)
+    # One blob or none after the opening cannot be more than before (the usual tube): the
+    # foreground is labelled only where the opening left several.
+    pieces = _blob_count(opened, min_area_px) if kept else 0
+    return pieces > 1 and pieces > _blob_count(fg, min_area_px)
 
 
 def _blob_count(mask: NDArray[np.uint8], min_area_px: int) -> int:
