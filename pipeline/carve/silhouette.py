@@ -33,7 +33,7 @@ from ..session.settings import SilhouetteSettings
 # A 3x3 cross is the gentlest structuring element: it removes one-pixel noise but,
 # unlike a square, leaves the staircase edges of a thin tube's silhouette intact.
 _KERNEL = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
-# ... unless it takes more than this share of the foreground (see _cuts_thin_parts).
+# ... unless it takes more than this share of the tube's pixels (see _cuts_thin_parts).
 _THIN_SHARE = 0.5
 # Recursive Otsu: a split is clean when the between-class variance is this share of the
 # total (Otsu's eta: ~0.64 for one Gaussian mode, 0.75 for a flat one, -> 1 for two
@@ -90,32 +90,34 @@ def _cuts_thin_parts(fg: NDArray[np.uint8], opened: NDArray[np.uint8], min_area_
     """Whether the opening of the (H, W) uint8 0/1 foreground ``fg`` (``opened``) would cut
     the tube, not only its specks and spurs: a tube about two pixels wide (thin, or far from
     the camera) is all spur to the cross, and one about three wide narrows to spurs where
-    its edges step. Then the opening takes most of the foreground (more than
-    ``_THIN_SHARE``), or leaves it in more blobs of ``min_area_px`` pixels or more than it
-    was in. (A tube of 1.5 mm radius at 320x240, two pixels wide, went whole; one of
-    2.5 mm came out in up to five pieces, of which the speck removal then dropped most.)
+    its edges step. Then, counting blobs of ``min_area_px`` pixels or more (what the speck
+    removal keeps), the opening leaves the foreground in more of them than it was in, or
+    keeps less than ``_THIN_SHARE`` of their area. (A tube of 1.5 mm radius at 320x240, two
+    pixels wide, went whole; one of 2.5 mm came out in up to five pieces, of which the speck
+    removal then dropped most.)
 
     On the 124 rendered sessions of the accuracy draws and the bench (every third of 90
     frames; 2026-12-05), 127 of 8,694 silhouettes keep their opening off, in 11 stepped and
     tapered sessions: processed again (90 frames), a tapered loop's tip median 1.63 ->
     0.39 mm and its frames more than 2 mm off 30 -> 1, a two-camera tapered shape's mean
     0.31 -> 0.37 mm, the other nine within 0.006 mm."""
-    kept = cv2.countNonZero(opened)
-    if kept < _THIN_SHARE * cv2.countNonZero(fg):
-        return True
-    # One blob or none after the opening cannot be more than before (the usual tube): the
-    # foreground is labelled only where the opening left several.
-    pieces = _blob_count(opened, min_area_px) if kept else 0
-    return pieces > 1 and pieces > _blob_count(fg, min_area_px)
+    pieces, area = _blobs(opened, min_area_px)
+    if pieces <= 1 and area >= _THIN_SHARE * cv2.countNonZero(fg):
+        return False  # the usual tube, in one piece: the foreground is not labelled
+    fg_pieces, fg_area = _blobs(fg, min_area_px)
+    return pieces > fg_pieces or area < _THIN_SHARE * fg_area
 
 
-def _blob_count(mask: NDArray[np.uint8], min_area_px: int) -> int:
-    """How many 8-connected blobs of at least ``min_area_px`` pixels (1 at least) ``mask`` holds."""
+def _blobs(mask: NDArray[np.uint8], min_area_px: int) -> tuple[int, int]:
+    """How many 8-connected blobs of at least ``min_area_px`` pixels (1 at least) ``mask``
+    holds, and their pixels."""
     n, labels = cv2.connectedComponents(mask, connectivity=8, ltype=cv2.CV_32S)
-    if n <= 2:
-        return n - 1
+    if n <= 2:  # one blob or none (the usual tube): counted without the labels' histogram
+        area = cv2.countNonZero(mask)
+        return (1, area) if area >= max(min_area_px, 1) else (0, 0)
     areas = np.bincount(labels.ravel(), minlength=n)[1:]
-    return int(np.count_nonzero(areas >= max(min_area_px, 1)))
+    kept = areas[areas >= max(min_area_px, 1)]
+    return len(kept), int(kept.sum())
 
 
 def remove_small_blobs(mask: NDArray[np.uint8], min_area_px: int) -> NDArray[np.uint8]:

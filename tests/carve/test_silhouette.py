@@ -109,6 +109,25 @@ def test_morphology_removes_isolated_pixels_and_fills_pinholes() -> None:
     assert (mask != truth).sum() <= 4
 
 
+@pytest.mark.parametrize("width_px", [2, 3])
+def test_a_tube_two_or_three_pixels_wide_is_not_opened_away(width_px: int) -> None:
+    """A thin or far tube is all spur to the 3x3 cross: the opening would take it whole (two
+    pixels wide) or cut it where its edges step (three). Drawn as a slanted band, with an
+    isolated pixel beside it."""
+    image = np.full((H, W), BG, np.uint8)
+    rng = np.random.default_rng(width_px)
+    for x in range(10, W - 10):
+        y = 10 + (x * 7) // 10 + int(rng.integers(0, 2))  # a staircase edge, jittered
+        image[y : y + width_px, x] = FG
+    image[2, W - 3] = FG
+    mask = extract_silhouette(image, SilhouetteSettings(min_area_px=20))
+    band = image < 60
+    band[2, W - 3] = False
+    assert mask[band].mean() > 0.99  # the band kept (the closing may add a pixel at a step)
+    n, _ = cv2.connectedComponents(mask.view(np.uint8))
+    assert n - 1 == 1  # one piece, the speck gone (its blob is under min_area_px)
+
+
 @pytest.mark.parametrize(
     ("method", "polarity", "value"),
     [
