@@ -119,6 +119,7 @@ def _load_session(directory: Path) -> Session:
     fps = _common_fps(infos)
     settings = _with_start_time(settings, infos)
     counts = tuple(i.frame_count for i in infos)
+    _note_rates_apart(infos, min(counts))
     problems = _short_videos(infos)
     if len(set(counts)) > 1 and not problems:
         log.warning(
@@ -359,6 +360,26 @@ def _common_fps(infos: list[VideoInfo]) -> float:
                 "record all cameras at the same rate"
             )
     return fps
+
+
+def _note_rates_apart(infos: list[VideoInfo], frames: int) -> None:
+    """Say where the videos' rates, within ``FPS_TOLERANCE`` of one another (29.97 and 30
+    fps), part their frames by half a frame or more over the ``frames`` processed: frame i
+    of every video is taken as one instant, and cameras that truly ran at those rates drift
+    apart (3.6 s an hour at 29.97 and 30); cameras on one clock only label it differently."""
+    slowest, fastest = min(infos, key=lambda i: i.fps), max(infos, key=lambda i: i.fps)
+    apart = frames * (fastest.fps - slowest.fps) / fastest.fps
+    if apart >= 0.5:
+        log.warning(
+            "%s runs at %g fps and %s at %g fps: frame i of each is taken as one instant, and "
+            "by the last frame they are %.1f frames apart if the cameras ran at those rates; "
+            "re-time the videos to one rate if so",
+            slowest.path,
+            slowest.fps,
+            fastest.path.name,
+            fastest.fps,
+            apart,
+        )
 
 
 def _backgrounds(

@@ -335,3 +335,20 @@ def test_a_variable_rate_video_whose_average_rate_is_not_the_others_is_named_aga
             "s/cam1.mp4: has a variable frame rate (frames 33.3-66.7 ms apart; 24.2 fps on average, "
             "against 30 fps of cam0.mp4); re-export it at a constant rate"
         )
+
+
+def test_rates_within_the_tolerance_are_named_where_they_part_the_frames(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    from pipeline.session.folder import _common_fps, _note_rates_apart
+    from pipeline.session.video import VideoInfo
+
+    ntsc = VideoInfo(Path("s/cam1.mp4"), 320, 240, 30000 / 1001, 1800)
+    whole = VideoInfo(Path("s/cam0.mp4"), 320, 240, 30.0, 1800)
+    assert _common_fps([whole, ntsc]) == 30.0  # one rate, within the tolerance
+    with caplog.at_level("WARNING"):
+        _note_rates_apart([whole, ntsc], 300)  # 0.3 frames apart by the end: not said
+        assert caplog.text == ""
+        _note_rates_apart([whole, ntsc], 1800)
+    assert "s/cam1.mp4 runs at 29.97 fps and cam0.mp4 at 30 fps" in caplog.text
+    assert "by the last frame they are 1.8 frames apart" in caplog.text
