@@ -365,15 +365,21 @@ def test_intrinsics_from_a_video(small_rig, tmp_path) -> None:
     assert result.camera_mean_px()["cam1"] < 0.2
 
 
-@pytest.mark.skipif(not STEREO.is_dir(), reason="real stereo images not available")
-def test_real_stereo_pairs_agree_with_opencv_stereo(tmp_path) -> None:
-    """25 real pairs: pair 01 is the world view, the others shared views of both cameras."""
-    root = tmp_path / "stereo"
+def _stereo_folder(root: Path, *, pairs: int) -> Path:
+    """A calibration folder of the first ``pairs`` real stereo pairs: pair 01 each camera's
+    world view, the others shared views (links to the images)."""
     for side in ("left", "right"):
         (root / side / "shared").mkdir(parents=True)
         (root / side / "world.jpg").symlink_to(STEREO / f"{side}01.jpg")
-        for i in range(2, 26):
+        for i in range(2, pairs + 1):
             (root / side / "shared" / f"{i:02d}.jpg").symlink_to(STEREO / f"{side}{i:02d}.jpg")
+    return root
+
+
+@pytest.mark.skipif(not STEREO.is_dir(), reason="real stereo images not available")
+def test_real_stereo_pairs_agree_with_opencv_stereo(tmp_path) -> None:
+    """25 real pairs: pair 01 is the world view, the others shared views of both cameras."""
+    root = _stereo_folder(tmp_path / "stereo", pairs=25)
     board = load_board(root, board=(9, 6), square_mm=24.0)
     views = detect_directory(root, board)
     result = calibrate_views(views, board)
@@ -421,12 +427,7 @@ def test_drop_outliers_drops_a_mirrored_image_and_its_pair_not_the_other_cameras
 ) -> None:
     """One real image mirrored (a board seen in a mirror, an export flipped) pulls the rig,
     and the other camera's good images stand out beside it until it is gone."""
-    root = tmp_path / "stereo"
-    for side in ("left", "right"):
-        (root / side / "shared").mkdir(parents=True)
-        (root / side / "world.jpg").symlink_to(STEREO / f"{side}01.jpg")
-        for i in range(2, 14):
-            (root / side / "shared" / f"{i:02d}.jpg").symlink_to(STEREO / f"{side}{i:02d}.jpg")
+    root = _stereo_folder(tmp_path / "stereo", pairs=13)
     clean = calibrate_directory(root, tmp_path / "clean.toml", board=(9, 6), square_mm=24.0)
     mirrored = root / "left" / "shared" / "03.jpg"
     mirrored.unlink()
