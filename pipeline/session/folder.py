@@ -119,7 +119,6 @@ def _load_session(directory: Path) -> Session:
     fps = _common_fps(infos)
     settings = _with_start_time(settings, infos)
     counts = tuple(i.frame_count for i in infos)
-    _note_rates_apart(infos, min(counts))
     problems = _short_videos(infos)
     if len(set(counts)) > 1 and not problems:
         log.warning(
@@ -135,6 +134,7 @@ def _load_session(directory: Path) -> Session:
     for info in infos:
         for note in info.notes:
             log.warning("%s", note)
+    _note_rates_apart(infos, min(counts))
     if not (directory / "session.toml").exists():
         log.warning(
             "session.toml not found in %s: using the default settings (%s); write a session.toml "
