@@ -180,6 +180,7 @@ class Writers:
         self.empty_apart = 0  # empty frames whose every view saw something (NO_SHARED_VOXEL)
         self.empty_unseen: dict[str, int] = {}  # camera -> empty frames in which it saw nothing
         self.blind: list[int] = []  # empty frames in which some cameras, not all, saw nothing
+        self.blind_cameras: dict[str, int] = {}  # camera -> those frames in which it saw nothing
         self.failed: list[tuple[int, str]] = []
         self.doubtful: list[int] = []
         # camera -> doubtful frames it re-projects worst in
@@ -273,6 +274,8 @@ class Writers:
             self.empty_unseen[name] = self.empty_unseen.get(name, 0) + 1
         if result.status == "empty" and 0 < len(result.unseen_by) < len(self.session.cameras):
             self.blind.append(result.index)
+            for name in result.unseen_by:
+                self.blind_cameras[name] = self.blind_cameras.get(name, 0) + 1
         if result.status == "ok" and is_doubtful(result.iou):
             self.doubtful.append(result.index)
             worst = self.session.cameras[int(np.argmin(result.iou))].name
@@ -426,6 +429,7 @@ class Writers:
             frames_empty_apart=self.empty_apart,
             frames_empty_unseen=dict(self.empty_unseen),
             frames_blind=sorted(self.blind),
+            blind_cameras=dict(self.blind_cameras),
             wall_s=wall_s,
             fps=n / wall_s if wall_s > 0 else 0.0,
             outputs=[(p, p.stat().st_size) for p in written],

@@ -57,6 +57,7 @@ class RunSummary:
     # The empty frames in which some cameras saw nothing while the others saw something
     # (a lens covered for a while, a camera whose picture dropped out): no curve was drawn.
     frames_blind: list[int] = field(default_factory=list)
+    blind_cameras: dict[str, int] = field(default_factory=dict)  # camera -> those it saw nothing in
 
     @property
     def frames_total(self) -> int:
@@ -100,7 +101,7 @@ class RunSummary:
         a line of its own)."""
         if not self.frames_blind or self.frames_ok == 0:
             return ""
-        blind = sorted(self.frames_empty_unseen.items(), key=lambda item: -item[1])
+        blind = sorted(self.blind_cameras.items(), key=lambda item: -item[1])
         cameras = ", ".join(f"camera {name!r} in {count}" for name, count in blind)
         return (
             f"  blind: in {len(self.frames_blind)} frames ({_spans(self.frames_blind)}) a camera saw "

@@ -538,14 +538,16 @@ def test_the_summary_names_doubtful_frames_and_a_run_without_any_tube() -> None:
     assert "3 cameras see no silhouette (camera 'cam0' in 6, camera 'cam1' in 6, camera 'cam2' in 6 " in line
     assert "check their pictures" in line
     # A camera that saw nothing in some frames of a run whose other frames hold a tube.
+    # Of its 15 empty frames, 5 no camera saw anything in (the tube out of every view).
     covered = runner.RunSummary(
         frames_ok=20,
-        frames_empty=10,
+        frames_empty=15,
         frames_failed=[],
         wall_s=1.0,
         fps=30.0,
-        frames_empty_unseen={"cam1": 10},
+        frames_empty_unseen={"cam0": 5, "cam1": 15, "cam2": 5},
         frames_blind=list(range(10, 20)),
+        blind_cameras={"cam1": 10},
     )
     (line,) = [line for line in covered.problem_lines() if "blind" in line]
     assert line.startswith("  blind: in 10 frames (10-19) a camera saw nothing while the others saw the tube")
