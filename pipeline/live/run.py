@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import shutil
+import sys
 import threading
 import time
 from collections.abc import Sequence
@@ -481,8 +482,13 @@ def finish_room_bytes(frame_sets: int) -> int:
 
 
 def free_bytes(directory: Path) -> int:
-    """The bytes this user may still write on the disk that holds ``directory``."""
-    return shutil.disk_usage(directory).free
+    """The bytes this user may still write on the disk that holds ``directory`` (as many as
+    can be where the disk cannot be asked: the folder removed under the run, whose writes
+    then fail on their own)."""
+    try:
+        return shutil.disk_usage(directory).free
+    except OSError:
+        return sys.maxsize
 
 
 def _mib(size_bytes: int) -> str:
