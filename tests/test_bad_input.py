@@ -627,6 +627,17 @@ def test_a_stdout_that_cannot_spell_a_path_still_gets_every_line(session: Path, 
     assert len(wrote) == 2 and all("sortie \\xfcber" in line for line in wrote)
 
 
+def test_a_refused_run_tells_a_json_reader_why(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # A script reading --json - gets the reason, not an empty stdout.
+    (session / "cam2.avi").unlink()
+    out = session.parent / "out"
+    assert main([*_process(session, out), "--json", "-"]) == EXIT_BAD_INPUT
+    captured = capsys.readouterr()
+    (line,) = captured.err.strip().splitlines()
+    assert json.loads(captured.out) == {"error": line.removeprefix("error: "), "exit_code": EXIT_BAD_INPUT}
+    assert "camera 'cam2'" in line and not out.exists()
+
+
 def test_negative_frames_say_what_is_wrong(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = session.parent / "out"
     with pytest.raises(SystemExit) as exited:  # argparse's own exit, with our one line

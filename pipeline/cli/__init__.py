@@ -12,6 +12,8 @@ exit status instead of exiting.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import json
 import logging
 import os
 import sys
@@ -103,19 +105,32 @@ def _main(argv: Sequence[str] | None, prog: str) -> int:
     except PipelineError as exc:
         if args.debug:
             traceback.print_exc()
-        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        line = f"error: {_one_line(exc)}"
+        print(line, file=sys.stderr)
+        _json_failure(args, line, EXIT_BAD_INPUT)
         return EXIT_BAD_INPUT
     except Exception as exc:
         # Not the user's mistake: a bug. One line by default, the traceback above it with
         # --debug; the exit status is the same either way.
         if args.debug:
             traceback.print_exc()
-        print(
+        line = (
             f"internal error: {type(exc).__name__}: {_one_line(exc)} "
-            "(a bug: rerun with --debug for the traceback and report it)",
-            file=sys.stderr,
+            "(a bug: rerun with --debug for the traceback and report it)"
         )
+        print(line, file=sys.stderr)
+        _json_failure(args, line, EXIT_INTERNAL_ERROR)
         return EXIT_INTERNAL_ERROR
+
+
+def _json_failure(args: argparse.Namespace, line: str, code: int) -> None:
+    """Where stdout was to carry the command's JSON (``--json -``, ``evaluate --json``), a
+    JSON object saying why there is none: a script reading it gets the reason, not nothing.
+    A stdout that cannot take it loses it (the line is on stderr)."""
+    if getattr(args, "json", None) not in ("-", True):
+        return
+    with contextlib.suppress(OSError, ValueError):
+        print(json.dumps({"error": line.removeprefix("error: "), "exit_code": code}), flush=True)
 
 
 # The resource trackers (processes that remove the workers' semaphores and folders if the
