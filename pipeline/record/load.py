@@ -22,7 +22,7 @@ import logging
 import math
 import os
 import struct
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -469,6 +469,15 @@ def _camera_names(text: str) -> tuple[str, ...]:
     return tuple(n for n in text.split(",") if n)
 
 
+def _metrics_cameras(metrics: Iterable[dict[str, Any]]) -> tuple[str, ...]:
+    """The cameras named by the first of ``metrics`` with per-camera IoUs; () for none."""
+    for figures in metrics:
+        iou = figures.get("iou")
+        if isinstance(iou, dict) and iou and all(isinstance(name, str) for name in iou):
+            return tuple(iou)
+    return ()
+
+
 def _stack(curves: dict[int, NDArray[np.float64] | None], times: list[int], n: int) -> NDArray[np.float64]:
     out = np.full((len(times), n, 3), np.nan)
     for row, t in enumerate(times):
@@ -497,7 +506,9 @@ def _assemble(
     n = max(lengths) if lengths else int(declared) if declared.isdecimal() and len(declared) <= 5 else 0
     if len(lengths) > 1:
         warn(f"{path}: centrelines of different lengths {sorted(lengths)}; shorter ones read as NaN")
-    names = _camera_names(metadata.get("cameras", ""))
+    # A file rewritten without its metadata (another tool's filter) still names them in its
+    # metrics' per-camera figures, in the cameras' order.
+    names = _camera_names(metadata.get("cameras", "")) or _metrics_cameras(metrics[i][1] for i in frames)
     return Recording(
         path=path,
         camera_names=names,

@@ -420,6 +420,16 @@ def test_camera_names_with_commas_come_back_whole(tmp_path: Path) -> None:
     assert pipeline.load_recording(older).camera_names == ("x", "y", "z")
 
 
+def test_a_file_without_its_metadata_names_the_cameras_of_its_metrics(tmp_path: Path) -> None:
+    # Another tool's filter that drops metadata records: the per-camera IoUs still name them.
+    messages = [
+        b'{"frame": 0, "status": "empty"}',
+        b'{"frame": 1, "status": "ok", "iou": {"b": 0.9, "a": 0.8}}',
+    ]
+    rec = pipeline.load_recording(_mcap_with_metrics(tmp_path / "bare.mcap", messages))
+    assert rec.camera_names == ("b", "a")
+
+
 def test_a_centerline_length_in_the_metadata_that_is_not_a_number_is_ignored(tmp_path: Path) -> None:
     path = _mcap_with_metrics(
         tmp_path / "odd.mcap", [b'{"frame": 0, "status": "empty"}'], {"centerline_points": "many"}
