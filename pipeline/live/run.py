@@ -59,6 +59,7 @@ LIVE_CAMERAS = "given (a live run does not refine them from the silhouettes)"
 FINISH_ROOM_BYTES = 32 << 20
 FINISH_ROOM_PER_SET_BYTES = 8 << 10
 STOPPED_FOR_ROOM = "the disk filling up"
+STOPPED_BY_FAULT = "a camera's fault"
 
 
 @dataclass(frozen=True)
@@ -111,9 +112,10 @@ class LiveSummary:
         result being written, ms.
     dropped : frame-sets dropped because the reconstruction fell behind.
     stopped_by : "a signal" (Ctrl-C, SIGTERM, SIGHUP), "--duration", "the end of the replay",
-        "the cameras ending" or ``STOPPED_FOR_ROOM``.
+        "the cameras ending", ``STOPPED_FOR_ROOM`` or ``STOPPED_BY_FAULT``.
     cameras : per camera, in calibration order, how it went.
-    room_line : where the run stopped for room on its disk, the line that says so ("" otherwise).
+    stop_line : where the run stopped early for a problem (room on its disk, a camera's
+        fault after frames were written), the line that says so ("" otherwise).
     """
 
     run: RunSummary
@@ -121,7 +123,7 @@ class LiveSummary:
     dropped: int
     stopped_by: str = ""
     cameras: tuple[CameraSummary, ...] = ()
-    room_line: str = ""
+    stop_line: str = ""
 
     def camera(self, name: str) -> CameraSummary:
         """The camera named ``name``."""
@@ -129,16 +131,22 @@ class LiveSummary:
 
     @property
     def exit_code(self) -> int:
-        """The run's; 1 at least where a camera delivered nothing, a replay ended short or the
-        disk filled up."""
+        """The run's; 1 at least where a camera delivered nothing, a replay ended short, the
+        run stopped early for a problem or dropped frame-sets."""
         silent = any(c.silent for c in self.cameras)
-        return max(self.run.exit_code, int(silent or bool(self.replay_lines()) or bool(self.room_line)))
+        early = bool(self.stop_line) or self.dropped > 0
+        return max(self.run.exit_code, int(silent or bool(self.replay_lines()) or early))
 
     def latency_ms(self, percentile: float) -> float:
         return float(np.percentile(self.latencies_ms, percentile)) if len(self.latencies_ms) else float("nan")
 
     def outage_lines(self) -> list[str]:
-        lines = [self.room_line] if self.room_line else []
+        lines = [self.stop_line] if self.stop_line else []
+        if self.dropped:
+            lines.append(
+                f"  dropped: {self.dropped} frame-sets: the reconstruction fell behind the cameras "
+                "(docs/live.md; --no-images lightens each frame)"
+            )
         if not self.run.frames_total:
             by_stop = self.stopped_by in ("--duration", "a signal")
             when = f" before the run was stopped by {self.stopped_by}" if by_stop else ""
@@ -374,10 +382,14 @@ def _run(
             target.mcap_path,
             target.rrd_path,
         )
-        latencies, stopped_by = _loop(readers, queue, writer, model, names, images, duration_s, restarts)
-        room_line = ""
+        latencies, stopped_by, fault = _loop(
+            readers, queue, writer, model, names, images, duration_s, restarts
+        )
+        stop_line = ""
+        if stopped_by == STOPPED_BY_FAULT:
+            stop_line = f"  {fault}; the run stopped there, after {len(latencies)} frame-sets, and kept them"
         if stopped_by == STOPPED_FOR_ROOM:
-            room_line = (
+            stop_line = (
                 f"  {target.out_dir}: its disk had {_mib(free_bytes(target.out_dir))} left: the run stopped "
                 f"after {len(latencies)} frame-sets to finish its recordings with them; free space or "
                 "choose another --out"
@@ -408,7 +420,7 @@ def _run(
         latencies_ms=np.asarray(latencies, dtype=np.float64),
         dropped=queue.dropped,
         stopped_by=stopped_by,
-        room_line=room_line,
+        stop_line=stop_line,
         cameras=tuple(
             CameraSummary(
                 name=name,
@@ -433,8 +445,10 @@ def _loop(
     images: bool,
     duration_s: float | None,
     restarts: RestartWorker,
-) -> tuple[list[float], str]:
-    """Reconstruct and write frame-sets until the run stops; (latencies in ms, why it stopped)."""
+) -> tuple[list[float], str, str]:
+    """Reconstruct and write frame-sets until the run stops; (latencies in ms, why it stopped,
+    and a camera's fault that stopped it after frames were written, "" for none: before any,
+    the fault is raised, a SessionError, and nothing is written)."""
     # A frame whose track is lost waits for its start from the hull as long as a frame-set
     # can still wait in the queue behind it: its result is then process's.
     tracker = Tracker(
@@ -447,17 +461,21 @@ def _loop(
     try:
         while True:
             if deadline is not None and time.monotonic() >= deadline:
-                return latencies, "--duration"
+                return latencies, "--duration", ""
             frame_set = queue.get(POLL_S)
             if frame_set is None:
                 for reader in readers:
                     if reader.fault is not None:
+                        # A camera that turns faulty mid-run (restarted at another size) ends
+                        # the run, its frames so far kept: they cannot be filmed again.
+                        if latencies:
+                            return latencies, STOPPED_BY_FAULT, reader.fault
                         raise SessionError(reader.fault)
                     if reader.crash is not None:
                         raise reader.crash
                 if all(r.finished.is_set() for r in readers) and not len(queue):
                     replay = all(r.source.is_replay for r in readers)
-                    return latencies, "the end of the replay" if replay else "the cameras ending"
+                    return latencies, "the end of the replay" if replay else "the cameras ending", ""
                 continue
             # A signal waits for the frame to be written whole: the recordings stay consistent.
             with deferred_signals():
@@ -471,9 +489,9 @@ def _loop(
                 latencies.append(latency_ms)
                 queue.settle()
             if free_bytes(writer.target.out_dir) < finish_room_bytes(len(latencies)):
-                return latencies, STOPPED_FOR_ROOM
+                return latencies, STOPPED_FOR_ROOM, ""
     except KeyboardInterrupt:
-        return latencies, "a signal"
+        return latencies, "a signal", ""
 
 
 def finish_room_bytes(frame_sets: int) -> int:

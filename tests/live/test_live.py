@@ -484,6 +484,46 @@ def test_a_disk_filling_up_stops_the_run_with_the_frames_so_far_recorded(
     _verify_rrd(tmp_path / "take.rrd")
 
 
+def test_a_camera_turning_faulty_mid_run_ends_it_with_the_frames_so_far_kept(
+    session: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A camera restarted at another size after 5 frames: its frames are refused from there,
+    # and the run stops, keeping what it wrote (exit 1), not throwing it away.
+    from pipeline.live import capture
+
+    hand_over = capture.CameraReader._hand_over
+
+    def restarted(reader: CameraReader, k: int, arrived_ns: int, image: np.ndarray) -> None:
+        if reader.source.camera == "cam2" and k >= 5:
+            raise capture.SourceFault(
+                "camera 'cam2' (test): frames are 640x480 but calibration.toml gives 320x240"
+            )
+        hand_over(reader, k, arrived_ns, image)
+
+    monkeypatch.setattr(capture.CameraReader, "_hand_over", restarted)
+    rig, sources = open_rig(None, session)
+    summary = run_live(rig, sources, out_dir=tmp_path, queue_sets=FRAMES)
+    assert summary.stopped_by == live_run.STOPPED_BY_FAULT and summary.exit_code == 1
+    (line,) = [line for line in summary.problem_lines() if "640x480" in line]
+    assert "the run stopped there, after" in line and "and kept them" in line
+    recording = pipeline.load_recording(tmp_path / "take.mcap")
+    assert recording.complete and 0 < len(recording) <= 5
+    _verify_rrd(tmp_path / "take.rrd")
+
+
+def test_dropped_frame_sets_are_a_problem_of_the_run() -> None:
+    run = pipeline.run.summary.RunSummary(
+        frames_ok=10, frames_empty=0, frames_failed=[], wall_s=1.0, fps=10.0
+    )
+    kept = LiveSummary(run=run, latencies_ms=np.ones(10), dropped=0, stopped_by="--duration")
+    assert kept.exit_code == 0 and not any("dropped:" in line for line in kept.problem_lines())
+    behind = dataclasses.replace(kept, dropped=3)
+    (line,) = [line for line in behind.problem_lines() if "dropped:" in line]
+    assert (
+        line.startswith("  dropped: 3 frame-sets: the reconstruction fell behind") and behind.exit_code == 1
+    )
+
+
 def test_a_disk_without_room_to_finish_is_refused_before_the_run(
     session: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
