@@ -146,7 +146,9 @@ def _load_session(directory: Path) -> Session:
         directory=directory,
         name=directory.resolve().name,
         cameras=tuple(cameras),
-        video_paths=tuple(videos[c.name] for c in cameras),
+        # Absolute: a session loaded by a relative path is processed wherever the caller has
+        # moved to since (a notebook's chdir), not looked for again from there.
+        video_paths=tuple(videos[c.name].absolute() for c in cameras),
         backgrounds=backgrounds,
         settings=settings,
         fps=fps,

@@ -352,3 +352,14 @@ def test_rates_within_the_tolerance_are_named_where_they_part_the_frames(
         _note_rates_apart([whole, ntsc], 1800)
     assert "s/cam1.mp4 runs at 29.97 fps and cam0.mp4 at 30 fps" in caplog.text
     assert "by the last frame they are 1.8 frames apart" in caplog.text
+
+
+def test_a_session_loaded_by_a_relative_path_keeps_its_videos_after_a_chdir(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    build_session(tmp_path / "take", frames=2)
+    monkeypatch.chdir(tmp_path)
+    session = load_session("take")
+    monkeypatch.chdir("/")  # as a notebook does before processing
+    assert all(path.is_absolute() and path.is_file() for path in session.video_paths)
+    assert session.video_paths[0] == tmp_path / "take" / session.video_paths[0].name
