@@ -638,6 +638,19 @@ def test_a_refused_run_tells_a_json_reader_why(session: Path, capsys: pytest.Cap
     assert "camera 'cam2'" in line and not out.exists()
 
 
+def test_an_out_folder_with_a_tilde_no_shell_expanded_is_refused(
+    session: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # --out=~/results reaches the run with its ~: it would make a folder named "~" here.
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert main([*_process(session, Path("~/results"))]) == EXIT_BAD_INPUT
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("error: ~/results: ~ is not expanded here (it would make a folder named ~)")
+    assert line.endswith(f"; give {tmp_path}/home/results")
+    assert not (tmp_path / "~").exists()
+
+
 def test_negative_frames_say_what_is_wrong(session: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = session.parent / "out"
     with pytest.raises(SystemExit) as exited:  # argparse's own exit, with our one line
