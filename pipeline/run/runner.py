@@ -24,6 +24,7 @@ from ..reconstruct.frame_result import FrameResult
 from ..reconstruct.frame_task import FrameFunction, FrameOutput, encode_silhouette, map_here, process_range
 from ..reconstruct.tracking import SEGMENT_FRAMES, segment_start
 from ..session.folder import Session
+from ..session.settings import CURVE_METHODS
 from .backends import (
     BACKENDS,
     DASK_CONNECT_TIMEOUT_S,
@@ -198,6 +199,9 @@ def process_session(
 
     Raises
     ------
+    TypeError : ``session`` is not a loaded session (a folder's path: load it first).
+    SettingsError : an unknown ``backend`` or ``curve``, a scheduler that is not one.
+    SessionError : ``frames`` selects none of the session's frames.
     OutputError : an output exists (without ``force``), the directory is not
         writable, or the disk filled up; temporary files are removed.
     Interrupted : Ctrl-C, SIGTERM or SIGHUP, after removing temporary files; its
@@ -236,8 +240,15 @@ def _process_session(
     started_at: float | None,
 ) -> RunSummary:
     t0 = time.perf_counter() if started_at is None else started_at
+    if not isinstance(session, Session):
+        raise TypeError(
+            f"process_session takes a loaded session, not {type(session).__name__} {session!r}: "
+            "give pipeline.load_session(folder)"
+        )
     if backend not in BACKENDS:
         raise SettingsError(f"backend {backend!r} unknown; use one of {', '.join(BACKENDS)}")
+    if curve is not None and curve not in CURVE_METHODS:
+        raise SettingsError(f"curve {curve!r} unknown; use one of {', '.join(CURVE_METHODS)}")
     if backend == "dask" and scheduler:
         check_scheduler_address(scheduler)
         check_scheduler(scheduler, DASK_CONNECT_TIMEOUT_S)

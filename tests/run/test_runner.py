@@ -348,6 +348,16 @@ def test_frames_past_the_end_run_to_it_with_a_note(
     assert f"--frames 8:{10**20} reaches past the session's 12 frames; running to its end" in caplog.text
 
 
+def test_the_python_api_refuses_what_the_command_line_would(short_session: Path, tmp_path: Path) -> None:
+    from pipeline.errors import SettingsError
+
+    with pytest.raises(TypeError, match=r"takes a loaded session, not str .*give pipeline.load_session"):
+        runner.process_session(str(short_session), out_dir=tmp_path / "a")  # type: ignore[arg-type]
+    with pytest.raises(SettingsError, match=r"curve 'spline' unknown; use one of fit, polyfit"):
+        runner.process_session(load_session(short_session), out_dir=tmp_path / "b", curve="spline")
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
 def test_an_rrd_cut_short_is_not_given_its_final_name(short_session: Path, tmp_path: Path) -> None:
     runner.process_session(
         load_session(short_session), out_dir=tmp_path, backend="threading", progress=False, frame_fn=fixed_rod
