@@ -34,4 +34,9 @@ def __getattr__(name: str) -> Any:
         from .record.load import load_recording
 
         return load_recording
-    raise AttributeError(name)
+    raise AttributeError(f"module 'pipeline' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    """The public API beside the module's own names: what tab completion and help() show."""
+    return sorted({*globals(), *__all__})

@@ -110,3 +110,11 @@ def test_no_import_cycle() -> None:
 
     for module in sorted(GRAPH):
         visit(module)
+
+
+def test_the_public_api_shows_in_dir_and_a_missing_name_says_so() -> None:
+    import pipeline
+
+    assert set(pipeline.__all__) <= set(dir(pipeline))
+    with pytest.raises(AttributeError, match=r"module 'pipeline' has no attribute 'procss_session'"):
+        pipeline.procss_session  # noqa: B018
