@@ -740,7 +740,7 @@ def test_the_json_summary_never_takes_the_place_of_the_recording(
     out = session.parent / "out"
     out.mkdir()
     code = main(_process(session, out, "--json", str(out / "session.mcap")))
-    assert code == EXIT_BAD_INPUT and "is where this run writes a recording" in capsys.readouterr().err
+    assert code == EXIT_BAD_INPUT and "is one of the files this run writes" in capsys.readouterr().err
     assert not any(out.iterdir())
 
 

@@ -360,11 +360,11 @@ def test_json_never_takes_the_place_of_a_recording_or_another_json_file(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:
     fake = _fake_run(monkeypatch, OK_RUN)
-    # A recording of this run, in an --out folder the run would make.
-    for name in ("s.mcap", "s.rrd"):
+    # A recording of this run, or its lock, in an --out folder the run would make.
+    for name in ("s.mcap", "s.rrd", ".s.lock"):
         target = tmp_path / "new" / "out" / name
         assert main(["process", "s", "-o", str(target.parent), "--json", str(target)]) == EXIT_BAD_INPUT
-        assert "is where this run writes a recording" in capsys.readouterr().err
+        assert "is one of the files this run writes (its recordings, its lock)" in capsys.readouterr().err
     # A JSON file that is not a summary (a layout, a settings file).
     layout = tmp_path / "layout.json"
     layout.write_text('{"layout": {"panels": []}}\n')

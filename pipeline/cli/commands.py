@@ -220,7 +220,10 @@ def _check_json_path(path: Path, outputs: tuple[Path, ...] = ()) -> None:
         ) from None
     target = Path(os.path.realpath(path))
     if any(target == Path(os.path.realpath(out)) for out in outputs):
-        raise OutputError(f"{path}: is where this run writes a recording; give --json another file name")
+        raise OutputError(
+            f"{path}: is one of the files this run writes (its recordings, its lock); give --json another "
+            "file name"
+        )
     if target.is_dir():
         raise OutputError(f"{path}: is a directory; give --json a file name (or - for stdout)")
     if target.exists() and not target.is_file():
@@ -278,8 +281,11 @@ def _holds_summary(path: Path) -> bool:
 
 
 def _recordings(out_dir: Path, name: str) -> tuple[Path, ...]:
-    """The files a run named ``name`` writes into ``out_dir``."""
-    return tuple(out_dir / f"{name}{suffix}" for suffix in (".mcap", ".rrd", ".calibration.toml"))
+    """The files a run named ``name`` writes into ``out_dir``, its lock among them."""
+    from ..run.output_target import lock_path
+
+    written = tuple(out_dir / f"{name}{suffix}" for suffix in (".mcap", ".rrd", ".calibration.toml"))
+    return (*written, lock_path(out_dir, name))
 
 
 def cmd_synth(args: argparse.Namespace) -> int:

@@ -44,7 +44,7 @@ class OutputTarget:
         self.mcap_path, self.rrd_path = out_dir / f"{name}.mcap", out_dir / f"{name}.rrd"
         self.run = f"{os.getpid()}-{uuid.uuid4().hex[:8]}"
         self._created = created
-        self._lock_path = out_dir / f".{name}.lock"
+        self._lock_path = lock_path(out_dir, name)
         self._lock_fd: int | None = None
 
     @property
@@ -192,6 +192,11 @@ def _sync_folder(folder: Path) -> None:
             os.fsync(fd)
         finally:
             os.close(fd)
+
+
+def lock_path(out_dir: Path, name: str) -> Path:
+    """The file whose lock a run named ``name`` holds in ``out_dir`` while it writes there."""
+    return out_dir / f".{name}.lock"
 
 
 def prepare_outputs(out_dir: Path, name: str, force: bool) -> OutputTarget:
