@@ -240,7 +240,21 @@ def load_recording(path: Path | str | bytes, *, on_warning: Callable[[str], None
             f.seek(0)
             return _read(f, path, warn)
     except OSError as exc:
-        raise RecordingError(f"{path}: cannot read: {exc.strerror}") from None
+        raise RecordingError(f"{path}: cannot read: {exc.strerror}{_what_to_give(path)}") from None
+
+
+def _what_to_give(path: Path) -> str:
+    """Advice for a recording ``path`` that cannot be read: a folder's .mcap files, or a ``~``
+    nothing expanded (a quoted path, Python's own string)."""
+    if path.is_dir():
+        found = sorted(p.name for p in path.glob("*.mcap"))[:3]
+        return f"; give the recording's .mcap file in it ({', '.join(found)})" if found else ""
+    if path.parts and path.parts[0].startswith("~") and not path.exists():
+        try:
+            return f" (~ is not expanded here: give {path.expanduser()})"
+        except RuntimeError:  # ~name of no user on this machine
+            return ""
+    return ""
 
 
 def _read(stream: Any, path: Path, warn: Callable[[str], None]) -> Recording:

@@ -430,6 +430,20 @@ def test_a_file_without_its_metadata_names_the_cameras_of_its_metrics(tmp_path: 
     assert rec.camera_names == ("b", "a")
 
 
+def test_a_folder_or_an_unexpanded_tilde_is_named_with_what_to_give(
+    written: tuple[Path, list[FrameResult]], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    folder = written[0].parent
+    with pytest.raises(
+        PipelineError,
+        match=r"cannot read: is not a regular file; give the recording's \.mcap file in it \(s\.mcap\)",
+    ):
+        pipeline.load_recording(folder)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    with pytest.raises(PipelineError, match=rf"~ is not expanded here: give {tmp_path}/run\.mcap"):
+        pipeline.load_recording("~/run.mcap")
+
+
 def test_a_centerline_length_in_the_metadata_that_is_not_a_number_is_ignored(tmp_path: Path) -> None:
     path = _mcap_with_metrics(
         tmp_path / "odd.mcap", [b'{"frame": 0, "status": "empty"}'], {"centerline_points": "many"}
