@@ -362,7 +362,15 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     # A recording cut short or damaged is named by the reading's own warning (on stderr):
     # the report is of the frames it holds, and the exit status says it is not the whole run.
     # So is one of another session than the ground truth's, or of other videos than those
-    # beside it: its figures may mean nothing.
+    # beside it: its figures may mean nothing. A recording without a curve in any frame
+    # leaves nothing measured: a script's `evaluate && ...` must not take it for a pass.
+    if report.frames and report.failed_frames == report.frames:
+        print(
+            f"warning: {args.recording}: no frame holds a curve to compare ({report.frames} frames "
+            "failed or empty); nothing was measured",
+            file=sys.stderr,
+        )
+        return EXIT_FRAMES_FAILED
     return (
         EXIT_OK
         if report.complete and not report.other_session and not report.other_videos

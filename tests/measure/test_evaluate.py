@@ -298,6 +298,28 @@ def test_cli_evaluate_prints_the_table_and_json(
     assert json.loads(capsys.readouterr().out)["failed_indices"] == [5]
 
 
+def failed_rod(index: int, images: object, model: object) -> tuple[FrameResult, None]:
+    """Stand-in frame function: every frame fails."""
+    return FrameResult.failed(index, "test failure"), None
+
+
+def test_a_recording_without_a_curve_measures_nothing_and_exits_1(
+    partial_run: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # A script's `evaluate && ...` must not take a run that found no tube for a pass.
+    from pipeline.cli import EXIT_FRAMES_FAILED, main
+    from pipeline.run.runner import process_session
+    from pipeline.session.folder import load_session
+
+    _, session_dir = partial_run
+    process_session(
+        load_session(session_dir), out_dir=tmp_path, jobs=1, images=False, progress=False, frame_fn=failed_rod
+    )
+    assert main(["evaluate", str(tmp_path / "rod.mcap"), str(session_dir)]) == EXIT_FRAMES_FAILED
+    err = capsys.readouterr().err
+    assert f"warning: {tmp_path / 'rod.mcap'}: no frame holds a curve to compare ({RUN_FRAMES} frames" in err
+
+
 def test_a_truncated_recording_is_evaluated_as_far_as_it_goes_and_says_so(
     partial_run: tuple[Path, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
