@@ -7,13 +7,18 @@ videos instead and plays them at their frame rate, as if they were cameras.
 
 from __future__ import annotations
 
+import logging
 import os
 import stat
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import SessionError, SettingsError
 from ..session.folder import Session, load_rig, load_session
+
+log = logging.getLogger(__name__)
 
 # FFmpeg's demuxer for Video4Linux2 devices: a device path or index is opened with it.
 V4L2_FORMAT = "v4l2"
@@ -187,4 +192,40 @@ def open_rig(rig_dir: Path | None, replay_dir: Path | None) -> tuple[Session, li
     if rig_dir is None or Path(rig_dir).resolve() == Path(replay_dir).resolve():
         return replay, replay_sources(replay, replay)
     rig = load_rig(rig_dir)
+    _warn_of_another_rig(rig, replay)
     return rig, replay_sources(rig, replay)
+
+
+# A replayed session's camera whose image of the workspace lies this far (px) from the rig's
+# camera of that name was filmed by another rig (or before a recalibration).
+_OTHER_RIG_PX = 2.0
+
+
+def _warn_of_another_rig(rig: Session, replay: Session) -> None:
+    """Say where the replayed session's calibration puts a camera's image of the workspace
+    more than ``_OTHER_RIG_PX`` from the rig's: its videos are reconstructed with the rig's
+    cameras, and a session of another rig gives curves that fit none of its views."""
+    workspace = rig.settings.workspace
+    corners = np.array(
+        [
+            [workspace.origin_mm[i] + (workspace.size_mm[i] if (k >> i) & 1 else 0.0) for i in range(3)]
+            for k in range(8)
+        ]
+    )
+    theirs = {cam.name: cam for cam in replay.cameras}
+    for cam in rig.cameras:
+        other = theirs.get(cam.name)
+        if other is None or other.size_px != cam.size_px:
+            continue  # named by replay_sources
+        apart_px = float(np.max(np.linalg.norm(cam.project(corners) - other.project(corners), axis=1)))
+        if apart_px > _OTHER_RIG_PX:
+            log.warning(
+                "%s: camera %r of its calibration.toml sees the workspace up to %.0f px from the rig's "
+                "(%s): the replay is reconstructed with the rig's cameras; replay a session filmed "
+                "with this rig, or give its own folder alone",
+                replay.directory,
+                cam.name,
+                apart_px,
+                rig.directory / "calibration.toml",
+            )
+            return

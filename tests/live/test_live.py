@@ -197,6 +197,26 @@ def test_live_paths_are_taken_from_the_rigs_folder_with_home_expanded(
     assert [s.url for s in sources] == [str(rig / "cam0.pipe"), str(home / "cam1.pipe"), "/dev/video2"]
 
 
+def test_a_replay_of_another_rigs_session_is_warned_of(
+    tmp_path: Path, session: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    import tomllib
+
+    rig = _rig(tmp_path / "rig", session, None)
+    with caplog.at_level(logging.WARNING):
+        open_rig(rig, session)  # the rig's own session: said nothing
+    assert caplog.text == ""
+    # The rig's first camera turned by a degree: its sessions are no longer this rig's.
+    doc = tomllib.loads((rig / "calibration.toml").read_text())
+    first = next(iter(k for k in doc if k != "metadata"))
+    doc[first]["rotation"] = [v + 0.02 for v in doc[first]["rotation"]]
+    (rig / "calibration.toml").write_text(tomli_w.dumps(doc))
+    with caplog.at_level(logging.WARNING):
+        open_rig(rig, session)
+    assert f"{session}: camera 'cam0' of its calibration.toml sees the workspace up to" in caplog.text
+    assert "replay a session filmed with this rig" in caplog.text
+
+
 def test_a_rig_whose_live_table_misses_or_misnames_a_camera_is_refused(tmp_path: Path, session: Path) -> None:
     rig = _rig(tmp_path / "a", session, {"cam0": 0, "cam1": 1})
     with pytest.raises(SettingsError, match=r"\[live\] gives no source for camera 'cam2'; add cam2 ="):
