@@ -606,7 +606,10 @@ def test_a_viewer_that_takes_the_connection_but_never_answers_does_not_hold_the_
         url = grpc_url(str(listener.getsockname()[1]))
         done: list[Any] = []
         run = threading.Thread(
-            target=lambda: done.append(run_live(rig, sources, out_dir=tmp_path / "out", viewer_url=url)),
+            # A queue long enough that no frame-set is dropped however loaded the machine is.
+            target=lambda: done.append(
+                run_live(rig, sources, out_dir=tmp_path / "out", viewer_url=url, queue_sets=FRAMES)
+            ),
             daemon=True,
         )
         run.start()
@@ -762,7 +765,9 @@ def test_a_signal_stops_the_run_with_complete_recordings(
         proc.kill()
         sender.kill()
         sender.wait()
-    assert proc.returncode == 0, stderr
+    # A signal is no error: the status is the run's own, 1 only where it dropped frame-sets
+    # (a loaded machine's UDP cameras outrun the reconstruction), and said so.
+    assert proc.returncode == (1 if "\n  dropped: " in stderr else 0), stderr
     assert "live: stopped by a signal;" in stdout
     assert sorted(p.name for p in out.iterdir()) == ["rig.mcap", "rig.rrd"]
     rec = pipeline.load_recording(out / "rig.mcap")
@@ -1221,7 +1226,9 @@ def test_the_summary_gives_latency_drops_rates_and_outages() -> None:
     data = json.loads(json.dumps(summary.to_dict(), allow_nan=False))  # no NaN in the JSON
     assert data["live"]["latency_ms"] == {"p50": 30.0, "p99": pytest.approx(49.6)}
     assert data["live"]["camera_fps"] == {"cam0": 30.0, "cam1": None}
-    assert data["live"]["frames_dropped"] == 3 and data["exit_code"] == 0
+    # Dropped frame-sets are data lost: a problem of the run (exit 1), on stderr.
+    assert data["live"]["frames_dropped"] == 3 and data["exit_code"] == 1
+    assert any(line.startswith("  dropped: 3 frame-sets") for line in summary.problem_lines())
 
 
 def test_the_summary_of_a_run_without_frames_says_so_rather_than_nan() -> None:
