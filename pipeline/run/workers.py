@@ -287,15 +287,17 @@ def _stop_watch() -> None:
 
 
 def describe_pool_failure(exc: BaseException) -> str:
-    """What broke a pool, for a warning line: the exception's name and first line, or,
-    when the watch ended a stuck pool, that a worker died handing back its results
-    (loky's own words for that, "A result has failed to un-serialize", mislead)."""
+    """What broke a pool, for a warning line: the exception's name and its message on one
+    line, shortened to whole words (a first line alone may stop mid-sentence: Dask's "...
+    increase the joblib/dask connection timeout with:"), or, when the watch ended a stuck
+    pool, that a worker died handing back its results (loky's own words for that, "A result
+    has failed to un-serialize", mislead)."""
     global _ended_stuck_pool
     if _ended_stuck_pool:
         _ended_stuck_pool = False
         return "a worker died while handing back its results"
     text = str(exc).strip()
-    first = textwrap.shorten(text.splitlines()[0], 200) if text else ""  # whole words
+    first = textwrap.shorten(" ".join(text.split()), 200) if text else ""  # whole words
     return f"{type(exc).__name__}: {first}" if first else type(exc).__name__
 
 

@@ -215,3 +215,15 @@ def test_the_stuck_pools_results_pipe_is_forgotten_before_it_is_closed(
     with pytest.raises(EOFError):
         reader.recv_bytes()
     reader.close()
+
+
+def test_a_pool_failure_is_described_in_whole_sentences_on_one_line() -> None:
+    # Dask's message for a cluster that lost its workers breaks its line mid-sentence.
+    exc = OSError(
+        "Timed out trying to connect to tcp://127.0.0.1:8786 after 30 s; increase the\n"
+        "joblib/dask connection timeout with:\n"
+        "    dask.config.set({'distributed.comm.timeouts.connect': '60s'})"
+    )
+    line = workers.describe_pool_failure(exc)
+    assert "\n" not in line and line.startswith("OSError: Timed out trying to connect")
+    assert "connection timeout with: dask.config.set(" in line
