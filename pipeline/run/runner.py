@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import numbers
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -200,7 +201,8 @@ def process_session(
     Raises
     ------
     TypeError : ``session`` is not a loaded session (a folder's path: load it first).
-    SettingsError : an unknown ``backend`` or ``curve``, a scheduler that is not one.
+    SettingsError : an unknown ``backend`` or ``curve``, ``jobs`` 0, a ``scheduler`` with
+        another backend than "dask" or that is not one.
     SessionError : ``frames`` selects none of the session's frames.
     OutputError : an output exists (without ``force``), the directory is not
         writable, or the disk filled up; temporary files are removed.
@@ -249,6 +251,10 @@ def _process_session(
         raise SettingsError(f"backend {backend!r} unknown; use one of {', '.join(BACKENDS)}")
     if curve is not None and curve not in CURVE_METHODS:
         raise SettingsError(f"curve {curve!r} unknown; use one of {', '.join(CURVE_METHODS)}")
+    if isinstance(jobs, bool) or not isinstance(jobs, numbers.Integral) or jobs == 0:
+        raise SettingsError(f"jobs {jobs!r}: give 1 or more workers, or -1 for one per core")
+    if scheduler and backend != "dask":
+        raise SettingsError(f"scheduler {scheduler!r} runs on a Dask cluster: give backend='dask'")
     if backend == "dask" and scheduler:
         check_scheduler_address(scheduler)
         check_scheduler(scheduler, DASK_CONNECT_TIMEOUT_S)

@@ -355,6 +355,10 @@ def test_the_python_api_refuses_what_the_command_line_would(short_session: Path,
         runner.process_session(str(short_session), out_dir=tmp_path / "a")  # type: ignore[arg-type]
     with pytest.raises(SettingsError, match=r"curve 'spline' unknown; use one of fit, polyfit"):
         runner.process_session(load_session(short_session), out_dir=tmp_path / "b", curve="spline")
+    with pytest.raises(SettingsError, match=r"jobs 0: give 1 or more workers"):
+        runner.process_session(load_session(short_session), out_dir=tmp_path / "b", jobs=0)
+    with pytest.raises(SettingsError, match=r"runs on a Dask cluster: give backend='dask'"):
+        runner.process_session(load_session(short_session), out_dir=tmp_path / "b", scheduler="tcp://h:8786")
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 
