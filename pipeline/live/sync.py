@@ -18,6 +18,11 @@ from numpy.typing import NDArray
 # Frames a camera may have waiting for the others: a camera whose partners stall for
 # longer loses its oldest (counted), so that waiting never grows memory.
 MAX_WAITING_FRAMES = 8
+# A head this share of the tolerance or more before the latest camera's waits for the frame
+# behind it before it is matched (see FrameMatcher.add): more than the jitter of cameras
+# at one rate (a set's frames 10 ms apart at 30 fps stay prompt), less than a camera at
+# twice the others' rate puts a stale head (a whole tolerance) before the latest.
+_LOOSE_SHARE = 0.75
 
 
 @dataclass(frozen=True, eq=False)
@@ -97,6 +102,19 @@ class FrameMatcher:
             if drop is not None:
                 self._waiting[drop].popleft()
                 self.unmatched[drop] += 1
+                continue
+            # A head well before the latest may have a nearer frame behind it (a camera at
+            # twice the others' rate, or the others at twice its): decided once that frame
+            # has come, and dropped for it where it is nearer.
+            latest = max(heads)
+            early = [c for c, head in enumerate(heads) if latest - head > _LOOSE_SHARE * self.tolerance_ns]
+            if any(len(self._waiting[c]) < 2 for c in early):
+                break
+            nearer = [c for c in early if abs(self._waiting[c][1].arrived_ns - latest) < latest - heads[c]]
+            if nearer:
+                for c in nearer:
+                    self._waiting[c].popleft()
+                    self.unmatched[c] += 1
                 continue
             frames = [w.popleft() for w in self._waiting]
             sets.append(

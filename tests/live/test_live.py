@@ -37,7 +37,14 @@ from pipeline.live.restarts import RestartWorker
 from pipeline.live.run import CameraSummary, LiveSummary, run_live
 from pipeline.live.sources import V4L2_FORMAT, Source, open_rig, parse_source
 from pipeline.live.stream import check_viewer, grpc_url, parse_host_port
-from pipeline.live.sync import MAX_WAITING_FRAMES, CapturedFrame, FrameMatcher, FrameSet, head_action
+from pipeline.live.sync import (
+    MAX_WAITING_FRAMES,
+    CapturedFrame,
+    FrameMatcher,
+    FrameSet,
+    half_period_ns,
+    head_action,
+)
 from pipeline.measure.bench.live import mean_gap_mm
 from pipeline.session.settings import settings_from_dict
 
@@ -75,6 +82,23 @@ def test_jittered_cameras_are_matched_frame_for_frame() -> None:
         assert [int(im[0, 0]) for im in frame_set.images] == [0, 1, 2]  # camera order
         assert all(abs(t - k * PERIOD_NS) <= 5_000_000 for t in frame_set.arrived_ns)
     assert matcher.unmatched == [0, 0, 0]
+
+
+@pytest.mark.parametrize("other_fps", [15, 60])
+def test_a_camera_at_another_rate_is_matched_with_the_nearest_frames(other_fps: int) -> None:
+    # Two cameras at 30 fps and one at half or twice that, each frame 2 ms off its tick: the
+    # oldest frames within the tolerance are often a period apart while the simultaneous
+    # frame waits behind one of them.
+    matcher = FrameMatcher(3, half_period_ns(min(30, other_fps)))
+    rng = np.random.default_rng(1)
+    events = [(int(k * 1e9 / 30 + rng.normal(0, 2e6)), c) for k in range(120) for c in (0, 1)]
+    events += [(int(k * 1e9 / other_fps + rng.normal(0, 2e6)), 2) for k in range(120 * other_fps // 30)]
+    sets: list[FrameSet] = []
+    for arrived_ns, camera in sorted(events):
+        sets += matcher.add(_frame(camera, arrived_ns))
+    assert len(sets) >= 119 * min(30, other_fps) // 30
+    apart_ms = [abs(s.arrived_ns[2] - s.arrived_ns[0]) / 1e6 for s in sets]
+    assert sum(apart > 10 for apart in apart_ms) <= len(sets) // 100  # was a third of them
 
 
 def test_a_frame_one_camera_lost_drops_the_others_frames_of_that_tick() -> None:
