@@ -58,3 +58,17 @@ def refuse_unfinished_render(folder: Path, error: type[PipelineError]) -> None:
         raise error(
             f"{folder}: a synthetic render stopped part-way here ({UNFINISHED_RENDER}); render it again"
         )
+
+
+def home_meant(path: Path) -> Path | None:
+    """The path a ``path`` starting with a ``~`` that no shell expanded means (zsh in
+    ``make process VIDEO_DIR=~/s``, ``--out=~/x``, a quoted path, Python's own string):
+    ``path`` with the home folder in its place; None where it starts with no ``~``, is
+    there as it is, or names no user of this machine."""
+    if not path.parts or not path.parts[0].startswith("~") or path.exists():
+        return None
+    try:
+        meant = path.expanduser()
+    except RuntimeError:  # ~name of no user on this machine
+        return None
+    return meant if meant != path else None

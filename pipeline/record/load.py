@@ -39,7 +39,7 @@ from mcap.writer import MCAP0_MAGIC
 from mcap_protobuf.decoder import DecoderFactory
 from numpy.typing import NDArray
 
-from ..errors import RecordingError
+from ..errors import RecordingError, home_meant
 from ..session.toml_file import require_regular_file
 from .commit_marker import killed_commits
 from .mcap_log import (
@@ -249,12 +249,8 @@ def _what_to_give(path: Path) -> str:
     if path.is_dir():
         found = sorted(p.name for p in path.glob("*.mcap"))[:3]
         return f"; give the recording's .mcap file in it ({', '.join(found)})" if found else ""
-    if path.parts and path.parts[0].startswith("~") and not path.exists():
-        try:
-            return f" (~ is not expanded here: give {path.expanduser()})"
-        except RuntimeError:  # ~name of no user on this machine
-            return ""
-    return ""
+    meant = home_meant(path)
+    return f" (~ is not expanded here: give {meant})" if meant is not None else ""
 
 
 def _read(stream: Any, path: Path, warn: Callable[[str], None]) -> Recording:

@@ -18,7 +18,7 @@ import os
 import uuid
 from pathlib import Path
 
-from ..errors import OutputError
+from ..errors import OutputError, home_meant
 from ..record.commit_marker import killed_commits, marker_path, marker_run
 from ..session.folder import check_utf8_path
 
@@ -203,14 +203,10 @@ def prepare_outputs(out_dir: Path, name: str, force: bool) -> OutputTarget:
     """Check, before any work, that the outputs can be written, and take the folder's lock
     for ``name``. Call :meth:`OutputTarget.release` when the run ends."""
     check_utf8_path(out_dir, "choose an --out path in UTF-8", OutputError)
-    if out_dir.parts and out_dir.parts[0].startswith("~") and not out_dir.exists():
-        # A ~ no shell expanded (--out=~/x, a quoted path, Python's own str): a folder named
-        # "~" here, which a later `rm -rf ~` would take for the home folder.
-        try:
-            home = f"give {out_dir.expanduser()}"
-        except RuntimeError:  # ~name of no user on this machine
-            home = "give the folder's full path"
-        raise OutputError(f"{out_dir}: ~ is not expanded here (it would make a folder named ~); {home}")
+    meant = home_meant(out_dir)
+    if meant is not None:
+        # Made as it is, a folder named "~" here, which a later `rm -rf ~` would take for home.
+        raise OutputError(f"{out_dir}: ~ is not expanded here (it would make a folder named ~); give {meant}")
     try:
         for folder in (out_dir, *out_dir.parents):
             if folder.exists() and not folder.is_dir():

@@ -31,6 +31,7 @@ from ..errors import (
     SessionError,
     SettingsError,
     VideoError,
+    home_meant,
     refuse_unfinished_render,
 )
 from ..geometry.camera import Camera
@@ -247,13 +248,9 @@ def _where_looked(directory: Path) -> str:
     """Where a missing session ``directory`` was looked for, for its error message: a ``~``
     no shell expanded (zsh in ``make process VIDEO_DIR=~/s``, or quoted), or the folder a
     relative path is taken from (with ``make -C``, the repository's, not the caller's)."""
-    if directory.parts and directory.parts[0].startswith("~"):
-        try:
-            expanded = directory.expanduser()
-        except RuntimeError:  # ~name of no user on this machine
-            expanded = directory
-        if expanded != directory:
-            return f" (~ is not expanded here: give {expanded})"
+    meant = home_meant(directory)
+    if meant is not None:
+        return f" (~ is not expanded here: give {meant})"
     if not directory.is_absolute():
         try:
             return f" (looked for it in {Path.cwd()})"
