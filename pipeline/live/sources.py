@@ -7,6 +7,7 @@ videos instead and plays them at their frame rate, as if they were cameras.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import os
 import stat
@@ -206,11 +207,9 @@ def _warn_of_another_rig(rig: Session, replay: Session) -> None:
     more than ``_OTHER_RIG_PX`` from the rig's: its videos are reconstructed with the rig's
     cameras, and a session of another rig gives curves that fit none of its views."""
     workspace = rig.settings.workspace
-    corners = np.array(
-        [
-            [workspace.origin_mm[i] + (workspace.size_mm[i] if (k >> i) & 1 else 0.0) for i in range(3)]
-            for k in range(8)
-        ]
+    # (8, 3) mm: the workspace box's corners.
+    corners = np.asarray(workspace.origin_mm) + np.asarray(workspace.size_mm) * np.array(
+        list(itertools.product((0.0, 1.0), repeat=3))
     )
     theirs = {cam.name: cam for cam in replay.cameras}
     for cam in rig.cameras:
