@@ -39,6 +39,10 @@ class OutputError(PipelineError):
     """An output cannot be written (exists, not writable, disk full)."""
 
 
+class WorkersError(PipelineError):
+    """The workers could reconstruct no frame at all (every one killed, or the scheduler's gone)."""
+
+
 class EvaluationError(PipelineError):
     """A recording or ground truth cannot be evaluated (missing, unreadable, mismatched)."""
 

@@ -20,7 +20,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from ..errors import Interrupted, SessionError, SettingsError
+from ..errors import Interrupted, SessionError, SettingsError, WorkersError
 from ..reconstruct.frame_result import FrameResult
 from ..reconstruct.frame_task import FrameFunction, FrameOutput, encode_silhouette, map_here, process_range
 from ..reconstruct.tracking import SEGMENT_FRAMES, segment_start
@@ -156,6 +156,18 @@ def _attempts(
                 else:
                     survivors.extend(group[done:])
         pending = survivors
+
+
+def _no_worker_finished(reasons: list[str], target: OutputTarget) -> WorkersError:
+    """The error of a run whose every range was given up (``reasons``, one a range): a
+    recording of nothing but failed frames would only replace the outputs there (under
+    --force) with nothing."""
+    others = f" (as on all {len(reasons)} ranges of the run)" if len(reasons) > 1 else ""
+    return WorkersError(
+        f"no frame was reconstructed: {reasons[0]}{others}; {target.mcap_path} and "
+        f"{target.rrd_path} were not written (existing ones are untouched). Check the workers' "
+        "memory, or the Dask scheduler and its workers, and rerun"
+    )
 
 
 def _failed_range(span: tuple[int, int], reason: str) -> list[FrameOutput]:
@@ -309,6 +321,7 @@ def _run_with(
     tip = doubt = ""
     refinement = None
     written: list[tuple[Path, int]] = []
+    written_by_workers = False
     # Local workers tell the bar of each frame as they finish it (a range's results
     # come back whole): one byte each, appended to a file of this run's.
     tally = new_tally() if progress and backend != "dask" else None
@@ -383,14 +396,20 @@ def _run_with(
                     tube_end=tip,
                     frame_doubt=doubt,
                 )
+                given_up: list[str] = []
                 for span, outputs in results:
                     raise_if_interrupted()
                     if isinstance(outputs, str):  # a range given up: its frames fail
+                        given_up.append(outputs)
                         outputs = _failed_range(span, outputs)
+                    else:
+                        written_by_workers = True
                     for out in outputs:
                         writer.write(out)
                         done += 1
                         advance(bar, done)
+                if given_up and not written_by_workers:
+                    raise _no_worker_finished(given_up, target)
         assert writer is not None
         raise_if_interrupted()
         writer.finish()

@@ -32,7 +32,7 @@ from mcap.records import Chunk, Message
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from pipeline.cli import EXIT_FRAMES_FAILED, EXIT_OK, main
-from pipeline.errors import Interrupted, OutputError, RecordingError, SettingsError
+from pipeline.errors import Interrupted, OutputError, RecordingError, SettingsError, WorkersError
 from pipeline.reconstruct.frame_result import FrameResult
 from pipeline.record.load import load_recording
 from pipeline.record.mcap_log import METRICS_TOPIC
@@ -221,6 +221,24 @@ def test_worker_that_dies_is_retried_then_its_frames_fail(
     # Only the dead range is lost (three ranges of MIN_RANGE_FRAMES).
     assert sorted(failed) == list(range(0, runner.MIN_RANGE_FRAMES))
     assert summary.frames_ok == 2 * runner.MIN_RANGE_FRAMES and summary.exit_code == 1
+
+
+def always_dies(index: int, images: Sequence[Any], model: Any) -> tuple[FrameResult, None]:
+    """Kill the worker on every frame: a worker that cannot run at all (the scheduler's only one)."""
+    os._exit(9)
+
+
+@pytest.mark.slow
+def test_workers_that_die_on_every_range_leave_the_outputs_there(tmp_path: Path) -> None:
+    # A recording of nothing but failed frames would replace a good pair under --force.
+    session = build_session(tmp_path / "die", frames=2 * runner.MIN_RANGE_FRAMES)
+    out = tmp_path / "out"
+    _run(session, out, frames=(0, 2))
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    no_frame = r"no frame was reconstructed: worker died on frames 0-\d+, also when retried .*\(as on all \d+ ranges of the run\)"
+    with pytest.raises(WorkersError, match=no_frame):
+        _run(session, out, force=True, jobs=2, backend="loky", frame_fn=always_dies)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
 # --- outputs: existing, unwritable, disk full, interrupted -----------------------------------
