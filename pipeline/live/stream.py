@@ -13,6 +13,7 @@ import os
 import socket
 import sys
 import threading
+import time
 from collections.abc import Sequence
 from typing import Any
 from urllib.parse import urlsplit
@@ -27,6 +28,10 @@ DEFAULT_FOXGLOVE = "127.0.0.1:8765"  # Foxglove's usual WebSocket address
 CONNECT_TIMEOUT_S = 2.0
 # The longest the run waits for the Foxglove server's clients to close when it stops.
 STOP_TIMEOUT_S = 5.0
+# How long the server goes on serving, once the run stops, for its subscribers to take
+# the messages queued for them: the SDK's stop drops whatever is still queued, and has
+# no way to wait for a client's queue to empty. A client that keeps up holds a frame or two.
+DRAIN_S = 0.5
 
 
 def grpc_url(address: str) -> str:
@@ -191,12 +196,17 @@ class FoxgloveServer:
 
         class Listener(foxglove.ServerListener):
             def on_subscribe(self, client: Any, channel: Any) -> None:
+                server.subscribed += 1
                 server.resend_static(channel.topic)
+
+            def on_unsubscribe(self, client: Any, channel: Any) -> None:
+                server.subscribed -= 1
 
         self._context = foxglove.Context()
         self._channels: dict[str, Any] = {}
         self._statics: dict[str, tuple[bytes, int]] = {}
         self._lock = threading.Lock()
+        self.subscribed = 0  # subscriptions open now, of every client
         try:
             self._server = foxglove.start_server(
                 name=name, host=host, port=port, context=self._context, server_listener=Listener()
@@ -234,10 +244,13 @@ class FoxgloveServer:
             target.log(static[0], log_time=static[1])
 
     def stop(self) -> None:
-        """Close the server, waiting at most ``STOP_TIMEOUT_S`` for its clients: the SDK's
-        stop waits for each to close, and a client that stopped reading (a stalled network,
-        a frozen app) would hold the run (and its signals: the wait is in native code) until
-        it goes. Past the wait the server is left to the process' exit, with a warning."""
+        """Close the server, after ``DRAIN_S`` for its subscribers' queues to go out, waiting
+        at most ``STOP_TIMEOUT_S`` for its clients: the SDK's stop waits for each to close, and
+        a client that stopped reading (a stalled network, a frozen app) would hold the run (and
+        its signals: the wait is in native code) until it goes. Past the wait the server is
+        left to the process' exit, with a warning."""
+        if self.subscribed > 0:
+            time.sleep(DRAIN_S)
         closing = threading.Thread(target=self._server.stop, name="foxglove-stop", daemon=True)
         closing.start()
         closing.join(STOP_TIMEOUT_S)

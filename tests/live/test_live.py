@@ -944,6 +944,46 @@ def test_a_viewer_address_where_something_else_listens_is_refused_naming_it() ->
             check_viewer(grpc_url(str(listener.getsockname()[1])))
 
 
+def test_a_foxglove_subscriber_gets_the_messages_written_just_before_the_stop() -> None:
+    # The SDK's stop drops what is still queued for a client: the last frames of a run.
+    from pipeline.live.stream import FoxgloveServer
+    from pipeline.record.mcap_log import ChannelSchema
+
+    server = FoxgloveServer("127.0.0.1", 0, name="test")
+    schema = ChannelSchema(name="blob", encoding="jsonschema", data=b"{}", message_encoding="json")
+    server("/blob", schema, b"{}", 0)
+    client = _WebSocket(int(server.address.rsplit(":", 1)[1]), "foxglove.sdk.v1")
+    channel_id = None
+    while channel_id is None:
+        opcode, payload = client.receive()
+        message = json.loads(payload) if opcode == 1 else {}
+        if message.get("op") == "advertise":
+            channel_id = next((c["id"] for c in message["channels"] if c["topic"] == "/blob"), None)
+    client.send_text(json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": channel_id}]}))
+    while server.subscribed == 0:
+        time.sleep(0.01)
+    received: list[bytes] = []
+
+    def read() -> None:
+        with contextlib.suppress(OSError, IndexError):
+            while True:
+                opcode, payload = client.receive()
+                if opcode == 8:  # the server's close
+                    return
+                if opcode == 2:
+                    received.append(payload)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    # 300 messages of 200 kB (fewer than the SDK's queue of 1,024 a client), then the stop.
+    for i in range(300):
+        server("/blob", schema, b"{" + b" " * 200_000 + b"}", i + 1)
+    server.stop()
+    reader.join(5)
+    client.close()
+    assert len(received) >= 300  # (and /blob's first message, if it came after the subscription)
+
+
 def test_a_foxglove_client_that_stopped_reading_does_not_hold_the_run(
     monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
