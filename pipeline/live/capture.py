@@ -17,7 +17,7 @@ import select
 import stat
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -40,6 +40,11 @@ OPEN_TIMEOUT_S = 5.0
 # FFmpeg options for a network stream: probe as little as will find the stream, and
 # pass packets on as they come.
 LOW_DELAY_OPTIONS = {"fflags": "nobuffer", "probesize": "32768", "analyzeduration": "0"}
+# Packets a stream may fail to decode before its first frame, passed over: a stream joined
+# between two keyframes, or opened with ``nobuffer`` (which drops the packets FFmpeg
+# probed), starts with packets that refer to ones the decoder never had. H.264's decoder
+# passes over them itself; FFV1's raises. Ten seconds at 30 fps.
+JOIN_PACKETS = 300
 # A camera that is down is tried again this often.
 RETRY_S = 1.0
 # A named pipe is waited on in slices this long, each ending with a look at the run's stop.
@@ -262,7 +267,8 @@ class CameraReader:
             if rate and not self.source.is_replay:
                 self.rate_fps = float(rate)
             greyer = Greyer()
-            for k, frame in enumerate(container.decode(stream)):
+            frames = container.decode(stream) if self.source.is_replay else _joined(container, stream)
+            for k, frame in enumerate(frames):
                 # Stamped before anything else is done with it: the grey conversion waits for
                 # the interpreter's lock, for longer when the run is busy.
                 arrived_ns = time.monotonic_ns()
@@ -290,6 +296,22 @@ class CameraReader:
             log.warning("%s: frames again", self.source.describe())
         self.stats.add(arrived_ns)
         self._deliver(CapturedFrame(self.camera, arrived_ns, image))
+
+
+def _joined(container: Any, stream: Any) -> Iterator[Any]:
+    """``stream``'s frames, passing over the packets that fail to decode before the first
+    frame (at most :data:`JOIN_PACKETS`); a failure after it is raised."""
+    decoded = passed = 0
+    for packet in container.demux(stream):
+        try:
+            frames = packet.decode()
+        except av.error.InvalidDataError:
+            if decoded or passed >= JOIN_PACKETS:
+                raise
+            passed += 1
+            continue
+        decoded += len(frames)
+        yield from frames
 
 
 def _is_pipe(path: str) -> bool:

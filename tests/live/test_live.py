@@ -1164,6 +1164,47 @@ def _mpegts(video: Path) -> bytes:
 
 
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes")
+def test_a_lossless_ffv1_stream_is_read_from_its_first_keyframe(session: Path, tmp_path: Path) -> None:
+    # FFV1's frames between keyframes refer to the ones before: FFmpeg's low-delay open drops
+    # the first packets it probed, and the decoder raised on the next ones.
+    import av
+
+    stream_bytes = io.BytesIO()
+    with av.open(stream_bytes, mode="w", format="nut") as container:
+        stream = container.add_stream("ffv1", rate=30)
+        stream.width, stream.height, stream.pix_fmt = 320, 240, "gray"
+        stream.gop_size = 10
+        for frame in av.open(session / "cam1.mp4").decode(video=0):
+            container.mux(stream.encode(frame.reformat(format="gray")))
+        container.mux(stream.encode(None))
+    pipe = tmp_path / "cam1.pipe"
+    os.mkfifo(pipe)
+
+    stop = threading.Event()
+
+    def write() -> None:
+        with open(pipe, "wb") as fifo:
+            fifo.write(stream_bytes.getvalue())
+            fifo.flush()
+            stop.wait()  # a camera that goes on: the pipe stays open until the run stops
+
+    threading.Thread(target=write, daemon=True).start()
+    delivered: list[CapturedFrame] = []
+    reader = CameraReader(
+        1, Source("cam1", str(pipe)), (320, 240), delivered.append, stop, start_ns=time.monotonic_ns()
+    )
+    reader.start()
+    deadline = time.monotonic() + 20
+    while len(delivered) < FRAMES - 10 and time.monotonic() < deadline and reader.fault is None:
+        time.sleep(0.05)
+    stop.set()
+    reader.join(5)
+    assert reader.fault is None and reader.stats.outages == []
+    # From the first keyframe the probe left on: every frame of the video from there on.
+    assert FRAMES - 10 <= len(delivered) <= FRAMES
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes")
 def test_named_pipes_whose_writers_stall_open_are_reported_and_end_with_the_run(
     session: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
