@@ -321,7 +321,6 @@ def _run_with(
     tip = doubt = ""
     refinement = None
     written: list[tuple[Path, int]] = []
-    written_by_workers = False
     # Local workers tell the bar of each frame as they finish it (a range's results
     # come back whole): one byte each, appended to a file of this run's.
     tally = new_tally() if progress and backend != "dask" else None
@@ -396,19 +395,20 @@ def _run_with(
                     tube_end=tip,
                     frame_doubt=doubt,
                 )
-                given_up: list[str] = []
+                given_up: list[str] = []  # why each range given up was
+                reconstructed = False  # some range came back from the workers
                 for span, outputs in results:
                     raise_if_interrupted()
                     if isinstance(outputs, str):  # a range given up: its frames fail
                         given_up.append(outputs)
                         outputs = _failed_range(span, outputs)
                     else:
-                        written_by_workers = True
+                        reconstructed = True
                     for out in outputs:
                         writer.write(out)
                         done += 1
                         advance(bar, done)
-                if given_up and not written_by_workers:
+                if given_up and not reconstructed:
                     raise _no_worker_finished(given_up, target)
         assert writer is not None
         raise_if_interrupted()
