@@ -321,7 +321,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         type=float,
         default=0.0,
         metavar="DEG",
-        help="write a calibration.toml off by this much (each camera turned DEG degrees, moved "
+        help="write a calibration.toml off by this much, 0-2 (each camera turned DEG degrees, moved "
         "6.7*DEG mm, focal 2*DEG %%, principal point 6.7*DEG px); the videos use the true cameras",
     )
     p.add_argument("--frames", type=int, default=900, help="number of frames at 30 fps (default 900)")

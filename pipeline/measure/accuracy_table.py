@@ -31,7 +31,8 @@ from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ..errors import PipelineError
+from ..errors import UNFINISHED_RENDER, PipelineError
+from ..synth.calib_error import MAX_ERROR_DEG
 from ..synth.names import SHAPES
 from .arguments import OneLineParser, at_least, not_a_session, stopped_in_one_line, worker_jobs
 from .evaluate import TARGETS, EvaluationReport, evaluate_recording
@@ -105,10 +106,12 @@ def prepare_session(case: Case | DrawnCase, root: Path, frames: int, *, jobs: in
     # Through JSON and back, so that tuples compare equal to the lists read from the stamp.
     wanted = json.loads(json.dumps({**asdict(case), "frames": frames}))
     stamp = directory / _STAMP
-    if stamp.is_file() and json.loads(stamp.read_text()) == wanted:
+    finished = not (directory / UNFINISHED_RENDER).exists()  # not a render stopped part-way
+    if finished and stamp.is_file() and json.loads(stamp.read_text()) == wanted:
         log.info("%s: reusing the rendered session", case.name)
         return directory
     log.info("%s: rendering %d frames", case.name, frames)
+    stamp.unlink(missing_ok=True)  # the render below is this stamp's only once it is whole
     if isinstance(case, DrawnCase):
         render_case(case, directory, frames, jobs=jobs)
     else:
@@ -328,6 +331,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             errors = [float(v) for v in args.calib_error.split(",")]
         except ValueError:
             parser.error(f"--calib-error takes degrees separated by commas, got {args.calib_error!r}")
+        # Refused here, not when the first case with it is rendered, after the others' work.
+        outside = [e for e in errors if not 0.0 <= e <= MAX_ERROR_DEG]
+        if outside:
+            parser.error(f"--calib-error takes degrees from 0 to {MAX_ERROR_DEG:g}, got {outside[0]:g}")
         # A default case's name is its own; a drawn case's tells its error by itself.
         cases = [
             dataclasses.replace(c, name=f"{c.name}-calib{e:g}", calib_error_deg=e)

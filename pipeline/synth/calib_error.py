@@ -21,6 +21,9 @@ import numpy as np
 from .rig import SynthCamera
 
 MM_PER_DEG = 20.0 / 3.0
+# The largest error drawn (degrees): a camera 13 mm and 13 px off, past which a rig's views
+# need not meet in its workspace at all.
+MAX_ERROR_DEG = 2.0
 FOCAL_PERCENT_PER_DEG = 2.0
 PX_PER_DEG = 20.0 / 3.0
 

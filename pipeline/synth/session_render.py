@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from ..errors import Interrupted, PipelineError
 from ..session.settings import MAX_VOXEL_RADII
-from .calib_error import perturbed_rig
+from .calib_error import MAX_ERROR_DEG, perturbed_rig
 from .distractor import paint_distractor, place_distractor
 from .images import background_texture, flicker_gains, render_frame, threshold_for
 from .names import IMAGE_SIZES, PROFILES, RANDOM_SHAPE, SHAPES, TIPS
@@ -211,8 +211,10 @@ def _validate(
     if tuple(options.size) not in IMAGE_SIZES:
         sizes = ", ".join(f"{w}x{h}" for w, h in IMAGE_SIZES)
         raise PipelineError(f"image size must be one of {sizes}, got {options.size[0]}x{options.size[1]}")
-    if not 0.0 <= options.calib_error_deg <= 2.0:
-        raise PipelineError(f"--calib-error must be in [0, 2] degrees, got {options.calib_error_deg}")
+    if not 0.0 <= options.calib_error_deg <= MAX_ERROR_DEG:
+        raise PipelineError(
+            f"--calib-error must be in [0, {MAX_ERROR_DEG:g}] degrees, got {options.calib_error_deg}"
+        )
 
 
 # The longest session rendered: an hour at 30 fps (its ground truth alone is ~1 GB).

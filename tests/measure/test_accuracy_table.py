@@ -54,3 +54,38 @@ def test_drawn_cases_are_labelled_by_their_description() -> None:
     assert rig == f"{case.arrangement}, {case.cameras} cameras"
     named = accuracy_table.default_cases()[-1]
     assert accuracy_table._row_labels(named) == (f"{named.name} (unseen)", named.arrangement)
+
+
+@pytest.mark.parametrize("value", ["5", "-0.1", "nan"])
+def test_a_calibration_error_out_of_range_is_refused_before_anything_is_rendered(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, value: str
+) -> None:
+    argv = ["--cases", "helix", "--out", str(tmp_path / "acc"), f"--calib-error=0.05,{value}"]
+    with pytest.raises(SystemExit) as exc:
+        accuracy_table.main(argv)
+    assert exc.value.code == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert f"--calib-error takes degrees from 0 to 2, got {float(value):g} (see" in line
+    assert not (tmp_path / "acc").exists()
+
+
+def test_a_render_stopped_part_way_is_rendered_again_not_reused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pipeline.errors import UNFINISHED_RENDER
+
+    case = draw_cases(5, 1)[0]
+    renders: list[int] = []
+
+    def render(case: DrawnCase, directory: Path, frames: int, *, jobs: int) -> None:
+        directory.mkdir(parents=True, exist_ok=True)
+        renders.append(frames)
+
+    monkeypatch.setattr("pipeline.synth.variety.render_case", render)
+    root = tmp_path / "sessions"
+    directory = accuracy_table.prepare_session(case, root, 3)
+    assert accuracy_table.prepare_session(case, root, 3) == directory and renders == [3]  # reused
+    # A longer render of the same case, interrupted: the stamp of 3 frames must not stand for it.
+    (directory / UNFINISHED_RENDER).write_text("stopped")
+    accuracy_table.prepare_session(case, root, 3)
+    assert renders == [3, 3]
