@@ -364,7 +364,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     # So is one of another session than the ground truth's, or of other videos than those
     # beside it: its figures may mean nothing. A recording without a curve in any frame
     # leaves nothing measured: a script's `evaluate && ...` must not take it for a pass.
-    if report.frames and report.failed_frames == report.frames:
+    if report.frames and report.failed_frames + report.empty_frames == report.frames:
         print(
             f"warning: {args.recording}: no frame holds a curve to compare ({report.frames} frames "
             "failed or empty); nothing was measured",

@@ -211,7 +211,7 @@ def format_table(results: Sequence[CaseResult]) -> str:
             _num(ours.p95_mm),
             _num(ours.tip_median_mm),
             _num(ours.length_error_pct),
-            f"{ours.failed_frames}/{ours.frames}",
+            f"{ours.failed_frames}/{ours.frames}" + (f" ({ours.empty_frames} empty)" if ours.empty_frames else ""),
             f"{ours.frames_off} ({'-' if ours.off_flagged is None else ours.off_flagged})",
             "-" if ours.good_flagged is None else f"{ours.good_flagged}/{ours.good_frames}",
             _num(ours.jitter_ratio),

@@ -70,8 +70,10 @@ class EvaluationReport:
     ----------
     label : what was evaluated ("per-frame", "smoothed", ...).
     frames : number of frames evaluated.
-    failed_frames : frames without a centreline (NaN rows: status failed or empty).
+    failed_frames : frames without a centreline (NaN rows), but for the empty ones below.
     failed_indices : their frame indices.
+    empty_frames, empty_indices : frames the recording holds as empty (no tube seen, where
+        the truth has one), apart from the failed ones; set by :func:`evaluate_recording`.
     mean_mm, p95_mm : mean and 95th percentile of the symmetric centreline
         distance, pooled over both directions and every ok frame.
     tip_median_mm, tip_p95_mm : |pred[-1] - truth[-1]| over ok frames.
@@ -122,6 +124,8 @@ class EvaluationReport:
     damaged: bool = False
     other_session: str = ""
     other_videos: str = ""
+    empty_frames: int = 0
+    empty_indices: tuple[int, ...] = ()
 
     @property
     def frames_off(self) -> int:
@@ -131,15 +135,34 @@ class EvaluationReport:
     @property
     def good_frames(self) -> int:
         """Ok frames within ``OFF_MM`` of the truth everywhere."""
-        return self.frames - self.failed_frames - len(self.off_indices)
+        return self.frames - self.failed_frames - self.empty_frames - len(self.off_indices)
+
+    def with_empty(self, empty: set[int]) -> EvaluationReport:
+        """This report with the frames of ``empty`` (frame indices the recording holds as
+        empty) counted apart from the failed ones."""
+        held = tuple(i for i in self.failed_indices if i in empty)
+        failed = tuple(i for i in self.failed_indices if i not in empty)
+        return dataclasses.replace(
+            self, failed_frames=len(failed), failed_indices=failed, empty_frames=len(held), empty_indices=held
+        )
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain dict (JSON-ready: NaN becomes None, the smoothed report nests)."""
-        return _json_ready(dataclasses.asdict(self))
+        """Plain dict (JSON-ready: NaN becomes None, the smoothed report nests, without the
+        recording's own fields, which are the top level's)."""
+        data = _json_ready(dataclasses.asdict(self))
+        if data["smoothed"] is not None:
+            for key in _RECORDING_FIELDS:
+                del data["smoothed"][key]
+        return data
 
     def to_json(self) -> str:
         """The report as indented JSON (strict: no NaN literals)."""
         return json.dumps(self.to_dict(), indent=2)
+
+
+# What a report says of its recording rather than of a set of curves: the smoothed
+# report's JSON leaves them to the top level's.
+_RECORDING_FIELDS = ("smoothed", "cameras", "tube_end", "complete", "damaged", "other_session", "other_videos")
 
 
 def _json_ready(value: Any) -> Any:
@@ -496,11 +519,14 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
         to_mm(rec.centerlines_m), truth, timestamps_s=times, frame_indices=indices, label="per-frame"
     )
     suspect = {int(m["frame"]) for m in rec.metrics if m.get("suspect")}
+    # Frames in which no camera's silhouette held the tube (a camera covered): not failures.
+    empty = {int(i) for i, status in zip(indices, rec.statuses, strict=True) if status == "empty"}
+    report = report.with_empty(empty)
     off = set(report.off_indices)
     report = dataclasses.replace(
         report,
         off_flagged=len(off & suspect),
-        good_flagged=len(suspect - off - set(report.failed_indices)),
+        good_flagged=len(suspect - off - set(report.failed_indices) - empty),
         cameras=rec.cameras,
         tube_end=rec.tube_end,
         complete=rec.complete,
@@ -516,7 +542,7 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
             frame_indices=indices,
             label="smoothed",
         )
-        report = dataclasses.replace(report, smoothed=smoothed)
+        report = dataclasses.replace(report, smoothed=smoothed.with_empty(empty))
     return report
 
 
@@ -528,6 +554,7 @@ _ROWS = (
     ("base_mean_mm", "base mean (mm)", "{:.3f}"),
     ("length_error_pct", "length error (%)", "{:.2f}"),
     ("failed_frames", "failed frames", "{:d}"),
+    ("empty_frames", "empty frames (no tube seen)", "{:d}"),
     ("tip_jitter_mm", "tip jitter (mm/frame^2)", "{:.4f}"),
     ("truth_tip_jitter_mm", "true tip jitter (mm/frame^2)", "{:.4f}"),
     ("jitter_ratio", "jitter ratio", "{:.2f}"),
@@ -577,4 +604,8 @@ def format_report(report: EvaluationReport) -> str:
         shown = ", ".join(str(i) for i in report.failed_indices[:20])
         more = " ..." if len(report.failed_indices) > 20 else ""
         lines.append(f"failed frames: {shown}{more}")
+    if report.empty_indices:
+        shown = ", ".join(str(i) for i in report.empty_indices[:20])
+        more = " ..." if len(report.empty_indices) > 20 else ""
+        lines.append(f"empty frames: {shown}{more}")
     return "\n".join(lines)

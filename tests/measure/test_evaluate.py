@@ -239,7 +239,9 @@ def rod_truth(index: int) -> NDArray[np.float64]:
 
 
 def shifted_rod(index: int, images: object, model: object) -> tuple[FrameResult, None]:
-    """Stand-in frame function: the true rod 0.5 mm off along y; frame 5 fails."""
+    """Stand-in frame function: the true rod 0.5 mm off along y; frame 4 sees no tube, 5 fails."""
+    if index == 4:
+        return FrameResult(index=index, status="empty", reason="no silhouette"), None
     if index == 5:
         return FrameResult.failed(index, "test failure"), None
     curve = line(16, length_mm=160.0, offset_mm=(128.0 + index, 128.5, 0.0))
@@ -276,13 +278,16 @@ def test_recording_is_matched_to_the_truth_by_frame_index(partial_run: tuple[Pat
     report = evaluate_recording(recording, session_dir)
     assert report.frames == RUN_FRAMES - 2
     assert report.failed_indices == (5,)
+    # A frame with no tube seen is not a failure, as process's summary has it.
+    assert report.empty_frames == 1 and report.empty_indices == (4,)
+    assert report.good_frames == RUN_FRAMES - 2 - 2
     # Matched frame for frame, only the 0.5 mm shift remains; a frame off would add 1 mm.
     assert report.mean_mm == pytest.approx(0.5, abs=1e-6)  # metres and back: rounding only
     assert report.tip_median_mm == pytest.approx(0.5, abs=1e-6)
     assert report.length_error_pct == pytest.approx(0.0, abs=1e-6)
     # The runner smooths after the last frame: a uniform motion passes through unchanged.
     assert report.smoothed is not None
-    assert report.smoothed.failed_indices == (5,)
+    assert report.smoothed.failed_indices == (5,) and report.smoothed.empty_indices == (4,)
     assert report.smoothed.mean_mm == pytest.approx(0.5, abs=1e-6)
 
 
@@ -295,7 +300,11 @@ def test_cli_evaluate_prints_the_table_and_json(
     assert main(["evaluate", str(recording), str(session_dir / "ground_truth.npz")]) == 0
     assert "centreline mean (mm)" in capsys.readouterr().out
     assert main(["evaluate", str(recording), str(session_dir), "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["failed_indices"] == [5]
+    data = json.loads(capsys.readouterr().out)
+    assert data["failed_indices"] == [5] and data["empty_indices"] == [4]
+    # The recording's own fields once, at the top level: not as "" again in the smoothed report.
+    assert "other_session" in data and "other_session" not in data["smoothed"]
+    assert data["smoothed"]["empty_frames"] == 1
 
 
 def failed_rod(index: int, images: object, model: object) -> tuple[FrameResult, None]:
