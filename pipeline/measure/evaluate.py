@@ -162,7 +162,15 @@ class EvaluationReport:
 
 # What a report says of its recording rather than of a set of curves: the smoothed
 # report's JSON leaves them to the top level's.
-_RECORDING_FIELDS = ("smoothed", "cameras", "tube_end", "complete", "damaged", "other_session", "other_videos")
+_RECORDING_FIELDS = (
+    "smoothed",
+    "cameras",
+    "tube_end",
+    "complete",
+    "damaged",
+    "other_session",
+    "other_videos",
+)
 
 
 def _json_ready(value: Any) -> Any:
@@ -422,6 +430,24 @@ def _changed_videos(recorded: dict[str, str], ground_truth: Path) -> str:
     return ", ".join(changed)
 
 
+def _not_rendered_with(recorded: dict[str, str], ground_truth: Path) -> str:
+    """The videos (comma-separated names) the ground truth names as rendered with it
+    (``video_fingerprints``, wherever the file was copied) whose fingerprints are not the
+    ``recorded`` ones; "" where they match, or the truth does not say."""
+    file = ground_truth / "ground_truth.npz" if ground_truth.is_dir() else ground_truth
+    try:
+        with np.load(file, allow_pickle=False) as data:
+            named = (
+                [str(entry) for entry in data["video_fingerprints"]] if "video_fingerprints" in data else []
+            )
+    except (OSError, ValueError):  # read whole a moment ago: a truth that says nothing here
+        return ""
+    rendered = dict(entry.partition("=")[::2] for entry in named)
+    return ", ".join(
+        name for name, fingerprint in rendered.items() if recorded.get(name, fingerprint) != fingerprint
+    )
+
+
 def _truth_session(ground_truth: Path) -> str:
     """The session a ground truth belongs to: its folder's name (the session directory given,
     or the one holding ground_truth.npz); "" for a file of another name."""
@@ -500,6 +526,13 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
         log.warning(
             "%s was made from other videos than %s beside the ground truth (the session was "
             "rendered or filmed again since?): process the session again to compare them",
+            recording,
+            other_videos,
+        )
+    elif other_videos := _not_rendered_with(rec.videos, Path(ground_truth)):
+        log.warning(
+            "%s was made from other videos than those the ground truth was rendered with (%s): "
+            "compare a recording with its own session's ground truth",
             recording,
             other_videos,
         )

@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from ..errors import Interrupted, PipelineError
 from ..session.settings import MAX_VOXEL_RADII
+from ..session.video import video_fingerprint
 from .calib_error import MAX_ERROR_DEG, perturbed_rig
 from .distractor import paint_distractor, place_distractor
 from .images import background_texture, flicker_gains, render_frame, threshold_for
@@ -351,39 +352,43 @@ def render_session(
                 path = out_dir / "background" / f"{cam.name}.png"
                 write_image(path, np.rint(grey).astype(np.uint8))
             gains = flicker_gains(seed, frames) if options.flicker else np.ones(frames)
-            write_npz_deterministic(
-                out_dir / TRUTH_FILE,
-                {
-                    "centerlines": centerlines,
-                    "timestamps_s": np.arange(frames) / FPS,
-                    "radius_mm": np.float64(radius_mm),
-                    "base_mm": BASE_MM,
-                    "shape": np.str_(shape),
-                    "fps": np.float64(FPS),
-                    "camera_names": np.array([c.name for c in cameras]),
-                    "K": np.stack([c.K for c in cameras]),
-                    "dist": np.stack([c.dist for c in cameras]),
-                    "R": np.stack([c.R for c in cameras]),
-                    "t": np.stack([c.t for c in cameras]),
-                    "image_size": np.array([cameras[0].width, cameras[0].height]),
-                    "tip": np.str_(options.tip),
-                    "profile": np.str_(profile.kind),
-                    "radius_profile_mm": np.broadcast_to(radii, (frames, CENTERLINE_POINTS)),
-                    "length_mm": np.float64(length),
-                    "disk_arc_mm": np.zeros(0) if disks is None else disks.arc_mm,
-                    "disk_radius_mm": np.float64(0.0 if disks is None else disks.radius_mm),
-                    "disk_thickness_mm": np.float64(0.0 if disks is None else disks.thickness_mm),
-                    "distractor_camera": np.int64(-1 if blob is None else blob.camera_index),
-                    "flicker_gain": gains,
-                    "calib_error_deg": np.float64(options.calib_error_deg),
-                },
-            )
+            truth = {
+                "centerlines": centerlines,
+                "timestamps_s": np.arange(frames) / FPS,
+                "radius_mm": np.float64(radius_mm),
+                "base_mm": BASE_MM,
+                "shape": np.str_(shape),
+                "fps": np.float64(FPS),
+                "camera_names": np.array([c.name for c in cameras]),
+                "K": np.stack([c.K for c in cameras]),
+                "dist": np.stack([c.dist for c in cameras]),
+                "R": np.stack([c.R for c in cameras]),
+                "t": np.stack([c.t for c in cameras]),
+                "image_size": np.array([cameras[0].width, cameras[0].height]),
+                "tip": np.str_(options.tip),
+                "profile": np.str_(profile.kind),
+                "radius_profile_mm": np.broadcast_to(radii, (frames, CENTERLINE_POINTS)),
+                "length_mm": np.float64(length),
+                "disk_arc_mm": np.zeros(0) if disks is None else disks.arc_mm,
+                "disk_radius_mm": np.float64(0.0 if disks is None else disks.radius_mm),
+                "disk_thickness_mm": np.float64(0.0 if disks is None else disks.thickness_mm),
+                "distractor_camera": np.int64(-1 if blob is None else blob.camera_index),
+                "flicker_gain": gains,
+                "calib_error_deg": np.float64(options.calib_error_deg),
+            }
+            write_npz_deterministic(out_dir / TRUTH_FILE, truth)  # first: the folder's mark
             # A uniform tube is drawn at its plain radius (the profile's values are that radius).
             uniform = profile.kind == "uniform"
             look = Look(
                 radius_mm if uniform else radii, options.tip, disks, backgrounds, polarity, seed, gains
             )
             _write_videos(out_dir, cameras, centerlines, look, progress, jobs)
+            # Which videos this truth is of, wherever the file is copied: evaluate compares
+            # them with those a recording was made from.
+            truth["video_fingerprints"] = np.array(
+                [f"{cam.name}.mp4={video_fingerprint(out_dir / f'{cam.name}.mp4')}" for cam in cameras]
+            )
+            write_npz_deterministic(out_dir / TRUTH_FILE, truth)
         log.info("wrote synthetic session %s (%s, %d frames)", out_dir, shape, frames)
     except OSError as exc:
         # A full disk or a folder that turned read-only: a render into a new folder leaves

@@ -30,6 +30,7 @@ from pipeline.measure.evaluate import (
     tip_jitter,
 )
 from pipeline.reconstruct.frame_result import FrameResult
+from pipeline.record.load import load_recording
 
 
 def line(
@@ -421,6 +422,37 @@ def test_a_session_filmed_again_since_its_recording_is_warned_of(
     from pipeline.cli import EXIT_FRAMES_FAILED, main
 
     assert main(["evaluate", str(recording), str(again)]) == EXIT_FRAMES_FAILED
+
+
+def test_a_ground_truth_copied_from_another_render_is_warned_of(
+    partial_run: tuple[Path, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # Copied away from its videos, under the recording's session name: only the videos it
+    # names as rendered with it tell it is another session's.
+    recording, session_dir = partial_run
+    videos = load_recording(recording).videos
+    truth = dict(np.load(session_dir / "ground_truth.npz"))
+    results = tmp_path / "rod"
+    results.mkdir()
+
+    def truth_of(fingerprints: dict[str, str]) -> Path:
+        named = np.array([f"{name}={fingerprint}" for name, fingerprint in fingerprints.items()])
+        np.savez(results / "ground_truth.npz", **truth, video_fingerprints=named)
+        return results / "ground_truth.npz"
+
+    with caplog.at_level(logging.WARNING):
+        assert not evaluate_recording(recording, truth_of(videos)).other_videos  # its own
+    assert "other videos" not in caplog.text
+    other = {
+        name: ("0" * 16 if name.startswith("cam1.") else fingerprint) for name, fingerprint in videos.items()
+    }
+    with caplog.at_level(logging.WARNING):
+        report = evaluate_recording(recording, truth_of(other))
+    assert report.other_videos == next(name for name in videos if name.startswith("cam1."))
+    assert "other videos than those the ground truth was rendered with" in caplog.text
+    from pipeline.cli import EXIT_FRAMES_FAILED, main
+
+    assert main(["evaluate", str(recording), str(results)]) == EXIT_FRAMES_FAILED
 
 
 def test_a_folder_given_as_the_recording_is_named(partial_run: tuple[Path, Path]) -> None:

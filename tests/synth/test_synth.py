@@ -28,6 +28,7 @@ from pipeline.synth.images import (
     threshold_for,
     tube_mask,
 )
+from pipeline.session.video import video_fingerprint
 from pipeline.synth.names import ARRANGEMENT_NAMES, PROFILES, SHAPES, TIPS
 from pipeline.synth.radius_profiles import RadiusProfile, disks_of, max_radius, radius_along
 from pipeline.synth.random_shapes import (
@@ -75,6 +76,7 @@ GT_KEYS = {
     "disk_thickness_mm",
     "distractor_camera",
     "flicker_gain",
+    "video_fingerprints",
 }
 
 
@@ -170,6 +172,10 @@ def test_calibration_and_settings_parse(session: Path) -> None:
 def test_ground_truth_arrays(session: Path) -> None:
     gt = np.load(session / "ground_truth.npz")
     assert set(gt.files) == GT_KEYS
+    # The videos the truth is of, as evaluate fingerprints them, wherever the file is copied.
+    assert list(gt["video_fingerprints"]) == [
+        f"{name}.mp4={video_fingerprint(session / f'{name}.mp4')}" for name in NAMES
+    ]
     assert gt["centerlines"].shape == (FRAMES, 200, 3) and gt["centerlines"].dtype == np.float64
     np.testing.assert_allclose(gt["timestamps_s"], np.arange(FRAMES) / 30.0)
     assert float(gt["radius_mm"]) == RADIUS_MM and float(gt["fps"]) == 30.0
