@@ -12,6 +12,7 @@ import errno
 import io
 import logging
 import zipfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,6 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from ..errors import Interrupted, PipelineError
-from ..session.settings import MAX_VOXEL_RADII
 from ..session.video import video_fingerprint
 from .calib_error import MAX_ERROR_DEG, perturbed_rig
 from .distractor import paint_distractor, place_distractor
@@ -86,19 +86,31 @@ def check_poses(
 
 
 # The thinnest tube rendered (mm): thinner ones need voxels too fine for the workspace's
-# grid (process follows a tube with voxels of at most MAX_VOXEL_RADII radii).
+# grid (the session.toml written has voxels of at most the tube's radius).
 MIN_RADIUS_MM = 0.5
+# A tube narrower than this in every view is more than process can find: `synth --radius-mm 1
+# --frames 10` (0.7-1.2 px wide at 320x240; 2026-12-05) had 8 frames of 10 empty at 1 mm
+# voxels, and 10 ok but 35 mm off with min_area_px 4; `--radius-mm 1.5` (1.1-1.8 px) came
+# within 0.11 mm on all of 30 frames at 1.5 mm voxels. synth warns of such a render.
+MIN_WIDTH_PX = 1.5
+
+
+def width_px(cameras: Sequence[SynthCamera], centerlines_mm: NDArray[np.float64], radius_mm: float) -> float:
+    """How wide (px) a tube of ``radius_mm`` looks at the middle of its (F, N, 3) mm
+    centrelines, in the camera that sees it widest."""
+    centre = centerlines_mm.reshape(-1, 3).mean(axis=0)
+    return max(2.0 * radius_mm * float(cam.K[0, 0]) / float((cam.R @ centre + cam.t)[2]) for cam in cameras)
 
 
 def session_document(*, polarity: str, radius_mm: float) -> dict[str, Any]:
     """session.toml suited to the render: the workspace's defaults, with voxels of at most
-    ``MAX_VOXEL_RADII`` radii (a thin tube's), and a threshold between the tube's and the
-    background's grey levels."""
+    the tube's radius (the size a thin tube's silhouette needs, docs/troubleshooting.md),
+    and a threshold between the tube's and the background's grey levels."""
     return {
         "workspace": {
             "origin_mm": WORKSPACE_ORIGIN_MM.tolist(),
             "size_mm": WORKSPACE_SIZE_MM.tolist(),
-            "voxel_mm": min(VOXEL_MM, MAX_VOXEL_RADII * float(radius_mm)),
+            "voxel_mm": min(VOXEL_MM, float(radius_mm)),
         },
         "silhouette": {"method": "threshold", "threshold": threshold_for(polarity), "polarity": polarity},
         "manipulator": {"base_mm": BASE_MM.tolist(), "radius_mm": float(radius_mm)},
@@ -313,6 +325,17 @@ def render_session(
     radii = radius_along(profile, np.linspace(0.0, length, CENTERLINE_POINTS))
     disks = disks_of(profile, length)
     check_poses(centerlines, radii, cameras, tip=options.tip, disks=disks)
+    wide_px = width_px(cameras, centerlines, float(radii.min()))
+    if wide_px < MIN_WIDTH_PX:
+        log.warning(
+            "a tube of radius %g mm is about %.1f px wide at its narrowest in these %dx%d images: too "
+            "thin for process to find (it needs %g px or more); render it at --size 1280x960, or thicker",
+            float(radii.min()),
+            wide_px,
+            cameras[0].width,
+            cameras[0].height,
+            MIN_WIDTH_PX,
+        )
 
     created = not out_dir.exists()
     incomplete = f"the session in {out_dir} is incomplete: render it again"

@@ -7,6 +7,7 @@ import contextlib
 import dataclasses
 import errno
 import itertools
+import logging
 import math
 import tomllib
 from collections.abc import Iterator
@@ -20,6 +21,7 @@ from numpy.typing import NDArray
 from pipeline.errors import PipelineError
 from pipeline.session.calibration_io import read_calibration
 from pipeline.session.settings import load_settings
+from pipeline.session.video import video_fingerprint
 from pipeline.synth.images import (
     FLICKER,
     THRESHOLD_DARK,
@@ -28,7 +30,6 @@ from pipeline.synth.images import (
     threshold_for,
     tube_mask,
 )
-from pipeline.session.video import video_fingerprint
 from pipeline.synth.names import ARRANGEMENT_NAMES, PROFILES, SHAPES, TIPS
 from pipeline.synth.radius_profiles import RadiusProfile, disks_of, max_radius, radius_along
 from pipeline.synth.random_shapes import (
@@ -1056,16 +1057,25 @@ def test_an_earlier_render_on_a_read_only_file_system_is_left_as_it_was(
     assert {p: p.read_bytes() for p in earlier.rglob("*") if p.is_file()} == before
 
 
-def test_a_thin_tubes_session_has_voxels_fine_enough_for_process(tmp_path: Path) -> None:
-    # process follows a tube with voxels of at most two radii: a session synth writes for a
-    # thin tube must not be one that process refuses.
+def test_a_thin_tubes_session_has_voxels_fine_enough_for_process(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A silhouette two or three pixels wide needs voxels of at most the tube's radius
+    # (docs/troubleshooting.md): a session synth writes for a thin tube must have them.
     from pipeline.errors import PipelineError
     from pipeline.session.folder import load_session
 
-    render_session(tmp_path / "thin", frames=2, radius_mm=0.5, progress=False, jobs=1)
-    assert load_session(tmp_path / "thin").settings.workspace.voxel_mm == pytest.approx(1.0)
+    with caplog.at_level(logging.WARNING):
+        render_session(tmp_path / "thin", frames=2, radius_mm=1.5, progress=False, jobs=1)
+    assert load_session(tmp_path / "thin").settings.workspace.voxel_mm == pytest.approx(1.5)
+    assert "too thin" not in caplog.text
+    # Under a pixel and a half wide in every view: warned of, with what to do.
+    with caplog.at_level(logging.WARNING):
+        render_session(tmp_path / "thinner", frames=2, radius_mm=0.7, progress=False, jobs=1)
+    assert "a tube of radius 0.7 mm is about 0." in caplog.text
+    assert "px wide at its narrowest in these 320x240 images: too thin for process" in caplog.text
     render_session(tmp_path / "usual", frames=2, radius_mm=6.0, progress=False, jobs=1)
     assert load_session(tmp_path / "usual").settings.workspace.voxel_mm == 2.0
     with pytest.raises(PipelineError, match=r"radius_mm must be in 0\.5-20 mm, got 0\.05"):
-        render_session(tmp_path / "thinner", frames=2, radius_mm=0.05, progress=False, jobs=1)
-    assert not (tmp_path / "thinner").exists()
+        render_session(tmp_path / "thinnest", frames=2, radius_mm=0.05, progress=False, jobs=1)
+    assert not (tmp_path / "thinnest").exists()
