@@ -36,8 +36,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import CalibrationError, OutputError, refuse_unfinished_render
+from ..errors import CalibrationError, Interrupted, OutputError, home_meant, refuse_unfinished_render
 from ..geometry.camera import Camera
+from ..run.interrupts import deferred_signals
 from ..session.calibration_io import calibration_dict, cameras_from_dict, write_calibration
 from ..session.toml_file import load_toml
 from .boards import Board, load_board
@@ -131,22 +132,35 @@ def calibrate_directory(
         "dropped": result.dropped,
         "problems": result.problems,
     }
+    # The pictures first, the calibration renamed into place last: stopped before it (a
+    # signal, a full disk), the run leaves the calibration that was there.
     partial = output.with_name(f".{output.name}.partial")
+    report = Path(report_dir) if report_dir is not None else output.parent
+    kept = f"{output} was not written" + (" (the one there is kept)" if output.exists() else "")
+    placed = False
     try:
         output.parent.mkdir(parents=True, exist_ok=True)
         write_calibration(partial, result.cameras, metadata)
-        partial.replace(output)
+        try:
+            result.report_files = write_report(result, views, report)
+        except OSError as exc:
+            raise OutputError(
+                f"{report}: cannot write the report pictures ({exc.strerror or exc}); {kept}; free space "
+                "or give -o a folder with room for them"
+            ) from None
+        with deferred_signals():  # a signal now is taken once the calibration is in place
+            partial.replace(output)
+            placed = True
     except OSError as exc:
-        partial.unlink(missing_ok=True)
         raise OutputError(f"{output}: cannot write the calibration ({exc.strerror or exc})") from None
-    report = Path(report_dir) if report_dir is not None else output.parent
-    try:
-        result.report_files = write_report(result, views, report)
-    except OSError as exc:
-        raise OutputError(
-            f"{report}: wrote {output}, but not its report pictures ({exc.strerror or exc}); free space "
-            "or give -o a folder with room for them"
+    except KeyboardInterrupt:
+        if not placed:
+            raise Interrupted(f"interrupted; {kept}") from None
+        raise Interrupted(
+            f"interrupted as the calibration ended; {output} is written, with its report"
         ) from None
+    finally:
+        partial.unlink(missing_ok=True)
     return result
 
 
@@ -335,6 +349,12 @@ def _check_output(output: Path, *, force: bool) -> None:
     """Before calibrating: ``output`` can be written (its folder exists or can be made, and
     is writable) and takes the place of no file but an earlier calibration (a TOML file),
     and of that only with ``force``."""
+    meant = home_meant(output)
+    if meant is not None:
+        # Written as it is, into a folder named "~" here, which a later `rm -rf ~` would take for home.
+        raise OutputError(
+            f"{output}: ~ is not expanded here (it would make a folder named ~); give -o {meant}"
+        )
     if output.is_dir():
         raise OutputError(f"{output}: is a folder; give -o a file name, e.g. {output / 'calibration.toml'}")
     if output.exists():

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
+import os
 import re
 import shutil
+import signal
 import struct
 import tomllib
 import zlib
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -468,19 +472,63 @@ def test_reconstruction_with_calibrated_cameras(synth, tmp_path) -> None:
     assert errors["calibrated"] <= errors["true"] + 0.2, errors
 
 
-def test_report_pictures_that_cannot_be_written_are_an_error_after_the_calibration(
+def test_report_pictures_that_cannot_be_written_leave_the_calibration_there(
     small_rig, tmp_path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # OpenCV says False, not an exception, when it cannot write (a full disk): a picture it
-    # did not write must not be listed as written.
+    # did not write must not be listed as written. The calibration and its report are one
+    # output: the calibration already there stays, not replaced by one without its report.
     from pipeline.calibrate import report
     from pipeline.errors import OutputError
 
     root = _copy(small_rig, tmp_path)
+    calibrate_directory(root, tmp_path / "c.toml")
+    before = (tmp_path / "c.toml").read_bytes()
     monkeypatch.setattr(report.cv2, "imwrite", lambda path, image: False)
-    with pytest.raises(OutputError, match=r"wrote .*c\.toml, but not its report pictures"):
+    cannot = r"cannot write the report pictures .*c\.toml was not written \(the one there is kept\)"
+    with pytest.raises(OutputError, match=cannot):
+        calibrate_directory(root, tmp_path / "c.toml", force=True)
+    assert (tmp_path / "c.toml").read_bytes() == before
+    assert not list(tmp_path.glob(".*.partial"))
+
+
+def test_a_calibration_interrupted_before_or_after_its_rename_says_which(
+    small_rig, tmp_path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pipeline.calibrate import report, solve
+    from pipeline.errors import Interrupted
+    from pipeline.run.interrupts import signals_interrupt
+
+    root = _copy(small_rig, tmp_path)
+
+    def interrupted(*args: object) -> list[Path]:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(report, "write_report", interrupted)
+    with pytest.raises(Interrupted, match=r"^interrupted; .*c\.toml was not written$"):
         calibrate_directory(root, tmp_path / "c.toml")
-    assert read_calibration(tmp_path / "c.toml")  # the calibration itself is whole
+    assert not (tmp_path / "c.toml").exists() and not list(tmp_path.glob(".*.partial"))
+    # A signal as the calibration is renamed into place is taken once it is there.
+    monkeypatch.undo()
+    real = solve.deferred_signals
+
+    @contextlib.contextmanager
+    def signal_inside() -> Iterator[None]:
+        with real():
+            yield
+            os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(solve, "deferred_signals", signal_inside)
+    with signals_interrupt(), pytest.raises(Interrupted, match=r"c\.toml is written, with its report"):
+        calibrate_directory(root, tmp_path / "c.toml")
+    assert read_calibration(tmp_path / "c.toml")
+
+
+def test_an_unexpanded_home_in_the_output_is_refused(small_rig, tmp_path) -> None:
+    from pipeline.errors import OutputError
+
+    with pytest.raises(OutputError, match=r"~ is not expanded here .*; give -o /"):
+        calibrate_directory(small_rig, Path("~/c.toml"))
 
 
 def test_the_unfit_bar_grows_with_the_images_diagonal() -> None:
