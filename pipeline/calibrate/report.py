@@ -61,7 +61,7 @@ def write_report(result: CalibrationResult, views: Sequence[View], out_dir: Path
         if world is None:
             log.info("camera %s has no world image: no world-axes picture", cam.name)
             continue
-        image = cv2.imread(world.source, cv2.IMREAD_COLOR)
+        image = cv2.imread(world.source, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
         if image is None:  # read once already for detection; only a file removed since gets here
             continue
         length = 3 * result.board.square_mm

@@ -132,7 +132,10 @@ def _read_grey(path: Path) -> NDArray[np.uint8]:
             "or remove it"
         )
     try:
-        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
+        image = cv2.imdecode(
+            np.frombuffer(data, np.uint8),
+            cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_IGNORE_ORIENTATION,
+        )
     except cv2.error as exc:
         why = "more pixels than OpenCV decodes, 2**30" if "MAX_IMAGE_PIXELS" in exc.err else exc.err
         raise CalibrationError(

@@ -429,7 +429,7 @@ def _read_grey_8bit(path: Path) -> NDArray[np.uint8]:
             f"{path}: is not a regular file; save the image as an 8-bit greyscale PNG"
         ) from None
     # One decode, to grey at the depth stored (as a calibration's board images are read).
-    raw = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
+    raw = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_IGNORE_ORIENTATION)
     if raw is None:
         if not os.access(path, os.R_OK):  # OpenCV says nothing of why it read nothing
             raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))

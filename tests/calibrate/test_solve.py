@@ -288,6 +288,31 @@ def test_a_16_bit_board_image_reads_at_a_backgrounds_levels(tmp_path, top: int, 
         assert int(as_board.max()) == (117 if top == 30000 else 255)
 
 
+def _with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
+    """``jpeg`` with an EXIF segment whose Orientation tag asks viewers to turn it."""
+    tiff = b"MM" + struct.pack(">HI", 42, 8) + struct.pack(">H", 1)
+    tiff += struct.pack(">HHIHH", 0x112, 3, 1, orientation, 0) + struct.pack(">I", 0)
+    segment = b"\xff\xe1" + struct.pack(">H", len(tiff) + 8) + b"Exif\0\0" + tiff
+    return jpeg[:2] + segment + jpeg[2:]
+
+
+def test_images_are_read_as_stored_whatever_their_exif_orientation(tmp_path) -> None:
+    # Video frames are read as stored (their rotation tags are not applied): a board image
+    # turned on reading would calibrate its camera upside down against the frames.
+    levels = np.arange(48 * 64, dtype=np.uint8).reshape(48, 64)
+    plain = cv2.imencode(".jpg", levels, [cv2.IMWRITE_JPEG_QUALITY, 100])[1].tobytes()
+    (tmp_path / "plain.jpg").write_bytes(plain)
+    (tmp_path / "turned.jpg").write_bytes(_with_exif_orientation(plain, 3))
+    assert cv2.imread(str(tmp_path / "turned.jpg"), cv2.IMREAD_GRAYSCALE).shape == (48, 64)
+    assert not np.array_equal(
+        cv2.imread(str(tmp_path / "turned.jpg"), cv2.IMREAD_GRAYSCALE), _read_grey(tmp_path / "plain.jpg")
+    )
+    np.testing.assert_array_equal(_read_grey(tmp_path / "turned.jpg"), _read_grey(tmp_path / "plain.jpg"))
+    np.testing.assert_array_equal(
+        _read_grey_8bit(tmp_path / "turned.jpg"), _read_grey_8bit(tmp_path / "plain.jpg")
+    )
+
+
 def test_a_camera_with_shared_views_alone_is_calibrated_and_said_to_be_loose(tmp_path, caplog) -> None:
     """cam2 keeps only shared/ (no intrinsics/, no world.png): it is one of the rig's cameras,
     and the run says that its lens rests on those few views."""
