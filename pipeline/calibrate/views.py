@@ -21,14 +21,17 @@ from numpy.typing import NDArray
 from ..errors import CalibrationError
 from ..session.folder import check_not_dangling
 from ..session.grey_levels import grey_8bit
+from ..session.video import VIDEO_EXTENSIONS
 from .boards import Board, detect
 
 log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
-IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-VIDEO_EXTS = (".mp4", ".avi", ".mkv", ".mov")
+# The kinds of image OpenCV decodes that cameras and their software save, and the videos
+# a session's are read in.
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm", ".pnm")
+VIDEO_EXTS = VIDEO_EXTENSIONS
 MIN_VIEWS = 5
 # An intrinsics view whose corners all lie within this many pixels of another's sees the
 # same board pose (a copied file, a video of a board held still): it adds no evidence but
@@ -182,6 +185,7 @@ def detect_directory(calib_dir: Path, board: Board) -> list[View]:
     for cam_dir, world in zip(cam_dirs, worlds, strict=True):
         cam = cam_dir.name
         images: list[tuple[str, str, NDArray[np.uint8]]] = []  # key, source, image
+        unread: list[Path] = []  # files of a kind not read
         intr = cam_dir / "intrinsics"
         for path in sorted(intr.iterdir()) if intr.is_dir() else []:
             if path.suffix.lower() in IMAGE_EXTS:
@@ -189,10 +193,25 @@ def detect_directory(calib_dir: Path, board: Board) -> list[View]:
             elif path.suffix.lower() in VIDEO_EXTS:
                 for name, frame in _video_frames(path):
                     images.append((f"intrinsics/{name}", str(intr / name), frame))
+            elif not path.name.startswith(".") and path.is_file():
+                unread.append(path)
         shared = cam_dir / "shared"
         for path in sorted(shared.iterdir()) if shared.is_dir() else []:
             if path.suffix.lower() in IMAGE_EXTS:
                 images.append((f"shared/{path.stem}", str(path), _read_grey(path)))
+            elif not path.name.startswith(".") and path.is_file():
+                unread.append(path)
+        if unread:
+            log.warning(
+                "camera %r: %d file(s) not read, of no image or video kind read (%s%s); save board "
+                "images as %s, or videos as %s",
+                cam,
+                len(unread),
+                ", ".join(str(p.relative_to(cam_dir)) for p in unread[:3]),
+                ", ..." if len(unread) > 3 else "",
+                "/".join(IMAGE_EXTS[:3]),
+                "/".join(VIDEO_EXTS[:3]),
+            )
         if world is not None:
             images.append((WORLD, str(world), _read_grey(world)))
         sizes = {(im.shape[1], im.shape[0]) for _, _, im in images}

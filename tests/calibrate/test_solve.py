@@ -296,6 +296,25 @@ def _with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
     return jpeg[:2] + segment + jpeg[2:]
 
 
+def test_webp_images_are_read_and_files_of_other_kinds_are_named(small_rig, tmp_path, caplog) -> None:
+    # A kind not read was passed over in silence: the camera then calibrated from its
+    # world view alone, 8 mm off, with a warning that the board was not found.
+    root = _copy(small_rig, tmp_path)
+    for path in (root / "cam1" / "intrinsics").glob("*.png"):
+        cv2.imwrite(str(path.with_suffix(".webp")), cv2.imread(str(path)), [cv2.IMWRITE_WEBP_QUALITY, 101])
+        path.unlink()
+    (root / "cam1" / "intrinsics" / "07.heic").write_bytes(b"\0" * 100)
+    (root / "cam1" / "intrinsics" / ".DS_Store").write_bytes(b"\0" * 100)  # hidden: no word of it
+    with caplog.at_level(logging.WARNING):
+        result = calibrate_directory(root, tmp_path / "c.toml")
+    assert sum(e.camera == "cam1" for e in result.image_errors) == 7  # 6 intrinsics views and world.png
+    assert (
+        "camera 'cam1': 1 file(s) not read, of no image or video kind read (intrinsics/07.heic)"
+        in caplog.text
+    )
+    assert ".DS_Store" not in caplog.text
+
+
 def test_images_are_read_as_stored_whatever_their_exif_orientation(tmp_path) -> None:
     # Video frames are read as stored (their rotation tags are not applied): a board image
     # turned on reading would calibrate its camera upside down against the frames.
