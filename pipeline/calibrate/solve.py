@@ -306,10 +306,15 @@ def _unfit_cameras(result: CalibrationResult) -> list[tuple[Camera, float, float
     for cam in result.cameras:
         mean = means[cam.name]
         bar = max(MAX_CAMERA_MEAN_PX, MEAN_PX_PER_DIAGONAL_PX * float(np.hypot(*cam.size_px)))
-        if mean > bar:
-            worst = max((e for e in result.image_errors if e.camera == cam.name), key=lambda e: e.mean_px)
+        if not mean <= bar:  # NaN too: corners projected nowhere (a lens that folds the image)
+            worst = max((e for e in result.image_errors if e.camera == cam.name), key=_worst_first)
             unfit.append((cam, mean, bar, worst))
     return unfit
+
+
+def _worst_first(error: ImageError) -> float:
+    """An image's error as a key for max(): NaN (no corner projected) counts as the worst."""
+    return error.mean_px if np.isfinite(error.mean_px) else np.inf
 
 
 def _worst_of_unfit_cameras(result: CalibrationResult) -> list[ImageError]:
@@ -318,7 +323,7 @@ def _worst_of_unfit_cameras(result: CalibrationResult) -> list[ImageError]:
     for cam, _, _, _ in _unfit_cameras(result):
         mine = [e for e in result.image_errors if e.camera == cam.name and e.key != WORLD]
         if mine:
-            worst.append(max(mine, key=lambda e: e.mean_px))
+            worst.append(max(mine, key=_worst_first))
     return worst
 
 
@@ -328,8 +333,9 @@ def _problems(result: CalibrationResult) -> list[str]:
     for cam, mean, bar, worst in _unfit_cameras(result):
         lines.append(
             f"camera {cam.name!r}: mean re-projection error {mean:.1f} px (above {bar:.2g} px; "
-            f"worst {worst.source}, {worst.mean_px:.1f} px): the images do not fit one rig; look for an "
-            "image of another session or camera, or a mirrored one, and calibrate again"
+            f"worst {worst.source}, {worst.mean_px:.1f} px): the images do not fit one rig; check the "
+            "board's size (--board or --charuco, and --square-mm), look for an image of another session "
+            "or camera, or a mirrored one, and calibrate again"
         )
     return lines
 

@@ -590,7 +590,14 @@ def test_the_unfit_bar_grows_with_the_images_diagonal() -> None:
 
     (line,) = _problems(rig((640, 480)))
     assert "mean re-projection error 1.5 px (above 1 px; worst 01.png, 2.0 px)" in line
+    assert "check the board's size (--board or --charuco, and --square-mm)" in line
     assert _problems(rig((4000, 3000))) == []
+    # Corners projected nowhere (a board of the wrong size found inside the real one): NaN
+    # errors, above any bar, the NaN image named as the worst.
+    nowhere = rig((640, 480))
+    nowhere.image_errors[0] = ImageError("cam0", "00", "00.png", float("nan"))
+    (line,) = _problems(nowhere)
+    assert "mean re-projection error nan px (above 1 px; worst 00.png, nan px)" in line
 
 
 def test_a_calibration_whose_images_do_not_fit_one_rig_says_so_and_exits_1(
