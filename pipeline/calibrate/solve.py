@@ -43,7 +43,7 @@ from ..session.calibration_io import calibration_dict, cameras_from_dict, write_
 from ..session.toml_file import load_toml
 from .boards import Board, load_board
 from .result import CalibrationResult, ImageError
-from .views import WORLD, View, camera_dirs, detect_directory
+from .views import WORLD, View, board_size_problems, camera_dirs, detect_directory
 
 log = logging.getLogger(__name__)
 
@@ -121,7 +121,12 @@ def calibrate_directory(
         result = _without_outliers(result, used, outliers, the_board, shared_intrinsics)
         outliers = find_outliers(result.image_errors)
     result.outliers = outliers
-    result.problems = world_problems + _problems(result) + _refused_by_process(result.cameras)
+    result.problems = (
+        board_size_problems(views, the_board)
+        + world_problems
+        + _problems(result)
+        + _refused_by_process(result.cameras)
+    )
     metadata = {
         "source": "pipeline calibrate",
         "calib_dir": str(calib_dir),

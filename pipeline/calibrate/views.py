@@ -10,6 +10,7 @@ Layout read (camera names come from the folder names)::
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -244,6 +245,55 @@ def detect_directory(calib_dir: Path, board: Board) -> list[View]:
             )
     _check_not_copied_across(views)
     return views
+
+
+def board_size_problems(views: Sequence[View], board: Board) -> list[str]:
+    """A line where the images show a board other than ``board``'s size: a board larger
+    than declared is found whole in its part (a chessboard's --board 8x5 inside a 9x6
+    board), and a ChArUco board declared a row or column larger never shows its corners
+    there. Either calibrates every camera consistently, with the world frame squares
+    off (a 7x5 ChArUco board given as --charuco 7x6: every camera 50 mm off, exit 0)."""
+    if board.kind == "charuco":
+        seen = np.zeros((board.rows, board.cols), bool)
+        for view in views:
+            seen.flat[view.ids] = True
+        edges = {
+            "first row": seen[0].any(),
+            "last row": seen[-1].any(),
+            "first column": seen[:, 0].any(),
+            "last column": seen[:, -1].any(),
+        }
+        unseen = [edge for edge, shown in edges.items() if not shown]
+        if unseen:
+            return [
+                f"no image shows a corner of the {' or '.join(unseen)} of the board given "
+                f"({board.describe()}): is the board smaller? count its squares again, and give "
+                "--charuco COLSxROWS (squares, not inner corners)"
+            ]
+        return []
+    # A whole chessboard one row or column larger, looked for in each camera's world view
+    # (or first view).
+    sources = {view.camera: view.source for view in views if view.key == WORLD}
+    for view in views:
+        sources.setdefault(view.camera, view.source)
+    files = [Path(source) for source in sources.values() if Path(source).is_file()]
+    larger = [
+        (cols, rows)
+        for cols, rows in ((board.cols + 1, board.rows), (board.cols, board.rows + 1))
+        if sum(_holds_pattern(_read_grey(path), (cols, rows)) for path in files) * 2 > len(files)
+    ]
+    if larger:
+        cols, rows = larger[0]
+        return [
+            f"the board holds more inner corners than {board.describe()} (a {cols}x{rows} pattern "
+            "was found too): count the inner corners along each side again and give --board COLSxROWS"
+        ]
+    return []
+
+
+def _holds_pattern(image: NDArray[np.uint8], pattern: tuple[int, int]) -> bool:
+    found, _ = cv2.findChessboardCornersSB(image, pattern, flags=cv2.CALIB_CB_EXHAUSTIVE)
+    return bool(found)
 
 
 def _check_not_copied_across(views: list[View]) -> None:

@@ -81,6 +81,19 @@ def test_synth_charuco_meets_the_targets(synth) -> None:
     assert doc["metadata"]["board"].startswith("charuco 7x5 squares, 50 mm")
 
 
+def test_a_board_given_a_row_larger_than_it_is_named(synth, tmp_path) -> None:
+    # Its markers are decoded all the same, and its corners placed a square off: every
+    # camera's centre 50 mm off, at the re-projection error of the right board.
+    root, result = synth
+    assert result.problems == []
+    wrong = calibrate_directory(root, tmp_path / "calibration.toml", charuco=(7, 6))
+    assert any(
+        line.startswith("no image shows a corner of the first row of the board given (charuco 7x6 squares")
+        and "count its squares again" in line
+        for line in wrong.problems
+    )
+
+
 def test_world_without_charuco_corners_is_an_error(synth, tmp_path) -> None:
     root, _ = synth
     copy = tmp_path / "calib"

@@ -575,6 +575,17 @@ def test_an_unexpanded_home_in_the_output_is_refused(small_rig, tmp_path) -> Non
         calibrate_directory(small_rig, Path("~/c.toml"))
 
 
+def test_a_board_given_smaller_than_it_is_is_named(small_rig, tmp_path) -> None:
+    # The detector finds a 5x4 pattern inside the 9x6 board: the calibration is garbage,
+    # and the lines said only that the images did not fit one rig.
+    result = calibrate_directory(small_rig, tmp_path / "c.toml", board=(5, 4))
+    assert result.problems[0].startswith(
+        "the board holds more inner corners than chessboard 5x4, 20 mm (a 6x4 pattern was found too)"
+    )
+    right = calibrate_directory(small_rig, tmp_path / "right.toml")
+    assert right.problems == []
+
+
 def test_the_unfit_bar_grows_with_the_images_diagonal() -> None:
     """1.5 px on average is unfit at 640x480, ordinary at 4000x3000 (whose bar is 5 px)."""
     from pipeline.calibrate.result import CalibrationResult, ImageError
