@@ -575,6 +575,24 @@ def test_an_unexpanded_home_in_the_output_is_refused(small_rig, tmp_path) -> Non
         calibrate_directory(small_rig, Path("~/c.toml"))
 
 
+def test_shared_images_named_unlike_in_every_camera_are_named(small_rig, tmp_path, caplog) -> None:
+    # Shared views are matched by name: left02.jpg and right02.jpg link nothing.
+    root = _copy(small_rig, tmp_path)
+    for cam, prefix in (("cam0", "left"), ("cam1", "right")):
+        (root / cam / "shared").mkdir()
+        for k, image in enumerate(sorted((root / cam / "intrinsics").glob("*.png"))[:2]):
+            shutil.copy(image, root / cam / "shared" / f"{prefix}{k:02d}.png")
+    shutil.copy(root / "cam0" / "shared" / "left00.png", root / "cam1" / "shared" / "left00.png")
+    with caplog.at_level(logging.WARNING):
+        detect_directory(root, load_board(root, board=(9, 6), square_mm=20.0))
+    assert (
+        "camera 'cam0': 1 of its 2 shared/ images have no image of the same name in another camera (left01)"
+        in caplog.text
+    )
+    assert "camera 'cam1': 2 of its 3 shared/ images have no image of the same name" in caplog.text
+    assert "(right00, right01): shared views are matched by name" in caplog.text
+
+
 def test_a_board_given_smaller_than_it_is_is_named(small_rig, tmp_path) -> None:
     # The detector finds a 5x4 pattern inside the 9x6 board: the calibration is garbage,
     # and the lines said only that the images did not fit one rig.
