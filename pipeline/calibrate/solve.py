@@ -123,6 +123,7 @@ def calibrate_directory(
     result.outliers = outliers
     result.problems = (
         board_size_problems(views, the_board)
+        + (_lenses_unlike(result, used, the_board) if shared_intrinsics else [])
         + world_problems
         + _problems(result)
         + _refused_by_process(result.cameras)
@@ -315,6 +316,37 @@ def _unfit_cameras(result: CalibrationResult) -> list[tuple[Camera, float, float
             worst = max((e for e in result.image_errors if e.camera == cam.name), key=_worst_first)
             unfit.append((cam, mean, bar, worst))
     return unfit
+
+
+# --shared-intrinsics fits a camera this many times worse than its own lens does (and by
+# more than _UNLIKE_PX): the cameras' lenses differ. Cameras of one lens fit about as well
+# either way; synth-calib's three lenses (focal lengths 280-360 px) fit 3-11x worse shared,
+# 0.07-0.33 px against 0.02-0.03, their centres up to 70 mm off.
+_UNLIKE_RATIO = 2.0
+_UNLIKE_PX = 0.05
+
+
+def _lenses_unlike(result: CalibrationResult, views: list[View], board: Board) -> list[str]:
+    """A line naming the cameras that ``result``, calibrated with one shared lens, fits
+    clearly worse than their own lenses do (:data:`_UNLIKE_RATIO`)."""
+    try:
+        own = calibrate_views(views, board, shared_intrinsics=False).camera_mean_px()
+    except CalibrationError:  # a camera too few views of its own to fit alone: nothing to compare
+        return []
+    shared = result.camera_mean_px()
+    unlike = [
+        name
+        for name, mean in shared.items()
+        if mean > _UNLIKE_RATIO * own[name] and mean - own[name] > _UNLIKE_PX
+    ]
+    if not unlike:
+        return []
+    figures = ", ".join(f"{name} {shared[name]:.2f} px against {own[name]:.2f}" for name in unlike)
+    return [
+        f"one lens shared by every camera (--shared-intrinsics) fits {', '.join(unlike)} clearly worse "
+        f"than their own lenses do ({figures}): the cameras' lenses differ; calibrate without "
+        "--shared-intrinsics"
+    ]
 
 
 def _worst_first(error: ImageError) -> float:

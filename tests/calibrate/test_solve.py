@@ -593,6 +593,15 @@ def test_shared_images_named_unlike_in_every_camera_are_named(small_rig, tmp_pat
     assert "(right00, right01): shared views are matched by name" in caplog.text
 
 
+def test_one_lens_shared_by_cameras_whose_lenses_differ_is_named(small_rig, tmp_path) -> None:
+    # synth-calib's cameras have focal lengths of 312 and 360 px: one lens for both put
+    # their centres tens of mm off, at mean errors under the 1 px bar, exit 0.
+    result = calibrate_directory(small_rig, tmp_path / "c.toml", shared_intrinsics=True)
+    (line,) = [line for line in result.problems if "--shared-intrinsics" in line]
+    assert line.startswith("one lens shared by every camera (--shared-intrinsics) fits cam")
+    assert "the cameras' lenses differ; calibrate without --shared-intrinsics" in line
+
+
 def test_a_board_given_smaller_than_it_is_is_named(small_rig, tmp_path) -> None:
     # The detector finds a 5x4 pattern inside the 9x6 board: the calibration is garbage,
     # and the lines said only that the images did not fit one rig.
