@@ -56,6 +56,11 @@ _POSE_POINTS = 16
 # image by 0.02-0.04 px and the inconsistency falls by less than 1.3x.
 _AUTO_GAIN = 1.5
 _AUTO_MOVE_PX = 0.1
+# Where "auto" keeps the given cameras, it still moves the world frame to the mount where
+# they see the tube's base farther than this (mm) from base_mm: the silhouettes cannot see
+# a rig moved as a whole, which the base can. With exact cameras the base is read within a
+# few tenths of a mm (docs/calibration.md).
+_AUTO_SHIFT_MM = 1.0
 # A camera whose image of the tubes moves by more than this (px) is named in a warning:
 # more than a calibration that passed its report (0.1-0.3 px RMS) is off by.
 MOVED_PX = 0.5
@@ -116,16 +121,25 @@ class Refinement:
             f"{self.after_px:.3f} px refined, on {self.frames} frames in {self.seconds:.1f} s"
         )
         if not self.applied:
-            return f"given ({self.reason}; {figures})"
+            return f"given ({self.reason}; {figures})" + (
+                f"; {self._moved_to_mount()}" if self.mount_shift_mm is not None else ""
+            )
         if self.mount_shift_mm is None:
             frame = f"the world frame held by the given cameras' poses ({self.mount_note})"
         else:
-            x, y, z = self.mount_shift_mm
-            frame = (
-                f"the world frame moved {np.linalg.norm(self.mount_shift_mm):.2f} mm "
-                f"({x:+.2f}, {y:+.2f}, {z:+.2f}) to the mount"
-            )
+            frame = self._moved_to_mount()
         return f"refined ({figures}): " + "; ".join(c.describe() for c in self.changes) + f"; {frame}"
+
+    @property
+    def changed(self) -> bool:
+        """The cameras used are not the given ones: refined, or moved to the mount."""
+        return self.applied or self.mount_shift_mm is not None
+
+    def _moved_to_mount(self) -> str:
+        assert self.mount_shift_mm is not None
+        x, y, z = self.mount_shift_mm
+        distance = float(np.linalg.norm(self.mount_shift_mm))
+        return f"the world frame moved {distance:.2f} mm ({x:+.2f}, {y:+.2f}, {z:+.2f}) to the mount"
 
     def warnings(self) -> list[str]:
         """A line per camera that seems to have moved since it was calibrated (the run
@@ -228,7 +242,9 @@ def refine(
     refit: Callable[[Sequence[Camera]], Sequence[Tube]],
 ) -> tuple[tuple[Camera, ...], Refinement]:
     """The cameras to reconstruct with, given the refinement ``mode`` ("auto", True or
-    False), and the refinement's report.
+    False), and the refinement's report. Where "auto" keeps the given cameras, they are
+    still moved to the mount where they see the tube's base farther than
+    ``_AUTO_SHIFT_MM`` from base_mm (the rig off as a whole, which no silhouette shows).
 
     ``refit``: the frames' tubes reconstructed again with given cameras
     (:func:`refitter`), to read the base on (:mod:`.mount`). The adjusted tubes will
@@ -268,6 +284,10 @@ def refine(
         if shift is not None:
             cameras = moved_to_mount(cameras, shift)
             points = points - shift
+    elif mode == "auto" and base is not None:
+        shift, held_by = mount_shift(given, tubes, np.asarray(base))
+        if shift is not None and np.linalg.norm(shift) <= _AUTO_SHIFT_MM:
+            shift = None  # seen at the mount
     else:
         held_by = _given_mount_note(given, tubes, base)
     changes = tuple(camera_change(g, r, points) for g, r in zip(given, cameras, strict=True))
@@ -281,7 +301,9 @@ def refine(
         mount_shift_mm=None if shift is None else (float(shift[0]), float(shift[1]), float(shift[2])),
         mount_note=held_by,
     )
-    return (tuple(cameras) if applied else given), report
+    if applied:
+        return tuple(cameras), report
+    return (given if shift is None else tuple(moved_to_mount(given, shift))), report
 
 
 def _given_mount_note(given: Sequence[Camera], tubes: Sequence[Tube], base_mm: Sequence[float] | None) -> str:

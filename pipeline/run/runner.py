@@ -417,7 +417,7 @@ def _run_with(
             from ..calibrate.refine import remove_refined_calibration, write_refined_calibration
 
             path = target.out_dir / f"{target.name}.calibration.toml"
-            if refinement is not None and refinement.applied:
+            if refinement is not None and refinement.changed:
                 written.append(
                     write_refined_calibration(path, target.partial(path), session.cameras, refinement)
                 )
