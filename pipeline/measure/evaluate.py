@@ -492,6 +492,11 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
                 "then the ground truth (evaluate RECORDING.mcap GROUND_TRUTH)"
             )
         raise EvaluationError(f"{recording}: is a folder; give the recording's .mcap file in it")
+    if recording.suffix.lower() == ".npz":
+        raise EvaluationError(
+            f"{recording}: is a ground truth (.npz), not a recording: give the recording first, "
+            "then the ground truth (evaluate RECORDING.mcap GROUND_TRUTH)"
+        )
     if not recording.exists():  # anything else there (a named pipe) is named by load_recording
         raise EvaluationError(f"recording {recording} does not exist; run `python -m pipeline process` first")
     truth_mm, truth_times = load_ground_truth(ground_truth)

@@ -343,7 +343,9 @@ def render_session(
         try:
             (out_dir / "background").mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise PipelineError(f"{out_dir}: cannot create the session directory: {exc.strerror}") from None
+            raise PipelineError(
+                f"{out_dir}: cannot create the session directory ({exc.strerror}); give a folder you can write to"
+            ) from None
         with unfinished(out_dir):
             _remove_earlier_views(out_dir, {cam.name for cam in cameras})
             if options.calib_error_deg:

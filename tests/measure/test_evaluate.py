@@ -463,6 +463,10 @@ def test_a_folder_given_as_the_recording_is_named(partial_run: tuple[Path, Path]
         EvaluationError, match=r"a recording: give the recording first, then the ground truth"
     ):
         evaluate_recording(session_dir, recording)  # the two the other way round
+    with pytest.raises(
+        EvaluationError, match=r"is a ground truth \(\.npz\), not a recording: give the recording first"
+    ):
+        evaluate_recording(session_dir / "ground_truth.npz", recording)
 
 
 def test_a_ground_truth_with_non_finite_centrelines_is_a_user_error(
