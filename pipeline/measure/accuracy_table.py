@@ -211,7 +211,8 @@ def format_table(results: Sequence[CaseResult]) -> str:
             _num(ours.p95_mm),
             _num(ours.tip_median_mm),
             _num(ours.length_error_pct),
-            f"{ours.failed_frames}/{ours.frames}" + (f" ({ours.empty_frames} empty)" if ours.empty_frames else ""),
+            f"{ours.failed_frames}/{ours.frames}"
+            + (f" ({ours.empty_frames} empty)" if ours.empty_frames else ""),
             f"{ours.frames_off} ({'-' if ours.off_flagged is None else ours.off_flagged})",
             "-" if ours.good_flagged is None else f"{ours.good_flagged}/{ours.good_frames}",
             _num(ours.jitter_ratio),
@@ -349,16 +350,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     if why:
         parser.exit(2, f"error: {why}\n")
-    try:
-        with stopped_in_one_line(parser.prog):
-            results = [
-                run_case(
-                    case, args.out, args.frames, jobs=args.jobs, polyfit=not args.no_polyfit, refine=refine
+    # A case that cannot be rendered or processed is named, and the others go on: the
+    # table holds the cases that ran.
+    results: list[CaseResult] = []
+    failed: list[str] = []
+    with stopped_in_one_line(parser.prog):
+        for case in cases:
+            try:
+                results.append(
+                    run_case(
+                        case,
+                        args.out,
+                        args.frames,
+                        jobs=args.jobs,
+                        polyfit=not args.no_polyfit,
+                        refine=refine,
+                    )
                 )
-                for case in cases
-            ]
-    except PipelineError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+            except PipelineError as exc:
+                failed.append(f"error: case {case.name}: {exc}")
+                print(failed[-1], file=sys.stderr)
+    if not results:
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     # Whole or not at all: written beside, then renamed over an earlier table's.
@@ -366,6 +378,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     partial.write_text(results_json(results))
     partial.replace(args.out / "accuracy.json")
     print(format_table(results))
+    if failed:
+        print(
+            f"{len(failed)} of {len(cases)} cases did not run (above); the table holds the others",
+            file=sys.stderr,
+        )
+        return 1
     return 0
 
 

@@ -89,3 +89,31 @@ def test_a_render_stopped_part_way_is_rendered_again_not_reused(
     (directory / UNFINISHED_RENDER).write_text("stopped")
     accuracy_table.prepare_session(case, root, 3)
     assert renders == [3, 3]
+
+
+def test_a_case_that_cannot_run_is_named_and_the_others_are_tabled(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import numpy as np
+
+    from pipeline.errors import PipelineError
+    from pipeline.measure.evaluate import evaluate_centerlines
+
+    first, second = (c.name for c in accuracy_table.default_cases()[:2])
+    line = np.stack([np.zeros(10), np.zeros(10), np.linspace(0.0, 100.0, 10)], axis=1)
+
+    def run_case(
+        case: accuracy_table.Case, root: Path, frames: int, **kwargs: object
+    ) -> accuracy_table.CaseResult:
+        if case.name == first:
+            raise PipelineError("its session cannot be rendered here")
+        report = evaluate_centerlines(np.stack([line] * 3), np.stack([line] * 3))
+        return accuracy_table.CaseResult(case, frames, report, None)
+
+    monkeypatch.setattr(accuracy_table, "run_case", run_case)
+    assert accuracy_table.main(["--cases", first, second, "--frames", "3", "--out", str(tmp_path)]) == 1
+    out, err = capsys.readouterr()
+    assert f"error: case {first}: its session cannot be rendered here" in err
+    assert "1 of 2 cases did not run (above); the table holds the others" in err
+    assert f"| {second} |" in out and f"| {first} |" not in out
+    assert (tmp_path / "accuracy.json").is_file()
