@@ -115,7 +115,8 @@ class Refinement:
     def describe(self) -> str:
         """One line for the summary."""
         if not self.frames or not np.isfinite(self.before_px):
-            return f"given ({self.reason})"
+            moved = f"; {self._moved_to_mount()}" if self.mount_shift_mm is not None else ""
+            return f"given ({self.reason}){moved}"
         figures = (
             f"silhouettes {self.before_px:.3f} px apart with the given cameras, "
             f"{self.after_px:.3f} px refined, on {self.frames} frames in {self.seconds:.1f} s"
@@ -353,13 +354,18 @@ def refined_cameras(
         # Each sample of a tube's sides is read once per view, across it: two views give
         # exactly the two numbers that place it, and nothing is left to tell the cameras by.
         reason = "two views of a tube's sides say nothing about the cameras; refining needs three or more"
-        return model.cameras, _kept_as_given(model, frames, map_frames, reason), None
+        kept = _kept_as_given(model, frames, map_frames, reason, to_mount=mode == "auto")
+        if kept.mount_shift_mm is None:
+            return model.cameras, kept, None
+        return tuple(moved_to_mount(model.cameras, np.asarray(kept.mount_shift_mm))), kept, None
     tubes, read = _sampled(model, frames, map_frames)
     if len(tubes) < 3:
         return model.cameras, None, read
     cameras, report = refine(model, tubes, mode, refitter(model, frames, map_frames))
     report = dataclasses.replace(report, seconds=time.perf_counter() - started)
-    return cameras, report, read if cameras is model.cameras else None
+    # The ends read with the given cameras stand for them moved to the mount (the same
+    # tubes, shifted), not for refined ones.
+    return cameras, report, None if report.applied else read
 
 
 def _kept_as_given(
@@ -367,10 +373,14 @@ def _kept_as_given(
     frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
     map_frames: FrameMap,
     reason: str,
+    *,
+    to_mount: bool = False,
 ) -> Refinement:
     """The report of cameras kept as given without a refinement (for ``reason``), with where
     they see the tube's base against ``[manipulator] base_mm``, read on the tubes of the
-    sample ``frames`` as where a refinement keeps them (:func:`_given_mount_note`). On the
+    sample ``frames`` as where a refinement keeps them (:func:`_given_mount_note`); with
+    ``to_mount``, its ``mount_shift_mm`` where they see it farther than ``_AUTO_SHIFT_MM``
+    from there (the cameras to be moved by it, :func:`moved_to_mount`). On the
     51 two-camera sessions of ``accuracy_table`` draws 2, 191-231 and 307 (2026-12-05), the
     true base_mm was never called wrong (41 seen there, 10 whose base end the frames see
     unalike), and base_mm 15 mm off in x or z, or 8 mm in y, was named in those 41."""
@@ -379,7 +389,11 @@ def _kept_as_given(
         samples = map_frames(_sample, frames, _base_free(model))
         tubes = [tube for tube, _ in samples if tube is not None]
         if len(tubes) >= 3:
-            note = _given_mount_note(model.cameras, tubes, model.settings.manipulator.base_mm)
+            base = np.asarray(model.settings.manipulator.base_mm, dtype=np.float64)
+            shift, note = mount_shift(model.cameras, tubes, base)
+            if to_mount and shift is not None and np.linalg.norm(shift) > _AUTO_SHIFT_MM:
+                moved = (float(shift[0]), float(shift[1]), float(shift[2]))
+                return Refinement(False, 0, float("nan"), float("nan"), (), reason, mount_shift_mm=moved)
     return Refinement(False, 0, float("nan"), float("nan"), (), reason, mount_note=note)
 
 

@@ -363,6 +363,44 @@ def test_two_cameras_are_kept_and_the_summary_says_why(tmp_path: Path) -> None:
     assert "three or more" in report.describe()
 
 
+def test_two_cameras_that_see_the_base_millimetres_off_are_moved_to_the_mount(tmp_path: Path) -> None:
+    """Two views leave the cameras as given, but not where the rig sees the mount: on
+    `synth --cameras 2 --frames 60 --seed 4` renders 0.05 and 0.15 deg off (2026-12-05)
+    moving them there took a bend from 1.01 to 0.50 mm and from 3.02 to 1.48 mm (mean)."""
+    from pipeline.calibrate.refine import refined_cameras
+
+    render_session(
+        tmp_path / "two",
+        shape="bend_rotate",
+        frames=8,
+        seed=4,
+        options=SceneOptions(cameras=2),
+        progress=False,
+        jobs=1,
+    )
+    session = load_session(tmp_path / "two")
+    model = build_model(session)
+    frames = sample_session(session.video_paths, 0, 8)
+    base = np.asarray(model.settings.manipulator.base_mm, dtype=np.float64)
+
+    def with_base(off_mm: tuple[float, float, float], refine: str | bool) -> SessionModel:
+        settings = model.settings
+        manipulator = replace(settings.manipulator, base_mm=tuple(base + off_mm))
+        calibration = replace(settings.calibration, refine=refine)
+        return replace(model, settings=replace(settings, manipulator=manipulator, calibration=calibration))
+
+    cameras, report, _ = refined_cameras(with_base((0.0, 0.0, 0.0), "auto"), frames)
+    assert cameras is model.cameras and report is not None and report.mount_shift_mm is None
+    cameras, report, _ = refined_cameras(with_base((2.5, 0.0, 0.0), "auto"), frames)
+    assert report is not None and not report.applied and report.changed
+    np.testing.assert_allclose(report.mount_shift_mm, (-2.5, 0.0, 0.0), atol=0.6)
+    assert "three or more" in report.describe() and "to the mount" in report.describe()
+    assert cameras[0].project(base[None]) != pytest.approx(model.cameras[0].project(base[None]))
+    # refine = false keeps them as they are.
+    cameras, report, _ = refined_cameras(with_base((2.5, 0.0, 0.0), False), frames)
+    assert cameras is model.cameras and report is not None and not report.changed
+
+
 def test_the_tube_end_is_read_on_the_frames_of_cameras_kept(sessions: dict[float, Path]) -> None:
     from pipeline.calibrate.refine import SAMPLE_FRAMES, refined_cameras, sample_tips
     from pipeline.reconstruct.tip_shape import with_session_tip
