@@ -262,8 +262,18 @@ def refine(
             f"the tube took {poses} distinct pose{'s' if poses != 1 else ''} in the {len(tubes)} frames "
             f"sampled; refining needs {_MIN_POSES} or more, {_POSE_APART_MM:g} mm apart"
         )
-        note = _given_mount_note(given, tubes, base)
-        return given, Refinement(False, len(tubes), float("nan"), float("nan"), (), reason, mount_note=note)
+        shift, note = _given_at_mount(given, tubes, base, to_mount=mode == "auto")
+        report = Refinement(
+            False,
+            len(tubes),
+            float("nan"),
+            float("nan"),
+            (),
+            reason,
+            mount_shift_mm=_mm(shift),
+            mount_note=note,
+        )
+        return _moved(given, shift), report
     # The tubes' bases free, as they were reconstructed (see sample_tubes).
     adjustment = adjust_cameras(given, tubes, base_mm=None, rounds=ROUNDS)
     points = np.concatenate([t.points_mm for t in adjustment.tubes])
@@ -285,12 +295,10 @@ def refine(
         if shift is not None:
             cameras = moved_to_mount(cameras, shift)
             points = points - shift
-    elif mode == "auto" and base is not None:
-        shift, held_by = mount_shift(given, tubes, np.asarray(base))
-        if shift is not None and np.linalg.norm(shift) <= _AUTO_SHIFT_MM:
-            shift = None  # seen at the mount
+    elif not applied:
+        shift, held_by = _given_at_mount(given, tubes, base, to_mount=mode == "auto")
     else:
-        held_by = _given_mount_note(given, tubes, base)
+        held_by = "no [manipulator] base_mm"
     changes = tuple(camera_change(g, r, points) for g, r in zip(given, cameras, strict=True))
     report = Refinement(
         applied,
@@ -299,24 +307,37 @@ def refine(
         adjustment.after_px,
         changes,
         reason,
-        mount_shift_mm=None if shift is None else (float(shift[0]), float(shift[1]), float(shift[2])),
+        mount_shift_mm=_mm(shift),
         mount_note=held_by,
     )
-    if applied:
-        return tuple(cameras), report
-    return (given if shift is None else tuple(moved_to_mount(given, shift))), report
+    return (tuple(cameras) if applied else _moved(given, shift)), report
 
 
-def _given_mount_note(given: Sequence[Camera], tubes: Sequence[Tube], base_mm: Sequence[float] | None) -> str:
-    """Where the given cameras see the ``tubes``' base end (they were reconstructed with
-    them, the base free) against ``[manipulator] base_mm``: "" where they see it there, or
+def _given_at_mount(
+    given: Sequence[Camera], tubes: Sequence[Tube], base_mm: Sequence[float] | None, *, to_mount: bool
+) -> tuple[FloatArray | None, str]:
+    """Where the given cameras, kept, see the ``tubes``' base end (they were reconstructed
+    with them, the base free) against ``[manipulator] base_mm``: with ``to_mount``, the
+    shift (3,) mm to move them by where it is farther than ``_AUTO_SHIFT_MM`` (the rig off
+    as a whole, which no silhouette shows), else None; and "" where they see it there, or
     the note of :func:`~pipeline.calibrate.mount.mount_shift` (a base seen farther than a
     calibration's error puts it ends in ``CHECK_BASE``: every frame is fitted to start at
     a wrong place, silently bent). Read once a run, on the frames refined on."""
     if base_mm is None:
-        return "no [manipulator] base_mm"
+        return None, "no [manipulator] base_mm"
     shift, note = mount_shift(given, tubes, np.asarray(base_mm, dtype=np.float64))
-    return "" if shift is not None else note
+    if not to_mount or shift is None or np.linalg.norm(shift) <= _AUTO_SHIFT_MM:
+        return None, note
+    return shift, note
+
+
+def _mm(shift: FloatArray | None) -> tuple[float, float, float] | None:
+    return None if shift is None else (float(shift[0]), float(shift[1]), float(shift[2]))
+
+
+def _moved(cameras: tuple[Camera, ...], shift: FloatArray | None) -> tuple[Camera, ...]:
+    """``cameras`` moved to the mount by ``shift`` (:func:`moved_to_mount`); themselves where None."""
+    return cameras if shift is None else tuple(moved_to_mount(cameras, shift))
 
 
 def sample_session(
@@ -355,9 +376,8 @@ def refined_cameras(
         # exactly the two numbers that place it, and nothing is left to tell the cameras by.
         reason = "two views of a tube's sides say nothing about the cameras; refining needs three or more"
         kept = _kept_as_given(model, frames, map_frames, reason, to_mount=mode == "auto")
-        if kept.mount_shift_mm is None:
-            return model.cameras, kept, None
-        return tuple(moved_to_mount(model.cameras, np.asarray(kept.mount_shift_mm))), kept, None
+        shift = None if kept.mount_shift_mm is None else np.asarray(kept.mount_shift_mm)
+        return _moved(model.cameras, shift), kept, None
     tubes, read = _sampled(model, frames, map_frames)
     if len(tubes) < 3:
         return model.cameras, None, read
@@ -378,23 +398,21 @@ def _kept_as_given(
 ) -> Refinement:
     """The report of cameras kept as given without a refinement (for ``reason``), with where
     they see the tube's base against ``[manipulator] base_mm``, read on the tubes of the
-    sample ``frames`` as where a refinement keeps them (:func:`_given_mount_note`); with
+    sample ``frames`` as where a refinement keeps them (:func:`_given_at_mount`); with
     ``to_mount``, its ``mount_shift_mm`` where they see it farther than ``_AUTO_SHIFT_MM``
-    from there (the cameras to be moved by it, :func:`moved_to_mount`). On the
+    from there (the cameras to be moved by it). On the
     51 two-camera sessions of ``accuracy_table`` draws 2, 191-231 and 307 (2026-12-05), the
     true base_mm was never called wrong (41 seen there, 10 whose base end the frames see
     unalike), and base_mm 15 mm off in x or z, or 8 mm in y, was named in those 41."""
-    note = ""
+    note, shift = "", None
     if model.settings.manipulator.base_mm is not None:
         samples = map_frames(_sample, frames, _base_free(model))
         tubes = [tube for tube, _ in samples if tube is not None]
         if len(tubes) >= 3:
-            base = np.asarray(model.settings.manipulator.base_mm, dtype=np.float64)
-            shift, note = mount_shift(model.cameras, tubes, base)
-            if to_mount and shift is not None and np.linalg.norm(shift) > _AUTO_SHIFT_MM:
-                moved = (float(shift[0]), float(shift[1]), float(shift[2]))
-                return Refinement(False, 0, float("nan"), float("nan"), (), reason, mount_shift_mm=moved)
-    return Refinement(False, 0, float("nan"), float("nan"), (), reason, mount_note=note)
+            base = model.settings.manipulator.base_mm
+            shift, note = _given_at_mount(model.cameras, tubes, base, to_mount=to_mount)
+    nan = float("nan")
+    return Refinement(False, 0, nan, nan, (), reason, mount_shift_mm=_mm(shift), mount_note=note)
 
 
 def sample_tips(

@@ -229,12 +229,21 @@ def test_a_mount_set_far_from_the_base_is_named_where_nothing_is_refined(
 
 
 def test_a_tube_that_stands_still_is_not_refined_on(sampled: Sampled) -> None:
-    """Frames of one pose repeat one view of the tube: "auto" keeps the given cameras."""
+    """Frames of one pose repeat one view of the tube: "auto" keeps the given cameras (moved
+    to the mount where, 0.15 deg off, they see the tube's base away from it)."""
     model, tubes, refit = sampled[0.15]
     assert distinct_poses(tubes) >= 2
     cameras, report = refine(model, [tubes[0]] * 6, "auto", refit)
-    assert cameras is model.cameras and not report.applied
+    assert not report.applied and report.changes == ()
     assert "1 distinct pose in the 6 frames" in report.describe()
+    kept = (
+        model.cameras
+        if report.mount_shift_mm is None
+        else moved_to_mount(model.cameras, np.asarray(report.mount_shift_mm))
+    )
+    for got, want in zip(cameras, kept, strict=True):
+        np.testing.assert_allclose(got.matrix, want.matrix)
+        np.testing.assert_allclose(got.center_mm, want.center_mm)
 
 
 def test_the_world_frame_is_the_given_rigs() -> None:
