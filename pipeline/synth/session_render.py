@@ -344,7 +344,8 @@ def render_session(
             (out_dir / "background").mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise PipelineError(
-                f"{out_dir}: cannot create the session directory ({exc.strerror}); give a folder you can write to"
+                f"{out_dir}: cannot create the session directory ({exc.strerror}); "
+                "give a folder you can write to"
             ) from None
         with unfinished(out_dir):
             _remove_earlier_views(out_dir, {cam.name for cam in cameras})

@@ -157,7 +157,7 @@ def test_cameras_kept_whose_rig_sees_the_base_millimetres_off_are_moved_to_the_m
     3.1 mm off on every frame."""
     model, tubes, refit = sampled[0.0]
     base = np.asarray(model.settings.manipulator.base_mm, dtype=np.float64)
-    manipulator = replace(model.settings.manipulator, base_mm=tuple(base + (0.0, 2.5, 0.0)))
+    manipulator = replace(model.settings.manipulator, base_mm=tuple(base + np.array([0.0, 2.5, 0.0])))
     moved = replace(model, settings=replace(model.settings, manipulator=manipulator))
     cameras, report = refine(moved, tubes, "auto", refit)
     assert not report.applied and report.changed and report.mount_shift_mm is not None

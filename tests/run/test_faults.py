@@ -235,7 +235,10 @@ def test_workers_that_die_on_every_range_leave_the_outputs_there(tmp_path: Path)
     out = tmp_path / "out"
     _run(session, out, frames=(0, 2))
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    no_frame = r"no frame was reconstructed: worker died on frames 0-\d+, also when retried .*\(as on all \d+ ranges of the run\)"
+    no_frame = (
+        r"no frame was reconstructed: worker died on frames 0-\d+, also when retried "
+        r".*\(as on all \d+ ranges of the run\)"
+    )
     with pytest.raises(WorkersError, match=no_frame):
         _run(session, out, force=True, jobs=2, backend="loky", frame_fn=always_dies)
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
