@@ -38,7 +38,6 @@ from numpy.typing import NDArray
 
 from ..errors import CalibrationError, Interrupted, OutputError, home_meant, refuse_unfinished_render
 from ..geometry.camera import Camera
-from ..run.interrupts import deferred_signals
 from ..session.calibration_io import calibration_dict, cameras_from_dict, write_calibration
 from ..session.toml_file import load_toml
 from .boards import Board, load_board
@@ -143,7 +142,7 @@ def calibrate_directory(
     partial = output.with_name(f".{output.name}.partial")
     report = Path(report_dir) if report_dir is not None else output.parent
     kept = f"{output} was not written" + (" (the one there is kept)" if output.exists() else "")
-    placed = False
+    written = False
     try:
         output.parent.mkdir(parents=True, exist_ok=True)
         write_calibration(partial, result.cameras, metadata)
@@ -154,13 +153,13 @@ def calibrate_directory(
                 f"{report}: cannot write the report pictures ({exc.strerror or exc}); {kept}; free space "
                 "or give -o a folder with room for them"
             ) from None
-        with deferred_signals():  # a signal now is taken once the calibration is in place
-            partial.replace(output)
-            placed = True
+        written = True
+        partial.replace(output)
     except OSError as exc:
         raise OutputError(f"{output}: cannot write the calibration ({exc.strerror or exc})") from None
     except KeyboardInterrupt:
-        if not placed:
+        # Written, and no longer under its temporary name: renamed into place.
+        if not (written and not partial.exists()):
             raise Interrupted(f"interrupted; {kept}") from None
         raise Interrupted(
             f"interrupted as the calibration ended; {output} is written, with its report"

@@ -198,10 +198,10 @@ def detect_directory(calib_dir: Path, board: Board) -> list[View]:
             elif not path.name.startswith(".") and path.is_file():
                 unread.append(path)
         shared = cam_dir / "shared"
+        for path in _shared_images(shared) if shared.is_dir() else []:
+            images.append((f"shared/{path.stem}", str(path), _read_grey(path)))
         for path in sorted(shared.iterdir()) if shared.is_dir() else []:
-            if path.suffix.lower() in IMAGE_EXTS:
-                images.append((f"shared/{path.stem}", str(path), _read_grey(path)))
-            elif not path.name.startswith(".") and path.is_file():
+            if path.suffix.lower() not in IMAGE_EXTS and not path.name.startswith(".") and path.is_file():
                 unread.append(path)
         if unread:
             log.warning(
@@ -248,13 +248,29 @@ def detect_directory(calib_dir: Path, board: Board) -> list[View]:
     return views
 
 
+def _shared_images(shared: Path) -> list[Path]:
+    """The images of a camera's ``shared`` folder, sorted; two of one name (02.png and
+    02.jpg) are a CalibrationError: a shared view is one board pose, named alike in
+    every camera, and which file was meant cannot be told."""
+    images = sorted(p for p in shared.iterdir() if p.suffix.lower() in IMAGE_EXTS)
+    stems = [p.stem for p in images]
+    twice = sorted({stem for stem in stems if stems.count(stem) > 1})
+    if twice:
+        named = ", ".join(p.name for p in images if p.stem == twice[0])
+        raise CalibrationError(
+            f"{shared}: holds {named}, two images of the shared view {twice[0]!r}; one board pose "
+            "is one image per camera: keep one of them and remove the others"
+        )
+    return images
+
+
 def _warn_unmatched_shared(cam_dirs: Sequence[Path]) -> None:
     """Name the shared/ images of each camera that no other camera has an image of the same
     name of: shared views are matched by name, and one alone links its camera to nothing
     (the real stereo pairs copied in as leftNN.jpg and rightNN.jpg: not one view shared,
     the baseline 1.1 mm off, without a word)."""
     stems = {
-        cam_dir.name: {p.stem for p in (cam_dir / "shared").iterdir() if p.suffix.lower() in IMAGE_EXTS}
+        cam_dir.name: {p.stem for p in _shared_images(cam_dir / "shared")}
         for cam_dir in cam_dirs
         if (cam_dir / "shared").is_dir()
     }

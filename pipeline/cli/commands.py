@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 from typing import Any, TextIO
 
-from ..errors import OutputError
+from ..errors import Interrupted, OutputError
 
 EXIT_OK, EXIT_FRAMES_FAILED, EXIT_BAD_INPUT, EXIT_INTERNAL_ERROR = 0, 1, 2, 3
 
@@ -343,10 +343,15 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         drop_outliers=args.drop_outliers,
         force=args.force,
     )
-    say(format_table(result))
-    say(f"wrote {args.output}; pictures: {', '.join(str(p) for p in result.report_files)}")
-    for line in result.problems:
-        print(f"warning: {line}", file=sys.stderr)
+    try:
+        say(format_table(result))
+        say(f"wrote {args.output}; pictures: {', '.join(str(p) for p in result.report_files)}")
+        for line in result.problems:
+            print(f"warning: {line}", file=sys.stderr)
+    except KeyboardInterrupt:
+        raise Interrupted(
+            f"interrupted as the calibration ended; {args.output} is written, with its report"
+        ) from None
     return EXIT_FRAMES_FAILED if result.problems else EXIT_OK
 
 

@@ -2,17 +2,13 @@
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
-import os
 import re
 import shutil
-import signal
 import struct
 import tomllib
 import zlib
-from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -539,9 +535,8 @@ def test_report_pictures_that_cannot_be_written_leave_the_calibration_there(
 def test_a_calibration_interrupted_before_or_after_its_rename_says_which(
     small_rig, tmp_path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from pipeline.calibrate import report, solve
+    from pipeline.calibrate import report
     from pipeline.errors import Interrupted
-    from pipeline.run.interrupts import signals_interrupt
 
     root = _copy(small_rig, tmp_path)
 
@@ -552,19 +547,20 @@ def test_a_calibration_interrupted_before_or_after_its_rename_says_which(
     with pytest.raises(Interrupted, match=r"^interrupted; .*c\.toml was not written$"):
         calibrate_directory(root, tmp_path / "c.toml")
     assert not (tmp_path / "c.toml").exists() and not list(tmp_path.glob(".*.partial"))
-    # A signal as the calibration is renamed into place is taken once it is there.
+    # A signal just as the calibration is renamed into place: it is there, and said to be.
     monkeypatch.undo()
-    real = solve.deferred_signals
+    rename = Path.replace
 
-    @contextlib.contextmanager
-    def signal_inside() -> Iterator[None]:
-        with real():
-            yield
-            os.kill(os.getpid(), signal.SIGINT)
+    def renamed_then_interrupted(self: Path, target: Path) -> Path:
+        done = rename(self, target)
+        if Path(target).name == "c.toml":
+            raise KeyboardInterrupt
+        return done
 
-    monkeypatch.setattr(solve, "deferred_signals", signal_inside)
-    with signals_interrupt(), pytest.raises(Interrupted, match=r"c\.toml is written, with its report"):
+    monkeypatch.setattr(Path, "replace", renamed_then_interrupted)
+    with pytest.raises(Interrupted, match=r"c\.toml is written, with its report"):
         calibrate_directory(root, tmp_path / "c.toml")
+    monkeypatch.undo()
     assert read_calibration(tmp_path / "c.toml")
 
 
@@ -600,6 +596,20 @@ def test_one_lens_shared_by_cameras_whose_lenses_differ_is_named(small_rig, tmp_
     (line,) = [line for line in result.problems if "--shared-intrinsics" in line]
     assert line.startswith("one lens shared by every camera (--shared-intrinsics) fits cam")
     assert "the cameras' lenses differ; calibrate without --shared-intrinsics" in line
+
+
+def test_two_images_of_one_shared_view_in_a_camera_are_refused(small_rig, tmp_path) -> None:
+    # 02.png and 02.jpg were both taken as view 02, one of them 20 px off, exit 0.
+    root = _copy(small_rig, tmp_path)
+    (root / "cam0" / "shared").mkdir()
+    image = sorted((root / "cam0" / "intrinsics").glob("*.png"))[0]
+    shutil.copy(image, root / "cam0" / "shared" / "02.png")
+    cv2.imwrite(str(root / "cam0" / "shared" / "02.jpg"), cv2.imread(str(image)))
+    with pytest.raises(
+        CalibrationError, match=r"shared: holds 02\.jpg, 02\.png, two images of the shared view '02'"
+    ):
+        calibrate_directory(root, tmp_path / "c.toml")
+    assert not (tmp_path / "c.toml").exists()
 
 
 def test_a_board_given_smaller_than_it_is_is_named(small_rig, tmp_path) -> None:
