@@ -144,7 +144,14 @@ class Refinement:
 
     def warnings(self) -> list[str]:
         """A line per camera that seems to have moved since it was calibrated (the run
-        corrected it)."""
+        corrected it), or one for a rig kept as given and moved to the mount as a whole."""
+        if not self.applied and self.mount_shift_mm is not None:
+            distance = float(np.linalg.norm(self.mount_shift_mm))
+            return [
+                f"the cameras see the tube's base {distance:.1f} mm from [manipulator] base_mm, and "
+                "were moved there as a whole: the rig has moved since it was calibrated, or base_mm "
+                "is off; recalibrate, or correct base_mm"
+            ]
         return [
             f"camera {c.name} seems to have moved since it was calibrated: its image of the tube is "
             f"{c.image_px:.1f} px off; recalibrate it, or keep [calibration] refine on"
@@ -383,9 +390,12 @@ def refined_cameras(
         return model.cameras, None, read
     cameras, report = refine(model, tubes, mode, refitter(model, frames, map_frames))
     report = dataclasses.replace(report, seconds=time.perf_counter() - started)
-    # The ends read with the given cameras stand for them moved to the mount (the same
-    # tubes, shifted), not for refined ones.
-    return cameras, report, None if report.applied else read
+    # The ends read with the given cameras serve only them. Moved to the mount, the frames'
+    # bases are held there and their ends read anew: on a bend 0.15 deg off (`synth --frames
+    # 60 --calib-error 0.15 --seed 3`, 2026-12-05) the given cameras' ends mixed with the
+    # moved rig's made the end a close call (-0.12 +- 0.08, every frame flagged); read anew,
+    # flat, -0.26 +- 0.11, no frame flagged, at the same 0.24 mm.
+    return cameras, report, None if report.changed else read
 
 
 def _kept_as_given(

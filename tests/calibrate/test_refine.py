@@ -163,6 +163,8 @@ def test_cameras_kept_whose_rig_sees_the_base_millimetres_off_are_moved_to_the_m
     assert not report.applied and report.changed and report.mount_shift_mm is not None
     np.testing.assert_allclose(report.mount_shift_mm, (0.0, -2.5, 0.0), atol=0.6)
     assert report.describe().startswith("given (") and "to the mount" in report.describe()
+    (line,) = report.warnings()
+    assert line.startswith("the cameras see the tube's base 2.") and "or base_mm is off" in line
     expected = moved_to_mount(model.cameras, np.asarray(report.mount_shift_mm))
     for got, want in zip(cameras, expected, strict=True):
         np.testing.assert_allclose(got.project(base[None]), want.project(base[None]))
