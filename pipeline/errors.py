@@ -76,3 +76,14 @@ def home_meant(path: Path) -> Path | None:
     except RuntimeError:  # ~name of no user on this machine
         return None
     return meant if meant != path else None
+
+
+def refuse_unexpanded_home(path: Path, option: str) -> None:
+    """Raise OutputError where the output ``path`` starts with a ``~`` no shell expanded
+    (:func:`home_meant`): written as it is, it would make a folder named ``~`` here, which
+    a later ``rm -rf ~`` would take for home. ``option``: what gives the path ("-o", "--out")."""
+    meant = home_meant(path)
+    if meant is not None:
+        raise OutputError(
+            f"{path}: ~ is not expanded here (it would make a folder named ~); give {option} {meant}"
+        )

@@ -649,7 +649,11 @@ def test_an_out_folder_with_a_tilde_no_shell_expanded_is_refused(
     assert main([*_process(session, Path("~/results"))]) == EXIT_BAD_INPUT
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert line.startswith("error: ~/results: ~ is not expanded here (it would make a folder named ~)")
-    assert line.endswith(f"; give {tmp_path}/home/results")
+    assert line.endswith(f"; give --out {tmp_path}/home/results")
+    assert not (tmp_path / "~").exists()
+    # So is a render's folder (synth, synth-calib): the same check.
+    assert main(["synth", "~/render", "--frames", "2"]) == EXIT_BAD_INPUT
+    assert capsys.readouterr().err.strip().endswith(f"; give synth {tmp_path}/home/render")
     assert not (tmp_path / "~").exists()
 
 

@@ -36,7 +36,13 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import CalibrationError, Interrupted, OutputError, home_meant, refuse_unfinished_render
+from ..errors import (
+    CalibrationError,
+    Interrupted,
+    OutputError,
+    refuse_unexpanded_home,
+    refuse_unfinished_render,
+)
 from ..geometry.camera import Camera
 from ..session.calibration_io import calibration_dict, cameras_from_dict, write_calibration
 from ..session.toml_file import load_toml
@@ -391,12 +397,7 @@ def _check_output(output: Path, *, force: bool) -> None:
     """Before calibrating: ``output`` can be written (its folder exists or can be made, and
     is writable) and takes the place of no file but an earlier calibration (a TOML file),
     and of that only with ``force``."""
-    meant = home_meant(output)
-    if meant is not None:
-        # Written as it is, into a folder named "~" here, which a later `rm -rf ~` would take for home.
-        raise OutputError(
-            f"{output}: ~ is not expanded here (it would make a folder named ~); give -o {meant}"
-        )
+    refuse_unexpanded_home(output, "-o")
     if output.is_dir():
         raise OutputError(f"{output}: is a folder; give -o a file name, e.g. {output / 'calibration.toml'}")
     if output.exists():

@@ -18,7 +18,7 @@ import os
 import uuid
 from pathlib import Path
 
-from ..errors import OutputError, home_meant
+from ..errors import OutputError, refuse_unexpanded_home
 from ..record.commit_marker import killed_commits, marker_path, marker_run
 from ..session.folder import check_utf8_path
 
@@ -203,10 +203,7 @@ def prepare_outputs(out_dir: Path, name: str, force: bool) -> OutputTarget:
     """Check, before any work, that the outputs can be written, and take the folder's lock
     for ``name``. Call :meth:`OutputTarget.release` when the run ends."""
     check_utf8_path(out_dir, "choose an --out path in UTF-8", OutputError)
-    meant = home_meant(out_dir)
-    if meant is not None:
-        # Made as it is, a folder named "~" here, which a later `rm -rf ~` would take for home.
-        raise OutputError(f"{out_dir}: ~ is not expanded here (it would make a folder named ~); give {meant}")
+    refuse_unexpanded_home(out_dir, "--out")
     try:
         for folder in (out_dir, *out_dir.parents):
             if folder.exists() and not folder.is_dir():

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import UNFINISHED_RENDER, PipelineError
+from ..errors import UNFINISHED_RENDER, PipelineError, refuse_unexpanded_home
 
 
 def check_out_dir(out_dir: Path, *, command: str, contents: str, marker: str, kind: str) -> None:
@@ -23,6 +23,7 @@ def check_out_dir(out_dir: Path, *, command: str, contents: str, marker: str, ki
     contents : what the render writes, for the message ("the session").
     kind : what an earlier render is called, for the message ("a synthetic session").
     """
+    refuse_unexpanded_home(out_dir, command)
     if out_dir.exists() and not out_dir.is_dir():
         raise PipelineError(f"{out_dir}: is a file; give {command} a directory to write {contents} in")
     earlier = (out_dir / marker).is_file() or (out_dir / UNFINISHED_RENDER).is_file()
