@@ -207,7 +207,7 @@ def _without_outliers(
         # With the worst image of each camera unfit for use: one image far off (mirrored)
         # can wreck the whole calibration, every camera's errors tens of pixels, and then
         # stand out in none (its camera's spread is as wide) while being the worst of all.
-        worst = max(standing_out + _worst_of_unfit_cameras(result), key=lambda e: e.mean_px)
+        worst = max(standing_out + _worst_of_unfit_cameras(result), key=_worst_first)
         instant = next(v.instant for v in views if (v.camera, v.key) == (worst.camera, worst.key))
         gone = [v for v in views if v.instant == instant]
         log.info(

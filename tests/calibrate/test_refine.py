@@ -152,9 +152,9 @@ def test_cameras_kept_whose_rig_sees_the_base_millimetres_off_are_moved_to_the_m
 ) -> None:
     """A rig off as a whole (turned or shifted by the calibration's error, which no
     silhouette shows) sees the tube's base away from base_mm: the given cameras are kept
-    as they are, and the world frame moved to the mount. A bend whose calibration was
-    0.15 deg off (`synth --frames 60 --calib-error 0.15 --seed 3`) kept its cameras
-    3.1 mm off on every frame."""
+    as they are, and the world frame moved to the mount. A bend whose calibration is
+    0.15 deg off (`synth --frames 60 --calib-error 0.15 --seed 3`) is 3.1 mm off on every
+    frame with its cameras kept as they are, 0.24 mm moved (2026-12-05)."""
     model, tubes, refit = sampled[0.0]
     base = np.asarray(model.settings.manipulator.base_mm, dtype=np.float64)
     manipulator = replace(model.settings.manipulator, base_mm=tuple(base + np.array([0.0, 2.5, 0.0])))
@@ -377,7 +377,7 @@ def test_two_cameras_are_kept_and_the_summary_says_why(tmp_path: Path) -> None:
 def test_two_cameras_that_see_the_base_millimetres_off_are_moved_to_the_mount(tmp_path: Path) -> None:
     """Two views leave the cameras as given, but not where the rig sees the mount: on
     `synth --cameras 2 --frames 60 --seed 4` renders 0.05 and 0.15 deg off (2026-12-05)
-    moving them there took a bend from 1.01 to 0.50 mm and from 3.02 to 1.48 mm (mean)."""
+    a bend is 1.01 and 3.02 mm off kept as they are, 0.50 and 1.48 mm moved (mean)."""
     from pipeline.calibrate.refine import refined_cameras
 
     render_session(

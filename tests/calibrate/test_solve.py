@@ -293,8 +293,8 @@ def _with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
 
 
 def test_webp_images_are_read_and_files_of_other_kinds_are_named(small_rig, tmp_path, caplog) -> None:
-    # A kind not read was passed over in silence: the camera then calibrated from its
-    # world view alone, 8 mm off, with a warning that the board was not found.
+    # A kind not read and not named leaves its camera to its world view alone (8 mm off on
+    # these boards), under a warning that the board was not found.
     root = _copy(small_rig, tmp_path)
     for path in (root / "cam1" / "intrinsics").glob("*.png"):
         cv2.imwrite(str(path.with_suffix(".webp")), cv2.imread(str(path)), [cv2.IMWRITE_WEBP_QUALITY, 101])
@@ -599,7 +599,7 @@ def test_one_lens_shared_by_cameras_whose_lenses_differ_is_named(small_rig, tmp_
 
 
 def test_two_images_of_one_shared_view_in_a_camera_are_refused(small_rig, tmp_path) -> None:
-    # 02.png and 02.jpg were both taken as view 02, one of them 20 px off, exit 0.
+    # Both taken as view 02, one of them would stand 20 px off its pose, silently.
     root = _copy(small_rig, tmp_path)
     (root / "cam0" / "shared").mkdir()
     image = sorted((root / "cam0" / "intrinsics").glob("*.png"))[0]
@@ -614,7 +614,7 @@ def test_two_images_of_one_shared_view_in_a_camera_are_refused(small_rig, tmp_pa
 
 def test_a_board_given_smaller_than_it_is_is_named(small_rig, tmp_path) -> None:
     # The detector finds a 5x4 pattern inside the 9x6 board: the calibration is garbage,
-    # and the lines said only that the images did not fit one rig.
+    # and its first line must say why, not only that the images do not fit one rig.
     result = calibrate_directory(small_rig, tmp_path / "c.toml", board=(5, 4))
     assert result.problems[0].startswith(
         "the board holds more inner corners than chessboard 5x4, 20 mm (a 6x4 pattern was found too)"
