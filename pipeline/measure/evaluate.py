@@ -338,6 +338,12 @@ def _stat(func: Any, values: FloatArray) -> float:
     return float(func(values)) if len(values) else float("nan")
 
 
+def _truth_file(path: Path) -> Path:
+    """The ground truth file ``path`` names: itself, or the ground_truth.npz of the session
+    folder it is (a broken link is no folder)."""
+    return path / "ground_truth.npz" if path.is_dir() else path
+
+
 def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
     """Read the true centrelines of a synthetic session.
 
@@ -351,7 +357,7 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
     timestamps_s : (F,) float64, s, or None if the file has none.
     """
     path = Path(path)
-    file = path / "ground_truth.npz" if path.is_dir() else path  # a broken link is no folder
+    file = _truth_file(path)
     refuse_unfinished_render(file.parent, EvaluationError)
     check_not_dangling(file, EvaluationError)
     if file.exists() and not file.is_file():
@@ -434,7 +440,7 @@ def _not_rendered_with(recorded: dict[str, str], ground_truth: Path) -> str:
     """The videos (comma-separated names) the ground truth names as rendered with it
     (``video_fingerprints``, wherever the file was copied) whose fingerprints are not the
     ``recorded`` ones; "" where they match, or the truth does not say."""
-    file = ground_truth / "ground_truth.npz" if ground_truth.is_dir() else ground_truth
+    file = _truth_file(ground_truth)
     try:
         with np.load(file, allow_pickle=False) as data:
             named = (
