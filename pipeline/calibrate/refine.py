@@ -114,17 +114,15 @@ class Refinement:
 
     def describe(self) -> str:
         """One line for the summary."""
+        moved = f"; {self._moved_to_mount()}" if self.mount_shift_mm is not None else ""
         if not self.frames or not np.isfinite(self.before_px):
-            moved = f"; {self._moved_to_mount()}" if self.mount_shift_mm is not None else ""
-            return f"given ({self.reason}){moved}"
+            return f"given ({self.reason}){moved}"  # a tube that held one pose, moved or not
         figures = (
             f"silhouettes {self.before_px:.3f} px apart with the given cameras, "
             f"{self.after_px:.3f} px refined, on {self.frames} frames in {self.seconds:.1f} s"
         )
         if not self.applied:
-            return f"given ({self.reason}; {figures})" + (
-                f"; {self._moved_to_mount()}" if self.mount_shift_mm is not None else ""
-            )
+            return f"given ({self.reason}; {figures}){moved}"
         if self.mount_shift_mm is None:
             frame = f"the world frame held by the given cameras' poses ({self.mount_note})"
         else:
@@ -382,9 +380,12 @@ def refined_cameras(
         # Each sample of a tube's sides is read once per view, across it: two views give
         # exactly the two numbers that place it, and nothing is left to tell the cameras by.
         reason = "two views of a tube's sides say nothing about the cameras; refining needs three or more"
-        kept = _kept_as_given(model, frames, map_frames, reason, to_mount=mode == "auto")
-        shift = None if kept.mount_shift_mm is None else np.asarray(kept.mount_shift_mm)
-        return _moved(model.cameras, shift), kept, None
+        # Nor are they moved to the mount: two views read the base end less surely (on
+        # `accuracy_table --draw 2 --cases 10 --frames 150`, 2026-12-05, exact cameras read
+        # a disk tube's base 1.98 mm off along it, and moved there it came out 4.14 mm off
+        # against 2.14 kept), though they gained where the calibration was off (a straight
+        # tube 0.15 deg off, 2.75 -> 0.21 mm).
+        return model.cameras, _kept_as_given(model, frames, map_frames, reason), None
     tubes, read = _sampled(model, frames, map_frames)
     if len(tubes) < 3:
         return model.cameras, None, read
@@ -403,26 +404,22 @@ def _kept_as_given(
     frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
     map_frames: FrameMap,
     reason: str,
-    *,
-    to_mount: bool = False,
 ) -> Refinement:
     """The report of cameras kept as given without a refinement (for ``reason``), with where
     they see the tube's base against ``[manipulator] base_mm``, read on the tubes of the
-    sample ``frames`` as where a refinement keeps them (:func:`_given_at_mount`); with
-    ``to_mount``, its ``mount_shift_mm`` where they see it farther than ``_AUTO_SHIFT_MM``
-    from there (the cameras to be moved by it). On the
+    sample ``frames`` as where a refinement keeps them (:func:`_given_at_mount`). On the
     51 two-camera sessions of ``accuracy_table`` draws 2, 191-231 and 307 (2026-12-05), the
     true base_mm was never called wrong (41 seen there, 10 whose base end the frames see
     unalike), and base_mm 15 mm off in x or z, or 8 mm in y, was named in those 41."""
-    note, shift = "", None
+    note = ""
     if model.settings.manipulator.base_mm is not None:
         samples = map_frames(_sample, frames, _base_free(model))
         tubes = [tube for tube, _ in samples if tube is not None]
         if len(tubes) >= 3:
-            base = model.settings.manipulator.base_mm
-            shift, note = _given_at_mount(model.cameras, tubes, base, to_mount=to_mount)
-    nan = float("nan")
-    return Refinement(False, 0, nan, nan, (), reason, mount_shift_mm=_mm(shift), mount_note=note)
+            _, note = _given_at_mount(
+                model.cameras, tubes, model.settings.manipulator.base_mm, to_mount=False
+            )
+    return Refinement(False, 0, float("nan"), float("nan"), (), reason, mount_note=note)
 
 
 def sample_tips(

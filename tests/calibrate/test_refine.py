@@ -374,10 +374,10 @@ def test_two_cameras_are_kept_and_the_summary_says_why(tmp_path: Path) -> None:
     assert "three or more" in report.describe()
 
 
-def test_two_cameras_that_see_the_base_millimetres_off_are_moved_to_the_mount(tmp_path: Path) -> None:
-    """Two views leave the cameras as given, but not where the rig sees the mount: on
-    `synth --cameras 2 --frames 60 --seed 4` renders 0.05 and 0.15 deg off (2026-12-05)
-    a bend is 1.01 and 3.02 mm off kept as they are, 0.50 and 1.48 mm moved (mean)."""
+def test_two_cameras_are_kept_where_they_see_the_base_millimetres_off(tmp_path: Path) -> None:
+    """Two views read the base end less surely than three: a two-camera rig is neither
+    refined nor moved to the mount, and a base_mm a few mm off is left to the frames' fit
+    (15 mm off is named, test_a_mount_set_far_from_the_base_is_named_where_nothing_is_refined)."""
     from pipeline.calibrate.refine import refined_cameras
 
     render_session(
@@ -391,25 +391,13 @@ def test_two_cameras_that_see_the_base_millimetres_off_are_moved_to_the_mount(tm
     )
     session = load_session(tmp_path / "two")
     model = build_model(session)
-    frames = sample_session(session.video_paths, 0, 8)
     base = np.asarray(model.settings.manipulator.base_mm, dtype=np.float64)
-
-    def with_base(off_mm: tuple[float, float, float], refine: str | bool) -> SessionModel:
-        settings = model.settings
-        manipulator = replace(settings.manipulator, base_mm=tuple(base + off_mm))
-        calibration = replace(settings.calibration, refine=refine)
-        return replace(model, settings=replace(settings, manipulator=manipulator, calibration=calibration))
-
-    cameras, report, _ = refined_cameras(with_base((0.0, 0.0, 0.0), "auto"), frames)
-    assert cameras is model.cameras and report is not None and report.mount_shift_mm is None
-    cameras, report, _ = refined_cameras(with_base((2.5, 0.0, 0.0), "auto"), frames)
-    assert report is not None and not report.applied and report.changed
-    np.testing.assert_allclose(report.mount_shift_mm, (-2.5, 0.0, 0.0), atol=0.6)
-    assert "three or more" in report.describe() and "to the mount" in report.describe()
-    assert cameras[0].project(base[None]) != pytest.approx(model.cameras[0].project(base[None]))
-    # refine = false keeps them as they are.
-    cameras, report, _ = refined_cameras(with_base((2.5, 0.0, 0.0), False), frames)
+    manipulator = replace(model.settings.manipulator, base_mm=tuple(base + np.array([2.5, 0.0, 0.0])))
+    off = replace(model, settings=replace(model.settings, manipulator=manipulator))
+    cameras, report, _ = refined_cameras(off, sample_session(session.video_paths, 0, 8))
     assert cameras is model.cameras and report is not None and not report.changed
+    assert "three or more" in report.describe() and "to the mount" not in report.describe()
+    assert report.warnings() == [] and report.problems() == []
 
 
 def test_the_tube_end_is_read_on_the_frames_of_cameras_kept(sessions: dict[float, Path]) -> None:
