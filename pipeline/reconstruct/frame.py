@@ -29,6 +29,7 @@ from .model import SessionModel
 from .model import build_model as build_model  # re-exported: build the model, then reconstruct frames
 from .ordering import infer_base
 from .quality import suspect_reason, tube_figures, tube_masks
+from .side_readings import REDUNDANT_VIEWS
 from .spline import smooth_curve
 from .tracking import (
     TrackedFit,
@@ -38,6 +39,7 @@ from .tracking import (
     predict_length,
     prediction_miss_mm,
     track_tube,
+    track_without_odd_view,
     usual_misfit,
     velocity_pair,
 )
@@ -300,6 +302,7 @@ def _curve_and_quality(
     usual, kept_length = usual_misfit(previous), held_length(previous)
     tracked = False
     lost = ""
+    odd_view: int | None = None  # a view left out of the fit: its image disagrees with the others'
     if settings.centerline.method == "polyfit":
         curve = smooth_curve(_polyfit()(pts, base if known else None, n_points=n_points), n_points=n_points)
         radius, residual, radii = radius_guess, float("nan"), None
@@ -313,12 +316,15 @@ def _curve_and_quality(
             radius_mm: float,
             radii_mm: NDArray[np.float64] | None,
             miss_mm: float = 0.0,
+            views: Sequence[int] | None = None,
         ) -> TrackedFit:
+            """The tube tracked from ``start_mm`` in ``views`` (default: every view)."""
+            seen = range(len(cameras)) if views is None else views
             return track_tube(
                 start_mm,
-                cameras,
-                masks,
-                contrasts,
+                [cameras[v] for v in seen],
+                [masks[v] for v in seen],
+                [contrasts[v] for v in seen],
                 radius_mm=radius_mm,
                 base_known=known,
                 cap=model.tip,
@@ -331,7 +337,19 @@ def _curve_and_quality(
 
         held = None
         if predicted is not None:
-            held = track(predicted, previous[-1].radius_mm, previous[-1].radii_mm, missed_mm)
+            last = previous[-1]
+            held = track(predicted, last.radius_mm, last.radii_mm, missed_mm)
+            if held.lost and len(cameras) >= REDUNDANT_VIEWS:
+                others = track_without_odd_view(
+                    lambda views: track(predicted, last.radius_mm, last.radii_mm, missed_mm, views),
+                    predicted,
+                    cameras,
+                    masks,
+                    contrasts,
+                    n_points=n_points,
+                )
+                if others is not None:
+                    held, odd_view = others
         if held is not None and held.curve is not None and (not held.lost or not restart_here):
             best, tracked, lost = held, True, held.lost
         else:
@@ -394,6 +412,7 @@ def _curve_and_quality(
         prediction_miss_mm=missed_mm,
         expected_length_mm=predict_length(previous, index),
         usual_misfit=usual,
+        odd_view=odd_view,
     )
     if lost:
         reason = "; ".join(filter(None, [f"its track was lost here ({lost})", reason]))

@@ -349,6 +349,7 @@ def suspect_reason(
     prediction_miss_mm: float = 0.0,
     expected_length_mm: float = math.nan,
     usual_misfit: float = 0.0,
+    odd_view: int | None = None,
 ) -> str:
     """Why a frame's curve (N, 3) mm may be wrong, without ground truth; "" if nothing says so.
 
@@ -360,10 +361,16 @@ def suspect_reason(
     prediction carried none), farther than the track's last frames lay from their own
     predictions (``prediction_miss_mm``) by ``SUSPECT_JUMP_RADII``; or its length
     is not the one its track predicts (``expected_length_mm``, NaN where none does).
-    ``radius_mm``: one, or (N,) along the curve. The reasons found are joined by "; ".
+    ``radius_mm``: one, or (N,) along the curve; ``odd_view``: the view whose image
+    disagreed with the others', left out of the fit. The reasons found are joined by "; ".
     """
     names = [cam.name for cam in cameras]
     reasons = []
+    if odd_view is not None:
+        reasons.append(
+            f"camera {names[odd_view]}'s image disagrees with the other cameras' "
+            "(a frame from another moment, or something in front of its lens): fitted to theirs alone"
+        )
     if is_doubtful(iou):
         worst = int(np.argmin(iou))
         reasons.append(f"camera {names[worst]} re-projects poorly (IoU {iou[worst]:.2f})")

@@ -506,3 +506,31 @@ def test_a_tracker_with_starts_elsewhere_starts_each_segments_track_where_proces
     assert starts.started == [SEGMENT_FRAMES - WARMUP_FRAMES]
     differ = [r.index for r, p in zip(live, processed, strict=True) if not _same(r, p)]
     assert differ and max(differ) < SEGMENT_FRAMES + 1
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_frame_one_camera_took_at_another_moment_is_fitted_to_the_others_and_named(
+    tmp_path: Path, seed: int
+) -> None:
+    # One camera's picture of frame 20 is its picture of frame 36 (a frame dropped and
+    # doubled, a stream that stalled): the tube fitted to all three views is pulled off
+    # in each, and the hull it would start again from is cut by the odd view.
+    render_session(tmp_path, shape="random", frames=40, seed=seed, progress=False, jobs=1)
+    session = load_session(tmp_path)
+    model = build_model(session)
+    truth = np.load(tmp_path / "ground_truth.npz")["centerlines"]
+    odd = seed % len(session.cameras)
+    late = dict(decode_frames(session.video_paths, [36]))[36][odd]
+    previous: list[FrameResult] = []
+    for index, images in decode_frames(session.video_paths, range(12, 24)):
+        if index == 20:
+            images = [late if view == odd else image for view, image in enumerate(images)]
+        previous.append(frame_module.reconstruct_with_silhouettes(index, images, model, previous)[0])
+    named = {r.index: r.suspect_reason for r in previous if "image disagrees" in r.suspect_reason}
+    assert list(named) == [20]
+    assert named[20].startswith(f"camera {session.cameras[odd].name}'s image disagrees")
+    swapped = previous[20 - 12]
+    assert swapped.tracked and swapped.centerline_mm is not None
+    assert centerline_distances(truth[20], swapped.centerline_mm).max() < 1.0
+    # The track goes on from it.
+    assert all(r.tracked for r in previous[20 - 12 :])
