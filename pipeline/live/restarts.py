@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from ..reconstruct.frame_result import FrameResult
 from ..reconstruct.tracking import LENGTH_FRAMES
 from ..run.interrupts import deferred_signals, signals_blocked_in_children
-from ..run.workers import shared_file
+from ..run.workers import exit_with_parent, shared_file
 
 log = logging.getLogger(__name__)
 
@@ -44,9 +44,10 @@ _model: Any = None
 _track: list[FrameResult] = []
 
 
-def _take_model(path: str) -> None:
+def _take_model(path: str, parent_pid: int) -> None:
     import joblib
 
+    exit_with_parent(parent_pid)  # a run killed outright leaves no worker behind
     global _model
     try:
         _model = joblib.load(path, mmap_mode="r")
@@ -106,7 +107,7 @@ class RestartWorker:
                     # Not forked: the run's capture threads hold locks a fork would copy held.
                     mp_context=multiprocessing.get_context("spawn"),
                     initializer=_take_model,
-                    initargs=(str(path),),
+                    initargs=(str(path), os.getpid()),
                 )
                 self._resources.callback(self._pool.shutdown, wait=False, cancel_futures=True)
                 self._warm: Future[None] = self._pool.submit(_ready)

@@ -130,10 +130,17 @@ class LiveSummary:
         return next(c for c in self.cameras if c.name == name)
 
     @property
+    def lost_cameras(self) -> list[CameraSummary]:
+        """The cameras down at the end of a run in which another was not: the rig lost them
+        (all down together is the cameras' end, not a fault)."""
+        down = [c for c in self.cameras if c.down_at_end]
+        return down if len(down) < len(self.cameras) else []
+
+    @property
     def exit_code(self) -> int:
-        """The run's; 1 at least where a camera delivered nothing, a replay ended short, the
-        run stopped early for a problem or dropped frame-sets."""
-        silent = any(c.silent for c in self.cameras)
+        """The run's; 1 at least where a camera delivered nothing or was lost for good, a
+        replay ended short, the run stopped early for a problem or dropped frame-sets."""
+        silent = any(c.silent for c in self.cameras) or bool(self.lost_cameras)
         early = bool(self.stop_line) or self.dropped > 0
         return max(self.run.exit_code, int(silent or bool(self.replay_lines()) or early))
 
@@ -161,7 +168,13 @@ class LiveSummary:
             elif cam.outages:
                 state = "down at the end" if cam.down_at_end else "picked up again"
                 stopped = f"stopped {len(cam.outages)} time(s), {state}"
-                lines.append(f"  camera {cam.name}: {stopped} (first: {cam.outages[0]})")
+                line = f"  camera {cam.name}: {stopped} (first: {cam.outages[0]})"
+                if cam in self.lost_cameras:
+                    line += (
+                        f"; the other cameras' frames after it stopped had no set ({cam.delivered} of "
+                        "its frames delivered): check the camera and its connection"
+                    )
+                lines.append(line)
         return lines
 
     def replay_lines(self) -> list[str]:

@@ -7,10 +7,12 @@ videos instead and plays them at their frame rate, as if they were cameras.
 
 from __future__ import annotations
 
+import ipaddress
 import itertools
 import logging
 import os
 import stat
+import urllib.parse
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -109,10 +111,13 @@ def source_identity(url: str) -> tuple[str | int, ...]:
     """What a source is, whatever it is called: a device by its device number (a udev link
     such as /dev/v4l/by-id/... and its /dev/videoN are one device), another path by its
     file (a relative path and its absolute one, a link and its target), and a path not
-    there by where it leads; a URL by its text. The first item names the kind."""
+    there by where it leads; a UDP stream by the port it is received on here (udp://
+    127.0.0.1:5000, udp://localhost:5000 and udp://0.0.0.0:5000 all take port 5000; a
+    multicast group's by the group too, as groups share ports); another URL by its text.
+    The first item names the kind."""
     path = local_path(url)
     if path is None:
-        return ("url", url)
+        return _udp_port(url) or ("url", url)
     try:
         status = os.stat(path)
     except (OSError, ValueError):
@@ -120,6 +125,24 @@ def source_identity(url: str) -> tuple[str | int, ...]:
     if stat.S_ISCHR(status.st_mode) or stat.S_ISBLK(status.st_mode):
         return ("device", status.st_rdev)
     return ("file", status.st_dev, status.st_ino)
+
+
+def _udp_port(url: str) -> tuple[str | int, ...] | None:
+    """A ``udp://`` source's identity (see :func:`source_identity`); None for another URL,
+    or one whose port cannot be read."""
+    parts = urllib.parse.urlsplit(url)
+    try:
+        port = parts.port
+    except ValueError:
+        return None
+    if parts.scheme.lower() != "udp" or port is None:
+        return None
+    host = (parts.hostname or "").strip("[]")
+    try:
+        multicast = ipaddress.ip_address(host).is_multicast
+    except ValueError:  # a host name: not a group
+        multicast = False
+    return ("udp port", host, port) if multicast else ("udp port", port)
 
 
 def local_path(url: str) -> str | None:

@@ -88,12 +88,14 @@ def effective_jobs(jobs: int) -> int:
     return max(1, cpus + 1 + jobs) if jobs < 0 else max(1, min(jobs, cpus))
 
 
-def _exit_with_parent(parent_pid: int) -> None:
-    """Loky worker initializer: exit when the run's process is gone.
+def exit_with_parent(parent_pid: int) -> None:
+    """In a worker process (loky's initializer, live's restart worker): exit when the run's
+    process ``parent_pid`` is gone.
 
     A run killed outright (SIGKILL, an out-of-memory kill of the parent) cannot stop its
     workers, and loky's own idle timeout does not fire while a worker waits on a queue
-    its siblings still hold open: they ran on for hours, ~150 MB each.
+    its siblings still hold open: they ran on for hours, ~150 MB each, holding the run's
+    stdout and stderr open (a pipe reading them never ended).
     """
 
     def watch() -> None:
@@ -107,7 +109,7 @@ def _exit_with_parent(parent_pid: int) -> None:
 def loky_options() -> dict[str, Any]:
     """joblib's loky backend options for every pool of a run (the same ones, so that a
     run reuses the workers started ahead)."""
-    return {"initializer": _exit_with_parent, "initargs": (os.getpid(),)}
+    return {"initializer": exit_with_parent, "initargs": (os.getpid(),)}
 
 
 def _import_frame_modules() -> None:

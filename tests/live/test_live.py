@@ -287,6 +287,17 @@ def test_a_rig_whose_live_table_misses_or_misnames_a_camera_is_refused(tmp_path:
         SettingsError, match=r"\[live\] gives cameras 'cam0' and 'cam2' the same source \(/dev/video0\)"
     ):
         open_rig(rig, None)
+    # A UDP port is received on once, whatever the address is spelled (the second camera's
+    # reader found it in use, and the run wrote nothing); multicast groups share ports.
+    for n, other in enumerate(("udp://localhost:5002", "udp://0.0.0.0:5002?fifo_size=100", "UDP://@:5002")):
+        rig = _rig(tmp_path / f"u{n}", session, {"cam0": "udp://127.0.0.1:5002", "cam1": 1, "cam2": other})
+        with pytest.raises(
+            SettingsError,
+            match=r"cameras 'cam0' and 'cam2' the same source \(udp://127.0.0.1:5002 and .*one udp port",
+        ):
+            open_rig(rig, None)
+    groups = {"cam0": "udp://239.0.0.1:5002", "cam1": "udp://239.0.0.2:5002", "cam2": "udp://127.0.0.1:5003"}
+    assert [s.url for s in open_rig(_rig(tmp_path / "m", session, groups), None)[1]] == list(groups.values())
 
 
 def test_viewer_and_foxglove_addresses() -> None:
@@ -388,6 +399,32 @@ def test_the_restart_worker_leaves_ctrl_c_and_a_hang_up_to_the_run() -> None:
         worker.close()
     for sig in (signal.SIGINT, signal.SIGHUP):
         assert blocked & (1 << (sig - 1)), f"{sig.name} is not blocked in the restart worker"
+
+
+# A run killed outright (SIGKILL, the OOM killer) with its restart worker started.
+_KILLED_RUN = """
+import os, signal
+from pipeline.live.restarts import RestartWorker
+worker = RestartWorker({})
+worker.wait_ready(60.0)
+print(" ".join(str(p.pid) for p in worker._pool._processes.values()), flush=True)
+os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+@pytest.mark.slow
+def test_the_restart_worker_exits_when_the_run_is_killed() -> None:
+    # Left behind, it held the run's stdout and stderr open: a pipe reading them never ended.
+    import psutil
+
+    proc = subprocess.run([sys.executable, "-c", _KILLED_RUN], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    (pid,) = [int(pid) for pid in proc.stdout.split()]
+    orphan = [psutil.Process(pid)] if psutil.pid_exists(pid) else []
+    _, alive = psutil.wait_procs(orphan, timeout=30)  # it notices within about a second
+    for p in alive:
+        p.kill()
+    assert not alive
 
 
 def test_a_restart_worker_that_ends_as_it_starts_does_not_hold_the_run() -> None:
@@ -1416,9 +1453,48 @@ def test_the_summary_names_a_camera_that_delivered_nothing_or_whose_replay_ended
         "session.toml, and that the camera is on or its stream is sent",
         "  camera cam1: delivered no frame (its source opened no stream before the run ended); check its "
         "source in [live] in session.toml, and that the camera is on or its stream is sent",
-        "  camera cam2: stopped 1 time(s), down at the end (first: Connection refused)",
+        "  camera cam2: stopped 1 time(s), down at the end (first: Connection refused); the other "
+        "cameras' frames after it stopped had no set (12 of its frames delivered): check the camera and "
+        "its connection",
     ]
     assert silent.exit_code == 1
+
+
+def test_a_camera_lost_for_good_while_the_others_went_on_is_a_problem_but_all_ending_together_is_not() -> (
+    None
+):
+    from pipeline.run.summary import RunSummary
+
+    run = RunSummary(frames_ok=26, frames_empty=0, frames_failed=[], wall_s=10.0, fps=2.6)
+
+    def ended(down: tuple[bool, bool, bool]) -> LiveSummary:
+        cameras = tuple(
+            CameraSummary(
+                f"cam{k}",
+                fps=30.0,
+                delivered=45 if lost else 300,
+                outages=("no frame for 2 s",) if lost else (),
+                down_at_end=lost,
+            )
+            for k, lost in enumerate(down)
+        )
+        return LiveSummary(
+            run=run, latencies_ms=np.array([10.0]), dropped=0, stopped_by="a signal", cameras=cameras
+        )
+
+    lost = ended((False, False, True))
+    (line,) = lost.problem_lines()
+    assert line.startswith(
+        "  camera cam2: stopped 1 time(s), down at the end (first: no frame for 2 s); the other"
+    )
+    assert "(45 of its frames delivered): check the camera" in line
+    assert lost.exit_code == 1 and lost.to_dict()["exit_code"] == 1
+    # Every stream stopped before the run was: the session's end, said, but no fault.
+    together = ended((True, True, True))
+    assert all(
+        line.endswith("down at the end (first: no frame for 2 s)") for line in together.problem_lines()
+    )
+    assert together.exit_code == 0
 
 
 def test_a_camera_whose_frames_do_not_fit_its_calibration_stops_the_run_named(session: Path) -> None:
