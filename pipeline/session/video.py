@@ -620,13 +620,14 @@ def _decode(
     grey = Greyer(full_scale)
     broken = True  # no reference picture until a keyframe: at the start, after a seek or damage
     keyframe_pts: int | None = None  # of the last keyframe sent to the decoder
+    keyframe_out = True  # its own picture came out (a damaged one the decoder takes may give none)
     previous = start - 1
     for packet, keyframe, after_loss in _packets(container, stream, clock, start, problems):
         broken = broken or after_loss
         if packet.size:
             if keyframe:
                 broken = False
-                keyframe_pts = packet.pts
+                keyframe_pts, keyframe_out = packet.pts, packet.pts is None
             elif broken:
                 if packet.pts is not None:
                     problems.setdefault(clock.index(packet.pts), "its reference frame was damaged")
@@ -641,11 +642,20 @@ def _decode(
         for frame in frames:
             i = previous + 1 if frame.pts is None else clock.index(frame.pts)
             previous = i
+            keyframe_out = keyframe_out or frame.pts == keyframe_pts
             if i >= stop:
                 return
             if i < start:
                 continue
             if i in problems:  # its packet was rejected: what a decoder still hands out is a remnant
+                continue
+            late = frame.pts is not None and keyframe_pts is not None and frame.pts > keyframe_pts
+            if late and not keyframe_out and keyframe_pts is not None:
+                # A later picture before the keyframe's own: the decoder took a damaged
+                # keyframe without a word, and built this one on what it had before.
+                problems.setdefault(clock.index(keyframe_pts), "its keyframe was damaged (no picture)")
+                problems.setdefault(i, "its reference frame was damaged")
+                broken = True
                 continue
             if frame.is_corrupt:
                 problems.setdefault(i, "decoded with errors")

@@ -181,6 +181,29 @@ def test_damaged_p_frame_fails_the_frames_up_to_the_next_keyframe(
     _check_damage(_read_all(damaged), originals[name], set(range(5, KEYFRAME_INTERVAL)))
 
 
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("name", ["mp4v.avi", "mp4v.mp4"])
+def test_a_keyframe_damaged_into_no_picture_fails_the_frames_built_on_it(
+    videos: dict[str, Path], originals: dict[str, Frames], tmp_path: Path, name: str, seed: int
+) -> None:
+    # Noise from frame 10's data into the first bytes of keyframe 12's: the decoder may take
+    # what is left of the keyframe without a word and give no picture of it, and frames 13-23
+    # then decode from frame 9's picture (each of them wrong, none flagged corrupt).
+    rng = np.random.default_rng(seed)
+    pos_10, size_10 = _stored_at(videos[name], 10)
+    pos_12, size_12 = _stored_at(videos[name], 12)
+    start = pos_10 + size_10 // 2
+    end = pos_12 + AVI_CHUNK_HEADER + int(rng.integers(8, max(9, size_12 // 2)))
+    data = bytearray(videos[name].read_bytes())
+    data[start:end] = rng.bytes(end - start)
+    damaged = tmp_path / name
+    damaged.write_bytes(bytes(data))
+    frames = _read_all(damaged)
+    failed = {i for i, image in enumerate(frames) if image is None}
+    assert failed and min(failed) >= 10 and max(failed) < 2 * KEYFRAME_INTERVAL
+    _check_damage(frames, originals[name], failed)
+
+
 def test_damaged_file_read_in_ranges_equals_its_full_read(videos: dict[str, Path], tmp_path: Path) -> None:
     """Seeking near, onto and past the damage finds the same frames as reading from the start."""
     pos, size = _stored_at(videos["mp4v.avi"], 14)
