@@ -560,6 +560,25 @@ def test_a_dangling_symlink_video_is_named_as_such(session: Path, capsys: pytest
     assert_rejected(session, capsys, "cam2.avi", "symbolic link to", "moved/cam2.avi", "does not exist")
 
 
+@pytest.mark.parametrize("inside", [False, True], ids=["out", "a-folder-in-out"])
+def test_an_out_folder_behind_a_dangling_symlink_is_named_as_such(
+    session: Path, capsys: pytest.CaptureFixture[str], tmp_path: Path, inside: bool
+) -> None:
+    # A link to a drive that is not mounted: "cannot create the output directory (File
+    # exists)" said nothing of the link.
+    link = tmp_path / "drive"
+    link.symlink_to(tmp_path / "not-mounted")
+    out = link / "take1" if inside else link
+    assert main(_process(session, out)) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    target = tmp_path / "not-mounted"
+    assert err == (
+        f"error: {link}: is a symbolic link to {target}, which does not exist; fix the link (mount the "
+        "drive), or give --out another folder\n"
+    )
+    assert not (tmp_path / "not-mounted").exists()
+
+
 def test_a_dangling_symlink_session_is_named_as_such(
     session: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -594,6 +613,7 @@ def test_an_out_path_that_is_not_utf8_is_refused(session: Path, capsys: pytest.C
     "scale", [1, 4095 / 255, 257], ids=["8-bit-values", "12-bit-values", "full-16-bit-range"]
 )
 def test_a_16_bit_background_is_read_at_the_videos_depth(session: Path, scale: float) -> None:
+    (session / "session.toml").write_text('[silhouette]\nmethod = "background"\npolarity = "dark"\n')
     (session / "background").mkdir()
     grey = np.full((240, 320), 150, np.uint8)
     grey[100:140, 150:170] = 40

@@ -365,6 +365,11 @@ def test_json_never_takes_the_place_of_a_recording_or_another_json_file(
         target = tmp_path / "new" / "out" / name
         assert main(["process", "s", "-o", str(target.parent), "--json", str(target)]) == EXIT_BAD_INPUT
         assert "is one of the files this run writes (its recordings, its lock)" in capsys.readouterr().err
+    # The --out folder the run would make (its recordings went in, then the summary failed).
+    for out in (tmp_path / "made-by-the-run", tmp_path / "a" / "b"):
+        assert main(["process", "s", "-o", str(out), "--json", str(out)]) == EXIT_BAD_INPUT
+        assert f"{out}: is a directory; give --json a file name" in capsys.readouterr().err
+        assert not out.exists()
     # A JSON file that is not a summary (a layout, a settings file).
     layout = tmp_path / "layout.json"
     layout.write_text('{"layout": {"panels": []}}\n')

@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from ..errors import CalibrationError
 from ..session.folder import check_not_dangling
 from ..session.grey_levels import grey_8bit
+from ..session.image_files import cut_short
 from ..session.video import VIDEO_EXTENSIONS
 from .boards import Board, detect
 
@@ -101,14 +102,6 @@ def _world_file(cam_dir: Path) -> Path | None:
     return found[0] if found else None
 
 
-# The last chunk of a whole PNG (IEND) and the end-of-image marker of a JPEG: a file cut
-# short lacks them, and OpenCV decodes the part it has (the rest grey) with only libpng's or
-# libjpeg's own line on stderr. They are sought anywhere in the file, not only at its end:
-# a phone's trailer after them (a motion photo's video, megabytes long) is no cut. In a
-# JPEG's coded data 0xFF is always followed by 0x00 or a restart marker, so its end marker
-# appears only at an end (a cut file whose EXIF thumbnail carries its own goes unnoticed).
-_PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
-_JPEG_END = b"\xff\xd9"
 
 
 def _read_grey(path: Path) -> NDArray[np.uint8]:
@@ -125,12 +118,9 @@ def _read_grey(path: Path) -> NDArray[np.uint8]:
         raise CalibrationError(
             f"{path}: cannot be read ({exc.strerror or exc}); copy the image in again or remove it"
         ) from None
-    suffix = path.suffix.lower()
-    cut_png = suffix == ".png" and data.startswith(b"\x89PNG") and _PNG_END not in data
-    cut_jpeg = suffix in (".jpg", ".jpeg") and data.startswith(b"\xff\xd8") and data.find(_JPEG_END, 2) < 0
     if not data:
         raise CalibrationError(f"{path}: is empty (0 bytes); copy the image in again or remove it")
-    if cut_png or cut_jpeg:
+    if cut_short(data, path.suffix):
         raise CalibrationError(
             f"{path}: the image is cut short ({len(data)} bytes, copied half-way?); copy it in again "
             "or remove it"

@@ -224,7 +224,8 @@ def _check_json_path(path: Path, outputs: tuple[Path, ...] = ()) -> None:
             f"{path}: is one of the files this run writes (its recordings, its lock); give --json another "
             "file name"
         )
-    if target.is_dir():
+    if target.is_dir() or any(target == Path(os.path.realpath(out.parent)) for out in outputs):
+        # The run's --out folder is one, though the run has not made it yet.
         raise OutputError(f"{path}: is a directory; give --json a file name (or - for stdout)")
     if target.exists() and not target.is_file():
         raise OutputError(f"{path}: is not a regular file (a pipe or device); give --json a file name (or -)")

@@ -206,6 +206,11 @@ def prepare_outputs(out_dir: Path, name: str, force: bool) -> OutputTarget:
     refuse_unexpanded_home(out_dir, "--out")
     try:
         for folder in (out_dir, *out_dir.parents):
+            if folder.is_symlink() and not folder.exists():  # a drive not mounted, a folder moved
+                raise OutputError(
+                    f"{folder}: is a symbolic link to {os.readlink(folder)}, which does not exist; "
+                    "fix the link (mount the drive), or give --out another folder"
+                )
             if folder.exists() and not folder.is_dir():
                 where = "" if folder == out_dir else f" (in {out_dir})"
                 raise OutputError(f"{folder}: is a file, not a directory{where}; give --out a directory")

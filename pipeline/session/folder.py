@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import errno
 import filecmp
 import glob
 import logging
@@ -37,6 +36,7 @@ from ..errors import (
 from ..geometry.camera import Camera
 from .calibration_io import read_calibration
 from .grey_levels import grey_8bit
+from .image_files import cut_short
 from .settings import LAST_TIMESTAMP, SessionInfo, Settings, describe, load_settings
 from .toml_file import require_regular_file
 from .video import VIDEO_EXTENSIONS, VideoInfo, probe_video
@@ -384,19 +384,22 @@ def _note_rates_apart(infos: list[VideoInfo], frames: int) -> None:
 def _backgrounds(
     directory: Path, cameras: list[Camera], settings: Settings
 ) -> tuple[NDArray[np.uint8] | None, ...]:
-    """Per camera its background image (None: none), all of them for method "background"."""
+    """Per camera its background image (None: none), all of them for method "background";
+    none are read for another method (which has no use for them: a damaged one, or one of
+    the cameras' former size, does not stop the run)."""
+    if settings.silhouette.method != "background":
+        return tuple(None for _ in cameras)
     backgrounds = tuple(_background(directory, cam) for cam in cameras)
-    if settings.silhouette.method == "background":
-        missing = [c.name for c, b in zip(cameras, backgrounds, strict=True) if b is None]
-        if missing:
-            name = missing[0]
-            # An image of another kind under the camera's name: said, with what to do.
-            others = sorted(p.name for p in (directory / "background").glob(f"{glob.escape(name)}.*"))
-            found = f"; background/{others[0]} is there: save it as a PNG" if others else ""
-            raise SessionError(
-                f"{directory / 'background'}: silhouette method 'background' needs "
-                f"background/{name}.png (missing for camera {name!r}{found})"
-            )
+    missing = [c.name for c, b in zip(cameras, backgrounds, strict=True) if b is None]
+    if missing:
+        name = missing[0]
+        # An image of another kind under the camera's name: said, with what to do.
+        others = sorted(p.name for p in (directory / "background").glob(f"{glob.escape(name)}.*"))
+        found = f"; background/{others[0]} is there: save it as a PNG" if others else ""
+        raise SessionError(
+            f"{directory / 'background'}: silhouette method 'background' needs "
+            f"background/{name}.png (missing for camera {name!r}{found})"
+        )
     return backgrounds
 
 
@@ -428,11 +431,16 @@ def _read_grey_8bit(path: Path) -> NDArray[np.uint8]:
         raise SessionError(
             f"{path}: is not a regular file; save the image as an 8-bit greyscale PNG"
         ) from None
+    data = path.read_bytes()  # a PermissionError is named by the caller
+    if cut_short(data, path.suffix):
+        raise SessionError(
+            f"{path}: the image is cut short ({len(data)} bytes, copied half-way?); save it again as "
+            "an 8-bit greyscale PNG"
+        )
     # One decode, to grey at the depth stored (as a calibration's board images are read).
-    raw = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_IGNORE_ORIENTATION)
+    flags = cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_IGNORE_ORIENTATION
+    raw = cv2.imdecode(np.frombuffer(data, np.uint8), flags) if data else None
     if raw is None:
-        if not os.access(path, os.R_OK):  # OpenCV says nothing of why it read nothing
-            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
         raise SessionError(f"{path}: cannot be read as an image; save it as an 8-bit greyscale PNG")
     if raw.dtype not in (np.uint8, np.uint16):
         raise SessionError(

@@ -110,6 +110,20 @@ def test_frames_with_a_view_that_is_mostly_silhouette_are_not_carved(
 # --- background images (pipeline.calibrate.background_order) -----------------------------
 
 
+def _background_take(session: Path, target: Path, renamed: dict[str, str] | None = None) -> Path:
+    """``session`` linked into ``target`` with its silhouettes by background subtraction (the
+    only method its backgrounds are read for), each background under ``renamed``'s name."""
+    (target / "background").mkdir(parents=True)
+    for item in session.iterdir():
+        if item.name not in ("background", "session.toml"):
+            (target / item.name).symlink_to(item)
+    settings = (session / "session.toml").read_text()
+    (target / "session.toml").write_text(settings.replace('method = "threshold"', 'method = "background"'))
+    for item in (session / "background").iterdir():
+        (target / "background" / (renamed or {}).get(item.name, item.name)).symlink_to(item)
+    return target
+
+
 def _check_backgrounds(directory: Path) -> None:
     session = load_session(directory)
     frames = decode_frames(session.video_paths, range(session.frame_count))
@@ -117,9 +131,12 @@ def _check_backgrounds(directory: Path) -> None:
     check_background_order(session.backgrounds, frames, names, directory / "background")
 
 
-def test_backgrounds_as_their_cameras_pass_and_match_their_own_scene_alone(session: Path) -> None:
-    _check_backgrounds(session)
-    loaded = load_session(session)
+def test_backgrounds_as_their_cameras_pass_and_match_their_own_scene_alone(
+    session: Path, tmp_path: Path
+) -> None:
+    take = _background_take(session, tmp_path / "take")
+    _check_backgrounds(take)
+    loaded = load_session(take)
     frames = decode_frames(loaded.video_paths, range(loaded.frame_count))
     correlation = scene_correlations([b for b in loaded.backgrounds if b is not None], frames)
     own = np.diag(correlation)
@@ -128,14 +145,7 @@ def test_backgrounds_as_their_cameras_pass_and_match_their_own_scene_alone(sessi
 
 
 def test_two_backgrounds_swapped_are_named(session: Path, tmp_path: Path) -> None:
-    swapped = tmp_path / "take"
-    (swapped / "background").mkdir(parents=True)
-    for item in session.iterdir():
-        if item.name != "background":
-            (swapped / item.name).symlink_to(item)
-    for item in (session / "background").iterdir():
-        name = {"cam0.png": "cam2.png", "cam2.png": "cam0.png"}.get(item.name, item.name)
-        (swapped / "background" / name).symlink_to(item)
+    swapped = _background_take(session, tmp_path / "take", {"cam0.png": "cam2.png", "cam2.png": "cam0.png"})
     with pytest.raises(SessionError) as info:
         _check_backgrounds(swapped)
     message = str(info.value)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import logging
 import shutil
 from collections.abc import Iterator
@@ -12,6 +13,7 @@ import cv2
 import numpy as np
 import pytest
 from conftest import build_session, remux_with_creation_time
+from numpy.typing import NDArray
 
 from pipeline.errors import SessionError
 from pipeline.session.folder import load_session
@@ -147,18 +149,43 @@ def test_background_method_needs_every_background(session: Path) -> None:
     assert all(b is not None and b.shape == (240, 320) and b.dtype == np.uint8 for b in s.backgrounds)
 
 
+def _backgrounds(session: Path, **images: NDArray[np.uint8] | bytes) -> None:
+    """Every camera's background, a plain one where ``images`` gives none (PNG bytes as they are)."""
+    (session / "background").mkdir(exist_ok=True)
+    for name in ("cam0", "cam1", "cam2"):
+        image = images.get(name, np.full((240, 320), 150, np.uint8))
+        path = session / "background" / f"{name}.png"
+        if isinstance(image, bytes):
+            path.write_bytes(image)
+        else:
+            cv2.imwrite(str(path), image)
+
+
 def test_background_of_wrong_size(session: Path) -> None:
-    (session / "background").mkdir()
-    cv2.imwrite(str(session / "background" / "cam2.png"), np.zeros((100, 100), np.uint8))
+    (session / "session.toml").write_text('[silhouette]\nmethod = "background"\n')
+    _backgrounds(session, cam2=np.zeros((100, 100), np.uint8))
     with pytest.raises(SessionError, match=r"cam2\.png: is 100x100 but camera 'cam2' is 320x240"):
         load_session(session)
 
 
-def test_background_not_an_image(session: Path) -> None:
-    (session / "background").mkdir()
-    (session / "background" / "cam1.png").write_bytes(b"not a png")
+def test_background_not_an_image_or_cut_short(session: Path) -> None:
+    (session / "session.toml").write_text('[silhouette]\nmethod = "background"\n')
+    _backgrounds(session, cam1=b"not a png")
     with pytest.raises(SessionError, match=r"cam1\.png: cannot be read as an image"):
         load_session(session)
+    whole = cv2.imencode(".png", np.random.default_rng(0).integers(0, 256, (240, 320), np.uint8))[1].tobytes()
+    _backgrounds(session, cam1=whole[: len(whole) // 2])  # decoded, it gave libpng's own line too
+    with pytest.raises(
+        SessionError, match=r"cam1\.png: the image is cut short \(\d+ bytes, copied half-way\?\)"
+    ):
+        load_session(session)
+
+
+def test_backgrounds_are_not_read_where_the_silhouettes_are_thresholded(session: Path) -> None:
+    # A session filmed again at another size (calibrated again), its old backgrounds left
+    # in place, or one of them damaged: the threshold has no use for them.
+    _backgrounds(session, cam1=b"not a png", cam2=np.zeros((100, 100), np.uint8))
+    assert load_session(session).backgrounds == (None, None, None)
 
 
 def test_workspace_partly_seen_is_accepted(session: Path) -> None:
@@ -210,10 +237,7 @@ def test_a_folder_or_file_this_user_may_not_read_is_named(
     session: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # Permissions are simulated: a test run as root reads every file.
-    import errno
     import os
-
-    from pipeline.session import folder
 
     def denied(path: Path) -> PermissionError:
         return PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
@@ -231,15 +255,16 @@ def test_a_folder_or_file_this_user_may_not_read_is_named(
             SessionError, match=r"take_01: cannot be read \(permission denied\); give this user"
         ):
             load_session(session)
-    (session / "background").mkdir()
-    cv2.imwrite(str(session / "background" / "cam1.png"), np.full((240, 320), 150, np.uint8))
-    real_access = os.access
-    monkeypatch.setattr(
-        folder.cv2, "imread", lambda path, flags: None if "cam1" in path else cv2.imread(path, flags)
-    )
-    monkeypatch.setattr(
-        folder.os, "access", lambda path, mode: "cam1" not in str(path) and real_access(path, mode)
-    )
+    (session / "session.toml").write_text('[silhouette]\nmethod = "background"\n')
+    _backgrounds(session)
+    real_read = Path.read_bytes
+
+    def read_bytes(path: Path) -> bytes:
+        if path.name == "cam1.png":
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
+        return real_read(path)
+
+    monkeypatch.setattr(Path, "read_bytes", read_bytes)
     with pytest.raises(SessionError, match=r"background/cam1\.png: cannot be read \(permission denied\)"):
         load_session(session)
 
