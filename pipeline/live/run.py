@@ -418,9 +418,11 @@ def _run(
             if not writer.committed:
                 raise
             # A signal while finishing: the run was ending anyway, and its recordings are complete.
-    except BaseException:
+    except BaseException as exc:
         if not stop.is_set():  # not stopped already on the way out
-            _stop_readers(stop, readers)
+            # Bad input, named in one line (a camera's source that never opens): the other
+            # readers, still waiting on their sources, are not blamed for it.
+            _stop_readers(stop, readers, warn=not isinstance(exc, SessionError))
         if writer is not None and not writer.committed:
             writer.abort()
         raise
@@ -526,7 +528,9 @@ def _mib(size_bytes: int) -> str:
     return f"{size_bytes / (1 << 20):.1f} MiB"
 
 
-def _stop_readers(stop: threading.Event, readers: Sequence[CameraReader]) -> None:
+def _stop_readers(stop: threading.Event, readers: Sequence[CameraReader], *, warn: bool = True) -> None:
+    """Stop the readers and wait for them (``JOIN_S`` at most), warning (``warn``) of each
+    still blocked in its source."""
     stop.set()
     # One wait for all of them: readers that stay blocked (daemon threads) cost the run
     # JOIN_S once, not once each.
@@ -534,7 +538,7 @@ def _stop_readers(stop: threading.Event, readers: Sequence[CameraReader]) -> Non
     for reader in readers:
         reader.join(max(0.0, deadline - time.monotonic()))
     for reader in readers:
-        if reader.alive:  # blocked inside its source (a device or stream that hangs)
+        if warn and reader.alive:  # blocked inside its source (a device or stream that hangs)
             log.warning(
                 "%s: its reader was still waiting on the source %g s after the run stopped; "
                 "the run ended without it (check the camera and its connection)",
