@@ -102,8 +102,6 @@ def _world_file(cam_dir: Path) -> Path | None:
     return found[0] if found else None
 
 
-
-
 def _read_grey(path: Path) -> NDArray[np.uint8]:
     """The board image at ``path`` as (H, W) uint8 grey levels, or a CalibrationError saying why not.
 
