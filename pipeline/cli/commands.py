@@ -197,11 +197,14 @@ def cmd_live(args: argparse.Namespace) -> int:
 
 def _rig_dir_after_viewer(args: argparse.Namespace) -> None:
     """``--viewer connect 9876 rig/`` (or ``--viewer none rig/``): argparse gives the rig
-    directory to --viewer, whose words are ``spawn``, ``none`` or ``connect ADDRESS``."""
+    directory to --viewer, whose words are ``spawn``, ``none`` or ``connect ADDRESS``; and
+    ``--foxglove rig/`` to --foxglove, whose address is optional (a folder is no address)."""
     words = args.viewer or []
     take = 2 if words[:1] == ["connect"] else 1
     if len(words) == take + 1 and args.rig_dir is None:
         args.rig_dir, args.viewer = Path(words[-1]), words[:take]
+    if args.foxglove and args.rig_dir is None and Path(args.foxglove).is_dir():
+        args.rig_dir, args.foxglove = Path(args.foxglove), ""
 
 
 def _check_json_path(path: Path, outputs: tuple[Path, ...] = ()) -> None:

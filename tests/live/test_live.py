@@ -940,6 +940,10 @@ def test_live_without_sources_is_one_line_and_exit_2(
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and len(err.splitlines()) == 1 and "no [live] table" in err
     assert not (tmp_path / "out").exists()
+    # So is RIG_DIR after --foxglove, whose address may be left out ("give RIG_DIR" before).
+    assert main(["live", "--out", str(tmp_path / "out"), "--foxglove", str(rig)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "no [live] table" in err
 
 
 def test_live_to_a_viewer_nobody_runs_is_refused_before_the_run(
