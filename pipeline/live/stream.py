@@ -144,10 +144,13 @@ def viewer_from_choice(choice: Sequence[str]) -> str | None:
 
 
 def parse_host_port(text: str) -> tuple[str, int]:
-    """``--foxglove``'s HOST:PORT (or PORT) -> (host, port); port 0: any free one."""
+    """``--foxglove``'s HOST:PORT (or PORT; an IPv6 host in brackets, ``[::1]:8765``) ->
+    (host, port); port 0: any free one."""
     host, _, port = text.rpartition(":")
     if not port.isdigit() or int(port) > 65535:
         raise SettingsError(f"--foxglove {text!r}: expected HOST:PORT (e.g. {DEFAULT_FOXGLOVE}) or PORT")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
     return host or "127.0.0.1", int(port)
 
 

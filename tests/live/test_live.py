@@ -311,6 +311,7 @@ def test_viewer_and_foxglove_addresses() -> None:
             grpc_url(port)
     assert parse_host_port("0.0.0.0:8766") == ("0.0.0.0", 8766)
     assert parse_host_port("8766") == ("127.0.0.1", 8766)
+    assert parse_host_port("[::1]:8766") == ("::1", 8766)  # an IPv6 host, bracketed as in URLs
     with pytest.raises(SettingsError, match="expected HOST:PORT"):
         parse_host_port("rig:port")
 
