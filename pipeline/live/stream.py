@@ -219,7 +219,7 @@ class FoxgloveServer:
                 f"--foxglove {host}:{port}: cannot serve there ({' '.join(str(exc).split())[:160]}); "
                 "choose another HOST:PORT"
             ) from None
-        self.address = f"ws://{host}:{self._server.port}"
+        self.address = f"ws://{f'[{host}]' if ':' in host else host}:{self._server.port}"  # IPv6 in brackets
 
     def __call__(self, topic: str, schema: ChannelSchema, data: bytes, time_ns: int) -> None:
         with self._lock:
