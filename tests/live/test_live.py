@@ -1479,9 +1479,7 @@ def test_the_summary_names_a_camera_that_delivered_nothing_or_whose_replay_ended
     assert silent.exit_code == 1
 
 
-def test_a_camera_lost_for_good_while_the_others_went_on_is_a_problem_but_all_ending_together_is_not() -> (
-    None
-):
+def test_a_camera_lost_while_the_others_went_on_is_a_problem_all_ending_together_is_not() -> None:
     from pipeline.run.summary import RunSummary
 
     run = RunSummary(frames_ok=26, frames_empty=0, frames_failed=[], wall_s=10.0, fps=2.6)
