@@ -257,13 +257,13 @@ def _warn_unmatched_shared(cam_dirs: Sequence[Path]) -> None:
     name of: shared views are matched by name, and one alone links its camera to nothing
     (the real stereo pairs copied in as leftNN.jpg and rightNN.jpg: not one view shared,
     the baseline 1.1 mm off, without a word)."""
+    if len(cam_dirs) < 2:
+        return
     stems = {
         cam_dir.name: {p.stem for p in _shared_images(cam_dir / "shared")}
         for cam_dir in cam_dirs
         if (cam_dir / "shared").is_dir()
     }
-    if len(cam_dirs) < 2:
-        return
     for cam, own in stems.items():
         others = set().union(*(theirs for name, theirs in stems.items() if name != cam))
         alone = sorted(own - others)
@@ -309,11 +309,11 @@ def board_size_problems(views: Sequence[View], board: Board) -> list[str]:
     sources = {view.camera: view.source for view in views if view.key == WORLD}
     for view in views:
         sources.setdefault(view.camera, view.source)
-    files = [Path(source) for source in sources.values() if Path(source).is_file()]
+    images = [_read_grey(Path(source)) for source in sources.values() if Path(source).is_file()]
     larger = [
         (cols, rows)
         for cols, rows in ((board.cols + 1, board.rows), (board.cols, board.rows + 1))
-        if sum(_holds_pattern(_read_grey(path), (cols, rows)) for path in files) * 2 > len(files)
+        if sum(_holds_pattern(image, (cols, rows)) for image in images) * 2 > len(images)
     ]
     if larger:
         cols, rows = larger[0]

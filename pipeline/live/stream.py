@@ -199,11 +199,13 @@ class FoxgloveServer:
 
         class Listener(foxglove.ServerListener):
             def on_subscribe(self, client: Any, channel: Any) -> None:
-                server.subscribed += 1
+                with server._lock:  # the SDK calls from its own threads, one per client
+                    server.subscribed += 1
                 server.resend_static(channel.topic)
 
             def on_unsubscribe(self, client: Any, channel: Any) -> None:
-                server.subscribed -= 1
+                with server._lock:
+                    server.subscribed -= 1
 
         self._context = foxglove.Context()
         self._channels: dict[str, Any] = {}
