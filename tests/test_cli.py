@@ -19,7 +19,7 @@ import pytest
 
 from pipeline.cli import EXIT_BAD_INPUT, EXIT_FRAMES_FAILED, EXIT_INTERNAL_ERROR, main
 from pipeline.cli import parser as cli_parser
-from pipeline.errors import CalibrationError
+from pipeline.errors import CalibrationError, Interrupted, PipelineError
 from pipeline.record.load import load_recording
 from pipeline.run import runner, workers
 from pipeline.run.summary import RunSummary
@@ -354,6 +354,36 @@ def test_a_json_summary_is_written_whole_or_not_at_all(
     assert main(["process", "s", "--json", str(ahead)]) == EXIT_FRAMES_FAILED
     assert ahead.is_symlink() and json.loads(ahead.read_text()) == FAILED_RUN.to_dict()
     assert sorted(p.name for p in (tmp_path / "made").iterdir()) == ["later.json"]
+
+
+def test_a_run_refused_or_stopped_leaves_its_reason_in_the_json_file_not_an_earlier_summary(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    target = tmp_path / "summary.json"
+    target.write_text(json.dumps(OK_RUN.to_dict()) + "\n")  # an earlier run's: exit 0
+    for raised, code in (
+        (PipelineError("s/session.toml: radius_mm 60 is wider than the workspace"), EXIT_BAD_INPUT),
+        (Interrupted("interrupted; the earlier recordings are kept"), 130),
+        (RuntimeError("a bug"), EXIT_INTERNAL_ERROR),
+    ):
+
+        def run(*args: object, raised: BaseException = raised, **kwargs: object) -> None:
+            raise raised
+
+        monkeypatch.setattr(runner, "process_session", run)
+        monkeypatch.setattr(session, "load_session", lambda directory: directory)
+        monkeypatch.setattr(workers, "started_early", lambda jobs, backend: contextlib.nullcontext())
+        assert main(["process", "s", "--json", str(target)]) == code
+        err = capsys.readouterr().err.strip()
+        assert json.loads(target.read_text()) == {"error": err.removeprefix("error: "), "exit_code": code}
+        # ... and on stdout, where it carries the JSON.
+        assert main(["process", "s", "--json"]) == code
+        assert json.loads(capsys.readouterr().out)["exit_code"] == code
+    # A refusal of the file itself writes nothing there.
+    layout = tmp_path / "layout.json"
+    layout.write_text('{"layout": {}}\n')
+    assert main(["process", "s", "--json", str(layout)]) == EXIT_BAD_INPUT
+    assert layout.read_text() == '{"layout": {}}\n'
 
 
 def test_json_never_takes_the_place_of_a_recording_or_another_json_file(

@@ -33,6 +33,7 @@ from ..reconstruct.tip_shape import FrameTip, ReadTips, frame_tip, sample_frames
 from ..session.calibration_io import write_calibration
 from ..session.toml_file import load_toml
 from .adjust import Tube, adjust_cameras, aligned_by_images, resampled_tube
+from .frame_lag import CameraLag, FramesOfCamera, camera_lags
 from .mount import CHECK_BASE, mount_shift, moved_to_mount
 
 FloatArray = NDArray[np.float64]
@@ -111,6 +112,7 @@ class Refinement:
     seconds: float = float("nan")
     mount_shift_mm: tuple[float, float, float] | None = None
     mount_note: str = ""
+    lags: tuple[CameraLag, ...] = ()
 
     def describe(self) -> str:
         """One line for the summary."""
@@ -158,11 +160,13 @@ class Refinement:
         ]
 
     def problems(self) -> list[str]:
-        """A line if the tube's base is seen far from the mount's place in the settings:
-        every frame was fitted to start there, bent by as much."""
+        """A line if the tube's base is seen far from the mount's place in the settings
+        (every frame was fitted to start there, bent by as much), and one per camera whose
+        video is out of step with the others' (every frame was fitted to two moments)."""
+        lines = [lag.describe() for lag in self.lags]
         if self.mount_note.endswith(CHECK_BASE):
-            return [f"{self.mount_note} (its frames are fitted to start there)"]
-        return []
+            lines.append(f"{self.mount_note} (its frames are fitted to start there)")
+        return lines
 
 
 def camera_change(given: Camera, refined: Camera, points_mm: FloatArray) -> CameraChange:
@@ -358,13 +362,16 @@ def refined_cameras(
     model: SessionModel,
     frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
     map_frames: FrameMap = map_here,
+    frames_of: FramesOfCamera | None = None,
 ) -> tuple[tuple[Camera, ...], Refinement | None, ReadTips | None]:
     """The cameras to reconstruct the session with, under the settings' ``[calibration]
     refine``, and the refinement's report, from its sample ``frames`` (:func:`sample_session`).
     The report, where the cameras are kept without refining (``refine = false``, two
     cameras), says why and where they see the tube's base (:func:`_kept_as_given`); it is
     None where the centreline is not the tube fit, or too few frames show the tube to refine
-    on. ``map_frames`` runs their reconstructions.
+    on. ``map_frames`` runs their reconstructions. Given each camera's frames around them
+    (``frames_of``), a camera whose video is out of step with the others' is named and the
+    cameras kept as given (:mod:`.frame_lag`).
 
     Third, where the settings leave the tube's end to the frames (``[manipulator] tip =
     "auto"``) and the given cameras are kept: the sample frames' ends, read on the same
@@ -386,9 +393,17 @@ def refined_cameras(
         # against 2.14 kept), though they gained where the calibration was off (a straight
         # tube 0.15 deg off, 2.75 -> 0.21 mm).
         return model.cameras, _kept_as_given(model, frames, map_frames, reason), None
-    tubes, read = _sampled(model, frames, map_frames)
+    indexed, read = _sampled(model, frames, map_frames)
+    tubes = [tube for _, tube in indexed]
     if len(tubes) < 3:
         return model.cameras, None, read
+    lags = [] if frames_of is None else camera_lags(model, indexed, frames_of)
+    if lags:
+        # The tubes were fitted to views of two moments: adjusted to them, the cameras would
+        # take the difference for cameras that moved.
+        reason = "a camera's video is out of step with the others'"
+        report = Refinement(False, 0, float("nan"), float("nan"), (), reason, lags=tuple(lags))
+        return model.cameras, dataclasses.replace(report, seconds=time.perf_counter() - started), read
     cameras, report = refine(model, tubes, mode, refitter(model, frames, map_frames))
     report = dataclasses.replace(report, seconds=time.perf_counter() - started)
     # The ends read with the given cameras serve only them. Moved to the mount, the frames'
@@ -448,12 +463,13 @@ def _sampled(
     model: SessionModel,
     frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
     map_frames: FrameMap,
-) -> tuple[list[Tube], ReadTips | None]:
-    """The tubes of ``frames`` (:func:`sample_tubes`) and, where the session reads its tube
-    end from them (:func:`_reads_tips`), their ends read on the same reconstructions (else None)."""
+) -> tuple[list[tuple[int, Tube]], ReadTips | None]:
+    """The tubes of ``frames`` (:func:`sample_tubes`), each with its frame's index, and, where
+    the session reads its tube end from them (:func:`_reads_tips`), their ends read on the same
+    reconstructions (else None)."""
     read_tips = _reads_tips(model)
     samples = map_frames(functools.partial(_sample, tip=read_tips), frames, _base_free(model))
-    tubes = [tube for tube, _ in samples if tube is not None]
+    tubes = [(index, tube) for (index, _), (tube, _) in zip(frames, samples, strict=True) if tube is not None]
     if not read_tips:
         return tubes, None
     tips = tuple(tip for _, tip in samples if tip is not None)

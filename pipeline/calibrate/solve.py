@@ -109,7 +109,7 @@ def calibrate_directory(
     if not calib_dir.is_dir():
         raise CalibrationError(f"{calib_dir}: not a folder; expected CALIB_DIR/<camera>/intrinsics/*.png")
     refuse_unfinished_render(calib_dir, CalibrationError)
-    output = Path(output)
+    output = _through_link(Path(output))
     _check_output(output, force=force)
     _check_not_among_the_images(report_dir or output.parent, calib_dir)
     the_board = load_board(calib_dir, board=board, square_mm=square_mm, charuco=charuco)
@@ -391,6 +391,21 @@ def _refused_by_process(cameras: Sequence[Camera]) -> list[str]:
     except CalibrationError as exc:
         return [f"{exc}; process refuses it: calibrate again from more, and more varied, board images"]
     return []
+
+
+def _through_link(output: Path) -> Path:
+    """The file ``output`` names: through a link, the file it leads to (written there, the
+    link kept: other sessions may share that file), made or yet to be made in a folder that
+    exists; OutputError for a link into a loop or a missing folder."""
+    if not output.is_symlink():
+        return output
+    target = Path(os.path.realpath(output))
+    if target.is_symlink() or not target.parent.is_dir():
+        raise OutputError(
+            f"{output}: is a symbolic link to {os.readlink(output)}, which cannot be written "
+            "(a loop of links, or a folder that does not exist); fix the link, or give -o the file itself"
+        )
+    return target
 
 
 def _check_output(output: Path, *, force: bool) -> None:

@@ -29,6 +29,7 @@ from .commands import (
     EXIT_INTERNAL_ERROR,
     EXIT_OK,
     open_closed_std_streams,
+    write_json_file,
 )
 from .parser import PROG, build_parser, with_json_before_a_folder, with_negative_frames
 from .shutdown import exit_fast
@@ -67,9 +68,13 @@ def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
         try:
             return _main(argv, prog)
         except KeyboardInterrupt as exc:
-            message = str(exc) if isinstance(exc, Interrupted) else "interrupted; nothing written"
-            print(message, file=sys.stderr)
+            print(interrupted_line(exc), file=sys.stderr)
             return 130
+
+
+def interrupted_line(exc: KeyboardInterrupt) -> str:
+    """The line a run stopped by a signal ends with: what it leaves (see :class:`Interrupted`)."""
+    return str(exc) if isinstance(exc, Interrupted) else "interrupted; nothing written"
 
 
 def _main(argv: Sequence[str] | None, prog: str) -> int:
@@ -102,6 +107,9 @@ def _main(argv: Sequence[str] | None, prog: str) -> int:
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         return func(args)
+    except KeyboardInterrupt as exc:
+        _json_failure(args, interrupted_line(exc), 130)
+        raise
     except PipelineError as exc:
         if args.debug:
             traceback.print_exc()
@@ -124,13 +132,17 @@ def _main(argv: Sequence[str] | None, prog: str) -> int:
 
 
 def _json_failure(args: argparse.Namespace, line: str, code: int) -> None:
-    """Where stdout was to carry the command's JSON (``--json -``, ``evaluate --json``), a
-    JSON object saying why there is none: a script reading it gets the reason, not nothing.
-    A stdout that cannot take it loses it (the line is on stderr)."""
-    if getattr(args, "json", None) not in ("-", True):
-        return
-    with contextlib.suppress(OSError, ValueError):
-        print(json.dumps({"error": line.removeprefix("error: "), "exit_code": code}), flush=True)
+    """Where the command was to write its JSON (``--json -``, ``evaluate --json``; a ``--json``
+    file once it was found fit to write), a JSON object saying why there is none: a script
+    reading it gets the reason, not nothing, nor an earlier run's summary. A stdout or file
+    that cannot take it loses it (the line is on stderr)."""
+    failure = {"error": line.removeprefix("error: "), "exit_code": code}
+    if getattr(args, "json", None) in ("-", True):
+        with contextlib.suppress(OSError, ValueError):
+            print(json.dumps(failure), flush=True)
+    elif getattr(args, "json_file_checked", False):
+        with contextlib.suppress(OSError):
+            write_json_file(args.json, failure)
 
 
 # The resource trackers (processes that remove the workers' semaphores and folders if the

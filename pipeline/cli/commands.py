@@ -113,17 +113,25 @@ def _report(summary: Any, json_to: str | None) -> None:
     if json_to == "-":
         say(json.dumps(summary.to_dict(), indent=2), result="the JSON summary")
     elif json_to is not None:
-        # Written whole under a name of this run's, then renamed into place: a full disk
-        # leaves the earlier file, and two runs given the same file leave one whole summary.
-        target = Path(os.path.realpath(json_to))
-        partial = target.with_name(f".{target.name}.{os.getpid()}.partial")
         try:
-            with open(partial, "x", encoding="utf-8") as file:
-                file.write(json.dumps(summary.to_dict(), indent=2) + "\n")
-            os.replace(partial, target)
+            write_json_file(json_to, summary.to_dict())
         except OSError as exc:  # the recordings are written; only the summary file is lost
-            partial.unlink(missing_ok=True)
             raise OutputError(f"{json_to}: cannot write the JSON summary ({exc.strerror or exc})") from None
+
+
+def write_json_file(path: str | Path, document: dict[str, Any]) -> None:
+    """Write ``document`` as JSON to ``path`` whole: under a name of this run's, then renamed
+    into place, so that a full disk leaves the earlier file (OSError) and two runs given the
+    same file leave one whole summary."""
+    target = Path(os.path.realpath(path))
+    partial = target.with_name(f".{target.name}.{os.getpid()}.partial")
+    try:
+        with open(partial, "x", encoding="utf-8") as file:
+            file.write(json.dumps(document, indent=2) + "\n")
+        os.replace(partial, target)
+    except OSError:
+        partial.unlink(missing_ok=True)
+        raise
 
 
 def cmd_process(args: argparse.Namespace) -> int:
@@ -136,6 +144,7 @@ def cmd_process(args: argparse.Namespace) -> int:
         # A session is named after its folder (pipeline.session.folder.load_session).
         name = Path(args.video_dir).resolve().name
         _check_json_path(Path(args.json), _recordings(Path(args.out), name))
+        args.json_file_checked = True  # a run refused or stopped from here on says so there
     # --scheduler names a Dask scheduler: it implies --backend dask (checked in main).
     backend = args.backend or ("dask" if args.scheduler else "loky")
     # The workers spawn and import while this process loads the session and model.
@@ -177,6 +186,7 @@ def cmd_live(args: argparse.Namespace) -> int:
         check_stdout_takes("the JSON summary")
     elif args.json is not None:
         _check_json_path(Path(args.json), _recordings(Path(args.out), rig.name))
+        args.json_file_checked = True  # a run refused or stopped from here on says so there
     foxglove = None if args.foxglove is None else parse_host_port(args.foxglove or DEFAULT_FOXGLOVE)
     if foxglove is not None:
         check_foxglove(*foxglove)  # before a viewer is spawned for the run

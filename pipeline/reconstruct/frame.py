@@ -66,12 +66,14 @@ TRACK_REACH_RADII = 3.0
 
 def frame_silhouettes(images: Sequence[NDArray[np.uint8]], model: SessionModel) -> list[NDArray[np.bool_]]:
     """Per camera (H, W) bool silhouette of one frame's (H, W) uint8 grey images."""
+    return [camera_silhouette(image, model, k) for k, image in enumerate(images)]
+
+
+def camera_silhouette(image: NDArray[np.uint8], model: SessionModel, camera: int) -> NDArray[np.bool_]:
+    """(H, W) bool silhouette of camera number ``camera``'s (H, W) uint8 grey image."""
     sil = model.settings.silhouette
-    use_bg = sil.method == "background"
-    return [
-        extract_silhouette(image, sil, background=bg if use_bg else None)
-        for image, bg in zip(images, model.backgrounds, strict=True)
-    ]
+    background = model.backgrounds[camera] if sil.method == "background" else None
+    return extract_silhouette(image, sil, background=background)
 
 
 def frame_contrasts(images: Sequence[NDArray[np.uint8]], model: SessionModel) -> list[NDArray[np.float32]]:

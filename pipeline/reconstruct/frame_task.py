@@ -113,6 +113,18 @@ def decode_frames(paths: Sequence[Path], indices: Sequence[int]) -> list[tuple[i
     return out
 
 
+def camera_frames(paths: Sequence[Path], camera: int, first: int, stop: int) -> list[Image | None]:
+    """Camera number ``camera``'s grey images of frames ``first <= i < stop`` (its video,
+    ``paths[camera]``), None where the video provides none."""
+    reader = read_frames(Path(paths[camera]), first, stop, problems={})
+    try:
+        return [image for _, image in reader]
+    finally:
+        close = getattr(reader, "close", None)  # release the decoder now, not at GC
+        if close is not None:
+            close()
+
+
 def one_frame(
     index: int,
     images: Sequence[Image | None],

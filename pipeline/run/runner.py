@@ -12,6 +12,7 @@ writers, whose files carry temporary names until the run is complete.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import math
 import numbers
@@ -271,6 +272,9 @@ def _process_session(
         check_scheduler_address(scheduler)
         check_scheduler(scheduler, DASK_CONNECT_TIMEOUT_S)
     start, stop = _frame_span(session, frames)
+    if frames is not None and frames[1] is not None and frames[1] <= session.frame_count:
+        # The frames asked for are in every video: a shorter one (Session.problems) cut none.
+        session = dataclasses.replace(session, problems=())
     n_jobs = effective_jobs(jobs)
     if n_jobs < jobs and not (backend == "dask" and scheduler):
         log.warning(
@@ -338,6 +342,7 @@ def _run_with(
                 from ..calibrate.refine import refined_cameras, sample_session
                 from ..calibrate.video_order import check_video_order
                 from ..reconstruct.frame import check_declared_radius
+                from ..reconstruct.frame_task import camera_frames
                 from ..reconstruct.model import build_model
                 from ..reconstruct.tip_shape import end_assumed, with_session_tip
 
@@ -355,7 +360,8 @@ def _run_with(
                     check_background_order(session.backgrounds, samples, names, folder)
                 check_video_order(model, samples, paths)
                 check_declared_radius(model, samples, session.directory / "session.toml")
-                cameras, refinement, tips = refined_cameras(model, samples, frame_map)
+                frames_of = functools.partial(camera_frames, paths)
+                cameras, refinement, tips = refined_cameras(model, samples, frame_map, frames_of)
                 if cameras is not session.cameras:
                     session = dataclasses.replace(session, cameras=cameras)
                     model = build_model(session)

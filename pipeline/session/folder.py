@@ -103,6 +103,7 @@ def _load_session(directory: Path) -> Session:
     refuse_unfinished_render(directory, SessionError)
     for name in ("session.toml", "calibration.toml"):
         check_not_dangling(directory / name)
+        _check_spelling(directory, name)
     settings = load_settings(directory / "session.toml")
     cameras = _rig_cameras(directory / "calibration.toml")
     videos = _find_videos(directory, [c.name for c in cameras])
@@ -206,6 +207,7 @@ def _load_rig(directory: Path) -> Session:
         )
     for name in ("session.toml", "calibration.toml"):
         check_not_dangling(directory / name)
+        _check_spelling(directory, name)
     settings = load_settings(directory / "session.toml")
     cameras = _rig_cameras(directory / "calibration.toml")
     names = [c.name for c in cameras]
@@ -462,6 +464,17 @@ def _readable(directory: Path, what: str) -> Iterator[None]:
             f"{where}: cannot be read (permission denied); give this user read access to the "
             f"{what} folder and its files, or copy them where it can read them"
         ) from None
+
+
+def _check_spelling(directory: Path, name: str) -> None:
+    """A file ``name`` missing from ``directory`` where one named so in other capitals is
+    there (Session.toml): named, not passed over (its settings would be silently the
+    defaults)."""
+    if (directory / name).exists():
+        return
+    for other in directory.iterdir():
+        if other.name.lower() == name:
+            raise SessionError(f"{other}: the file must be named {name}, in lower case; rename it")
 
 
 def check_not_dangling(path: Path, error: type[PipelineError] = SessionError) -> None:

@@ -89,6 +89,26 @@ WORLD_CAMERAS: dict[str, tuple[int, ...]] = {"oblique": (0, 1, 2), "ninety": (0,
 TRUTH_FILE = "truth_calibration.toml"
 
 
+# The board images a render writes in each camera's folder (see the layout above).
+_IMAGE_PARTS = ("intrinsics/*.png", "shared/*.png", "world.png")
+
+
+def _remove_earlier_images(out_dir: Path, kept: set[Path]) -> None:
+    """An earlier render's board images that this one does not write (another arrangement,
+    board or seed: other cameras see the world board, other shared sets): left there,
+    ``calibrate`` would take them for this rig's. ``out_dir`` holds no other files (see
+    check_out_dir); folders left empty go too."""
+    if (out_dir / TRUTH_FILE).is_file():
+        log.info("%s: replacing the calibration images rendered there before", out_dir)
+    for folder in [d for d in out_dir.iterdir() if d.is_dir() and not d.is_symlink()]:
+        for path in [p for part in _IMAGE_PARTS for p in folder.glob(part)]:
+            if path not in kept:
+                path.unlink()
+        for part in (folder / "intrinsics", folder / "shared", folder):
+            if part.is_dir() and not any(part.iterdir()):
+                part.rmdir()
+
+
 def render_calibration_views(
     out_dir: Path,
     *,
@@ -181,6 +201,7 @@ def render_calibration_views(
     incomplete = f"the board images in {out_dir} are incomplete: render them again"
     try:
         with unfinished(out_dir):
+            _remove_earlier_images(out_dir, {path for path, *_ in jobs})
             for path, ci, R, t in tqdm(jobs, desc="synth-calib", unit="image", disable=not progress):
                 image = _render(rays[ci], cams[ci], R, t, cols, rows, square_mm, rng, texture=texture)
                 path.parent.mkdir(parents=True, exist_ok=True)

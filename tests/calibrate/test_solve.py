@@ -571,6 +571,29 @@ def test_an_unexpanded_home_in_the_output_is_refused(small_rig, tmp_path) -> Non
         calibrate_directory(small_rig, Path("~/c.toml"))
 
 
+def test_an_output_through_a_link_writes_the_file_it_leads_to_and_a_link_to_nothing_is_named(
+    small_rig, tmp_path
+) -> None:
+    from pipeline.errors import OutputError
+
+    shared = tmp_path / "shared.toml"
+    link = tmp_path / "link.toml"
+    link.symlink_to(shared.name)
+    calibrate_directory(small_rig, link)
+    assert link.is_symlink() and read_calibration(shared)
+    dangling = tmp_path / "dangling.toml"
+    dangling.symlink_to(tmp_path / "nowhere" / "c.toml")
+    with pytest.raises(
+        OutputError, match=r"dangling\.toml: is a symbolic link to .*, which cannot be written"
+    ):
+        calibrate_directory(small_rig, dangling)
+    assert dangling.is_symlink() and not (tmp_path / "nowhere").exists()
+    loop = tmp_path / "loop.toml"
+    loop.symlink_to(loop.name)
+    with pytest.raises(OutputError, match=r"a loop of links"):
+        calibrate_directory(small_rig, loop)
+
+
 def test_shared_images_named_unlike_in_every_camera_are_named(small_rig, tmp_path, caplog) -> None:
     # Shared views are matched by name: left02.jpg and right02.jpg link nothing.
     root = _copy(small_rig, tmp_path)

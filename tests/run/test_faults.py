@@ -174,6 +174,11 @@ def test_a_video_much_shorter_than_the_others_is_named_and_ends_the_run_with_sta
         "check the recording"
     ) in captured.err.splitlines()
     assert load_recording(tmp_path / "out" / "short.mcap").centerlines_m.shape[0] == 1
+    # Frames every video holds: the shorter one cut none of them.
+    code = main(
+        ["process", str(session), "-o", str(tmp_path / "part"), "-j", "1", "--no-images", "--frames", ":1"]
+    )
+    assert code == EXIT_OK and "only the first" not in capsys.readouterr().err
 
 
 def test_manipulator_out_of_view_is_empty_not_a_crash(

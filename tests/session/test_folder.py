@@ -281,6 +281,14 @@ def test_missing_session_toml_is_a_note_naming_the_folder_and_the_defaults(
     assert "2 mm voxels" in note and "threshold 60" in note and "radius 6 mm" in note
 
 
+@pytest.mark.parametrize("name", ["session.toml", "calibration.toml"])
+def test_a_settings_file_named_in_other_capitals_is_named_not_passed_over(session: Path, name: str) -> None:
+    spelt = session / name.capitalize()
+    (session / name).rename(spelt)
+    with pytest.raises(SessionError, match=rf"{spelt.name}: the file must be named {name}, in lower case"):
+        load_session(session)
+
+
 def test_a_session_toml_given_brings_no_note(session: Path, caplog: pytest.LogCaptureFixture) -> None:
     (session / "session.toml").write_text("[silhouette]\nthreshold = 92\n")
     with caplog.at_level(logging.WARNING, logger="pipeline.session.folder"):

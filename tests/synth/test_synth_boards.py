@@ -151,6 +151,20 @@ def test_a_folder_synth_calib_cannot_create_is_named(
     ]
 
 
+def test_a_render_over_an_earlier_one_leaves_none_of_its_images(ninety, tmp_path: Path) -> None:
+    # The oblique rig's world board is seen by cam2 and its shared sets differ: left behind,
+    # calibrate would take them for the ninety rig's.
+    earlier = tmp_path / "calib"
+    render_calibration_views(earlier, arrangement="oblique", seed=2, views=6, progress=False)
+    render_calibration_views(earlier, arrangement="ninety", seed=1, views=4, progress=False)
+
+    def files(root: Path) -> dict[str, bytes]:
+        return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+    assert files(earlier) == files(ninety)
+    assert sorted(p.name for p in (earlier / "cam2").iterdir()) == ["intrinsics", "shared"]
+
+
 def test_an_image_that_cannot_be_written_over_an_earlier_render_is_named(
     ninety, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
