@@ -421,7 +421,10 @@ def _check_output(output: Path, *, force: bool) -> None:
         except (OSError, ValueError):
             doc = {}
         if not _is_calibration(doc):
-            raise OutputError(f"{output}: exists and is not a calibration; give -o a new file name")
+            raise OutputError(
+                f"{output}: exists and is not a calibration (not TOML, or no cameras in it); remove it "
+                "if it is a damaged one, or give -o another file name"
+            )
         if not force:
             raise OutputError(f"{output}: already exists; use --force to replace it")
     folder = output.parent
@@ -615,7 +618,11 @@ def _intrinsics(
     obj = board.object_points().astype(np.float32)
     groups = {"*": list(sizes)} if shared else {n: [n] for n in sizes}
     if shared and len(set(sizes.values())) > 1:
-        raise CalibrationError("--shared-intrinsics needs every camera's images to have the same size")
+        each = ", ".join(f"{name} {w}x{h}" for name, (w, h) in sizes.items())
+        raise CalibrationError(
+            f"--shared-intrinsics needs every camera's images to have the same size ({each}); "
+            "drop --shared-intrinsics to calibrate each lens on its own"
+        )
     out: dict[str, tuple[FloatArray, FloatArray]] = {}
     for members in groups.values():
         mine = [v for v in views if v.camera in members]

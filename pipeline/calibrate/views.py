@@ -20,6 +20,7 @@ from joblib import Parallel, delayed
 from numpy.typing import NDArray
 
 from ..errors import CalibrationError
+from ..geometry.camera import WORLD_FRAME
 from ..session.folder import check_not_dangling
 from ..session.grey_levels import grey_8bit
 from ..session.image_files import cut_short
@@ -68,18 +69,50 @@ class View:
 def camera_dirs(calib_dir: Path) -> list[Path]:
     """Sub-folders of ``calib_dir`` that hold a camera's images (intrinsics/, world.* or
     shared/: a camera seen through shared views alone is one too), sorted by name."""
-    dirs = sorted(
+    folders = sorted(d for d in Path(calib_dir).iterdir() if d.is_dir())
+    dirs = [
         d
-        for d in Path(calib_dir).iterdir()
-        if d.is_dir()
-        and ((d / "intrinsics").is_dir() or (d / "shared").is_dir() or _world_file(d) is not None)
-    )
+        for d in folders
+        if (d / "intrinsics").is_dir() or (d / "shared").is_dir() or _world_file(d) is not None
+    ]
+    for folder in folders:
+        if not any(folder.iterdir()):
+            log.warning("%s: an empty folder, so no camera's: its images were not copied in?", folder)
+        _note_unread_images(folder, is_camera=folder in dirs)
     if len(dirs) < 2:
         raise CalibrationError(
             f"{calib_dir}: found {len(dirs)} camera folder(s); expected at least two "
             "CALIB_DIR/<camera>/intrinsics/ folders"
         )
+    for folder in dirs:
+        # Each folder names its camera, and `process` refuses this one name (see
+        # pipeline.session.calibration_io): said before any image is read.
+        if folder.name == WORLD_FRAME:
+            raise CalibrationError(
+                f"{folder}: a camera cannot be named {WORLD_FRAME!r}, the recordings' own frame (the one "
+                "the hull and the centreline are in); rename the folder, and later the camera's video"
+            )
     return dirs
+
+
+def _note_unread_images(folder: Path, *, is_camera: bool) -> None:
+    """Warn of board images at the top of ``folder`` (but its world image), which are not
+    read: a camera's go in its intrinsics/ (or shared/) folder."""
+    loose = [
+        p
+        for p in folder.iterdir()
+        if p.suffix.lower() in IMAGE_EXTS and p.stem.lower() != WORLD and p.is_file()
+    ]
+    if loose:
+        log.warning(
+            "%s: %d image(s) beside %s are not read (%s); board images go in %s/intrinsics/ (one "
+            "camera at a time) or shared/ (the cameras at one moment)",
+            folder,
+            len(loose),
+            "its world image" if is_camera else "no intrinsics/ or shared/ folder",
+            ", ".join(p.name for p in sorted(loose)[:3]) + (", ..." if len(loose) > 3 else ""),
+            folder,
+        )
 
 
 def _world_file(cam_dir: Path) -> Path | None:

@@ -374,24 +374,22 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     check_stdout_takes(f"the report of {args.recording.name}")
     report = evaluate_recording(args.recording, args.ground_truth)
-    say(
-        report.to_json() if args.json else format_report(report),
-        result=f"the report of {args.recording.name}",
-    )
     # A recording cut short or damaged is named by the reading's own warning (on stderr):
     # the report is of the frames it holds, and the exit status says it is not the whole run.
     # So is one of another session than the ground truth's, or of other videos than those
     # beside it: its figures may mean nothing. A recording without a curve in any frame
     # leaves nothing measured: a script's `evaluate && ...` must not take it for a pass.
-    if report.frames and report.failed_frames + report.empty_frames == report.frames:
+    nothing = bool(report.frames) and report.failed_frames + report.empty_frames == report.frames
+    whole = report.complete and not report.other_session and not report.other_videos
+    code = EXIT_OK if whole and not nothing else EXIT_FRAMES_FAILED
+    text = (
+        json.dumps({**report.to_dict(), "exit_code": code}, indent=2) if args.json else format_report(report)
+    )
+    say(text, result=f"the report of {args.recording.name}")
+    if nothing:
         print(
             f"warning: {args.recording}: no frame holds a curve to compare ({report.frames} frames "
             "failed or empty); nothing was measured",
             file=sys.stderr,
         )
-        return EXIT_FRAMES_FAILED
-    return (
-        EXIT_OK
-        if report.complete and not report.other_session and not report.other_videos
-        else EXIT_FRAMES_FAILED
-    )
+    return code

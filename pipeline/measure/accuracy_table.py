@@ -310,6 +310,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
+    # Libraries' warnings (joblib's as an interrupted pool stops) stay off stderr, as in
+    # `pipeline`'s commands without --debug.
+    logging.captureWarnings(True)
+    logging.getLogger("py.warnings").setLevel(logging.CRITICAL)
 
     cases: Sequence[Case | DrawnCase] = default_cases()
     if args.draw is not None:
@@ -323,9 +327,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     elif args.cases:
         unknown = sorted(set(args.cases) - {c.name for c in cases})
         if unknown:
-            parser.error(
-                f"unknown case(s) {', '.join(unknown)}; choose from {', '.join(c.name for c in cases)}"
+            numbers = (
+                " (a number of cases goes with --draw SEED)" if any(u.isdigit() for u in unknown) else ""
             )
+            names = ", ".join(c.name for c in cases)
+            parser.error(f"unknown case(s) {', '.join(unknown)}{numbers}; choose from {names}")
         cases = [c for c in cases if c.name in args.cases]
     if args.calib_error:
         try:

@@ -639,7 +639,7 @@ def format_report(report: EvaluationReport) -> str:
     widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
     lines = ["  ".join(_align(row, widths)) for row in rows]
     lines.insert(1, "-" * len(lines[0]))
-    lines.insert(0, f"{report.frames} frames evaluated")
+    lines.insert(0, f"{report.frames} frame{'' if report.frames == 1 else 's'} evaluated")
     if report.tube_end:
         lines.insert(1, f"tube end: {report.tube_end}")
     if report.cameras:

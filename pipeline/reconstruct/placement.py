@@ -99,10 +99,8 @@ class Placement:
         if stretch is None:
             return ""
         start, end = stretch
-        return (
-            f"its course {start:.0f}-{end:.0f} mm from the base is barely seen across "
-            "(the views look along it)"
-        )
+        where = f"{start:.0f}-{end:.0f}" if round(start) != round(end) else f"near {start:.0f}"
+        return f"its course {where} mm from the base is barely seen across (the views look along it)"
 
 
 def spread_across(

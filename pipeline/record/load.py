@@ -322,7 +322,7 @@ def _read(stream: Any, path: Path, warn: Callable[[str], None]) -> Recording:
                     f"{path}: an MCAP cut short before its first frame (the run that wrote it did "
                     "not finish), nothing to read; run `pipeline process` on its session again"
                 ) from None
-            raise RecordingError(f"{path}: not a readable MCAP recording ({why})") from None
+            raise RecordingError(f"{path}: {_not_mcap(path, why)}") from None
         where, read = (
             (f"after frame {max(metrics)}", "; read what precedes it")
             if metrics
@@ -549,3 +549,19 @@ def _videos(text: str) -> dict[str, str]:
     if not isinstance(table, dict):
         return {}
     return {str(k): v for k, v in table.items() if isinstance(v, str)}
+
+
+def _not_mcap(path: Path, why: str) -> str:
+    """Why ``path`` reads as no MCAP at all, and what to give instead: an empty file, text (a
+    --json summary, say) or another kind of file."""
+    try:
+        with open(path, "rb") as file:
+            head = file.read(64)
+    except OSError:
+        head = b""
+    give = "give the .mcap that `pipeline process` wrote"
+    if not head:
+        return f"is empty (0 bytes); {give}"
+    if head.lstrip()[:1] in (b"{", b"["):
+        return f"is not an MCAP recording (it starts like JSON text: a --json summary?); {give}"
+    return f"is not a readable MCAP recording ({why}); {give}"

@@ -378,11 +378,12 @@ def _validate(s: Settings, source: str) -> None:
     sil = s.silhouette
     if sil.method not in SILHOUETTE_METHODS:
         raise SettingsError(
-            f"{source}: [silhouette] method {sil.method!r} unknown; use one of {SILHOUETTE_METHODS}"
+            f"{source}: [silhouette] method {sil.method!r} unknown; use one of "
+            f"{', '.join(SILHOUETTE_METHODS)}"
         )
     if sil.polarity not in POLARITIES:
         raise SettingsError(
-            f"{source}: [silhouette] polarity {sil.polarity!r} unknown; use one of {POLARITIES}"
+            f"{source}: [silhouette] polarity {sil.polarity!r} unknown; use one of {', '.join(POLARITIES)}"
         )
     lo, hi = THRESHOLD_RANGE
     if not lo <= sil.threshold <= hi:
@@ -401,7 +402,7 @@ def _validate(s: Settings, source: str) -> None:
     _check_voxel_fits_the_tube(s, source)
     if s.manipulator.tip not in TIP_SHAPES:
         raise SettingsError(
-            f"{source}: [manipulator] tip {s.manipulator.tip!r} unknown; use one of {TIP_SHAPES}"
+            f"{source}: [manipulator] tip {s.manipulator.tip!r} unknown; use one of {', '.join(TIP_SHAPES)}"
         )
     start = s.session.start_time
     if not EPOCH <= start <= LAST_TIMESTAMP:
@@ -412,7 +413,8 @@ def _validate(s: Settings, source: str) -> None:
     _check_base_in_workspace(s, source)
     if s.centerline.method not in CURVE_METHODS:
         raise SettingsError(
-            f"{source}: [centerline] method {s.centerline.method!r} unknown; use one of {CURVE_METHODS}"
+            f"{source}: [centerline] method {s.centerline.method!r} unknown; use one of "
+            f"{', '.join(CURVE_METHODS)}"
         )
     low, high = CENTERLINE_POINTS
     if not low <= s.centerline.points <= high:

@@ -415,7 +415,9 @@ def render_session(
                 [f"{cam.name}.mp4={video_fingerprint(out_dir / f'{cam.name}.mp4')}" for cam in cameras]
             )
             write_npz_deterministic(out_dir / TRUTH_FILE, truth)
-        log.info("wrote synthetic session %s (%s, %d frames)", out_dir, shape, frames)
+        log.info(
+            "wrote synthetic session %s (%s, %d frame%s)", out_dir, shape, frames, "" if frames == 1 else "s"
+        )
     except OSError as exc:
         # A full disk or a folder that turned read-only: a render into a new folder leaves
         # nothing; one over an earlier render leaves it incomplete (unchanged where the

@@ -140,6 +140,38 @@ def test_too_few_views(small_rig, tmp_path) -> None:
         calibrate_directory(root, tmp_path / "c.toml")
 
 
+def test_a_camera_folder_named_world_is_refused_before_any_image_is_read(
+    small_rig, tmp_path, monkeypatch
+) -> None:
+    from pipeline.calibrate import views
+
+    root = _copy(small_rig, tmp_path)
+    (root / "cam1").rename(root / "world")
+    monkeypatch.setattr(views, "_read_grey", lambda path: pytest.fail(f"{path} was read"))
+    with pytest.raises(
+        CalibrationError, match=r"world: a camera cannot be named 'world'.*; rename the folder"
+    ):
+        calibrate_directory(root, tmp_path / "c.toml")
+    assert not (tmp_path / "c.toml").exists()
+
+
+def test_images_that_are_not_read_and_an_empty_camera_folder_are_named(small_rig, tmp_path, caplog) -> None:
+    root = _copy(small_rig, tmp_path)
+    for path in sorted((root / "cam1" / "intrinsics").glob("*.png"))[:2]:
+        shutil.copy(path, root / "cam1" / f"loose{path.name}")
+    (root / "cam2").mkdir()
+    (root / "stray").mkdir()
+    shutil.copy(root / "cam0" / "world.png", root / "stray" / "board.png")
+    with caplog.at_level(logging.WARNING):
+        calibrate_directory(root, tmp_path / "c.toml")
+    text = caplog.text
+    assert (
+        f"{root / 'cam1'}: 2 image(s) beside its world image are not read (loose00.png, loose01.png)" in text
+    )
+    assert f"{root / 'cam2'}: an empty folder, so no camera's" in text
+    assert f"{root / 'stray'}: 1 image(s) beside no intrinsics/ or shared/ folder are not read" in text
+
+
 def test_a_calibration_written_among_a_cameras_images_is_refused(small_rig, tmp_path) -> None:
     # Its report pictures would be read as board images by the next calibration.
     root = _copy(small_rig, tmp_path)

@@ -302,7 +302,7 @@ def test_cli_evaluate_prints_the_table_and_json(
     assert "centreline mean (mm)" in capsys.readouterr().out
     assert main(["evaluate", str(recording), str(session_dir), "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
-    assert data["failed_indices"] == [5] and data["empty_indices"] == [4]
+    assert data["failed_indices"] == [5] and data["empty_indices"] == [4] and data["exit_code"] == 0
     # The recording's own fields once, at the top level: not as "" again in the smoothed report.
     assert "other_session" in data and "other_session" not in data["smoothed"]
     assert data["smoothed"]["empty_frames"] == 1
@@ -331,7 +331,10 @@ def test_a_recording_without_a_curve_measures_nothing_and_exits_1(
 
 
 def test_a_truncated_recording_is_evaluated_as_far_as_it_goes_and_says_so(
-    partial_run: tuple[Path, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture
+    partial_run: tuple[Path, Path],
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
+    capsys: pytest.CaptureFixture[str],
 ) -> None:
     from pipeline.cli import EXIT_FRAMES_FAILED, main
 
@@ -340,7 +343,8 @@ def test_a_truncated_recording_is_evaluated_as_far_as_it_goes_and_says_so(
     assert whole.complete
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(recording.read_bytes()[: recording.stat().st_size - 64])  # the footer lost
-    assert main(["evaluate", str(cut), str(session_dir)]) == EXIT_FRAMES_FAILED
+    assert main(["evaluate", str(cut), str(session_dir), "--json"]) == EXIT_FRAMES_FAILED
+    assert json.loads(capsys.readouterr().out)["exit_code"] == EXIT_FRAMES_FAILED  # said in the JSON too
     # One line names it, the reading's: the report is of the frames before the cut.
     (line,) = [r.getMessage() for r in caplog.records if "cut.mcap" in r.getMessage()]
     assert "(the run did not finish)" in line and "damaged" not in line

@@ -251,7 +251,13 @@ def test_a_files_warnings_go_to_on_warning_where_given_else_to_the_log(
 def test_not_an_mcap_is_a_pipeline_error(tmp_path: Path) -> None:
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(b"this is not an mcap file at all")
-    with pytest.raises(PipelineError, match=r"bad\.mcap: not a readable MCAP"):
+    with pytest.raises(PipelineError, match=r"bad\.mcap: is not a readable MCAP recording \(.*\); give the"):
+        pipeline.load_recording(bad)
+    bad.write_bytes(b"")
+    with pytest.raises(PipelineError, match=r"bad\.mcap: is empty \(0 bytes\); give the \.mcap that"):
+        pipeline.load_recording(bad)
+    bad.write_text('{\n  "frames": {"processed": 4}, "exit_code": 0\n}\n')  # a --json summary
+    with pytest.raises(PipelineError, match=r"bad\.mcap: is not an MCAP recording \(it starts like JSON"):
         pipeline.load_recording(bad)
     with pytest.raises(PipelineError, match=r"missing\.mcap: cannot read"):
         pipeline.load_recording(tmp_path / "missing.mcap")
