@@ -40,9 +40,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..geometry.camera import Camera
+from ..reconstruct.side_readings import read_sides
 from ..reconstruct.tip_bend import refine_tip_to_pixels
 from ..reconstruct.tube_tip import refit_tip
-from .adjust import Similarity, Tube
+from .adjust import SPACING_MM, Similarity, Tube
 
 FloatArray = NDArray[np.float64]
 
@@ -54,7 +55,18 @@ _MAX_SPREAD_MM = 1.5
 _MAX_SHIFT_MM = 6.0
 # Fewer frames than this give no median to trust.
 _MIN_FRAMES = 3
-# The base's radius: the median over the tube's first samples (~4 mm apart).
+# The base's radius is read as a tip's (the side readings' end radius: their lower quartile
+# over the last few samples), and only where that reads none, the median of the radius
+# profile over the tube's first samples (~4 mm apart). That median is a spacer disk's more
+# than the tube's where disks are seen at an angle: on `synth --profile disks --shape
+# s_curve --frames 40` (r 6 mm, exact cameras; 2026-12-06) it read 7.1-7.3 mm, the base end
+# 1.34 mm along the tube from the mount (the rig was moved there, and the mean error came
+# out 0.48 mm against 0.15 kept), read as a tip's 0.15 mm; the uniform tube's 0.08 mm ->
+# -0.01 mm. `process`, then `evaluate`, on that session and on seven 60-frame renders of the
+# named shapes and a random one with calibrations 0-0.15 deg off (same day), against the
+# profile's median: means 0.479 -> 0.147 mm (the disks), 0.250 -> 0.245, 0.420 -> 0.398,
+# 0.237 -> 0.234, 0.202 -> 0.173, 0.136 -> 0.125 mm, two unchanged; frames more than 2 mm
+# off 0 -> 3 on a loop and 0 -> 1 on the random shape.
 _BASE_SAMPLES = 3
 # The part of the axis (radii back from the end) bent to the grey levels.
 _BEND_RADII = (1.0,)
@@ -67,9 +79,13 @@ def base_ends(cameras: Sequence[Camera], tubes: Sequence[Tube]) -> FloatArray:
     axis run backwards, see the module)."""
     ends = []
     for tube in tubes:
-        # The tube's radius at its base (a tapered tube's is its widest).
-        radius = float(np.median(tube.radii_mm[:_BASE_SAMPLES]))
-        backwards = refit_tip(tube.points_mm[::-1], cameras, tube.contrasts, radius, cap="flat")
+        # The tube's own radius at its base (a tapered tube's is its widest), read as a tip's
+        # is, on the axis run backwards (see _BASE_SAMPLES).
+        axis, radii = tube.points_mm[::-1], tube.radii_mm[::-1]
+        radius = read_sides(axis, cameras, tube.contrasts, radii, SPACING_MM).end_radius_mm
+        if not np.isfinite(radius):
+            radius = float(np.median(tube.radii_mm[:_BASE_SAMPLES]))
+        backwards = refit_tip(axis, cameras, tube.contrasts, radius, cap="flat")
         fitted = refine_tip_to_pixels(
             backwards, cameras, tube.masks, tube.contrasts, radius, spans_radii=_BEND_RADII, cap="flat"
         )

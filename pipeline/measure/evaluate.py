@@ -449,8 +449,13 @@ def _not_rendered_with(recorded: dict[str, str], ground_truth: Path) -> str:
     except (OSError, ValueError):  # read whole a moment ago: a truth that says nothing here
         return ""
     rendered = dict(entry.partition("=")[::2] for entry in named)
+    # A camera's video recorded under another name (cam0.avi for the cam0.mp4 rendered: a
+    # copy re-encoded) is another video too.
+    by_camera = {Path(name).stem: fingerprint for name, fingerprint in recorded.items()}
     return ", ".join(
-        name for name, fingerprint in rendered.items() if recorded.get(name, fingerprint) != fingerprint
+        name
+        for name, fingerprint in rendered.items()
+        if recorded.get(name, by_camera.get(Path(name).stem, fingerprint)) != fingerprint
     )
 
 

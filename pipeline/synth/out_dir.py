@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import os
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
@@ -24,6 +25,11 @@ def check_out_dir(out_dir: Path, *, command: str, contents: str, marker: str, ki
     kind : what an earlier render is called, for the message ("a synthetic session").
     """
     refuse_unexpanded_home(out_dir, command)
+    if out_dir.is_symlink() and not out_dir.exists():
+        raise PipelineError(
+            f"{out_dir}: is a symbolic link to {os.readlink(out_dir)}, which does not exist (a drive "
+            f"not mounted?); fix the link, or give {command} another directory"
+        )
     if out_dir.exists() and not out_dir.is_dir():
         raise PipelineError(f"{out_dir}: is a file; give {command} a directory to write {contents} in")
     earlier = (out_dir / marker).is_file() or (out_dir / UNFINISHED_RENDER).is_file()

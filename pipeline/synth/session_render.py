@@ -343,8 +343,9 @@ def render_session(
         try:
             (out_dir / "background").mkdir(parents=True, exist_ok=True)
         except OSError as exc:
+            what = "write in" if out_dir.is_dir() else "create"
             raise PipelineError(
-                f"{out_dir}: cannot create the session directory ({exc.strerror}); "
+                f"{out_dir}: cannot {what} the session directory ({exc.strerror}); "
                 "give a folder you can write to"
             ) from None
         with unfinished(out_dir):

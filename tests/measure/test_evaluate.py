@@ -454,6 +454,12 @@ def test_a_ground_truth_copied_from_another_render_is_warned_of(
         report = evaluate_recording(recording, truth_of(other))
     assert report.other_videos == next(name for name in videos if name.startswith("cam1."))
     assert "other videos than those the ground truth was rendered with" in caplog.text
+    # A camera's video rendered under another name (cam1.mkv for the recording's cam1 video:
+    # re-encoded) is another video too.
+    renamed = {name: fp for name, fp in videos.items() if not name.startswith("cam1.")} | {
+        "cam1.mkv": "1" * 16
+    }
+    assert evaluate_recording(recording, truth_of(renamed)).other_videos == "cam1.mkv"
     from pipeline.cli import EXIT_FRAMES_FAILED, main
 
     assert main(["evaluate", str(recording), str(results)]) == EXIT_FRAMES_FAILED

@@ -125,6 +125,14 @@ def test_synth_calib_writes_into_a_new_or_empty_folder_or_over_its_own_render_on
     assert [p.name for p in mine.iterdir()] == ["notes.txt"]
     assert main(["synth-calib", str(mine / "notes.txt")]) == EXIT_BAD_INPUT
     assert "notes.txt: is a file; give synth-calib a directory" in capsys.readouterr().err
+    unmounted = tmp_path / "unmounted"
+    unmounted.symlink_to(tmp_path / "drive" / "calib")
+    for command in ("synth-calib", "synth"):
+        assert main([command, str(unmounted)]) == EXIT_BAD_INPUT
+        assert capsys.readouterr().err == (
+            f"error: {unmounted}: is a symbolic link to {tmp_path / 'drive' / 'calib'}, which does not "
+            f"exist (a drive not mounted?); fix the link, or give {command} another directory\n"
+        )
     # Over its own render (it holds truth_calibration.toml): the same files again.
     before = {p: p.read_bytes() for p in ninety.rglob("*.png")}
     render_calibration_views(ninety, arrangement="ninety", seed=1, views=4, progress=False)
