@@ -134,6 +134,7 @@ def load_board(
     if described != "chessboard":
         doc = {}  # --board overrides a ChArUco board.toml entirely
     cols_rows, square = board, square_mm
+    square_from = f"{calib_dir}: --square-mm"
     if cols_rows is not None and square is None and described != "chessboard":
         raise CalibrationError(
             f"{path}: describes a {described} board, and --board {cols_rows[0]}x{cols_rows[1]} asks "
@@ -165,6 +166,7 @@ def load_board(
             cols_rows = (corners[0], corners[1])
         if square is None and "square_mm" in doc:
             square = doc["square_mm"]  # type: ignore[assignment]
+            square_from = f"{path}: square_mm"
     if cols_rows is None or square is None:
         raise CalibrationError(
             f"{calib_dir}: board unknown; write {path.name} (type, inner_corners, square_mm) "
@@ -186,9 +188,10 @@ def load_board(
             "use a board with one odd and one even number of inner corners (e.g. 9x6)"
         )
     if not _plausible_square(square):
+        number = isinstance(square, int | float) and not isinstance(square, bool)
         raise CalibrationError(
-            f"{calib_dir}: square_mm must be a finite size in mm, {_SQUARE_MM[0]:g} to {_SQUARE_MM[1]:g}, "
-            f"got {square!r} ({_SQUARE_UNITS})"
+            f"{square_from} must be a finite size in mm, {_SQUARE_MM[0]:g} to {_SQUARE_MM[1]:g}, "
+            f"got {square!r} ({_SQUARE_UNITS if number else 'a number, not text: square_mm = 25'})"
         )
     return Board(int(cols), int(rows), float(square))
 

@@ -26,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from ..reconstruct.frame import camera_silhouette
+from ..reconstruct.frame import camera_silhouette, frame_contrasts, frame_silhouettes
+from ..reconstruct.frame_task import FrameMap, map_here
 from ..reconstruct.model import SessionModel
 from ..reconstruct.quality import tube_mask
 from ..reconstruct.tube_fit import fit_tube
@@ -47,6 +48,7 @@ LAG_FRAMES = 6
 _REFIT_ROUNDS = 2
 _REFIT_SEEK_RADII = 0.6
 
+FloatArray = NDArray[np.float64]
 Image = NDArray[np.uint8]
 # (camera index, first frame, stop) -> that camera's grey images of frames first <= i < stop
 # (None where its video has none).
@@ -87,57 +89,79 @@ class CameraLag:
         )
 
 
+@dataclass(frozen=True, eq=False)
+class LagContext:
+    """What each sample frame's comparison needs (:func:`frame_mismatches`): the session's
+    model, each camera's frames (``frames_of``) and how far either way to compare them."""
+
+    model: SessionModel
+    frames_of: FramesOfCamera
+    reach: int = MAX_LAG_FRAMES
+
+
+def frame_mismatches(index: int, axis: tuple[FloatArray, FloatArray], context: LagContext) -> FloatArray:
+    """(C, 2 reach + 1) for one sample frame ``index`` and its tube fitted to every view
+    (``axis``: (K, 3) points and (K,) radii, mm): per camera, the pixels its silhouettes of
+    frames ``index - reach`` to ``index + reach`` leave unexplained by the tube fitted again to
+    the other views (NaN rows where a frame is missing or no tube was read)."""
+    model, reach = context.model, context.reach
+    cameras = model.cameras
+    out = np.full((len(cameras), 2 * reach + 1), np.nan)
+    if index < reach:
+        return out  # too near the session's start for a frame either way
+    spans = [context.frames_of(k, index - reach, index + reach + 1) for k in range(len(cameras))]
+    if any(len(span) < 2 * reach + 1 or any(image is None for image in span) for span in spans):
+        return out  # near the session's end, or a frame that does not decode: no comparison
+    images = [span[reach] for span in spans]
+    contrasts = frame_contrasts(images, model)  # type: ignore[arg-type]
+    masks = frame_silhouettes(images, model)  # type: ignore[arg-type]
+    points_mm, radii_mm = axis
+    for k, camera in enumerate(cameras):
+        others = [v for v in range(len(cameras)) if v != k]
+        fit = fit_tube(
+            points_mm,
+            [cameras[v] for v in others],
+            [contrasts[v] for v in others],
+            radius_mm=float(np.median(radii_mm)),
+            radii_mm=radii_mm,
+            base_fixed=False,
+            iterations=_REFIT_ROUNDS,
+            seek_radii=_REFIT_SEEK_RADII,
+            masks=[masks[v] for v in others],
+        )
+        if not np.isfinite(fit.radius_mm):
+            continue
+        drawn = tube_mask(camera, fit.points_mm, fit.radii_mm if fit.radii_mm is not None else fit.radius_mm)
+        out[k] = [np.count_nonzero(camera_silhouette(image, model, k) ^ drawn) for image in spans[k]]  # type: ignore[arg-type]
+    return out
+
+
 def camera_lags(
     model: SessionModel,
     tubes: Sequence[tuple[int, Tube]],
     frames_of: FramesOfCamera,
+    map_frames: FrameMap = map_here,
     *,
     reach: int = MAX_LAG_FRAMES,
 ) -> list[CameraLag]:
     """The cameras out of step with the others, from the sample frames' ``tubes``
     ((frame index, tube fitted to every view) each) and each camera's frames around them
-    (``frames_of``); [] where none is, or the rig has fewer than three cameras (a tube
-    fitted to one view is not placed)."""
+    (``frames_of``), compared frame by frame by ``map_frames``; [] where none is, or the rig
+    has fewer than three cameras (a tube fitted to one view is not placed)."""
     cameras = model.cameras
     if len(cameras) < 3 or not tubes:
         return []
+    axes = [(index, (tube.points_mm, tube.radii_mm)) for index, tube in tubes]
+    counts = np.array(map_frames(frame_mismatches, axes, LagContext(model, frames_of, reach)))  # (F, C, 2R+1)
     lags = []
     for k, camera in enumerate(cameras):
-        others = [v for v in range(len(cameras)) if v != k]
-        unexplained = np.zeros(2 * reach + 1)
-        sides = []  # per frame whose tube moved: -1, 0 or 1, where its own best frame lies
-        for index, tube in tubes:
-            if index < reach:
-                continue  # too near the session's start for a frame either way
-            near = frames_of(k, index - reach, index + reach + 1)
-            images = [image for image in near if image is not None]
-            if len(images) < 2 * reach + 1:
-                continue  # near the session's end, or a frame that does not decode: no comparison
-            fit = fit_tube(
-                tube.points_mm,
-                [cameras[v] for v in others],
-                [tube.contrasts[v] for v in others],
-                radius_mm=float(np.median(tube.radii_mm)),
-                radii_mm=tube.radii_mm,
-                base_fixed=False,
-                iterations=_REFIT_ROUNDS,
-                seek_radii=_REFIT_SEEK_RADII,
-                masks=[tube.masks[v] for v in others],
-            )
-            if not np.isfinite(fit.radius_mm):
-                continue
-            drawn = tube_mask(
-                camera, fit.points_mm, fit.radii_mm if fit.radii_mm is not None else fit.radius_mm
-            )
-            counts = np.array(
-                [np.count_nonzero(camera_silhouette(image, model, k) ^ drawn) for image in images],
-                dtype=np.float64,
-            )
-            unexplained += counts
-            if counts.max() > counts.min():  # the tube moved: the frames tell the moments apart
-                sides.append(int(np.sign(int(np.argmin(counts)) - reach)))
-        lag = int(np.argmin(unexplained)) - reach
-        in_step = unexplained[reach]
+        compared = counts[:, k][np.isfinite(counts[:, k]).all(axis=1)]
+        unexplained = compared.sum(axis=0)
+        # Per frame whose tube moved (the frames tell the moments apart): where its own best lies.
+        moved = compared[compared.max(axis=1) > compared.min(axis=1)]
+        sides = np.sign(np.argmin(moved, axis=1) - reach).tolist() if len(moved) else []
+        lag = int(np.argmin(unexplained)) - reach if len(compared) else 0
+        in_step = unexplained[reach] if len(compared) else 0.0
         # A least at the reach's end may lie beyond it: no lag to name.
         if not 0 < abs(lag) < reach or len(sides) < LAG_FRAMES or not in_step > 0:
             continue

@@ -397,7 +397,7 @@ def refined_cameras(
     tubes = [tube for _, tube in indexed]
     if len(tubes) < 3:
         return model.cameras, None, read
-    lags = [] if frames_of is None else camera_lags(model, indexed, frames_of)
+    lags = [] if frames_of is None else camera_lags(model, indexed, frames_of, map_frames)
     if lags:
         # The tubes were fitted to views of two moments: adjusted to them, the cameras would
         # take the difference for cameras that moved.

@@ -175,7 +175,11 @@ def _video_frames(path: Path) -> list[tuple[str, NDArray[np.uint8]]]:
     """Up to VIDEO_SAMPLES grey frames, evenly spaced, of an intrinsics video."""
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
-        raise CalibrationError(f"{path}: cannot open this video")
+        size = path.stat().st_size if path.is_file() else 0
+        why = "it is empty (0 bytes)" if size == 0 else "not a video OpenCV reads, or cut short"
+        raise CalibrationError(
+            f"{path}: cannot open this video ({why}); copy it in again, or remove it and use board images"
+        )
     frames = []
     try:
         count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))

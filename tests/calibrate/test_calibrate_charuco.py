@@ -143,8 +143,11 @@ def test_a_square_size_that_is_no_size_is_refused_before_any_detection(tmp_path:
     )
     with pytest.raises(
         CalibrationError,
-        match=r"square_mm must be a finite size in mm, 0\.5 to 10000, got .* \(a board's squares are in",
+        match=r"board\.toml: square_mm must be a finite size in mm, 0\.5 to 10000, got .* \(a board's squares",
     ):
+        load_board(tmp_path)
+    (tmp_path / "board.toml").write_text('type = "chessboard"\ninner_corners = [9, 6]\nsquare_mm = "20"\n')
+    with pytest.raises(CalibrationError, match=r"board\.toml: square_mm .* got '20' \(a number, not text"):
         load_board(tmp_path)
 
 

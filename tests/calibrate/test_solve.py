@@ -439,6 +439,13 @@ def test_intrinsics_from_a_video(small_rig, tmp_path) -> None:
     assert [k for k in keys if k.startswith("intrinsics/")] == [f"intrinsics/board.avi#{i}" for i in range(6)]
     # Motion-JPEG at OpenCV's default quality costs some accuracy, well within the 0.2 px target.
     assert result.camera_mean_px()["cam1"] < 0.2
+    # A video that is empty, or not one, is named with what to do.
+    for content, why in ((b"", "it is empty"), (b"not a video at all", "not a video OpenCV reads")):
+        (root / "cam1" / "intrinsics" / "board.avi").write_bytes(content)
+        with pytest.raises(
+            CalibrationError, match=rf"board\.avi: cannot open this video \({why}.*; copy it in"
+        ):
+            calibrate_directory(root, tmp_path / "c.toml", force=True)
 
 
 def _stereo_folder(root: Path, *, pairs: int) -> Path:
