@@ -10,12 +10,13 @@ silhouettes d frames away match the others' tubes clearly better than those of t
 frame is out of step by d frames (:func:`camera_lags`).
 
 On a rendered 300-frame `bend_rotate` session (`pipeline synth --frames 300`; 2026-12-06),
-its 16 sample frames' tubes, fitted to the two other views, left in each camera's own
-silhouettes 1.34-2.6 times as many pixels unexplained one or two frames away as in the
-same frame, every camera and no frame voting otherwise; with cam1's video moved by 1, 3
-and -2 frames, cam1's silhouettes at the moved frame left 0.68, 0.33 and 0.45 times those
-of the same frame, 12-13 of 13 frames voting for it, while the other cameras' (whose
-tubes were fitted to cam1's view too) stayed at 0.91-1.0 with their votes spread.
+its sample frames' tubes, fitted to the two other views, matched every camera's own
+silhouettes best in the same frame; with cam1's video moved by 1, 3 and -2 frames, cam1's
+silhouettes at the moved frame left 0.68, 0.33 and 0.45 times the pixels of the same frame
+unexplained, all 14 frames the tube moved in matching best on that side, while the other
+cameras' (whose tubes were fitted to cam1's view too) were best a frame away at 0.91-0.97,
+7-9 of the 14 frames on that side. docs/calibration.md has the measures on drawn sessions
+that set the bars below.
 """
 
 from __future__ import annotations
