@@ -143,7 +143,7 @@ def test_a_square_size_that_is_no_size_is_refused_before_any_detection(tmp_path:
     )
     with pytest.raises(
         CalibrationError,
-        match=r"board\.toml: square_mm must be a finite size in mm, 0\.5 to 10000, got .* \(a board's squares",
+        match=r"board\.toml: square_mm must be a finite size in mm, 0\.5 to 10000, got .* \(a board's",
     ):
         load_board(tmp_path)
     (tmp_path / "board.toml").write_text('type = "chessboard"\ninner_corners = [9, 6]\nsquare_mm = "20"\n')
