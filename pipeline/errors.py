@@ -7,6 +7,7 @@ and says what to do. The CLI prints it as one line and exits with status 2.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 # The file a synthetic render (``pipeline synth``, ``synth-calib``) keeps in its folder
@@ -87,3 +88,15 @@ def refuse_unexpanded_home(path: Path, option: str) -> None:
         raise OutputError(
             f"{path}: ~ is not expanded here (it would make a folder named ~); give {option} {meant}"
         )
+
+
+def refuse_link_to_nothing(path: Path, option: str) -> None:
+    """Raise OutputError where the output ``path``, or a folder above it, is a symbolic link
+    to nothing (a drive not mounted, a folder moved): making it would fail with "File exists",
+    which says nothing of the link. ``option``: what gives the path ("--out")."""
+    for folder in (path, *path.parents):
+        if folder.is_symlink() and not folder.exists():
+            raise OutputError(
+                f"{folder}: is a symbolic link to {os.readlink(folder)}, which does not exist; fix the "
+                f"link (mount the drive), or give {option} another folder"
+            )

@@ -101,14 +101,8 @@ def decode_frames(paths: Sequence[Path], indices: Sequence[int]) -> list[tuple[i
     """(index, per camera grey image) of each frame of ``indices`` that every video provides."""
     out = []
     for index in indices:
-        images = []
-        for path in paths:
-            reader = read_frames(Path(path), index, index + 1, problems={})
-            images.append(next(reader, (index, None))[1])
-            close = getattr(reader, "close", None)  # release the decoder now, not at GC
-            if close is not None:
-                close()
-        if all(image is not None for image in images):
+        images = [image for k in range(len(paths)) for image in camera_frames(paths, k, index, index + 1)]
+        if len(images) == len(paths) and all(image is not None for image in images):
             out.append((index, [image for image in images if image is not None]))
     return out
 

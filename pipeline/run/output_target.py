@@ -18,7 +18,7 @@ import os
 import uuid
 from pathlib import Path
 
-from ..errors import OutputError, refuse_unexpanded_home
+from ..errors import OutputError, refuse_link_to_nothing, refuse_unexpanded_home
 from ..record.commit_marker import killed_commits, marker_path, marker_run
 from ..session.folder import check_utf8_path
 
@@ -205,12 +205,8 @@ def prepare_outputs(out_dir: Path, name: str, force: bool) -> OutputTarget:
     check_utf8_path(out_dir, "choose an --out path in UTF-8", OutputError)
     refuse_unexpanded_home(out_dir, "--out")
     try:
+        refuse_link_to_nothing(out_dir, "--out")
         for folder in (out_dir, *out_dir.parents):
-            if folder.is_symlink() and not folder.exists():  # a drive not mounted, a folder moved
-                raise OutputError(
-                    f"{folder}: is a symbolic link to {os.readlink(folder)}, which does not exist; "
-                    "fix the link (mount the drive), or give --out another folder"
-                )
             if folder.exists() and not folder.is_dir():
                 where = "" if folder == out_dir else f" (in {out_dir})"
                 raise OutputError(f"{folder}: is a file, not a directory{where}; give --out a directory")

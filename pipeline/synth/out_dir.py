@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import os
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
@@ -13,7 +12,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import UNFINISHED_RENDER, PipelineError, refuse_unexpanded_home
+from ..errors import UNFINISHED_RENDER, PipelineError, refuse_link_to_nothing, refuse_unexpanded_home
 
 
 def check_out_dir(out_dir: Path, *, command: str, contents: str, marker: str, kind: str) -> None:
@@ -25,11 +24,7 @@ def check_out_dir(out_dir: Path, *, command: str, contents: str, marker: str, ki
     kind : what an earlier render is called, for the message ("a synthetic session").
     """
     refuse_unexpanded_home(out_dir, command)
-    if out_dir.is_symlink() and not out_dir.exists():
-        raise PipelineError(
-            f"{out_dir}: is a symbolic link to {os.readlink(out_dir)}, which does not exist (a drive "
-            f"not mounted?); fix the link, or give {command} another directory"
-        )
+    refuse_link_to_nothing(out_dir, command)
     if out_dir.exists() and not out_dir.is_dir():
         raise PipelineError(f"{out_dir}: is a file; give {command} a directory to write {contents} in")
     earlier = (out_dir / marker).is_file() or (out_dir / UNFINISHED_RENDER).is_file()

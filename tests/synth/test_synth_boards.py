@@ -131,7 +131,7 @@ def test_synth_calib_writes_into_a_new_or_empty_folder_or_over_its_own_render_on
         assert main([command, str(unmounted)]) == EXIT_BAD_INPUT
         assert capsys.readouterr().err == (
             f"error: {unmounted}: is a symbolic link to {tmp_path / 'drive' / 'calib'}, which does not "
-            f"exist (a drive not mounted?); fix the link, or give {command} another directory\n"
+            f"exist; fix the link (mount the drive), or give {command} another folder\n"
         )
     # Over its own render (it holds truth_calibration.toml): the same files again.
     before = {p: p.read_bytes() for p in ninety.rglob("*.png")}
