@@ -110,12 +110,13 @@ def frame_mismatches(index: int, axis: tuple[FloatArray, FloatArray], context: L
     out = np.full((len(cameras), 2 * reach + 1), np.nan)
     if index < reach:
         return out  # too near the session's start for a frame either way
-    spans = [context.frames_of(k, index - reach, index + reach + 1) for k in range(len(cameras))]
-    if any(len(span) < 2 * reach + 1 or any(image is None for image in span) for span in spans):
+    read = [context.frames_of(k, index - reach, index + reach + 1) for k in range(len(cameras))]
+    spans = [[image for image in span if image is not None] for span in read]
+    if any(len(span) < 2 * reach + 1 for span in spans):
         return out  # near the session's end, or a frame that does not decode: no comparison
     images = [span[reach] for span in spans]
-    contrasts = frame_contrasts(images, model)  # type: ignore[arg-type]
-    masks = frame_silhouettes(images, model)  # type: ignore[arg-type]
+    contrasts = frame_contrasts(images, model)
+    masks = frame_silhouettes(images, model)
     points_mm, radii_mm = axis
     for k, camera in enumerate(cameras):
         others = [v for v in range(len(cameras)) if v != k]
@@ -133,7 +134,7 @@ def frame_mismatches(index: int, axis: tuple[FloatArray, FloatArray], context: L
         if not np.isfinite(fit.radius_mm):
             continue
         drawn = tube_mask(camera, fit.points_mm, fit.radii_mm if fit.radii_mm is not None else fit.radius_mm)
-        out[k] = [np.count_nonzero(camera_silhouette(image, model, k) ^ drawn) for image in spans[k]]  # type: ignore[arg-type]
+        out[k] = [np.count_nonzero(camera_silhouette(image, model, k) ^ drawn) for image in spans[k]]
     return out
 
 
