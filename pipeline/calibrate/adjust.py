@@ -212,14 +212,17 @@ def adjust_cameras(
     base_mm: FloatArray | None = None,
     rounds: int = 6,
     prior_sigma: FloatArray = PRIOR_SIGMA,
+    held: Sequence[int] = (),
 ) -> Adjustment:
     """Adjust ``cameras`` and the frames' ``tubes`` together so that the tubes project
     onto every silhouette (see the module); ``rounds`` Gauss-Newton rounds, each
     reading the images again. ``base_mm`` (3,): the mount, each tube's first sample,
-    or None if unknown."""
+    or None if unknown. The cameras ``held`` (indices) are kept as given, and the world
+    frame is then theirs (else the given rig's, :func:`nearest_to_given`)."""
     base_fixed = base_mm is not None
     c = len(cameras)
     params = np.zeros((c, N_PARAMS))
+    free = np.repeat([k not in held for k in range(c)], N_PARAMS)
     tubes = list(tubes)
     prior = np.tile(1.0 / np.asarray(prior_sigma) ** 2, c)
     before = after = float("nan")
@@ -238,16 +241,19 @@ def adjust_cameras(
             break
         schur = np.diag(prior * _READING_SIGMA_MM**2) + sum(s.schur for s in found)
         rhs = -prior * _READING_SIGMA_MM**2 * params.ravel() + sum(s.rhs for s in found)
-        step = np.asarray(np.linalg.solve(schur, rhs), dtype=np.float64)
+        step = np.zeros(c * N_PARAMS)
+        step[free] = np.linalg.solve(schur[np.ix_(free, free)], rhs[free])
         params = params + step.reshape(c, N_PARAMS)
         for i, s in enumerate(systems):
             if s is not None:
                 moved = tubes[i].points_mm + s.tube_step(step)
                 tubes[i] = replace(tubes[i], points_mm=moved, radii_mm=s.obs.radii_mm)
     adjusted = [moved_camera(cam, p) for cam, p in zip(cameras, params, strict=True)]
-    held = nearest_to_given(adjusted, cameras, prior_sigma)
-    tubes = [replace(t, points_mm=held.points(t.points_mm)) for t in tubes]
-    return Adjustment(tuple(held.cameras(adjusted)), params, tuple(tubes), before, after, readings)
+    if held:
+        return Adjustment(tuple(adjusted), params, tuple(tubes), before, after, readings)
+    world = nearest_to_given(adjusted, cameras, prior_sigma)
+    tubes = [replace(t, points_mm=world.points(t.points_mm)) for t in tubes]
+    return Adjustment(tuple(world.cameras(adjusted)), params, tuple(tubes), before, after, readings)
 
 
 def similar_camera(camera: Camera, rotation: FloatArray, scale: float, shift_mm: FloatArray) -> Camera:

@@ -315,6 +315,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         distractor=args.distractor,
         flicker=args.flicker,
         calib_error_deg=args.calib_error,
+        bumped_camera=args.bumped_camera,
     )
     render_session(
         args.out_dir,

@@ -324,6 +324,13 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
         help="write a calibration.toml off by this much, 0-2 (each camera turned DEG degrees, moved "
         "6.7*DEG mm, focal 2*DEG %%, principal point 6.7*DEG px); the videos use the true cameras",
     )
+    p.add_argument(
+        "--bumped-camera",
+        type=int,
+        metavar="INDEX",
+        help="with --calib-error, only this camera (0, 1, ...) is off: turned DEG degrees about its "
+        "centre, as a camera knocked since the rig was calibrated",
+    )
     p.add_argument("--frames", type=int, default=900, help="number of frames at 30 fps (default 900)")
     p.add_argument(
         "--seed", type=int, default=0, help="random seed (noise, textures; the shape for --shape random)"

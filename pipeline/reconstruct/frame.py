@@ -344,7 +344,7 @@ def _curve_and_quality(
             if held.lost and len(cameras) >= REDUNDANT_VIEWS:
                 others = track_without_odd_view(
                     lambda views: track(predicted, last.radius_mm, last.radii_mm, missed_mm, views),
-                    predicted,
+                    held,
                     cameras,
                     masks,
                     contrasts,

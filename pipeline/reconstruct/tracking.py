@@ -138,14 +138,20 @@ TRACK_MEETING_VIEWS = 2
 TRACK_TIP_CONDITIONING = 0.2
 TRACK_TIP_READINGS_RADII = 3.0
 TRACK_ONE_VIEW_SPANS_RADII = (4.0,)
-# Where the track is lost on a rig of REDUNDANT_VIEWS or more, each view is left out in
-# turn and the track fitted to the others (track_without_odd_view): a camera whose image
-# disagrees with the rest (a frame from another moment, a hand in front of its lens)
-# otherwise pulls the tube off in every view and sends the frame to a start from a hull
-# it has cut. Two views place a tube whether they agree or not: the others' tube nearest
-# the track's prediction is taken where it explains their silhouettes and leaves more
-# than ODD_VIEW_MISFIT of the left-out view's unexplained, beyond ODD_VIEW_CONTRAST
-# times the most it leaves of another view's. On nine frames with one camera's picture
+# Where the track is lost on a rig of REDUNDANT_VIEWS or more, leaving part of a
+# silhouette unexplained, the view it leaves most unexplained is left out and the track
+# fitted to the others (track_without_odd_view): a camera whose image disagrees with the
+# rest (a frame from another moment, a hand in front of its lens) otherwise pulls the tube
+# off in every view and sends the frame to a start from a hull it has cut. Two views place
+# a tube whether they agree or not: the others' tube is taken where it explains their
+# silhouettes and leaves more than ODD_VIEW_MISFIT of the left-out view's unexplained,
+# beyond ODD_VIEW_CONTRAST times the most it leaves of another view's. On 24 frames with
+# one camera's picture taken 8 or 16 frames away (four shapes, three seeds; 2026-12-06)
+# the view left most unexplained was the odd one wherever one was named (22), as each view
+# left out in turn had found; that costs one fit where three took 50-95 ms, and a lost
+# track whose tube leaves every view explained (a jump, a tube through itself) none: the
+# thicker loop of `make bench` (300 frames, one core) started its six tracks in 310-720 ms
+# against 370-750 ms. On nine frames with one camera's picture
 # taken 8-16 frames away (three random shapes at two offsets, three other sessions), the
 # others' tube came out 0.13-0.43 mm off at most on eight, the odd camera named, against
 # 1.9-63 mm from the fit to every view or a start from the hull, which named another
@@ -482,7 +488,7 @@ def track_tube(
 
 def track_without_odd_view(
     track: Callable[[Sequence[int]], TrackedFit],
-    predicted_mm: FloatArray,
+    lost: TrackedFit,
     cameras: Sequence[Camera],
     masks: Sequence[NDArray[np.bool_]],
     contrasts: Sequence[NDArray[np.float32]],
@@ -491,26 +497,21 @@ def track_without_odd_view(
 ) -> tuple[TrackedFit, int] | None:
     """A lost track held by the views but one: the fit, and the view that disagrees.
 
-    ``track`` fits the tube from the prediction (N, 3) mm to the views it is given (their
-    indices). Each view is left out in turn; two views place a tube whether or not they
-    agree, so of the fits the others hold (not lost) the one nearest the prediction is
-    taken, where it leaves more of the left-out view's silhouette unexplained than
-    ``ODD_VIEW_MISFIT`` beyond ``ODD_VIEW_CONTRAST`` times the most it leaves of another
-    view's: returned judged in every view, with that view. None where there is none (the
-    track was lost for another reason than one view).
+    ``lost`` is the track fitted to every view; the view it leaves most unexplained is
+    the one left out, and ``track`` fits the tube from the prediction to the others
+    (their indices). Two views place a tube whether or not they agree, so that fit is
+    taken only where it holds and leaves more of the left-out view's silhouette
+    unexplained than ``ODD_VIEW_MISFIT`` beyond ``ODD_VIEW_CONTRAST`` times the most it
+    leaves of another view's: returned judged in every view, with that view. None where
+    there is none (the track was lost for another reason than one view).
     """
-    best: tuple[float, TubeFit, int] | None = None
-    for odd in range(len(cameras)):
-        fitted = track([view for view in range(len(cameras)) if view != odd])
-        if fitted.fit is None or fitted.curve is None or fitted.lost:
-            continue
-        gap = axis_gap_mm(fitted.curve.points_mm, predicted_mm)
-        if best is None or gap < best[0]:
-            best = (gap, fitted.fit, odd)
-    if best is None:
+    if not lost.misfits or lost.misfit <= 0:
+        return None  # every view explained: lost for a jump or a tube through itself
+    odd = int(np.argmax(lost.misfits))
+    fitted = track([view for view in range(len(cameras)) if view != odd])
+    if fitted.fit is None or fitted.curve is None or fitted.lost:
         return None
-    _, fit, odd = best
-    judged = judge_fit(fit, cameras, masks, n_points=n_points, contrasts=contrasts)
+    judged = judge_fit(fitted.fit, cameras, masks, n_points=n_points, contrasts=contrasts)
     others = max(judged.misfits[view] for view in range(len(cameras)) if view != odd)
     far_off = judged.misfits[odd] > ODD_VIEW_MISFIT + ODD_VIEW_CONTRAST * others
     return (judged, odd) if far_off else None

@@ -7,7 +7,9 @@ that angle about its optical centre (a random axis), its centre moved by
 error_deg`` percent and its principal point moved by ``PX_PER_DEG * error_deg``
 pixels, each in a random direction. At 0.05 deg that is about 0.3-0.6 px over
 the workspace of the synthetic rigs, a good lab calibration; at 0.15 deg
-0.8-1.9 px, a camera nudged after it was calibrated.
+0.8-1.9 px, a camera nudged after it was calibrated. With ``bumped``, that camera alone
+is off, turned by ``error_deg`` about its centre (a random axis) and nothing else: a rig
+calibrated exactly whose one camera was knocked since.
 """
 
 from __future__ import annotations
@@ -33,14 +35,22 @@ def _unit(rng: np.random.Generator, n: int) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
-def perturbed_rig(cameras: Sequence[SynthCamera], error_deg: float, *, seed: int) -> list[SynthCamera]:
-    """``cameras`` each moved by an error of size ``error_deg`` (see the module), drawn from ``seed``.
+def perturbed_rig(
+    cameras: Sequence[SynthCamera], error_deg: float, *, seed: int, bumped: int | None = None
+) -> list[SynthCamera]:
+    """``cameras`` each moved by an error of size ``error_deg`` (see the module), drawn from
+    ``seed``; or, with ``bumped`` (an index), that camera alone turned by it.
 
     ``error_deg`` 0 returns the cameras unchanged.
     """
     if error_deg == 0.0:
         return list(cameras)
     rng = np.random.default_rng([seed, 0xCA11B])
+    if bumped is not None:
+        cam = cameras[bumped]
+        rotation = cv2.Rodrigues(_unit(rng, 3) * np.deg2rad(error_deg))[0] @ cam.R
+        turned = replace(cam, R=rotation, t=-rotation @ cam.center)
+        return [turned if k == bumped else c for k, c in enumerate(cameras)]
     out = []
     for cam in cameras:
         turn, _ = cv2.Rodrigues(_unit(rng, 3) * np.deg2rad(error_deg))

@@ -177,7 +177,8 @@ class SceneOptions:
     distractor : a dark blob in one view's background; flicker : per-frame brightness;
     calib_error_deg : the error of the calibration.toml written (see
     :mod:`pipeline.synth.calib_error`; the videos are filmed with the true cameras,
-    which ground_truth.npz keeps).
+    which ground_truth.npz keeps); bumped_camera : the index of the one camera off by it
+    (turned about its centre), or None for every camera off.
     """
 
     tip: str = "flat"
@@ -187,6 +188,7 @@ class SceneOptions:
     distractor: bool = False
     flicker: bool = False
     calib_error_deg: float = 0.0
+    bumped_camera: int | None = None
 
 
 def _validate(
@@ -228,6 +230,12 @@ def _validate(
         raise PipelineError(
             f"--calib-error must be in [0, {MAX_ERROR_DEG:g}] degrees, got {options.calib_error_deg}"
         )
+    if options.bumped_camera is not None:
+        if not options.calib_error_deg:
+            raise PipelineError("--bumped-camera needs --calib-error DEG: how far that camera is turned")
+        if not 0 <= options.bumped_camera < options.cameras:
+            last, got = options.cameras - 1, options.bumped_camera
+            raise PipelineError(f"--bumped-camera must be a camera's index, 0-{last}, got {got}")
 
 
 # The longest session rendered: an hour at 30 fps (its ground truth alone is ~1 GB).
@@ -351,9 +359,12 @@ def render_session(
         with unfinished(out_dir):
             _remove_earlier_views(out_dir, {cam.name for cam in cameras})
             if options.calib_error_deg:
-                given = perturbed_rig(cameras, options.calib_error_deg, seed=seed)
+                bumped = options.bumped_camera
+                given = perturbed_rig(cameras, options.calib_error_deg, seed=seed, bumped=bumped)
+                which = "" if bumped is None else f", {cameras[bumped].name} alone turned"
                 source = (
-                    f"pipeline synth (true cameras with a {options.calib_error_deg:g} deg calibration error)"
+                    f"pipeline synth (true cameras with a {options.calib_error_deg:g} deg calibration "
+                    f"error{which})"
                 )
             else:
                 given, source = cameras, "pipeline synth (true cameras)"
@@ -402,6 +413,7 @@ def render_session(
                 "distractor_camera": np.int64(-1 if blob is None else blob.camera_index),
                 "flicker_gain": gains,
                 "calib_error_deg": np.float64(options.calib_error_deg),
+                "bumped_camera": np.int64(-1 if options.bumped_camera is None else options.bumped_camera),
             }
             write_npz_deterministic(out_dir / TRUTH_FILE, truth)  # first: the folder's mark
             # A uniform tube is drawn at its plain radius (the profile's values are that radius).

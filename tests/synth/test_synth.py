@@ -57,6 +57,7 @@ NAMES = ("cam0", "cam1", "cam2")
 GT_KEYS = {
     "centerlines",
     "calib_error_deg",
+    "bumped_camera",
     "timestamps_s",
     "radius_mm",
     "base_mm",
@@ -915,6 +916,20 @@ def test_a_drawn_case_with_a_calibration_error_says_so_and_renders_it(tmp_path: 
     assert all(not np.allclose(cam.matrix, k) for cam, k in zip(given, gt["K"], strict=True))
 
 
+@pytest.mark.parametrize("bumped", [0, 2])
+def test_a_bumped_camera_alone_is_off_turned_about_its_centre(tmp_path: Path, bumped: int) -> None:
+    options = SceneOptions(calib_error_deg=0.6, bumped_camera=bumped)
+    render_session(tmp_path, frames=2, seed=3, options=options, progress=False, jobs=1)
+    gt = np.load(tmp_path / "ground_truth.npz")
+    assert int(gt["bumped_camera"]) == bumped
+    for k, cam in enumerate(read_calibration(tmp_path / "calibration.toml")):
+        np.testing.assert_allclose(cam.matrix, gt["K"][k])
+        np.testing.assert_allclose(cam.center_mm, -gt["R"][k].T @ gt["t"][k], atol=1e-9)
+        turn = cam.camera_from_world @ gt["R"][k].T
+        angle = np.rad2deg(np.linalg.norm(cv2.Rodrigues(turn)[0]))
+        assert angle == pytest.approx(0.6 if k == bumped else 0.0, abs=1e-6)
+
+
 def test_bad_variety_options_raise_pipeline_errors(tmp_path: Path) -> None:
     with pytest.raises(PipelineError, match="unknown tip 'pointy'"):
         render_session(tmp_path, frames=2, options=SceneOptions(tip="pointy"), progress=False)
@@ -924,6 +939,11 @@ def test_bad_variety_options_raise_pipeline_errors(tmp_path: Path) -> None:
         render_session(tmp_path, frames=2, options=SceneOptions(cameras=4), progress=False)
     with pytest.raises(PipelineError, match="image size must be one of 320x240, 1280x960, got 640x480"):
         render_session(tmp_path, frames=2, options=SceneOptions(size=(640, 480)), progress=False)
+    with pytest.raises(PipelineError, match="--bumped-camera needs --calib-error DEG"):
+        render_session(tmp_path, frames=2, options=SceneOptions(bumped_camera=1), progress=False)
+    bumped = SceneOptions(cameras=2, calib_error_deg=0.5, bumped_camera=2)
+    with pytest.raises(PipelineError, match="a camera's index, 0-1, got 2"):
+        render_session(tmp_path, frames=2, options=bumped, progress=False)
 
 
 def test_the_arrangements_the_command_line_offers_are_the_rigs_placements() -> None:
