@@ -138,6 +138,7 @@ class Adjustment:
         tubes' axes and where the tubes fitted to them project, with the given and
         with the adjusted cameras: the views' (in)consistency.
     readings : side readings used in the last round.
+    rounds : the Gauss-Newton rounds taken.
     """
 
     cameras: tuple[Camera, ...]
@@ -146,6 +147,7 @@ class Adjustment:
     before_px: float
     after_px: float
     readings: int
+    rounds: int
 
 
 @dataclass(frozen=True, eq=False)
@@ -213,10 +215,13 @@ def adjust_cameras(
     rounds: int = 6,
     prior_sigma: FloatArray = PRIOR_SIGMA,
     held: Sequence[int] = (),
+    settled_px: float = 0.0,
+    max_rounds: int = 0,
 ) -> Adjustment:
     """Adjust ``cameras`` and the frames' ``tubes`` together so that the tubes project
     onto every silhouette (see the module); ``rounds`` Gauss-Newton rounds, each
-    reading the images again. ``base_mm`` (3,): the mount, each tube's first sample,
+    reading the images again; or ``max_rounds`` where after ``rounds`` the views are left
+    more than ``settled_px`` apart. ``base_mm`` (3,): the mount, each tube's first sample,
     or None if unknown. The cameras ``held`` (indices) are kept as given, and the world
     frame is then theirs (else the given rig's, :func:`nearest_to_given`)."""
     base_fixed = base_mm is not None
@@ -227,7 +232,7 @@ def adjust_cameras(
     prior = np.tile(1.0 / np.asarray(prior_sigma) ** 2, c)
     before = after = float("nan")
     readings = 0
-    for round_ in range(rounds + 1):
+    for round_ in range(max(rounds, max_rounds) + 1):
         current = [moved_camera(cam, p) for cam, p in zip(cameras, params, strict=True)]
         systems = [_frame_system(t, current, base_fixed) for t in tubes]
         found = [s for s in systems if s is not None]
@@ -237,8 +242,10 @@ def adjust_cameras(
             before = rms
         after = rms
         readings = sum(s.obs.readings for s in found)
-        if round_ == rounds or not readings:
+        if round_ >= max(rounds, max_rounds) or not readings:
             break
+        if round_ == rounds and rms <= settled_px:
+            break  # settled: no more rounds
         schur = np.diag(prior * _READING_SIGMA_MM**2) + sum(s.schur for s in found)
         rhs = -prior * _READING_SIGMA_MM**2 * params.ravel() + sum(s.rhs for s in found)
         step = np.zeros(c * N_PARAMS)
@@ -250,10 +257,10 @@ def adjust_cameras(
                 tubes[i] = replace(tubes[i], points_mm=moved, radii_mm=s.obs.radii_mm)
     adjusted = [moved_camera(cam, p) for cam, p in zip(cameras, params, strict=True)]
     if held:
-        return Adjustment(tuple(adjusted), params, tuple(tubes), before, after, readings)
+        return Adjustment(tuple(adjusted), params, tuple(tubes), before, after, readings, round_)
     world = nearest_to_given(adjusted, cameras, prior_sigma)
     tubes = [replace(t, points_mm=world.points(t.points_mm)) for t in tubes]
-    return Adjustment(tuple(world.cameras(adjusted)), params, tuple(tubes), before, after, readings)
+    return Adjustment(tuple(world.cameras(adjusted)), params, tuple(tubes), before, after, readings, round_)
 
 
 def similar_camera(camera: Camera, rotation: FloatArray, scale: float, shift_mm: FloatArray) -> Camera:

@@ -38,9 +38,20 @@ from .mount import CHECK_BASE, mount_shift, moved_to_mount
 
 FloatArray = NDArray[np.float64]
 
-# Frames adjusted with the cameras, spread over the session, and the adjustment's rounds.
+# Frames adjusted with the cameras, spread over the session, and the adjustment's rounds:
+# ROUNDS, or MAX_ROUNDS where after ROUNDS the views are left more than SETTLED_PX apart
+# (_adjusted). Exact rigs and rigs 0.05-0.15 deg off come to 0.04-0.06 px in ROUNDS; a
+# camera knocked by 0.8 deg or more, whose image of the tube lies off its silhouette by a
+# radius or two, has most of its side readings set aside at first and comes closer round
+# by round (a random shape, one camera turned 0.86 deg, 12 frames: 0.21, 0.19, 0.18, 0.20,
+# 0.17, then 0.13, 0.11, 0.09 and 0.075 px at the 16th round). Compared at the same
+# number of rounds (one_camera_moved), adjustments that have not settled rank alike only
+# near their end: at 4, 8 and 16 rounds a camera knocked 0.8 deg came out alone at 0.94,
+# 1.58 and 0.89 times every camera's, another camera alone at 0.70, 0.74 and 1.36.
 SAMPLE_FRAMES = 16
 ROUNDS = 4
+MAX_ROUNDS = 16
+SETTLED_PX = 0.06
 # "auto" refines only on frames where the tube took at least this many poses, each
 # _POSE_APART_MM from the others: frames of a tube that stands still repeat one view
 # of it, on which the cameras' 9 parameters each fit the readings' noise (an exact rig
@@ -71,11 +82,11 @@ MOVED_PX = 0.5
 # Adjusted alone, the others kept as given, it leaves the silhouettes as consistent as
 # every camera adjusted, and no other camera alone does. Taken where the best camera alone
 # leaves them at most ONE_CAMERA_FIT times as far apart as every camera adjusted, and the
-# next best at least ONE_CAMERA_APART times the best. On 16 renders with one camera turned
+# next best at least ONE_CAMERA_APART times the best. On 19 renders with one camera turned
 # 0.3-1.2 deg about its centre (90 frames, seven shapes, both rigs; docs/calibration.md has
-# eight; 2026-12-06) the turned camera alone came to 0.87-1.04 times every camera's and the
-# next best to 1.14-5 times it on 13 (mean 0.17-3.92 -> 0.08-0.34 mm), two had two or three
-# cameras alike (kept as before) and one was not refined at all. With every camera off
+# eleven; 2026-12-06) the turned camera alone came to 0.84-1.04 times every camera's and
+# the next best to 1.14-5 times it on 17 (mean 0.17-4.27 -> 0.08-0.37 mm); on two, two or
+# three cameras alone fit alike, and every camera was adjusted as before. With every camera off
 # (`--calib-error` 0.05-0.2 deg, 16 renders of 90-150 frames) the best alone came to
 # 1.08-2.1 times every camera's, or all three alike on straight tubes; none was taken. Not
 # a sure test: on 12 sample frames of a 30-frame random shape 0.15 deg off one camera
@@ -306,7 +317,7 @@ def refine(
         )
         return _moved(given, shift), report
     # The tubes' bases free, as they were reconstructed (see sample_tubes).
-    adjustment = adjust_cameras(given, tubes, base_mm=None, rounds=ROUNDS)
+    adjustment = _adjusted(given, tubes)
     points = np.concatenate([t.points_mm for t in adjustment.tubes])
     gain = adjustment.before_px / max(adjustment.after_px, 1e-9)
     # What the silhouettes tell of the cameras, apart from where the rig as a whole is
@@ -352,6 +363,14 @@ def refine(
     return (tuple(cameras) if applied else _moved(given, shift)), report
 
 
+def _adjusted(cameras: Sequence[Camera], tubes: Sequence[Tube]) -> Adjustment:
+    """The ``cameras`` and ``tubes`` adjusted together, the tubes' bases free as they were
+    reconstructed (see ``ROUNDS``)."""
+    return adjust_cameras(
+        cameras, tubes, base_mm=None, rounds=ROUNDS, settled_px=SETTLED_PX, max_rounds=MAX_ROUNDS
+    )
+
+
 def one_camera_moved(
     given: Sequence[Camera], tubes: Sequence[Tube], everyone: Adjustment
 ) -> tuple[int, Adjustment] | None:
@@ -364,8 +383,11 @@ def one_camera_moved(
     silhouettes as consistent as every camera adjusted (within ``ONE_CAMERA_FIT``) and
     clearly more than any other camera alone (by ``ONE_CAMERA_APART``).
     """
+    # As many rounds as every camera's took: the two compared at the same stage.
     alone = [
-        adjust_cameras(given, tubes, rounds=ROUNDS, held=[k for k in range(len(given)) if k != moved])
+        adjust_cameras(
+            given, tubes, rounds=everyone.rounds, held=[k for k in range(len(given)) if k != moved]
+        )
         for moved in range(len(given))
     ]
     best, second = np.argsort([a.after_px for a in alone])[:2]
@@ -453,6 +475,15 @@ def refined_cameras(
         return model.cameras, None, read
     lags = [] if frames_of is None else camera_lags(model, indexed, frames_of, map_frames)
     if lags:
+        # A calibration that is off can pass for a lag, and one video out of step can make
+        # another look so: of the lags named, the one that refined cameras explain best, if
+        # better than the frames in step.
+        assert frames_of is not None
+        apart = [_shifted_apart_px(model, frames, lag, frames_of, map_frames) for lag in lags]
+        best = int(np.argmin(apart))
+        if np.isfinite(apart[best]):  # else too few frames to tell: the lag test's word
+            lags = [lags[best]] if apart[best] < _adjusted(model.cameras, tubes).after_px else []
+    if lags:
         # The tubes were fitted to views of two moments: adjusted to them, the cameras would
         # take the difference for cameras that moved.
         reason = "a camera's video is out of step with the others'"
@@ -466,6 +497,38 @@ def refined_cameras(
     # moved rig's made the end a close call (-0.12 +- 0.08, every frame flagged); read anew,
     # flat, -0.26 +- 0.11, no frame flagged, at the same 0.24 mm.
     return cameras, report, None if report.changed else read
+
+
+def _shifted_apart_px(
+    model: SessionModel,
+    frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
+    lag: CameraLag,
+    frames_of: FramesOfCamera,
+    map_frames: FrameMap,
+) -> float:
+    """How far apart (px) the views leave the sample ``frames``, their lagging camera's
+    images taken ``lag.frames`` on, once the cameras are adjusted to them
+    (:class:`~pipeline.calibrate.adjust.Adjustment`'s ``after_px``; inf with too few frames).
+
+    The lag test compares a camera's silhouettes with the tube fitted to the others, drawn
+    with the given cameras: where those are off, a tube that moves steadily across that view
+    can match a frame or two away better, as if the video were out of step; and one video
+    out of step pulls the others' tubes off too. Of the accounts, the cameras refined for
+    each, the one that explains the silhouettes best stands. On a random shape whose rig
+    was 0.1 deg off (`synth --shape random --arrangement oblique --seed 22 --frames 90
+    --calib-error 0.1`; 2026-12-06) cam1 matched best two frames on (0.72 of the pixels, 11
+    of 14 frames); refined, the frames in step came to 0.034 px apart and cam1's shifted to
+    0.079. docs/calibration.md has the measures on drawn sessions.
+    """
+    camera = [c.name for c in model.cameras].index(lag.name)
+    shifted = []
+    for index, images in frames:
+        moved = index + lag.frames
+        image = frames_of(camera, moved, moved + 1) if moved >= 0 else []
+        if image and image[0] is not None:
+            shifted.append((index, [image[0] if k == camera else im for k, im in enumerate(images)]))
+    tubes = [tube for _, tube in _sampled(model, shifted, map_frames)[0]]
+    return _adjusted(model.cameras, tubes).after_px if len(tubes) >= 3 else float("inf")
 
 
 def _kept_as_given(
