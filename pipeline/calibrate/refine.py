@@ -129,6 +129,7 @@ class Refinement:
         the mount (:mod:`pipeline.calibrate.mount`); None when it was not, and
         ``mount_note`` says why. Where the given cameras are kept, ``mount_note`` says
         where they see the base, if not at the mount ("" where they do).
+    alone : the one camera refined, the others kept as given ("" where every camera was).
     """
 
     applied: bool
@@ -161,7 +162,8 @@ class Refinement:
             frame = f"{kept} kept as given (the world frame theirs)"
         else:
             frame = f"the world frame held by the given cameras' poses ({self.mount_note})"
-        shown = [c for c in self.changes if c.name == self.alone or not self.alone or self.mount_shift_mm]
+        everyone = not self.alone or self.mount_shift_mm is not None  # a moved rig moves every camera
+        shown = [c for c in self.changes if everyone or c.name == self.alone]
         return f"refined ({figures}): " + "; ".join(c.describe() for c in shown) + f"; {frame}"
 
     @property
@@ -338,7 +340,7 @@ def refine(
     shift = None
     if applied and base is not None:
         shift, held_by = mount_shift(cameras, refit(cameras), np.asarray(base))
-        if alone is not None and shift is not None and np.linalg.norm(shift) <= _AUTO_SHIFT_MM:
+        if alone and shift is not None and np.linalg.norm(shift) <= _AUTO_SHIFT_MM:
             # The world frame is the cameras' kept as given, which see the base where it is.
             shift = None
         if shift is not None:
