@@ -171,8 +171,11 @@ class _FrameSystem:
         return (self.solved[:, 0] - self.solved[:, 1:] @ camera_step).reshape(-1, 3)
 
 
-def _frame_system(tube: Tube, cameras: Sequence[Camera], base_fixed: bool) -> _FrameSystem | None:
-    """The frame's part of the normal equations; None without enough readings."""
+def _frame_system(
+    tube: Tube, cameras: Sequence[Camera], base_fixed: bool, held: Sequence[int] = ()
+) -> _FrameSystem | None:
+    """The frame's part of the normal equations (the cameras ``held`` given no part: their
+    parameters stay); None without enough readings."""
     obs = read_sides(
         tube.points_mm, cameras, tube.contrasts, tube.radii_mm, SPACING_MM, crowd_margin_px=_CROWD_MARGIN_PX
     )
@@ -192,7 +195,13 @@ def _frame_system(tube: Tube, cameras: Sequence[Camera], base_fixed: bool) -> _F
     centre, w = obs.centres()
     scale = 1.0 / np.maximum(np.linalg.norm(across, axis=-1), 1e-12)  # px per mm across
     residual_px = ((centre - np.einsum("kci,ki->kc", obs.rows, tube_only)) * scale)[w > 0]
-    jac = np.stack([parameter_jacobian(cam, tube.points_mm) for cam in cameras])  # (C, K, 2, 9)
+    held_jacobian = np.zeros((len(tube.points_mm), 2, N_PARAMS))
+    jac = np.stack(  # (C, K, 2, 9)
+        [
+            held_jacobian if k in held else parameter_jacobian(cam, tube.points_mm)
+            for k, cam in enumerate(cameras)
+        ]
+    )
     d: FloatArray = np.einsum("kci,ckij->kcj", across, jac)  # (K, C, 9): mm across per parameter
     coupling = np.einsum("kc,kci,kcj->kicj", w, obs.rows, d).reshape(3 * k, c * N_PARAMS)
     if base_fixed:
@@ -234,7 +243,7 @@ def adjust_cameras(
     readings = 0
     for round_ in range(max(rounds, max_rounds) + 1):
         current = [moved_camera(cam, p) for cam, p in zip(cameras, params, strict=True)]
-        systems = [_frame_system(t, current, base_fixed) for t in tubes]
+        systems = [_frame_system(t, current, base_fixed, held) for t in tubes]
         found = [s for s in systems if s is not None]
         residuals = np.concatenate([s.residual_px for s in found] or [np.zeros(0)])
         rms = float(np.sqrt(np.mean(residuals**2))) if residuals.size else float("nan")
