@@ -285,12 +285,14 @@ def refine(
     tubes: Sequence[Tube],
     mode: str | bool,
     refit: Callable[[Sequence[Camera]], Sequence[Tube]],
+    adjustment: Adjustment | None = None,
 ) -> tuple[tuple[Camera, ...], Refinement]:
     """The cameras to reconstruct with, given the refinement ``mode`` ("auto", True or
     False), and the refinement's report. Where "auto" keeps the given cameras, they are
     still moved to the mount where they see the tube's base farther than
     ``_AUTO_SHIFT_MM`` from base_mm (the rig off as a whole, which no silhouette shows).
 
+    ``adjustment``: the cameras and ``tubes`` adjusted together, if already done.
     ``refit``: the frames' tubes reconstructed again with given cameras
     (:func:`refitter`), to read the base on (:mod:`.mount`). The adjusted tubes will
     not do: the adjustment moves each tube by linear steps, smooth along it, and leaves
@@ -319,7 +321,7 @@ def refine(
         )
         return _moved(given, shift), report
     # The tubes' bases free, as they were reconstructed (see sample_tubes).
-    adjustment = _adjusted(given, tubes)
+    adjustment = _adjusted(given, tubes) if adjustment is None else adjustment
     points = np.concatenate([t.points_mm for t in adjustment.tubes])
     gain = adjustment.before_px / max(adjustment.after_px, 1e-9)
     # What the silhouettes tell of the cameras, apart from where the rig as a whole is
@@ -476,6 +478,7 @@ def refined_cameras(
     if len(tubes) < 3:
         return model.cameras, None, read
     lags = [] if frames_of is None else camera_lags(model, indexed, frames_of, map_frames)
+    in_step: Adjustment | None = None  # the cameras adjusted to the frames as they are
     if lags:
         # A calibration that is off can pass for a lag, and one video out of step can make
         # another look so: of the lags named, the one that refined cameras explain best, if
@@ -483,15 +486,16 @@ def refined_cameras(
         assert frames_of is not None
         apart = [_shifted_apart_px(model, frames, lag, frames_of, map_frames) for lag in lags]
         best = int(np.argmin(apart))
+        in_step = _adjusted(model.cameras, tubes)
         if np.isfinite(apart[best]):  # else too few frames to tell: the lag test's word
-            lags = [lags[best]] if apart[best] < _adjusted(model.cameras, tubes).after_px else []
+            lags = [lags[best]] if apart[best] < in_step.after_px else []
     if lags:
         # The tubes were fitted to views of two moments: adjusted to them, the cameras would
         # take the difference for cameras that moved.
         reason = "a camera's video is out of step with the others'"
         report = Refinement(False, 0, float("nan"), float("nan"), (), reason, lags=tuple(lags))
         return model.cameras, dataclasses.replace(report, seconds=time.perf_counter() - started), read
-    cameras, report = refine(model, tubes, mode, refitter(model, frames, map_frames))
+    cameras, report = refine(model, tubes, mode, refitter(model, frames, map_frames), in_step)
     report = dataclasses.replace(report, seconds=time.perf_counter() - started)
     # The ends read with the given cameras serve only them. Moved to the mount, the frames'
     # bases are held there and their ends read anew: on a bend 0.15 deg off (`synth --frames
@@ -529,7 +533,7 @@ def _shifted_apart_px(
         image = frames_of(camera, moved, moved + 1) if moved >= 0 else []
         if image and image[0] is not None:
             shifted.append((index, [image[0] if k == camera else im for k, im in enumerate(images)]))
-    tubes = [tube for _, tube in _sampled(model, shifted, map_frames)[0]]
+    tubes = sample_tubes(model, shifted, map_frames)
     return _adjusted(model.cameras, tubes).after_px if len(tubes) >= 3 else float("inf")
 
 
