@@ -25,7 +25,7 @@ from ..session.folder import check_not_dangling
 from ..session.grey_levels import grey_8bit
 from ..session.image_files import cut_short
 from ..session.video import VIDEO_EXTENSIONS
-from .boards import Board, detect
+from .boards import Board, detect, find_chessboard
 
 log = logging.getLogger(__name__)
 
@@ -362,8 +362,7 @@ def board_size_problems(views: Sequence[View], board: Board) -> list[str]:
 
 
 def _holds_pattern(image: NDArray[np.uint8], pattern: tuple[int, int]) -> bool:
-    found, _ = cv2.findChessboardCornersSB(image, pattern, flags=cv2.CALIB_CB_EXHAUSTIVE)
-    return bool(found)
+    return find_chessboard(image, pattern, cv2.CALIB_CB_EXHAUSTIVE)[0]
 
 
 def _check_not_copied_across(views: list[View]) -> None:
