@@ -12,7 +12,15 @@ import numpy as np
 import pytest
 from conftest import rig_cameras
 
-from pipeline.calibrate.adjust import Tube, aligned_by_images, moved_camera, nearest_to_given, similar_camera
+from pipeline.calibrate.adjust import (
+    N_PARAMS,
+    Tube,
+    aligned_by_images,
+    moved_camera,
+    nearest_to_given,
+    parameter_jacobian,
+    similar_camera,
+)
 from pipeline.calibrate.mount import mount_shift, moved_to_mount
 from pipeline.calibrate.refine import (
     Refinement,
@@ -362,6 +370,27 @@ def test_zero_parameters_leave_a_camera_as_it_is() -> None:
     np.testing.assert_allclose(moved_camera(cam, np.zeros(9)).project(points), cam.project(points), atol=1e-9)
     turned = moved_camera(cam, np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0, -1.0]))
     np.testing.assert_allclose(turned.project(points) - cam.project(points), [[2.0, -1.0]] * 2, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_parameter_jacobian_is_the_projections_derivative(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    cam = rig_cameras(["oblique", "ninety"][seed % 2])[seed % 3]
+    cam = replace(cam, distortions=rng.normal(0.0, [0.1, 0.05, 0.002, 0.002, 0.01]))
+    points = rng.uniform([40.0, 40.0, 0.0], [220.0, 220.0, 200.0], (40, 3))
+    # Turns of 1e-4 rad: the ninety rig's cam1 is turned ~180 deg, where Rodrigues vectors
+    # (moved_camera's) lose a smaller turn's digits.
+    steps = np.array([1e-4] * 3 + [1e-3] * 3 + [1e-6] + [1e-3] * 2)
+    differences = np.stack(
+        [
+            (moved_camera(cam, step).project(points) - moved_camera(cam, -step).project(points)) / (2 * size)
+            for step, size in zip(np.diag(steps), steps, strict=True)
+        ],
+        axis=-1,
+    )
+    jacobian = parameter_jacobian(cam, points)
+    assert jacobian.shape == (len(points), 2, N_PARAMS)
+    np.testing.assert_allclose(jacobian, differences, rtol=1e-5, atol=1e-4 * np.abs(differences).max())
 
 
 @pytest.mark.parametrize("value", ["sometimes", 1, 0.5])
