@@ -360,29 +360,39 @@ def _curve_and_quality(
             # and the lost track's, the one that leaves least of the
             # silhouettes unexplained.
             _check_declared_radius(settings.manipulator.radius_mm, cameras, masks, pts)
-            _, init = fit_centerline(
-                pts,
-                cameras,
-                masks,
-                contrasts,
-                base_mm=base,
-                base_known=known,
-                radius_mm=radius_guess,
-                voxel_mm=settings.workspace.voxel_mm,
-                n_points=n_points,
-                cap=model.tip,
-                wider_hull=(lambda: hull_but_one_view(model, masks)) if len(cameras) > 2 else None,
-            )
-            options = [track(init.points_mm, init.radius_mm, init.radii_mm)]
-            if held is not None:
-                options.append(held)
-            if np.isfinite(init.radius_mm) and init.radius_mm > 0:
-                options.append(judge_fit(init, cameras, masks, n_points=n_points, contrasts=contrasts))
-            best = min(options, key=lambda o: o.misfit)
-            if best.curve is None:  # no fit read a tube: the hull's, drawn at the radius guessed
-                best = judge_fit(
-                    init, cameras, masks, n_points=n_points, radius_mm=radius_guess, contrasts=contrasts
+            lost_fit = held if held is not None and held.curve is not None else None
+            try:
+                _, init = fit_centerline(
+                    pts,
+                    cameras,
+                    masks,
+                    contrasts,
+                    base_mm=base,
+                    base_known=known,
+                    radius_mm=radius_guess,
+                    voxel_mm=settings.workspace.voxel_mm,
+                    n_points=n_points,
+                    cap=model.tip,
+                    wider_hull=(lambda: hull_but_one_view(model, masks)) if len(cameras) > 2 else None,
                 )
+            except ValueError as exc:
+                if lost_fit is None:
+                    raise
+                # No start in the hull (a view that lost part of a thin tube carves it away
+                # near the base): the lost track's fit is the frame's, flagged.
+                init = None
+                best, tracked, lost = lost_fit, True, f"{lost_fit.lost}; no start from the hull: {exc}"
+            if init is not None:
+                options = [track(init.points_mm, init.radius_mm, init.radii_mm)]
+                if held is not None:
+                    options.append(held)
+                if np.isfinite(init.radius_mm) and init.radius_mm > 0:
+                    options.append(judge_fit(init, cameras, masks, n_points=n_points, contrasts=contrasts))
+                best = min(options, key=lambda o: o.misfit)
+                if best.curve is None:  # no fit read a tube: the hull's, drawn at the radius guessed
+                    best = judge_fit(
+                        init, cameras, masks, n_points=n_points, radius_mm=radius_guess, contrasts=contrasts
+                    )
         if best.fit is None or best.curve is None:
             raise ValueError("the fit gave no curve")
         curve, radii = best.curve, best.radii_mm

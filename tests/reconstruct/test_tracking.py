@@ -534,3 +534,41 @@ def test_a_frame_one_camera_took_at_another_moment_is_fitted_to_the_others_and_n
     assert centerline_distances(truth[20], swapped.centerline_mm).max() < 1.0
     # The track goes on from it.
     assert all(r.tracked for r in previous[20 - 12 :])
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_a_lost_track_with_no_start_in_the_hull_keeps_its_fit_flagged(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, seed: int
+) -> None:
+    # A thin tube that one view's threshold loses near the base: the track is lost there,
+    # and the hull, cut by that view, holds nothing to start again from. The lost track's
+    # fit is the frame's, flagged, where the frame would otherwise fail.
+    render_session(tmp_path, shape="random", frames=6, seed=seed, progress=False, jobs=1)
+    session = load_session(tmp_path)
+    model = build_model(session)
+    frames = decode_frames(session.video_paths, range(6))
+    previous: list[FrameResult] = []
+    for index, images in frames[:5]:
+        previous.append(frame_module.reconstruct_with_silhouettes(index, images, model, previous)[0])
+    assert all(r.status == "ok" for r in previous)
+    track = frame_module.track_tube
+
+    def lost_track(*args: Any, **kwargs: Any) -> TrackedFit:
+        return replace(track(*args, **kwargs), lost="leaves part of a silhouette unexplained")
+
+    def no_start(*args: Any, **kwargs: Any) -> Any:
+        raise ValueError("the hull holds no tube near the base")
+
+    monkeypatch.setattr(frame_module, "track_tube", lost_track)
+    monkeypatch.setattr(frame_module, "fit_centerline", no_start)
+    index, images = frames[5]
+    result = frame_module.reconstruct_with_silhouettes(index, images, model, previous)[0]
+    assert result.status == "ok" and result.tracked
+    assert "no start from the hull: the hull holds no tube near the base" in result.lost
+    assert result.suspect and result.suspect_reason.startswith("its track was lost here")
+    truth = np.load(tmp_path / "ground_truth.npz")["centerlines"][index]
+    assert result.centerline_mm is not None
+    assert centerline_distances(truth, result.centerline_mm).mean() < 0.5
+    # With no track to keep, the frame fails as before, with the hull's reason.
+    alone = frame_module.reconstruct_with_silhouettes(index, images, model, [])[0]
+    assert alone.status == "failed" and "the hull holds no tube near the base" in alone.reason
