@@ -110,6 +110,27 @@ _SHIFT = 4
 _DISC_SPACING = 0.5
 
 
+# A tube fewer pixels across than this in a camera's images is too thin for a threshold
+# to hold whole: its edges blur over a pixel or two. On `synth --radius-mm R --frames 60
+# --seed 3` (2026-12-06): 1.2 px across (R = 1), one camera blind in 28 frames and 25
+# frames failed; 1.7 px (R = 1.5), every frame ok but 21 doubtful in one camera; 2.4 px
+# (R = 2) and wider, curves as close as the thicker tubes'.
+THIN_TUBE_PX = 2.0
+
+
+def tube_width_px(cameras: Sequence[Camera], points_mm: FloatArray, radius_mm: float) -> FloatArray:
+    """(C,) how many pixels across each camera sees the tube of ``radius_mm`` around (N, 3)
+    ``points_mm``: its diameter at the curve's median depth in that camera (NaN where the
+    curve is behind it)."""
+    out = np.full(len(cameras), np.nan)
+    for k, cam in enumerate(cameras):
+        depth = cam.to_camera(points_mm)[:, 2]
+        depth = depth[depth > 0]
+        if len(depth):
+            out[k] = 2.0 * radius_mm * cam.focal_px / float(np.median(depth))
+    return out
+
+
 def is_doubtful(iou: Sequence[float]) -> bool:
     """Whether a frame's per-camera IoUs say its curve is not to be trusted (DOUBTFUL_IOU)."""
     return bool(iou) and min(iou) < DOUBTFUL_IOU

@@ -26,7 +26,14 @@ from numpy.typing import NDArray
 from ..errors import OutputError
 from ..reconstruct.frame_result import NO_SHARED_VOXEL
 from ..reconstruct.frame_task import FrameOutput
-from ..reconstruct.quality import SUSPECT_SMOOTHED_MM, is_doubtful, off_smoothed, reaches_walls
+from ..reconstruct.quality import (
+    SUSPECT_SMOOTHED_MM,
+    THIN_TUBE_PX,
+    is_doubtful,
+    off_smoothed,
+    reaches_walls,
+    tube_width_px,
+)
 from ..session.folder import Session
 from ..session.video import video_fingerprint
 from .frame_log import FrameLog
@@ -187,6 +194,11 @@ class Writers:
         self.doubtful_cameras: dict[str, int] = {}
         self.suspect: list[tuple[int, str]] = []
         self.at_walls: list[int] = []
+        # Per camera, over the ok frames: the sum of the tube's width in its images (px), and
+        # the frames in which it was thinner than THIN_TUBE_PX.
+        self.width_px_sums = np.zeros(len(session.cameras))
+        self.width_frames = 0
+        self.thin_frames = np.zeros(len(session.cameras), dtype=np.int64)
         # A reason every ok frame is suspect for, written with its own (the tube's end a
         # close call: pipeline.reconstruct.tip_shape.TIP_DOUBT).
         self.frame_doubt = frame_doubt
@@ -285,6 +297,18 @@ class Writers:
         if curve is not None and len(curve):
             if reaches_walls(result.points_mm, self.session.settings.workspace, curve[0]):
                 self.at_walls.append(result.index)
+            self._add_widths(curve, result.radius_mm)
+
+    def _add_widths(self, curve_mm: NDArray[np.float64], radius_mm: float) -> None:
+        """Count an ok frame's tube width in each camera's images (its radius, or the declared
+        one where the frame read none)."""
+        if not np.isfinite(radius_mm):
+            radius_mm = self.session.settings.manipulator.radius_mm or float("nan")
+        widths = tube_width_px(self.session.cameras, curve_mm, radius_mm)
+        if np.isfinite(widths).all():
+            self.width_px_sums += widths
+            self.width_frames += 1
+            self.thin_frames += widths < THIN_TUBE_PX
 
     def _smoothed(self, stacked: NDArray[np.float64]) -> NDArray[np.float64] | None:
         times_ns = np.asarray(self.log.times_ns, dtype=np.int64)
@@ -437,6 +461,13 @@ class Writers:
             doubtful_cameras=dict(self.doubtful_cameras),
             frames_at_walls=list(self.at_walls),
             frames_suspect=list(self.suspect),
+            thin_cameras={
+                cam.name: float(total / self.width_frames)
+                for cam, total, thin in zip(
+                    self.session.cameras, self.width_px_sums, self.thin_frames, strict=True
+                )
+                if 2 * thin > self.width_frames
+            },
         )
 
 

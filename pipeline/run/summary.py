@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..reconstruct.quality import DOUBTFUL_IOU
+from ..reconstruct.quality import DOUBTFUL_IOU, THIN_TUBE_PX
 
 
 @dataclass(frozen=True)
@@ -58,6 +58,9 @@ class RunSummary:
     # (a lens covered for a while, a camera whose picture dropped out): no curve was drawn.
     frames_blind: list[int] = field(default_factory=list)
     blind_cameras: dict[str, int] = field(default_factory=dict)  # camera -> those it saw nothing in
+    # camera -> the tube's mean width in its images (px), where most ok frames show it thinner
+    # than THIN_TUBE_PX
+    thin_cameras: dict[str, float] = field(default_factory=dict)
 
     @property
     def frames_total(self) -> int:
@@ -109,6 +112,17 @@ class RunSummary:
             "check that camera's picture there (a lens covered, a picture that dropped out)"
         )
 
+    def thin_line(self) -> str:
+        """The line naming the cameras that see the tube too thin to threshold whole."""
+        named = [f"{name!r} ({width:.1f} px)" for name, width in self.thin_cameras.items()]
+        who = f"camera {named[0]}" if len(named) == 1 else f"cameras {', '.join(named)}"
+        return (
+            f"  thin: the tube is under {THIN_TUBE_PX:g} px across in the images of {who}, in most "
+            "ok frames: too thin for a threshold to hold it whole, and frames may fail, lose the tube "
+            "in a camera or re-project poorly; film it larger (a higher resolution, or the cameras "
+            "closer or zoomed in)"
+        )
+
     def problem_lines(self) -> list[str]:
         """The summary's failure and warning lines: the session's problems (a video much
         shorter than the others), failed frames, moved cameras, suspect frames, doubtful
@@ -116,6 +130,8 @@ class RunSummary:
         out = [f"  {line}" for line in self.session_problems]
         out += [f"  failed {span}: {reason}" for span, reason in compress_failures(self.frames_failed)]
         out += [f"  {line}" for line in self.camera_warnings]
+        if self.thin_cameras:
+            out.append(self.thin_line())
         if self.blind_line():
             out.append(self.blind_line())
         if self.frames_suspect:
@@ -185,6 +201,7 @@ class RunSummary:
             "doubtful_cameras": dict(self.doubtful_cameras),
             "at_walls": list(self.frames_at_walls),
             "blind": list(self.frames_blind),
+            "thin_cameras": dict(self.thin_cameras),
             "tip": self.tip,
             "cameras": self.cameras,
             "problems": [line.strip() for line in self.problem_lines()],

@@ -18,6 +18,7 @@ from pipeline.reconstruct.quality import (
     silhouette_iou,
     tube_mask,
     tube_masks,
+    tube_width_px,
 )
 from pipeline.reconstruct.tracking import USUAL_MISFIT_MAX, usual_misfit
 from pipeline.session.settings import SilhouetteSettings, Workspace
@@ -61,6 +62,27 @@ def test_tube_mask_area_matches_the_projected_tube() -> None:
     # i.e. about +-8 % of the area; supersampling halves that.
     assert tube_mask(cam, rod, 6.0).sum() == pytest.approx(expected, rel=0.08)
     assert tube_mask(cam, rod, 6.0, supersample=4).sum() == pytest.approx(expected, rel=0.04)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_tubes_width_in_pixels_is_its_drawn_masks_area_over_its_length(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    cams = rig_cameras(["oblique", "ninety"][seed % 2])
+    radius = float(rng.uniform(1.0, 8.0))
+    centre = rng.uniform(100.0, 156.0, 3)
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    rod = centre + np.outer(np.linspace(-40.0, 40.0, 20), direction)
+    widths = tube_width_px(cams, rod, radius)
+    for cam, width in zip(cams, widths, strict=True):
+        a, b = cam.project(rod[[0, -1]])
+        length_px = float(np.linalg.norm(b - a))
+        # The drawn tube: its sides over the rod's image, plus its two round ends.
+        area = tube_mask(cam, rod, radius, supersample=4).sum()
+        drawn = (area - np.pi * width**2 / 4) / length_px
+        assert width == pytest.approx(drawn, rel=0.15, abs=0.3)
+    behind = tube_width_px(cams, rod - 1e4 * cams[0].camera_from_world[2], radius)
+    assert np.isnan(behind[0])
 
 
 def test_a_tube_thinner_than_a_pixel_draws_at_most_a_line() -> None:

@@ -36,6 +36,7 @@ from pipeline.record.load import load_recording
 from pipeline.run import outputs, runner
 from pipeline.session.folder import load_session
 from pipeline.session.video import read_frames
+from pipeline.synth import render_session
 
 RERUN = Path(sys.executable).parent / "rerun"  # the CLI installed with rerun-sdk
 RERUN_ENV = {**os.environ, "RERUN_ANALYTICS": "off"}
@@ -400,7 +401,6 @@ E2E_FRAMES = 8
 def e2e(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, str]:
     """A short rendered session processed through the CLI: (session dir, out dir, stdout)."""
     from pipeline.cli import main
-    from pipeline.synth import render_session
 
     root = tmp_path_factory.mktemp("e2e")
     render_session(root / "demo", frames=E2E_FRAMES, progress=False, jobs=1)
@@ -600,3 +600,22 @@ def test_a_run_counts_the_frames_whose_tube_misses_a_silhouette(short_session: P
     assert summary.doubtful_cameras == {cam: 3} and summary.to_dict()["doubtful_cameras"] == {cam: 3}
     (line,) = [line for line in summary.problem_lines() if "doubtful" in line]
     assert f"(IoU < 0.7, camera {cam!r} in 3)" in line and "calibration is this rig's" in line
+
+
+@pytest.mark.parametrize(("radius_mm", "thin"), [(1.5, True), (3.0, False)])
+def test_a_tube_too_thin_for_its_images_is_named_with_its_width(
+    tmp_path: Path, radius_mm: float, thin: bool
+) -> None:
+    # At 320x240 the rigs see ~0.6 px per mm: a tube of radius 1.5 mm is ~1.7 px across.
+    render_session(tmp_path / "s", frames=8, radius_mm=radius_mm, seed=5, progress=False, jobs=1)
+    summary = runner.process_session(load_session(tmp_path / "s"), out_dir=tmp_path / "out", progress=False)
+    assert summary.frames_ok > 0
+    lines = [line for line in summary.problem_lines() if line.startswith("  thin:")]
+    if not thin:
+        assert not summary.thin_cameras and not lines
+        return
+    assert set(summary.thin_cameras) == {"cam0", "cam1", "cam2"}
+    assert all(1.0 < width < 2.0 for width in summary.thin_cameras.values())
+    (line,) = lines
+    assert "'cam0' (" in line and "film it larger" in line
+    assert summary.to_dict()["thin_cameras"] == summary.thin_cameras
