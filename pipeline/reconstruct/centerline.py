@@ -140,6 +140,8 @@ def fit_centerline(
 
     # The voxels every view but one sees: carved once, if a march is carried on.
     wider = functools.cache(wider_hull) if wider_hull is not None else None
+    if wider is not None:
+        points_mm = _bridged_to_base(points_mm, wider, base_mm, radius_mm + voxel_mm)
     march = march_hull(points_mm, base_mm, radius_mm=radius_mm, voxel_mm=voxel_mm, refine=refine)
     best = fit(march)
     if march.crowded.any() and (worst_misfit(best, cameras, masks) > MISFIT or passes_through_itself(best)):
@@ -413,6 +415,24 @@ def _unexplained_points(
         ok = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
         lost[ok] |= free[px[ok, 1], px[ok, 0]]
     return pts[lost]
+
+
+def _bridged_to_base(
+    points_mm: FloatArray, wider: Callable[[], FloatArray], base_mm: FloatArray, reach_mm: float
+) -> FloatArray:
+    """The hull's (P, 3) ``points_mm``, and where none lies within ``reach_mm`` of the base
+    (the march's first cross-section), the voxels every view but one sees (``wider``) up
+    to a reach past the nearest: a view that lost the tube's first part (a thin tube the
+    threshold breaks there, or one passing before something of its own grey level) cuts
+    it from the hull, and the march would find nothing to start on."""
+    if not len(points_mm):
+        return points_mm
+    gap = float(np.sqrt(np.min(np.einsum("ij,ij->i", points_mm - base_mm, points_mm - base_mm))))
+    if gap <= reach_mm:
+        return points_mm
+    others = wider()
+    near = others[np.linalg.norm(others - base_mm, axis=1) <= gap + reach_mm]
+    return np.unique(np.concatenate([points_mm, near]), axis=0)
 
 
 def _fit_march(
