@@ -138,7 +138,7 @@ def fit_centerline(
             scores[id(candidate)] = (candidate, ranked_score(candidate, cameras, masks))
         return scores[id(candidate)][1]
 
-    # The voxels every view but one sees: carved once, if a march is carried on.
+    # The voxels every view but one sees: carved once, if a start or a march carried on needs them.
     wider = functools.cache(wider_hull) if wider_hull is not None else None
     if wider is not None:
         points_mm = _bridged_to_base(points_mm, wider, base_mm, radius_mm + voxel_mm)

@@ -378,8 +378,8 @@ def _curve_and_quality(
             except ValueError as exc:
                 if lost_fit is None:
                     raise
-                # No start in the hull (a view that lost part of a thin tube carves it away
-                # near the base): the lost track's fit is the frame's, flagged.
+                # No start in the hull, nor in the voxels every view but one sees (a thin tube
+                # that the views lose near the base): the lost track's fit is the frame's, flagged.
                 init = None
                 best, tracked, lost = lost_fit, True, f"{lost_fit.lost}; no start from the hull: {exc}"
             if init is not None:

@@ -112,9 +112,9 @@ _DISC_SPACING = 0.5
 
 # A tube fewer pixels across than this in a camera's images is too thin for a threshold
 # to hold whole: its edges blur over a pixel or two. On `synth --radius-mm R --frames 60
-# --seed 3` (2026-12-06): 1.2 px across (R = 1), one camera blind in 28 frames and 25
-# frames failed; 1.7 px (R = 1.5), every frame ok but 21 doubtful in one camera; 2.4 px
-# (R = 2) and wider, curves as close as the thicker tubes'.
+# --seed 3` (2026-12-06): 1.4 px across (R = 1), 30 frames empty (one camera saw nothing)
+# and 12 failed; 1.7 px (R = 1.5), every frame ok but 21 doubtful in one camera; 2.4 px
+# (R = 2) and wider, curves as close as the thicker tubes' (0.11 mm mean).
 THIN_TUBE_PX = 2.0
 
 

@@ -540,9 +540,9 @@ def test_a_frame_one_camera_took_at_another_moment_is_fitted_to_the_others_and_n
 def test_a_lost_track_with_no_start_in_the_hull_keeps_its_fit_flagged(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, seed: int
 ) -> None:
-    # A thin tube that one view's threshold loses near the base: the track is lost there,
-    # and the hull, cut by that view, holds nothing to start again from. The lost track's
-    # fit is the frame's, flagged, where the frame would otherwise fail.
+    # A thin tube that the views' thresholds lose near the base: the track is lost there,
+    # and neither the hull nor the voxels every view but one sees hold a start. The lost
+    # track's fit is the frame's, flagged, where the frame would otherwise fail.
     render_session(tmp_path, shape="random", frames=6, seed=seed, progress=False, jobs=1)
     session = load_session(tmp_path)
     model = build_model(session)
