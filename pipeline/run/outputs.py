@@ -461,14 +461,27 @@ class Writers:
             doubtful_cameras=dict(self.doubtful_cameras),
             frames_at_walls=list(self.at_walls),
             frames_suspect=list(self.suspect),
-            thin_cameras={
-                cam.name: float(total / self.width_frames)
-                for cam, total, thin in zip(
-                    self.session.cameras, self.width_px_sums, self.thin_frames, strict=True
-                )
-                if 2 * thin > self.width_frames
-            },
+            thin_cameras=self._thin_cameras(),
         )
+
+    def _thin_cameras(self) -> dict[str, float]:
+        """Camera -> the tube's mean width in its images (px), for the cameras that see it
+        thinner than THIN_TUBE_PX in most ok frames; where no frame is ok, the declared
+        radius's width at the workspace's centre, if thinner."""
+        cameras = self.session.cameras
+        if self.width_frames:
+            return {
+                cam.name: float(total / self.width_frames)
+                for cam, total, thin in zip(cameras, self.width_px_sums, self.thin_frames, strict=True)
+                if 2 * thin > self.width_frames
+            }
+        declared = self.session.settings.manipulator.radius_mm
+        if not declared:
+            return {}
+        workspace = self.session.settings.workspace
+        centre = np.asarray(workspace.origin_mm) + 0.5 * np.asarray(workspace.size_mm)
+        widths = tube_width_px(cameras, centre[None], declared)
+        return {cam.name: float(w) for cam, w in zip(cameras, widths, strict=True) if w < THIN_TUBE_PX}
 
 
 def _open_partial(path: Path) -> IO[bytes]:

@@ -59,7 +59,7 @@ class RunSummary:
     frames_blind: list[int] = field(default_factory=list)
     blind_cameras: dict[str, int] = field(default_factory=dict)  # camera -> those it saw nothing in
     # camera -> the tube's mean width in its images (px), where most ok frames show it thinner
-    # than THIN_TUBE_PX
+    # than THIN_TUBE_PX (with no ok frame: the declared radius's, mid-workspace)
     thin_cameras: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -116,10 +116,12 @@ class RunSummary:
         """The line naming the cameras that see the tube too thin to threshold whole."""
         named = [f"{name!r} ({width:.1f} px)" for name, width in self.thin_cameras.items()]
         who = f"camera {named[0]}" if len(named) == 1 else f"cameras {', '.join(named)}"
+        # With no ok frame, the widths are the declared radius's at the workspace's centre.
+        where = "in most ok frames" if self.frames_ok else "at [manipulator] radius_mm, mid-workspace"
         return (
-            f"  thin: the tube is under {THIN_TUBE_PX:g} px across in the images of {who}, in most "
-            "ok frames: too thin for a threshold to hold it whole, and frames may fail, lose the tube "
-            "in a camera or re-project poorly; film it larger (a higher resolution, or the cameras "
+            f"  thin: the tube is under {THIN_TUBE_PX:g} px across in the images of {who}, {where}: "
+            "too thin for a threshold to hold it whole, and frames may fail, lose the tube in a "
+            "camera or re-project poorly; film it larger (a higher resolution, or the cameras "
             "closer or zoomed in)"
         )
 

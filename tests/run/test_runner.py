@@ -619,3 +619,35 @@ def test_a_tube_too_thin_for_its_images_is_named_with_its_width(
     (line,) = lines
     assert "'cam0' (" in line and "film it larger" in line
     assert summary.to_dict()["thin_cameras"] == summary.thin_cameras
+
+
+def nothing_seen_anywhere(
+    index: int, images: Sequence[Any], model: Any
+) -> tuple[FrameResult, list[np.ndarray]]:
+    """A stand-in frame function: every frame empty, no view holding a silhouette."""
+    result = FrameResult(index=index, status="empty", unseen_by=("cam0", "cam1", "cam2"))
+    return result, [np.zeros(np.shape(im), bool) for im in images]
+
+
+@pytest.mark.parametrize(("radius_mm", "thin"), [(0.5, True), (6.0, False), (None, False)])
+def test_a_tube_too_thin_to_be_seen_at_all_is_named_from_its_declared_radius(
+    short_session: Path, tmp_path: Path, radius_mm: float | None, thin: bool
+) -> None:
+    # With no ok frame, the declared radius's width mid-workspace says whether the tube is too
+    # thin for the images (0.5 mm is ~0.5 px at 320x240); with none declared, nothing is said.
+    session = load_session(short_session)
+    manipulator = dataclasses.replace(session.settings.manipulator, radius_mm=radius_mm)
+    settings = dataclasses.replace(session.settings, manipulator=manipulator)
+    session = dataclasses.replace(session, settings=settings)
+    summary = runner.process_session(
+        session, out_dir=tmp_path, jobs=1, progress=False, frame_fn=nothing_seen_anywhere
+    )
+    assert summary.frames_ok == 0
+    lines = [line for line in summary.problem_lines() if line.startswith("  thin:")]
+    if not thin:
+        assert not summary.thin_cameras and not lines
+        return
+    assert set(summary.thin_cameras) == {"cam0", "cam1", "cam2"}
+    assert all(0.2 < width < 1.0 for width in summary.thin_cameras.values())
+    (line,) = lines
+    assert "at [manipulator] radius_mm, mid-workspace" in line
