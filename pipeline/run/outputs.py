@@ -476,7 +476,7 @@ class Writers:
                 if 2 * thin > self.width_frames
             }
         declared = self.session.settings.manipulator.radius_mm
-        if not declared:
+        if not declared or self.counts.get("ok", 0):
             return {}
         workspace = self.session.settings.workspace
         centre = np.asarray(workspace.origin_mm) + 0.5 * np.asarray(workspace.size_mm)
