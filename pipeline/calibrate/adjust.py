@@ -208,13 +208,10 @@ def _frame_system(
     centre, w = obs.centres()
     scale = 1.0 / np.maximum(np.linalg.norm(across, axis=-1), 1e-12)  # px per mm across
     residual_px = ((centre - np.einsum("kci,ki->kc", obs.rows, tube_only)) * scale)[w > 0]
-    held_jacobian = np.zeros((len(tube.points_mm), 2, N_PARAMS))
-    jac = np.stack(  # (C, K, 2, 9)
-        [
-            held_jacobian if k in held else parameter_jacobian(cam, tube.points_mm)
-            for k, cam in enumerate(cameras)
-        ]
-    )
+    jac = np.zeros((c, k, 2, N_PARAMS))  # (C, K, 2, 9); a held camera's parameters move nothing
+    for view, cam in enumerate(cameras):
+        if view not in held:
+            jac[view] = parameter_jacobian(cam, tube.points_mm)
     d: FloatArray = np.einsum("kci,ckij->kcj", across, jac)  # (K, C, 9): mm across per parameter
     coupling = np.einsum("kc,kci,kcj->kicj", w, obs.rows, d).reshape(3 * k, c * N_PARAMS)
     if base_fixed:

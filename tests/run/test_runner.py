@@ -610,15 +610,22 @@ def test_a_tube_too_thin_for_its_images_is_named_with_its_width(
     render_session(tmp_path / "s", frames=8, radius_mm=radius_mm, seed=5, progress=False, jobs=1)
     summary = runner.process_session(load_session(tmp_path / "s"), out_dir=tmp_path / "out", progress=False)
     assert summary.frames_ok > 0
+    line = _thin_line(summary, thin, (1.0, 2.0))
+    assert line is None or ("'cam0' (" in line and "film it larger" in line)
+    assert summary.to_dict()["thin_cameras"] == summary.thin_cameras
+
+
+def _thin_line(summary: runner.RunSummary, thin: bool, widths_px: tuple[float, float]) -> str | None:
+    """The summary's thin-tube line, checked: present, naming every camera with a width
+    within ``widths_px``, where ``thin``; absent, with no camera named, otherwise."""
     lines = [line for line in summary.problem_lines() if line.startswith("  thin:")]
     if not thin:
         assert not summary.thin_cameras and not lines
-        return
+        return None
     assert set(summary.thin_cameras) == {"cam0", "cam1", "cam2"}
-    assert all(1.0 < width < 2.0 for width in summary.thin_cameras.values())
+    assert all(widths_px[0] < width < widths_px[1] for width in summary.thin_cameras.values())
     (line,) = lines
-    assert "'cam0' (" in line and "film it larger" in line
-    assert summary.to_dict()["thin_cameras"] == summary.thin_cameras
+    return line
 
 
 def nothing_seen_anywhere(
@@ -643,11 +650,5 @@ def test_a_tube_too_thin_to_be_seen_at_all_is_named_from_its_declared_radius(
         session, out_dir=tmp_path, jobs=1, progress=False, frame_fn=nothing_seen_anywhere
     )
     assert summary.frames_ok == 0
-    lines = [line for line in summary.problem_lines() if line.startswith("  thin:")]
-    if not thin:
-        assert not summary.thin_cameras and not lines
-        return
-    assert set(summary.thin_cameras) == {"cam0", "cam1", "cam2"}
-    assert all(0.2 < width < 1.0 for width in summary.thin_cameras.values())
-    (line,) = lines
-    assert "at [manipulator] radius_mm, mid-workspace" in line
+    line = _thin_line(summary, thin, (0.2, 1.0))
+    assert line is None or "at [manipulator] radius_mm, mid-workspace" in line
