@@ -120,20 +120,6 @@ class SideReadings:
         )
         return float(np.sqrt(np.mean(gaps**2))) if gaps.size else float("nan")
 
-    def conditioning(self, samples: NDArray[np.bool_]) -> float:
-        """How evenly the trusted edges at the (K,) ``samples`` fix them across the tube,
-        in [0, 1]: of the two directions across, the weaker's share of the stronger's
-        information (the eigenvalues of the sum of ``rows`` rows^T over the edges; the
-        third direction, along the tube, no edge sees). Near 0 where the views left have
-        their lines of sight in one plane with the tube's course (its epipolar plane) or
-        one view alone reads them; 0 without an edge there."""
-        edges = self.use[samples].sum(axis=-1).astype(np.float64)  # (k, C)
-        # (k, C, 3); a view that cannot read a sample (behind it, say) may have no row there.
-        rows = np.where(edges[..., None] > 0, self.rows[samples], 0.0)
-        information = np.einsum("kc,kci,kcj->ij", edges, rows, rows)
-        _, weaker, stronger = np.linalg.eigvalsh(information)
-        return float(weaker / stronger) if stronger > 0 else 0.0
-
 
 @dataclass(frozen=True, eq=False)
 class _CameraEdges:

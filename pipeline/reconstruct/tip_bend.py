@@ -16,6 +16,7 @@ search takes tens.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -44,9 +45,8 @@ _log = logging.getLogger(__name__)
 # bent, then its last 2, then its last 1, each by a pattern search with the steps of
 # _BEND_STEPS_MM and a fit from where it stops; the tube is drawn SUPERSAMPLE times
 # finer than the image (coverage to 1/16 of a pixel), with _RING_POINTS points on each
-# circle of its flat end, in a window reaching _WINDOW_PX past the drawn tube (room
-# for the largest bend allowed, 1.5 radii: ~8 px for r = 9 mm at the rigs' ~0.6
-# px/mm). Measured on rendered loops (r 4, 6, 7.5, 9 mm, both rigs, 12-16 frames
+# circle of its flat end, in a window holding every pixel the largest bend allowed can
+# cover (_REACH_RADII). Measured on rendered loops (r 4, 6, 7.5, 9 mm, both rigs, 12-16 frames
 # each), median tip on the r 9 loops: one span of 3, 4 or 6 radii 1.6-2.5, 1.7-2.6,
 # 2.4-3.8 mm; 4 then 2 radii 1.4-2.3 mm; 4, 2, 1 radii 1.1-2.0 mm (6, 4, 2: 1.3-2.3
 # mm). Started from the true curve, the searches moved the tip by 1.1 mm (median, r 9
@@ -80,6 +80,10 @@ _BEND_STEPS_MM = (8.0, 4.0, 2.0, 1.0, 0.5)
 # The tip is moved at most this many radii across or along: farther, it is
 # another hypothesis of where the tube goes, not a correction of the fit.
 _MAX_BEND_RADII = 1.5
+# ... so that the bent tip lies at most this many radii from where it was (across at
+# the end, then along): the views are compared over the pixels that far around the
+# bent part (every pixel a bend can cover, see view_window), not over more.
+_REACH_RADII = math.hypot(_MAX_BEND_RADII, _MAX_BEND_RADII)
 # The bend search stops drawing a bend's views once those drawn sum to this
 # factor times the best bend's cost: the views are drawn in another order than
 # the total sums them in, and the two sums of the same parts may differ in their
@@ -248,7 +252,7 @@ class _TipDrawing:
         # Per view that sees the end part: camera, coverage, drawing of the body, origin.
         self.windows: list[tuple[Camera, NDArray[np.float32], NDArray[np.uint8], tuple[int, int]]] = []
         for cam, coverage in zip(cameras, coverages, strict=True):
-            window = view_window(cam, pts[self.first :], radius_mm)
+            window = view_window(cam, pts[self.first :], radius_mm, reach_radii=_REACH_RADII)
             if window is None:
                 continue
             (x0, y0), (x1, y1) = window
@@ -308,11 +312,13 @@ def refine_tip_to_pixels(
     """
     pts = np.asarray(points_mm, dtype=np.float64)
     # The grey levels read as coverage only where the bends are drawn: around the
-    # longest span's part, with room for the tip to grow by the largest bend allowed.
+    # longest span's part, with room for the tip to move by the largest bend allowed
+    # in each span.
     arc = polyline_arclength(pts)
     end_part = pts[arc >= arc[-1] - (max(spans_radii) + 1.0) * radius_mm]
-    reach = (1.0 + _MAX_BEND_RADII) * radius_mm
-    seen = pixel_coverages(contrasts, masks, [view_window(cam, end_part, reach) for cam in cameras])
+    reach = len(spans_radii) * _REACH_RADII
+    windows = [view_window(cam, end_part, radius_mm, reach_radii=reach) for cam in cameras]
+    seen = pixel_coverages(contrasts, masks, windows)
     for span in spans_radii:
         # The radii follow a bent tip by sample fraction (a bend may add or drop samples).
         radii = None if radii_mm is None else by_fraction(radii_mm, len(pts))

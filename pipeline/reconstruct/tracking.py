@@ -26,15 +26,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..geometry.camera import Camera
-from ..geometry.polyline import axis_gap_mm, by_fraction, polyline_arclength, self_intersects
+from ..geometry.polyline import axis_gap_mm, by_fraction, self_intersects
 from .frame_result import FrameResult
 from .profiles import theil_sen_slope
 from .quality import tube_figures
-from .side_readings import REDUNDANT_VIEWS, read_sides
 from .spline import Centerline, smooth_curve
 from .tip_bend import REFINE_SPANS_RADII, refine_tip_to_pixels, tip_meets_tube
-from .tube_fit import FIT_SPACING_MM, TubeFit, fit_tube
-from .tube_tip import tip_zone
+from .tube_fit import TubeFit, fit_tube
 
 FloatArray = NDArray[np.float64]
 
@@ -95,49 +93,27 @@ LOST_JUMP_RADII = 1.5
 # (two cameras, spacer disks) go unflagged after each wide miss (see
 # pipeline.reconstruct.quality.SUSPECT_JUMP_RADII).
 MISS_FRAMES = 3
-# The tracked tip is refined to the grey levels where it meets another part of the
-# tube in at least this many views (pipeline.reconstruct.tip_bend.tip_meets_tube), or
-# lies against it in space ...
+# Every tracked tip is fitted to the grey levels (refine_tip_to_pixels) over its last
+# TRACK_TIP_SPANS_RADII radii: the side readings stop short of the end (the tip zone,
+# pipeline.reconstruct.tube_tip), and the course extrapolated over it misses the tip
+# where the tube straightens or turns toward its end. Where the tip meets another part
+# of the tube in TRACK_MEETING_VIEWS views or lies against it in space
+# (tip_meets_tube), its last radius is fitted too (REFINE_SPANS_RADII): the other
+# part's edges, not the tip's, are what its side readings find there. Measured on
+# `accuracy_table --draw 409`, `--draw 2` and `--draw 433` (8 cases of 90 frames each,
+# 2026-12-06), against refining only those tips and those over the tube in one view
+# whose other views leave them unplaced across: median tips 2.10 -> 0.41 mm (a tapered
+# random shape, its frames more than 2 mm off 59 -> 2), 2.24 -> 0.34 (a stepped s-curve
+# on two cameras, 73 -> 5), 3.96 -> 0.28 (a random shape on two cameras, 89 -> 0), and
+# closer by 0.03 mm or more on 16 of the other 21 (farther on one: a two-camera tube with
+# spacer disks off everywhere either way, 4.45 -> 4.95 mm); the means within 0.02 mm
+# but for a two-camera loop, 0.44 -> 0.50 mm, and disk sessions 1-9 mm off, 0.8-1.1 mm
+# closer; frames more than 2 mm off 630 -> 433 in all. Fitting every tip's last radius
+# as well (draws 409 and 2): tips 0.01-0.11 mm closer on ten of the 16, 0.07 mm farther
+# on one, the two-camera loop 0.43 -> 0.37 mm mean, at nearly twice the cost (9.4 against
+# 5.5 ms a frame on the demo's, one core).
 TRACK_MEETING_VIEWS = 2
-# ... or meets it in one view where the other views' readings leave it unplaced across.
-# The views that see it apart usually fix it across their own lines of sight, and the
-# misled view's edges there, dropped as crowded, are not missed: refined wherever it
-# meets one view (150 frames, 2026-12-02), the demo's tip (crossing its stem in one view
-# of three in 14 of 100 frames) came out 0.40 -> 0.30 mm, but those frames took 20-27 ms
-# instead of 10-17 and a live replay of the demo fell behind in them (latency p99 23-30
-# -> 60-93 ms). Where the tube's course just behind the tip (TRACK_TIP_READINGS_RADII
-# end radii before the tip zone) lies near the plane of those views' lines of sight,
-# their edges fix it in one direction across only (SideReadings.conditioning below
-# TRACK_TIP_CONDITIONING: the weaker direction known at least 2.2 times worse), and the
-# tip drifts along the other, unseen by them: on a stepped r 8 tube whose thin end lies
-# over its own body in one view, 2-7 mm over 40 frames, unflagged. There the tip is
-# refined over its last TRACK_ONE_VIEW_SPANS_RADII radii. On 31 rendered sessions (18
-# with three cameras; 12 with loops or disks, `accuracy_table` draws 2, 13 and 21, the
-# demo; 90 frames each, tracked from frame 0 with the true tube end, 2026-12-03): mean
-# error averaged over the sessions 0.522 -> 0.521 mm, p95 1.609 -> 1.605 mm, median tip
-# 1.029 -> 1.017 mm, frames > 2 mm off 711 -> 680; the stepped r 8 tube's tip 1.18 ->
-# 0.60 mm (frames off 38 -> 7), a stepped r 5 shape's 1.40 -> 1.07 mm (17 -> 12), two
-# loops' 0.58 -> 0.53 and 0.58 -> 0.54 mm (frames off 1 -> 3 and 7 -> 10), a disk
-# session's 2.54 -> 3.18 mm (every frame 2 mm off either way); the other 26 unchanged.
-# The bench's round-ended random shape (frames 0-299, same way): mean 0.218 -> 0.206 mm,
-# median tip 0.42 -> 0.34 mm, frames off 24 -> 2, a third of its frames refined, 15.5 ->
-# 21.8 ms a tracked frame (median). The demo's conditioning stays above 0.33 over its
-# 900 frames: none of them is refined for it. With two-camera rigs refined too (below),
-# bars of 0.05, 0.1, 0.2 and 0.3 gave median tips 0.94, 0.92, 0.90 and 0.89 mm and
-# frames off 648, 636, 646 and 620; refining wherever the tip meets one view, 0.82 mm
-# and 641, at the demo's cost above; two spans (4 and 1 radii) instead of one, 0.80 mm
-# but a mean of 0.524 mm and 666 frames off. Only on rigs of REDUNDANT_VIEWS
-# (pipeline.reconstruct.side_readings) or more. On two, a tip over the tube in one view
-# is read by the other alone: its conditioning is 0 whatever the course, and the grey
-# levels, with the tip's outline lost inside the other part's in the first view, have
-# one view to place it by too. Refined there all the same, two-camera sessions went
-# either way: on `accuracy_table --draw 2 --cases 10 --frames 150` (2026-12-03) a
-# tapered r 5 shape 0.78 -> 0.71 mm mean, but an r 7.5 shape's track was lost at frame
-# 133 and started again 30 mm off in depth (mean 0.42 -> 1.46 mm, p95 1.32 -> 10.6 mm),
-# and a round r 4.5 end became a close call chosen flat (tip 1.20 -> 2.06 mm).
-TRACK_TIP_CONDITIONING = 0.2
-TRACK_TIP_READINGS_RADII = 3.0
-TRACK_ONE_VIEW_SPANS_RADII = (4.0,)
+TRACK_TIP_SPANS_RADII = (4.0,)
 # Where the track is lost on a rig of REDUNDANT_VIEWS or more, leaving part of a
 # silhouette unexplained, the view it leaves most unexplained is left out and the track
 # fitted to the others (track_without_odd_view): a camera whose image disagrees with the
@@ -347,29 +323,6 @@ def judge_fit(
     return TrackedFit(fit, curve, radii, iou, misfits)
 
 
-def tip_unplaced(fit: TubeFit, cameras: Sequence[Camera], contrasts: Sequence[NDArray[np.float32]]) -> bool:
-    """Whether the side readings just behind ``fit``'s tip (``TRACK_TIP_READINGS_RADII``
-    end radii before its tip zone) fix it across the tube in one direction only (see
-    ``TRACK_TIP_CONDITIONING``); ``contrasts``: per camera, (H, W) float32
-    (:func:`~pipeline.reconstruct.tube_fit.foreground_contrast`).
-
-    The sides are read again at the fit with the tracked rounds' crowding margin
-    (``TRACK_CROWD_MARGIN_PX``), not taken from the fit's own last reading, whose margin
-    of 2 px keeps more of the other part's edges at the tip: judged on those, on the 31
-    sessions of ``TRACK_TIP_CONDITIONING`` (2026-12-03), the mean error averaged 0.524 mm
-    instead of 0.521 (a disk session's median tip 3.50 mm instead of 3.18), at the same
-    frames off. The read costs ~1.3 ms, on frames whose tip meets another part in one
-    view."""
-    pts = fit.points_mm
-    radii = fit.radii_mm if fit.radii_mm is not None else fit.radius_mm
-    obs = read_sides(pts, cameras, contrasts, radii, FIT_SPACING_MM, crowd_margin_px=TRACK_CROWD_MARGIN_PX)
-    arc = polyline_arclength(pts)
-    end_radius = fit.end_radius_mm
-    sides_end = float(arc[-1]) - tip_zone(end_radius)
-    behind = (arc < sides_end) & (arc >= sides_end - TRACK_TIP_READINGS_RADII * end_radius)
-    return obs.conditioning(behind) < TRACK_TIP_CONDITIONING
-
-
 def track_tube(
     predicted_mm: FloatArray,
     cameras: Sequence[Camera],
@@ -388,11 +341,10 @@ def track_tube(
     """The tube fitted from its prediction (N, 3) mm, and whether the track holds.
 
     A few rounds of :func:`pipeline.reconstruct.tube_fit.fit_tube` from the prediction,
-    seeking the tube's sides near it; where the tip then lies against another
-    part in some views (``TRACK_MEETING_VIEWS``), whose edges pull its side readings,
-    or in one view where the others' readings leave it unplaced across
-    (:func:`tip_unplaced`), the tip is placed by the grey levels instead, fitted from
-    where the fit left it (:func:`pipeline.reconstruct.tip_bend.refine_tip_to_pixels`).
+    seeking the tube's sides near it; the tip is then placed by the grey levels, fitted
+    from where the fit left it (:func:`pipeline.reconstruct.tip_bend.refine_tip_to_pixels`,
+    over ``TRACK_TIP_SPANS_RADII``, or ``REFINE_SPANS_RADII`` where it lies against
+    another part of the tube in some views: ``TRACK_MEETING_VIEWS``).
     The track is lost (the caller initialises again from the hull) where the
     fit leaves part of a silhouette unexplained even after as many rounds again,
     passes through itself, or jumped from the prediction (``LOST_*``).
@@ -425,32 +377,25 @@ def track_tube(
         )
 
     def judged_with_tip(fit: TubeFit) -> TrackedFit:
-        """``fit`` judged, its tip first fitted to the grey levels where it meets another
-        part of the tube as above (the radii follow the bent tip by sample fraction)."""
-        spans: Sequence[float] = ()
-        # Most tips meet no other part in any view: one look settles those.
-        if tip_meets_tube(fit.points_mm, cameras, fit.radius_mm, min_views=1):
-            if tip_meets_tube(fit.points_mm, cameras, fit.radius_mm, min_views=TRACK_MEETING_VIEWS):
-                spans = REFINE_SPANS_RADII
-            elif len(cameras) >= REDUNDANT_VIEWS and tip_unplaced(fit, cameras, contrasts):
-                spans = TRACK_ONE_VIEW_SPANS_RADII
-        if spans:
-            bent = refine_tip_to_pixels(
-                fit.points_mm,
-                cameras,
-                masks,
-                contrasts,
-                fit.end_radius_mm,
-                spans_radii=spans,
-                rejects=lambda axis: self_intersects(axis, fit.radius_mm),
-                cap=cap,
-                radii_mm=fit.radii_mm,
-            )
-            fit = replace(
-                fit,
-                points_mm=bent,
-                radii_mm=None if fit.radii_mm is None else by_fraction(fit.radii_mm, len(bent)),
-            )
+        """``fit`` judged, its tip first fitted to the grey levels as above (the radii
+        follow the bent tip by sample fraction)."""
+        meets = tip_meets_tube(fit.points_mm, cameras, fit.radius_mm, min_views=TRACK_MEETING_VIEWS)
+        bent = refine_tip_to_pixels(
+            fit.points_mm,
+            cameras,
+            masks,
+            contrasts,
+            fit.end_radius_mm,
+            spans_radii=REFINE_SPANS_RADII if meets else TRACK_TIP_SPANS_RADII,
+            rejects=lambda axis: self_intersects(axis, fit.radius_mm),
+            cap=cap,
+            radii_mm=fit.radii_mm,
+        )
+        fit = replace(
+            fit,
+            points_mm=bent,
+            radii_mm=None if fit.radii_mm is None else by_fraction(fit.radii_mm, len(bent)),
+        )
         return judge_fit(fit, cameras, masks, n_points=n_points, contrasts=contrasts)
 
     def read_a_tube(fit: TubeFit) -> bool:

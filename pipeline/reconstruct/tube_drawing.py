@@ -45,7 +45,13 @@ _RING_POINTS = 24
 # The rings' unit circle, (_RING_POINTS, 1) each.
 _RING_COS = np.cos(np.linspace(0.0, 2.0 * np.pi, _RING_POINTS, endpoint=False))[:, None]
 _RING_SIN = np.sin(np.linspace(0.0, 2.0 * np.pi, _RING_POINTS, endpoint=False))[:, None]
+# A window drawn around a tube reaches this far past its drawn edge (px), where whole
+# tubes are compared (coverage_mismatch) ...
 _WINDOW_PX = 20.0
+# ... and this far past the farthest a tube moved by a bounded number of radii can reach
+# (a tip's bends, pipeline.reconstruct.tip_bend): the window's whole-pixel bounds and the
+# pixels its edge partly covers.
+_WINDOW_EDGE_PX = 2.0
 # Erosion / dilation (px) of the silhouette that picks the pixels certainly on
 # the tube / on the background, to scale the grey levels to coverage.
 _CORE_PX = 5
@@ -129,13 +135,24 @@ def drawn_coverage(
     return _LEVELS[canvas_levels(canvas)]
 
 
-def view_window(cam: Camera, axis_mm: FloatArray, radius_mm: float) -> Window | None:
-    """Pixel window ((x0, y0), (x1, y1)) around the tube of (K, 3) ``axis_mm``, None if not seen."""
+def view_window(
+    cam: Camera, axis_mm: FloatArray, radius_mm: float, *, reach_radii: float | None = None
+) -> Window | None:
+    """Pixel window ((x0, y0), (x1, y1)) around the tube of (K, 3) ``axis_mm``, None if
+    not seen: ``_WINDOW_PX`` past its drawn edge, or, with ``reach_radii``, room for the
+    tube moved by up to that many radii (nearer the camera too, where it looks wider)
+    and ``_WINDOW_EDGE_PX`` more: every pixel such a tube can cover."""
     px = cam.project(axis_mm)
     depth = cam.to_camera(axis_mm)[:, 2]
     if not (np.isfinite(px).all() and (depth > radius_mm).all()):
         return None
-    margin = cam.focal_px * radius_mm / float(depth.min()) + _WINDOW_PX
+    if reach_radii is None:
+        margin = cam.focal_px * radius_mm / float(depth.min()) + _WINDOW_PX
+    else:
+        nearest = float(depth.min()) - reach_radii * radius_mm
+        if not nearest > radius_mm:
+            return None
+        margin = (1.0 + reach_radii) * cam.focal_px * radius_mm / nearest + _WINDOW_EDGE_PX
     w, h = cam.size_px
     x0, y0 = (max(int(np.floor(v)), 0) for v in px.min(axis=0) - margin)
     x1, y1 = (min(int(np.ceil(v)), n) for v, n in zip(px.max(axis=0) + margin, (w, h), strict=True))

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import rig_cameras
 
-from pipeline.reconstruct.tube_drawing import pixel_coverages
+from pipeline.reconstruct.tube_drawing import drawn_coverage, pixel_coverages, view_window
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -26,3 +27,36 @@ def test_a_window_without_silhouette_reads_no_tube(seed: int) -> None:
     (x0, y0), (x1, y1) = near
     inside = mask[y0:y1, x0:x1]
     assert seen[y0:y1, x0:x1][inside].mean() > 0.9
+
+
+@pytest.mark.parametrize(
+    ("arrangement", "seed"), [("oblique", 0), ("ninety", 1), ("oblique", 2), ("ninety", 3)]
+)
+def test_a_window_with_reach_holds_every_pixel_of_the_tube_moved_that_far(
+    arrangement: str, seed: int
+) -> None:
+    rng = np.random.default_rng(seed)
+    radius = float(rng.uniform(3.0, 9.0))
+    reach = float(rng.uniform(1.0, 3.0))
+    # A short piece of tube (its window hugs it), somewhere in the workspace.
+    direction = rng.normal(size=3)
+    axis = rng.uniform(80.0, 176.0, size=3) + np.linspace(0.0, 4.0, 5)[:, None] * direction / np.linalg.norm(
+        direction
+    )
+    for cam in rig_cameras(arrangement):
+        window = view_window(cam, axis, radius, reach_radii=reach)
+        assert window is not None
+        (x0, y0), (x1, y1) = window
+        whole = ((0, 0), cam.size_px)
+        sight = axis[0] - cam.center_mm
+        sight /= np.linalg.norm(sight)
+        for _ in range(8):
+            # Moved by the whole reach: across the line of sight (where it moves farthest in
+            # the image), or partly toward the camera (where it looks wider).
+            shift = rng.normal(size=3)
+            shift -= (shift @ sight) * sight * float(rng.uniform(0.5, 1.0))
+            shift *= reach * radius / np.linalg.norm(shift)
+            drawn = drawn_coverage(cam, axis + shift, radius, whole, cap=str(rng.choice(["flat", "round"])))
+            assert drawn.any()
+            drawn[y0:y1, x0:x1] = 0.0
+            assert not drawn.any()

@@ -5,8 +5,6 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 from numpy.typing import NDArray
@@ -136,32 +134,6 @@ def test_consistent_drops_the_reading_the_solution_disagrees_with() -> None:
     # Without the outlier, sample 10 sits where its neighbours and the noise say.
     assert abs(again[10, 1]) < 0.3 < abs(step[10, 1])
     assert consistent_readings(kept, again) is kept
-
-
-def test_conditioning_says_whether_the_views_fix_a_sample_in_both_directions_across() -> None:
-    k = 6
-    _, sides = _sides_along_x(k, np.zeros((k, 2)))
-    every = np.ones(k, dtype=bool)
-    # Two views square to each other, every edge trusted: both directions equally known.
-    assert sides.conditioning(every) == pytest.approx(1.0)
-    # The second view turned until its line of sight lies in the first's plane with the
-    # tube (their epipolar plane): its edges tell the first direction again, not the other.
-    turned = sides.rows.copy()
-    angle = np.radians(2.0)
-    turned[:, 1] = [0.0, np.cos(angle), np.sin(angle)]
-    assert replace(sides, rows=turned).conditioning(every) < 0.01
-    # One view's edges dropped (crowded) at the last samples: they see one direction.
-    use = sides.use.copy()
-    use[-3:, 1] = False
-    last = np.arange(k) >= k - 3
-    assert replace(sides, use=use).conditioning(last) == 0.0
-    assert replace(sides, use=use).conditioning(every) == pytest.approx(0.5)
-    # Where those edges are not used, the view's rows do not count, whatever they hold.
-    no_row = sides.rows.copy()
-    no_row[-3:, 1] = np.nan
-    assert replace(sides, use=use, rows=no_row).conditioning(every) == pytest.approx(0.5)
-    # No edge at all there.
-    assert sides.conditioning(np.zeros(k, dtype=bool)) == 0.0
 
 
 def test_the_radius_profile_follows_a_step_and_ignores_disks() -> None:
