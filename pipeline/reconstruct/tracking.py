@@ -97,22 +97,21 @@ MISS_FRAMES = 3
 # TRACK_TIP_SPANS_RADII radii: the side readings stop short of the end (the tip zone,
 # pipeline.reconstruct.tube_tip), and the course extrapolated over it misses the tip
 # where the tube straightens or turns toward its end. Where the tip meets another part
-# of the tube in TRACK_MEETING_VIEWS views or lies against it in space
-# (tip_meets_tube), its last radius is fitted too (REFINE_SPANS_RADII): the other
-# part's edges, not the tip's, are what its side readings find there. Measured on
-# `accuracy_table --draw 409`, `--draw 2` and `--draw 433` (8 cases of 90 frames each,
-# 2026-12-06), against refining only those tips and those over the tube in one view
-# whose other views leave them unplaced across: median tips 2.10 -> 0.41 mm (a tapered
-# random shape, its frames more than 2 mm off 59 -> 2), 2.24 -> 0.34 (a stepped s-curve
-# on two cameras, 73 -> 5), 3.96 -> 0.28 (a random shape on two cameras, 89 -> 0), and
-# closer by 0.03 mm or more on 16 of the other 21 (farther on one: a two-camera tube with
-# spacer disks off everywhere either way, 4.45 -> 4.95 mm); the means within 0.02 mm
-# but for a two-camera loop, 0.44 -> 0.50 mm, and disk sessions 1-9 mm off, 0.8-1.1 mm
-# closer; frames more than 2 mm off 630 -> 433 in all. Fitting every tip's last radius
-# as well (draws 409 and 2): tips 0.01-0.11 mm closer on ten of the 16, 0.07 mm farther
-# on one, the two-camera loop 0.43 -> 0.37 mm mean, at nearly twice the cost (9.4 against
-# 5.5 ms a frame on the demo's, one core).
-TRACK_MEETING_VIEWS = 2
+# of the tube in two views or lies against it in space (tip_meets_tube), its last radius
+# is fitted too (REFINE_SPANS_RADII): the other part's edges, not the tip's, are what
+# its side readings find there. Measured on `accuracy_table --draw 409`, `--draw 2` and
+# `--draw 433` (8 cases of 90 frames each, 2026-12-06), against refining only those tips
+# and those over the tube in one view whose other views leave them unplaced across:
+# median tips 2.10 -> 0.41 mm (a tapered random shape, its frames more than 2 mm off 59
+# -> 2), 2.24 -> 0.34 (a stepped s-curve on two cameras, 73 -> 5), 3.96 -> 0.28 (a
+# random shape on two cameras, 89 -> 0), and closer by 0.03 mm or more on 16 of the
+# other 21 (farther on one: a two-camera tube with spacer disks off everywhere either
+# way, 4.45 -> 4.95 mm); the means within 0.02 mm but for a two-camera loop, 0.44 ->
+# 0.50 mm, and disk sessions 1-9 mm off, 0.8-1.1 mm closer; frames more than 2 mm off
+# 630 -> 433 in all. Fitting every tip's last radius as well (draws 409 and 2): tips
+# 0.01-0.11 mm closer on ten of the 16, 0.07 mm farther on one, the two-camera loop 0.43
+# -> 0.37 mm mean, at nearly twice the cost (9.4 against 5.5 ms a frame on the demo's
+# frames, one core).
 TRACK_TIP_SPANS_RADII = (4.0,)
 # Where the track is lost on a rig of REDUNDANT_VIEWS or more, leaving part of a
 # silhouette unexplained, the view it leaves most unexplained is left out and the track
@@ -344,7 +343,7 @@ def track_tube(
     seeking the tube's sides near it; the tip is then placed by the grey levels, fitted
     from where the fit left it (:func:`pipeline.reconstruct.tip_bend.refine_tip_to_pixels`,
     over ``TRACK_TIP_SPANS_RADII``, or ``REFINE_SPANS_RADII`` where it lies against
-    another part of the tube in some views: ``TRACK_MEETING_VIEWS``).
+    another part of the tube: :func:`pipeline.reconstruct.tip_bend.tip_meets_tube`).
     The track is lost (the caller initialises again from the hull) where the
     fit leaves part of a silhouette unexplained even after as many rounds again,
     passes through itself, or jumped from the prediction (``LOST_*``).
@@ -379,7 +378,7 @@ def track_tube(
     def judged_with_tip(fit: TubeFit) -> TrackedFit:
         """``fit`` judged, its tip first fitted to the grey levels as above (the radii
         follow the bent tip by sample fraction)."""
-        meets = tip_meets_tube(fit.points_mm, cameras, fit.radius_mm, min_views=TRACK_MEETING_VIEWS)
+        meets = tip_meets_tube(fit.points_mm, cameras, fit.radius_mm)
         bent = refine_tip_to_pixels(
             fit.points_mm,
             cameras,
