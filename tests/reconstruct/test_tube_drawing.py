@@ -40,9 +40,8 @@ def test_a_window_with_reach_holds_every_pixel_of_the_tube_moved_that_far(
     reach = float(rng.uniform(1.0, 3.0))
     # A short piece of tube (its window hugs it), somewhere in the workspace.
     direction = rng.normal(size=3)
-    axis = rng.uniform(80.0, 176.0, size=3) + np.linspace(0.0, 4.0, 5)[:, None] * direction / np.linalg.norm(
-        direction
-    )
+    direction /= np.linalg.norm(direction)
+    axis = rng.uniform(80.0, 176.0, size=3) + np.linspace(0.0, 4.0, 5)[:, None] * direction
     for cam in rig_cameras(arrangement):
         window = view_window(cam, axis, radius, reach_radii=reach)
         assert window is not None
