@@ -380,9 +380,8 @@ def _curve_and_quality(
                     raise
                 # No start in the hull, nor in the voxels every view but one sees (a thin tube
                 # that the views lose near the base): the lost track's fit is the frame's, flagged.
-                init = None
                 best, tracked, lost = lost_fit, True, f"{lost_fit.lost}; no start from the hull: {exc}"
-            if init is not None:
+            else:
                 options = [track(init.points_mm, init.radius_mm, init.radii_mm)]
                 if held is not None:
                     options.append(held)

@@ -1,16 +1,18 @@
-"""The tip bent to the grey levels where it lies against another part of the tube.
+"""The tip bent to the grey levels: the end of the tube fitted to the views' pixels.
 
 Where the tip lies against another part of the tube (a thick loop's tip on its
 stem), its side readings are pulled off it by the other part's edges, in every
-view that does not separate them. :func:`bend_tip_to_pixels` then bends and
+view that does not separate them; and the side readings stop short of any tube's end
+(its course there is extrapolated). :func:`bend_tip_to_pixels` bends and
 lengthens the curve's last few radii until the tube it describes, drawn with
 sub-pixel coverage, matches each view's grey levels near the tip; it starts
 where the fit left the tip, or where the curve's own course takes it
 (:func:`continue_on_circle`), and whole tubes are compared by the same measure
-(:func:`pipeline.reconstruct.tube_drawing.coverage_mismatch`). A tracked frame's tip,
-already near its place, is fitted instead: the same bends, by damped Gauss-Newton on
-the pixel differences (:func:`refine_tip_to_pixels`), in a few drawings where the
-search takes tens.
+(:func:`pipeline.reconstruct.tube_drawing.coverage_mismatch`); a start from the hull
+searches so where the tip meets another part. Every tracked frame's tip, already near
+its place, is fitted instead: the same bends, by damped Gauss-Newton on the pixel
+differences (:func:`refine_tip_to_pixels`), in a few drawings where the search takes
+tens.
 """
 
 from __future__ import annotations
