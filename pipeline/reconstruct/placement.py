@@ -92,6 +92,18 @@ class Placement:
         longest = int(np.argmax(arc[ends - 1] - arc[starts]))
         return float(arc[starts[longest]]), float(arc[ends[longest] - 1])
 
+    def loose_end_mm(self, spread: float, within_mm: float) -> float:
+        """How far (mm along the curve) back from the tip the samples are placed more
+        loosely than ``spread`` (:func:`spread_across`), judging the last ``within_mm``:
+        the stretch before the tip that the side readings leave to the grey levels (the
+        tip's zone, which no side reading reads, and where the tube lies along another
+        part of itself in the views); all of them where every sample judged is loose."""
+        arc = polyline_arclength(self.points_mm)
+        judged = arc >= arc[-1] - within_mm
+        firm = np.flatnonzero(judged & (self.spread(judged) <= spread))
+        last_firm = arc[firm[-1]] if len(firm) else arc[judged][0]
+        return float(arc[-1] - last_firm)
+
     def loose_reason(self, radius_mm: float) -> str:
         """Why the curve may be wrong where the views place it loosely (a suspect reason,
         naming the stretch), or "" where they place it firmly throughout."""

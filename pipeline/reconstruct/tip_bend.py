@@ -12,7 +12,9 @@ where the fit left the tip, or where the curve's own course takes it
 searches so where the tip meets another part. Every tracked frame's tip, already near
 its place, is fitted instead: the same bends, by damped Gauss-Newton on the pixel
 differences (:func:`refine_tip_to_pixels`), in a few drawings where the search takes
-tens.
+tens; where the side readings leave a longer stretch before the tip loosely placed (it
+lies along another part of the tube in the views), that stretch is bent to the grey
+levels first, its middle free of its tip.
 """
 
 from __future__ import annotations
@@ -20,12 +22,13 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..geometry.camera import Camera, project_in_views
-from ..geometry.polyline import by_fraction, cut_polyline, polyline_arclength
+from ..geometry.polyline import by_fraction, cut_polyline, polyline_arclength, unit_tangents
 from .tube_drawing import (
     SUPERSAMPLE,
     canvas_levels,
@@ -146,6 +149,13 @@ _TOUCH_RADII = 4.0
 REFINE_SPANS_RADII = (4.0, 1.0)
 _DIFFERENCE_MM = 0.5
 _REFINE_STEPS = 3
+# A loose stretch's bend (refine_tip_to_pixels' loose_span_radii) has four parameters and
+# starts up to a few mm off in its middle: given this many steps. Started 1.5 and 2.5 mm
+# off in the middle of the last 6 and 8 radii of a rendered loop (r 6 mm; the test
+# tests/reconstruct/test_centerline.py::test_a_loose_end_stretch_is_fitted_to_the_grey_levels),
+# the middle came to 0.37, 0.61, 0.31 and 0.42 mm from its place in 6 steps (9 the same),
+# 0.58, 0.66, 0.29 and 1.45 mm in 3.
+_LOOSE_STEPS = 6
 _SETTLED_MM = 0.05
 _DAMPING = 1e-2
 _DAMPING_GROWTH = 4.0
@@ -212,6 +222,17 @@ def bend_tip_to_pixels(
     return pts
 
 
+class _Drawn(NamedTuple):
+    """What :class:`_TipDrawing` draws of a bend's end part: the discs (D, 3) mm and
+    their radius (one, or (D,)), the flat end's outline (O, 3) mm, and their pixels
+    (V, D + O, 2) in each view that sees the part."""
+
+    discs_mm: FloatArray
+    radii_mm: float | FloatArray
+    outline_mm: FloatArray
+    pixels: FloatArray
+
+
 class _TipDrawing:
     """Bends of a curve's last ``span_mm`` (see :func:`bend_tip_to_pixels`), drawn in
     every view that sees them against its coverage.
@@ -221,7 +242,8 @@ class _TipDrawing:
     window of each view, and that drawing's levels; a bend's drawing changes only
     the blocks it touches, which alone are averaged again (see canvas_levels).
     ``radii_mm``: (M,) the radius at each point of ``pts`` the body is drawn with
-    (default ``radius_mm``, the end's, throughout).
+    (default ``radius_mm``, the end's, throughout). With ``middle``, a bend also moves
+    the middle of the bent part (see :func:`_end_bender`).
     """
 
     def __init__(
@@ -233,6 +255,8 @@ class _TipDrawing:
         span_mm: float,
         flat_end: bool,
         radii_mm: FloatArray | None = None,
+        *,
+        middle: bool = False,
     ) -> None:
         arc = polyline_arclength(pts)
         start = max(float(arc[-1]) - span_mm, 0.5 * float(arc[-1]))
@@ -240,7 +264,8 @@ class _TipDrawing:
         self.first = max(int(np.searchsorted(arc, keep)) - 1, 0)
         self.radius_mm, self.flat_end = radius_mm, flat_end
         ahead = end_frame(pts, arc, at_mm=float(arc[-1]), span_mm=END_SPAN_MM)
-        self.bent = _end_bender(pts, arc, start, ahead)
+        self.bent = _end_bender(pts, arc, start, ahead, middle=middle)
+        self.parameters = 4 if middle else 3
         body, _ = tube_points(cut_polyline(pts, keep), radius_mm, flat_end=False)
         # The body as thick as it is along it (a tapered tube's stem drawn as thin as
         # its end leaves the stem's rim to the bent end, which then lies on it). On the
@@ -251,6 +276,16 @@ class _TipDrawing:
         # two-camera median tips 1.35 against 1.56 mm, but mean 1.05 against 0.81 mm, most
         # of it one stepped shape of draw 41 whose track started 14-54 mm off in depth.
         body_radii = radius_mm if radii_mm is None else np.interp(polyline_arclength(body), arc, radii_mm)
+        # ... and so is a loose stretch's bent part (it reaches back to where a taper is
+        # thicker): its radii by arc length from its first point. The tip's spans are
+        # drawn at the end's radius, which the end's readings hold (drawn with the radii
+        # along them, a two-camera stepped s-curve's tip came 0.34 -> 1.82 mm off; see
+        # pipeline.reconstruct.tracking.LOOSE_END_SPREAD).
+        self.part_radii = (
+            None
+            if radii_mm is None or not middle
+            else (arc[self.first :] - arc[self.first], radii_mm[self.first :])
+        )
         # Per view that sees the end part: camera, coverage, drawing of the body, origin.
         self.windows: list[tuple[Camera, NDArray[np.float32], NDArray[np.uint8], tuple[int, int]]] = []
         for cam, coverage in zip(cameras, coverages, strict=True):
@@ -264,20 +299,24 @@ class _TipDrawing:
         self.fixed_levels = [canvas_levels(window[2]) for window in self.windows]
         self.cameras = [window[0] for window in self.windows]
 
-    def draw(self, p: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-        """The bend ``p`` (across (2,), longer, mm): its axis, the discs and outline
-        drawn of its end part, and their pixels (V, D + O, 2) in each view (all in one go)."""
-        bent = self.bent(p[:2], float(p[2]))
+    def draw(self, p: FloatArray) -> tuple[FloatArray, _Drawn]:
+        """The bend ``p`` (see :func:`_end_bender`): its axis, and what is drawn of its end part."""
+        bent = self.bent(p)
         discs, outline = tube_points(bent[self.first :], self.radius_mm, flat_end=self.flat_end)
-        return bent, discs, outline, project_in_views(self.cameras, np.vstack([discs, outline]))
+        radii: float | FloatArray = self.radius_mm
+        if self.part_radii is not None:
+            radii = np.interp(polyline_arclength(discs), *self.part_radii)
+        return bent, _Drawn(
+            discs, radii, outline, project_in_views(self.cameras, np.vstack([discs, outline]))
+        )
 
-    def levels(
-        self, view: int, discs: FloatArray, outline: FloatArray, pixels: FloatArray
-    ) -> NDArray[np.uint8]:
-        """(h, w) uint8 levels of ``view``'s window with the bent end drawn over the body."""
+    def levels(self, view: int, drawn: _Drawn) -> NDArray[np.uint8]:
+        """(h, w) uint8 levels of ``view``'s window with the bent end ``drawn`` over the body."""
         cam, _, fixed, origin = self.windows[view]
         canvas = fixed.copy()
-        x0, y0, x1, y1 = draw_tube(canvas, cam, discs, outline, self.radius_mm, origin, pixels=pixels)
+        x0, y0, x1, y1 = draw_tube(
+            canvas, cam, drawn.discs_mm, drawn.outline_mm, drawn.radii_mm, origin, pixels=drawn.pixels[view]
+        )
         levels = self.fixed_levels[view].copy()
         x0, y0 = x0 // SUPERSAMPLE, y0 // SUPERSAMPLE
         x1, y1 = -(-x1 // SUPERSAMPLE), -(-y1 // SUPERSAMPLE)
@@ -288,6 +327,8 @@ class _TipDrawing:
 
     def out_of_bounds(self, p: FloatArray) -> bool:
         limit = _MAX_BEND_RADII * self.radius_mm
+        if len(p) > 3:  # across at the tip, then in the middle (see _end_bender)
+            return bool(np.hypot(p[0], p[1]) > limit or np.hypot(p[2], p[3]) > limit)
         return bool(np.hypot(p[0], p[1]) > limit or abs(p[2]) > limit)
 
 
@@ -302,6 +343,7 @@ def refine_tip_to_pixels(
     rejects: Callable[[FloatArray], bool] | None = None,
     cap: str = "flat",
     radii_mm: FloatArray | None = None,
+    loose_span_radii: float = 0.0,
 ) -> FloatArray:
     """The bends of :func:`bend_tip_to_pixels` (its arguments but the search's
     steps), fitted from the curve's own tip by damped Gauss-Newton on each view's
@@ -310,6 +352,12 @@ def refine_tip_to_pixels(
     may be far from it. ``radius_mm`` is the tube's radius at its end, ``radii_mm``
     (M,) the radius at each point of ``points_mm`` (default ``radius_mm`` throughout).
 
+    ``loose_span_radii``: the length (in radii) of the stretch before the tip that the
+    side readings place loosely (:meth:`pipeline.reconstruct.placement.Placement.loose_end_mm`).
+    Where it is longer than the spans, that stretch is bent first, as a whole and in its
+    middle (four parameters, see :func:`_end_bender`): the spans' bends move the last few
+    radii and the tip, and leave the middle of a longer stretch where the fit put it.
+
     Returns (M', 3) float64, the bent axis; ``points_mm`` when no bend matches better.
     """
     pts = np.asarray(points_mm, dtype=np.float64)
@@ -317,47 +365,43 @@ def refine_tip_to_pixels(
     # longest span's part, with room for the tip to move by the largest bend allowed
     # in each span.
     arc = polyline_arclength(pts)
-    end_part = pts[arc >= arc[-1] - (max(spans_radii) + 1.0) * radius_mm]
-    reach = len(spans_radii) * _REACH_RADII
+    # (span in radii, whether its middle is bent too), in the order fitted.
+    fits = [(span, False) for span in spans_radii]
+    if loose_span_radii > max(spans_radii):
+        fits.insert(0, (loose_span_radii, True))
+    end_part = pts[arc >= arc[-1] - (max(span for span, _ in fits) + 1.0) * radius_mm]
+    reach = len(fits) * _REACH_RADII
     windows = [view_window(cam, end_part, radius_mm, reach_radii=reach) for cam in cameras]
     seen = pixel_coverages(contrasts, masks, windows)
-    for span in spans_radii:
+    for span, middle in fits:
         # The radii follow a bent tip by sample fraction (a bend may add or drop samples).
         radii = None if radii_mm is None else by_fraction(radii_mm, len(pts))
-        pts = _refine_once(pts, cameras, seen, radius_mm, span * radius_mm, rejects, cap == "flat", radii)
+        drawing = _TipDrawing(
+            pts, cameras, seen, radius_mm, span * radius_mm, cap == "flat", radii, middle=middle
+        )
+        if drawing.windows:
+            p = _fit_bend(
+                drawing, np.zeros(drawing.parameters), rejects, _LOOSE_STEPS if middle else _REFINE_STEPS
+            )
+            pts = drawing.bent(p) if p.any() else pts
     return pts
 
 
-def _refine_once(
-    pts: FloatArray,
-    cameras: Sequence[Camera],
-    coverages: Sequence[NDArray[np.float32]],
-    radius_mm: float,
-    span_mm: float,
-    rejects: Callable[[FloatArray], bool] | None,
-    flat_end: bool,
-    radii_mm: FloatArray | None = None,
-) -> FloatArray:
-    """One fit of :func:`refine_tip_to_pixels`, bending the last ``span_mm``."""
-    drawing = _TipDrawing(pts, cameras, coverages, radius_mm, span_mm, flat_end, radii_mm)
-    if not drawing.windows:
-        return pts
-    p = _fit_bend(drawing, np.zeros(3), rejects)
-    return drawing.bent(p[:2], float(p[2])) if p.any() else pts
-
-
 def _fit_bend(
-    drawing: _TipDrawing, start: FloatArray, rejects: Callable[[FloatArray], bool] | None
+    drawing: _TipDrawing,
+    start: FloatArray,
+    rejects: Callable[[FloatArray], bool] | None,
+    steps: int = _REFINE_STEPS,
 ) -> FloatArray:
-    """The bend (3,) of ``drawing`` fitted from ``start`` by damped Gauss-Newton on each
-    view's pixel differences (see ``REFINE_SPANS_RADII``); ``start`` where no step lowers
-    the cost."""
+    """The bend (3,) or (4,) of ``drawing`` fitted from ``start`` by damped Gauss-Newton
+    on each view's pixel differences, in at most ``steps`` steps (see
+    ``REFINE_SPANS_RADII``); ``start`` where no step lowers the cost."""
 
     def residuals(p: FloatArray) -> tuple[FloatArray, FloatArray]:
         """The bend ``p``'s axis, and its drawn coverage less the seen, pixel by pixel."""
-        bent, discs, outline, pixels = drawing.draw(p)
+        bent, drawn = drawing.draw(p)
         parts = [
-            level_residuals(drawing.levels(view, discs, outline, pixels[view]), window[1])
+            level_residuals(drawing.levels(view, drawn), window[1])
             for view, window in enumerate(drawing.windows)
         ]
         return bent, np.concatenate(parts).astype(np.float64)
@@ -367,10 +411,10 @@ def _fit_bend(
     cost = float(r @ r)
     jacobian: FloatArray | None = None
     damping = _DAMPING
-    for step_number in range(_REFINE_STEPS):
+    for step_number in range(steps):
         if jacobian is None:
             jacobian = np.column_stack(
-                [(residuals(p + _DIFFERENCE_MM * e)[1] - r) / _DIFFERENCE_MM for e in np.eye(3)]
+                [(residuals(p + _DIFFERENCE_MM * e)[1] - r) / _DIFFERENCE_MM for e in np.eye(len(p))]
             )
         gradient, normal = jacobian.T @ r, jacobian.T @ jacobian
         taken = False
@@ -438,11 +482,11 @@ def _bend_once(
         cost only with a lower best)."""
         if drawing.out_of_bounds(p):
             return np.inf
-        bent, discs, outline, pixels = drawing.draw(p)
+        bent, drawn = drawing.draw(p)
         parts = [0.0] * len(order)
 
         def view_cost(view: int) -> float:
-            levels = drawing.levels(view, discs, outline, pixels[view])
+            levels = drawing.levels(view, drawn)
             return level_difference(levels, drawing.windows[view][1])
 
         partial = 0.0
@@ -478,7 +522,7 @@ def _bend_once(
     _log.debug("tip bent by %s mm across, %+.2f mm longer (cost %.1f)", p[:2], p[2], best)
     if then_fit:
         p = _fit_bend(drawing, p, rejects)
-    return drawing.bent(p[:2], float(p[2])) if p.any() else pts
+    return drawing.bent(p) if p.any() else pts
 
 
 def continue_on_circle(points_mm: FloatArray, *, redo_mm: float, fit_mm: float) -> FloatArray:
@@ -582,24 +626,47 @@ def _bend_end(
     ``start``), then lengthened by ``longer`` mm along its own continuation
     ``ahead`` (u mm past the end -> points, see :func:`end_frame`), bent alike,
     or cut if ``longer`` is negative."""
-    return _end_bender(pts, arc, start, ahead)(across, longer)
+    return _end_bender(pts, arc, start, ahead)(np.array([across[0], across[1], longer]))
 
 
 def _end_bender(
-    pts: FloatArray, arc: FloatArray, start: float, ahead: Callable[[FloatArray], FloatArray]
-) -> Callable[[FloatArray, float], FloatArray]:
-    """:func:`_bend_end` of one axis as a function of (``across``, ``longer``):
-    what does not depend on the bend (the end's normals, the weights along the
-    axis, the continuation's origin) is worked out once, for the many bends a
-    search tries."""
+    pts: FloatArray,
+    arc: FloatArray,
+    start: float,
+    ahead: Callable[[FloatArray], FloatArray],
+    *,
+    middle: bool = False,
+) -> Callable[[FloatArray], FloatArray]:
+    """:func:`_bend_end` of one axis as a function of the bend p = (across (2,),
+    longer) mm: what does not depend on the bend (the end's normals, the weights
+    along the axis, the continuation's origin) is worked out once, for the many
+    bends a search tries.
+
+    With ``middle``, p = (across (2,), middle (2,)) mm, the length kept: the
+    middle of the bent part moves across by ``middle`` as well, with the weight
+    16 t^2 (1 - t)^2 at the fraction t of the part (0 at both its ends, 1 in its
+    middle), square to the axis at each point, in the directions across the axis'
+    tangent at the middle. The tip's bend alone ties the middle to the tip (a
+    quarter of the tip's motion at t = 1/2); this frees it.
+    """
     n1, n2 = normals(pts[-1] - pts[-2])
     span = float(arc[-1]) - start
     w = (np.clip((arc - start) / span, 0.0, None) ** 2)[:, None]
     origin = ahead(np.zeros(1))
+    if middle:
+        t = np.clip((arc - start) / span, 0.0, 1.0)
+        bump = (16.0 * t * t * (1.0 - t) * (1.0 - t))[:, None]
+        at = min(max(int(np.searchsorted(arc, start + 0.5 * span)), 1), len(pts) - 1)
+        tangents = unit_tangents(pts)
+        # Each direction across the middle, made square to the axis at every point.
+        m1, m2 = (bump * (m - (tangents @ m)[:, None] * tangents) for m in normals(pts[at] - pts[at - 1]))
 
-    def bent(across: FloatArray, longer: float) -> FloatArray:
-        offset = across[0] * n1 + across[1] * n2
+    def bent(p: FloatArray) -> FloatArray:
+        offset = p[0] * n1 + p[1] * n2
         out = pts + w * offset[None, :]
+        if middle:
+            return out + p[2] * m1 + p[3] * m2
+        longer = float(p[2])
         if longer < 0:
             return cut_polyline(out, float(arc[-1]) + longer)
         if longer > 0:

@@ -603,6 +603,38 @@ def test_refine_tip_to_pixels_fits_a_tip_near_its_place(
     assert refine_tip_to_pixels(start_mm, cams, masks, contrasts, RADIUS, rejects=lambda _: True) is start_mm
 
 
+@pytest.mark.parametrize(("span_radii", "aside_mm"), [(6.0, 1.5), (6.0, 2.5), (8.0, 2.5)])
+def test_a_loose_end_stretch_is_fitted_to_the_grey_levels(
+    rendered_loop: tuple, span_radii: float, aside_mm: float
+) -> None:
+    from pipeline.geometry.polyline import unit_tangents
+    from pipeline.reconstruct.tip_bend import normals, refine_tip_to_pixels
+
+    curve, cams, masks, contrasts = rendered_loop
+    truth = resample_polyline(curve, 64)
+    arc = polyline_arclength(truth)
+    # The last radii pushed aside in their middle (a sine-squared bump, square to the axis),
+    # the tip where it is: a loop's end running along its stem, which no side reading places.
+    t = np.clip((arc - (arc[-1] - span_radii * RADIUS)) / (span_radii * RADIUS), 0.0, 1.0)
+    tangents = unit_tangents(truth)
+    n1, n2 = normals(truth[-1] - truth[-2])
+    aside = (0.8 * n1 + 0.6 * n2)[None, :] - ((0.8 * n1 + 0.6 * n2) @ tangents.T)[:, None] * tangents
+    aside /= np.linalg.norm(aside, axis=1, keepdims=True)
+    wrong = truth + (aside_mm * np.sin(np.pi * t) ** 2)[:, None] * aside
+    middle = truth[int(np.argmin(np.abs(t - 0.5)))]
+
+    def middle_error(axis: FloatArray) -> float:
+        return float(np.min(np.linalg.norm(axis - middle, axis=1)))
+
+    assert middle_error(wrong) > aside_mm - 0.1
+    # Measured 0.37, 0.61 and 0.42 mm from the middle, the tip 0.09, 0.06 and 0.07 mm off;
+    # the tip's own bends leave the middle where it was.
+    fitted = refine_tip_to_pixels(wrong, cams, masks, contrasts, RADIUS, loose_span_radii=span_radii)
+    assert middle_error(fitted) < 0.7
+    assert np.linalg.norm(fitted[-1] - truth[-1]) < 0.5
+    assert middle_error(refine_tip_to_pixels(wrong, cams, masks, contrasts, RADIUS)) > aside_mm - 0.1
+
+
 def test_a_curve_whose_parts_come_too_close_ranks_lower(rendered_loop: tuple) -> None:
     from pipeline.reconstruct.tube_fit import TubeFit
     from pipeline.reconstruct.tube_scores import _IMPLAUSIBLE, ranked_score, silhouette_score

@@ -172,3 +172,25 @@ def test_the_spread_is_exact_where_it_may_pass_the_bar_and_a_bound_elsewhere(see
     np.testing.assert_array_equal(spread > LOOSE_SPREAD, loose)
     np.testing.assert_allclose(spread[loose], exact[loose], rtol=1e-9)
     assert np.all(spread[1:] >= exact[1:] * (1 - 1e-9))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_loose_end_is_the_stretch_before_the_tip_that_no_reading_places(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    k = 60
+    unread = int(rng.integers(4, 15))
+    pts, sides = _straight_tube(k)
+    placement = Placement(pts, sides, base_fixed=True, smoothness=0.5)
+    assert placement.loose_end_mm(2.0, within_mm=80.0) == 0.0  # every sample read to the tip
+    use = sides.use.copy()
+    use[k - unread :] = False  # the last samples hidden in every view
+    hidden = SideReadings(
+        sides.rows, sides.left, sides.right, use, sides.radius_mm, sides.apparent, sides.radii_mm
+    )
+    loose = Placement(pts, hidden, base_fixed=True, smoothness=0.5).loose_end_mm(2.0, within_mm=80.0)
+    # The smoothness carries the read samples' places a sample or two into the hidden stretch.
+    assert (unread - 3) * SPACING <= loose <= unread * SPACING
+    # All of the judged stretch where none of it is read.
+    assert Placement(pts, hidden, base_fixed=True, smoothness=0.5).loose_end_mm(
+        2.0, within_mm=(unread - 4) * SPACING
+    ) == pytest.approx((unread - 4) * SPACING)
