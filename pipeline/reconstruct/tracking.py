@@ -113,28 +113,34 @@ MISS_FRAMES = 3
 # -> 0.37 mm mean, at nearly twice the cost (9.4 against 5.5 ms a frame on the demo's
 # frames, one core).
 TRACK_TIP_SPANS_RADII = (4.0,)
-# Where the stretch before the tip that the side readings place more loosely than
-# LOOSE_END_SPREAD (pipeline.reconstruct.placement.Placement.loose_end_mm; samples that
-# every view reads spread 0.6-0.9) is LOOSE_END_RADII or longer, judged over the last
+# Where the tip meets another part of the tube (tip_meets_tube) and the stretch before it
+# that the side readings place more loosely than LOOSE_END_SPREAD
+# (pipeline.reconstruct.placement.Placement.loose_end_mm; samples that every view reads
+# spread 0.6-0.9) is LOOSE_END_RADII or longer, judged over the last
 # LOOSE_END_WITHIN_RADII, that stretch is bent to the grey levels first, its middle free
 # of its tip (refine_tip_to_pixels' loose_span_radii): a loop's end that runs along its
 # stem is crowded in every view, and the course the fit carries over it from the frames
 # before drifts 2-5 mm off in its middle while the tip stays placed (the bench's r 7 loop,
-# `recordings/bench-loop-round`). Measured on `accuracy_table --draw 2`, 409, 433, 439 and
-# 443 (8 cases of 90 frames each, 40 sessions; 2026-12-06), against no such bend: frames
-# more than 2 mm off 745 -> 704; two-camera sessions without disks 124 -> 81 (a stepped
-# loop 46 -> 22, 0.50 -> 0.39 mm mean; a tapered random shape 1.68 -> 0.56 mm mean), the
-# three-camera loops 15 -> 10, the three-camera other shapes without disks 11 -> 17 (a
-# stepped random shape of draw 439, 4 -> 10, 0.37 -> 0.41 mm mean), the disk sessions
-# within a few frames; median tips closer by 0.03 mm or more on 5, farther on 2 (a tapered
-# loop 0.51 -> 0.54 mm). The bench's loops (900 frames, `process` and `evaluate`): r 7,
-# mean 0.279 -> 0.246 mm, p95 0.78 -> 0.62 mm, frames off 158 -> 78; r 9, 0.200 -> 0.193
-# mm, 41 -> 30; the demo unchanged. The bend's length left free as well: the tapered loop's
-# tip 0.51 -> 1.79 mm (its end lengthened past the true one); its part drawn with the radii
-# along it and the tip's spans too: a two-camera stepped s-curve's tip 0.34 -> 1.82 mm.
-# On the r 7 loop's first 300 frames, in a first form of the bend (the end's directions
-# across, 3 steps), bars of 1.5, 2 and 2.5 left 20, 27 and 27 frames off (none: 68), 3
-# left 53; a shortest stretch of 4 radii 54, of 6 radii 35.
+# `recordings/bench-loop-round`). A loose end whose tip meets no other part is one the
+# views look along, which the grey levels do not place either. Measured on
+# `accuracy_table --draw 2`, 409, 433, 439 and 443 (8 cases of 90 frames each, 40
+# sessions; 2026-12-06), against no such bend: frames more than 2 mm off 745 -> 707;
+# two-camera sessions without disks 124 -> 74 (a stepped loop 46 -> 17, 0.50 -> 0.37 mm
+# mean; a tapered random shape 39 -> 18, 1.68 -> 0.55 mm), three-camera loops 15 -> 13,
+# three-camera other shapes without disks 11 -> 17 (a stepped random shape of draw 439,
+# 4 -> 10, 0.37 -> 0.41 mm mean), with disks 253 -> 261; median tips closer by 0.03 mm
+# or more on 4, farther on 1 (a two-camera loop with disks, off everywhere either way).
+# The bench's loops (900 frames, `process` and `evaluate`): r 7, mean 0.279 -> 0.246 mm,
+# p95 0.78 -> 0.62 mm, frames off 158 -> 78; r 9, 0.200 -> 0.193 mm, 41 -> 30; the demo
+# unchanged. Without the tip's meeting as a condition: the same on the bench's loops, but
+# draw 2's two-camera tapered random shape (150 frames) 23 -> 66 frames off (its tip 0.55
+# -> 1.88 mm), and 707 -> 704 frames off on the five draws. The bend's length left free as
+# well: draw 443's tapered loop's tip 0.51 -> 1.79 mm (its end lengthened past the true
+# one); the part drawn with the radii along it and the tip's spans too: a two-camera
+# stepped s-curve's tip 0.34 -> 1.82 mm. On the r 7 loop's first 300 frames, in a first
+# form of the bend (the end's directions across, 3 steps), bars of 1.5, 2 and 2.5 left
+# 20, 27 and 27 frames off (none: 68), 3 left 53; a shortest stretch of 4 radii 54, of
+# 6 radii 35.
 LOOSE_END_SPREAD = 2.0
 LOOSE_END_RADII = 5.0
 LOOSE_END_WITHIN_RADII = 16.0
@@ -406,7 +412,7 @@ def track_tube(
         meets = tip_meets_tube(fit.points_mm, cameras, fit.radius_mm)
         radius = fit.end_radius_mm
         loose = 0.0
-        if fit.placement is not None:
+        if meets and fit.placement is not None:
             loose = fit.placement.loose_end_mm(LOOSE_END_SPREAD, LOOSE_END_WITHIN_RADII * radius) / radius
         bent = refine_tip_to_pixels(
             fit.points_mm,
@@ -418,7 +424,7 @@ def track_tube(
             rejects=lambda axis: self_intersects(axis, fit.radius_mm),
             cap=cap,
             radii_mm=fit.radii_mm,
-            loose_span_radii=loose if loose >= LOOSE_END_RADII else 0.0,
+            loose_span_radii=loose if meets and loose >= LOOSE_END_RADII else 0.0,
         )
         fit = replace(
             fit,
