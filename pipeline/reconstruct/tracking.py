@@ -407,8 +407,9 @@ def track_tube(
         )
 
     def judged_with_tip(fit: TubeFit) -> TrackedFit:
-        """``fit`` judged, its tip first fitted to the grey levels as above (the radii
-        follow the bent tip by sample fraction)."""
+        """``fit`` judged, its tip first fitted to the grey levels as above, and the loose
+        stretch before a tip that meets the tube too (the radii follow the bent tip by
+        sample fraction)."""
         meets = tip_meets_tube(fit.points_mm, cameras, fit.radius_mm)
         radius = fit.end_radius_mm
         loose = 0.0
@@ -424,7 +425,7 @@ def track_tube(
             rejects=lambda axis: self_intersects(axis, fit.radius_mm),
             cap=cap,
             radii_mm=fit.radii_mm,
-            loose_span_radii=loose if meets and loose >= LOOSE_END_RADII else 0.0,
+            loose_span_radii=loose if loose >= LOOSE_END_RADII else 0.0,
         )
         fit = replace(
             fit,
