@@ -137,8 +137,8 @@ TRACK_TIP_SPANS_RADII = (4.0,)
 # -> 1.88 mm), and 707 -> 704 frames off on the five draws. The bend's length left free as
 # well: draw 443's tapered loop's tip 0.51 -> 1.79 mm (its end lengthened past the true
 # one); the part drawn with the radii along it and the tip's spans too: a two-camera
-# stepped s-curve's tip 0.34 -> 1.82 mm. On the r 7 loop's first 300 frames, in a first
-# form of the bend (the end's directions across, 3 steps), bars of 1.5, 2 and 2.5 left
+# stepped s-curve's tip 0.34 -> 1.82 mm. On the r 7 loop's first 300 frames, with the
+# middle moved along the end's directions across and 3 steps, bars of 1.5, 2 and 2.5 left
 # 20, 27 and 27 frames off (none: 68), 3 left 53; a shortest stretch of 4 radii 54, of
 # 6 radii 35.
 LOOSE_END_SPREAD = 2.0
@@ -420,7 +420,7 @@ def track_tube(
             cameras,
             masks,
             contrasts,
-            fit.end_radius_mm,
+            radius,
             spans_radii=REFINE_SPANS_RADII if meets else TRACK_TIP_SPANS_RADII,
             rejects=lambda axis: self_intersects(axis, fit.radius_mm),
             cap=cap,
