@@ -29,7 +29,10 @@ from ..geometry.polyline import resample_polyline
 from ..reconstruct.frame import frame_contrasts, reconstruct_with_silhouettes
 from ..reconstruct.frame_task import FrameMap, decode_frames, map_here
 from ..reconstruct.model import SessionModel
+from ..reconstruct.radius_profile import RadiusProfile
+from ..reconstruct.side_readings import read_radius_profile
 from ..reconstruct.tip_shape import FrameTip, ReadTips, frame_tip, sample_frames
+from ..reconstruct.tube_fit import FIT_SPACING_MM
 from ..session.calibration_io import write_calibration
 from ..session.toml_file import load_toml
 from .adjust import Adjustment, Tube, adjust_cameras, aligned_by_images, resampled_tube
@@ -443,7 +446,7 @@ def refined_cameras(
     frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
     map_frames: FrameMap = map_here,
     frames_of: FramesOfCamera | None = None,
-) -> tuple[tuple[Camera, ...], Refinement | None, ReadTips | None]:
+) -> tuple[tuple[Camera, ...], Refinement | None, ReadTips | None, RadiusProfile | None]:
     """The cameras to reconstruct the session with, under the settings' ``[calibration]
     refine``, and the refinement's report, from its sample ``frames`` (:func:`sample_session`).
     The report, where the cameras are kept without refining (``refine = false``, two
@@ -456,13 +459,17 @@ def refined_cameras(
     Third, where the settings leave the tube's end to the frames (``[manipulator] tip =
     "auto"``) and the given cameras are kept: the sample frames' ends, read on the same
     reconstructions, for :func:`pipeline.reconstruct.tip_shape.with_session_tip` (their
-    bases are free, which moves a fit near its base, not at its end); else None."""
+    bases are free, which moves a fit near its base, not at its end); else None.
+
+    Fourth, where it reconstructs them: the tube's radius along it read on those frames
+    (:mod:`pipeline.reconstruct.radius_profile`, for the model's ``radius_profile``); else None."""
     started = time.perf_counter()
     mode = model.settings.calibration.refine
     if model.settings.centerline.method != "fit":
-        return model.cameras, None, None
+        return model.cameras, None, None, None
     if mode is False:
-        return model.cameras, _kept_as_given(model, frames, map_frames, "[calibration] refine = false"), None
+        report = _kept_as_given(model, frames, map_frames, "[calibration] refine = false")
+        return model.cameras, report, None, None
     if len(model.cameras) < 3:
         # Each sample of a tube's sides is read once per view, across it: two views give
         # exactly the two numbers that place it, and nothing is left to tell the cameras by.
@@ -472,11 +479,11 @@ def refined_cameras(
         # a disk tube's base 1.98 mm off along it, and moved there it came out 4.14 mm off
         # against 2.14 kept), though they gained where the calibration was off (a straight
         # tube 0.15 deg off, 2.75 -> 0.21 mm).
-        return model.cameras, _kept_as_given(model, frames, map_frames, reason), None
-    indexed, read = _sampled(model, frames, map_frames)
+        return model.cameras, _kept_as_given(model, frames, map_frames, reason), None, None
+    indexed, read, profile = _sampled(model, frames, map_frames)
     tubes = [tube for _, tube in indexed]
     if len(tubes) < 3:
-        return model.cameras, None, read
+        return model.cameras, None, read, profile
     lags = [] if frames_of is None else camera_lags(model, indexed, frames_of, map_frames)
     in_step: Adjustment | None = None  # the cameras adjusted to the frames as they are
     if lags:
@@ -494,7 +501,8 @@ def refined_cameras(
         # take the difference for cameras that moved.
         reason = "a camera's video is out of step with the others'"
         report = Refinement(False, 0, float("nan"), float("nan"), (), reason, lags=tuple(lags))
-        return model.cameras, dataclasses.replace(report, seconds=time.perf_counter() - started), read
+        report = dataclasses.replace(report, seconds=time.perf_counter() - started)
+        return model.cameras, report, read, profile
     cameras, report = refine(model, tubes, mode, refitter(model, frames, map_frames), in_step)
     report = dataclasses.replace(report, seconds=time.perf_counter() - started)
     # The ends read with the given cameras serve only them. Moved to the mount, the frames'
@@ -502,7 +510,9 @@ def refined_cameras(
     # 60 --calib-error 0.15 --seed 3`, 2026-12-05) the given cameras' ends mixed with the
     # moved rig's made the end a close call (-0.12 +- 0.08, every frame flagged); read anew,
     # flat, -0.26 +- 0.11, no frame flagged, at the same 0.24 mm.
-    return cameras, report, None if report.changed else read
+    # The radius along the tube is the same whichever the cameras (a refinement moves an
+    # image by tenths of a pixel): read with the given ones, it serves the refined ones too.
+    return cameras, report, None if report.changed else read, profile
 
 
 def _shifted_apart_px(
@@ -560,43 +570,53 @@ def _kept_as_given(
     return Refinement(False, 0, float("nan"), float("nan"), (), reason, mount_note=note)
 
 
-def sample_tips(
+def sample_evidence(
     model: SessionModel,
     frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
     map_frames: FrameMap = map_here,
-) -> ReadTips | None:
-    """The tube ends :func:`refined_cameras` reads where it keeps the given cameras, read
-    the same way on the sample ``frames`` without refining: a run that keeps its cameras as
-    given (a live replay) then chooses the end as ``process`` does. None where it reads none
-    (fewer than three cameras, ``[calibration] refine = false``, the end set in session.toml)."""
-    if not _reads_tips(model):
-        return None
-    return _sampled(model, frames, map_frames)[1]
+) -> tuple[ReadTips | None, RadiusProfile | None]:
+    """The tube ends and the radius along the tube that :func:`refined_cameras` reads where
+    it keeps the given cameras, read the same way on the sample ``frames`` without refining:
+    a run that keeps its cameras as given (a live replay) then reconstructs as ``process``
+    does. Each None where it reads none (fewer than three cameras, ``[calibration] refine =
+    false``; the ends where session.toml sets the end)."""
+    if not _samples_frames(model):
+        return None, None
+    _, read, profile = _sampled(model, frames, map_frames)
+    return read, profile
+
+
+def _samples_frames(model: SessionModel) -> bool:
+    """Whether :func:`refined_cameras` reconstructs sample frames for ``model``."""
+    settings = model.settings
+    refines = settings.calibration.refine is not False and settings.centerline.method == "fit"
+    return refines and len(model.cameras) >= 3
 
 
 def _reads_tips(model: SessionModel) -> bool:
-    """Whether :func:`refined_cameras` reconstructs sample frames for ``model`` and reads
-    their ends (the end left to the frames, ``[manipulator] tip = "auto"``)."""
-    settings = model.settings
-    refines = settings.calibration.refine is not False and settings.centerline.method == "fit"
-    return refines and len(model.cameras) >= 3 and settings.manipulator.tip == "auto"
+    """Whether :func:`refined_cameras` reads the sample frames' ends (the end left to the
+    frames, ``[manipulator] tip = "auto"``)."""
+    return _samples_frames(model) and model.settings.manipulator.tip == "auto"
 
 
 def _sampled(
     model: SessionModel,
     frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
     map_frames: FrameMap,
-) -> tuple[list[tuple[int, Tube]], ReadTips | None]:
-    """The tubes of ``frames`` (:func:`sample_tubes`), each with its frame's index, and, where
+) -> tuple[list[tuple[int, Tube]], ReadTips | None, RadiusProfile | None]:
+    """The tubes of ``frames`` (:func:`sample_tubes`), each with its frame's index; where
     the session reads its tube end from them (:func:`_reads_tips`), their ends read on the same
-    reconstructions (else None)."""
+    reconstructions (else None); and the radius along the tube read on them."""
     read_tips = _reads_tips(model)
     samples = map_frames(functools.partial(_sample, tip=read_tips), frames, _base_free(model))
     tubes = [(index, tube) for (index, _), (tube, _) in zip(frames, samples, strict=True) if tube is not None]
+    profile = read_radius_profile(
+        [(tube.points_mm, tube.radii_mm, tube.contrasts) for _, tube in tubes], model.cameras, FIT_SPACING_MM
+    )
     if not read_tips:
-        return tubes, None
+        return tubes, None, profile
     tips = tuple(tip for _, tip in samples if tip is not None)
-    return tubes, ReadTips(tuple(index for index, _ in frames), tips)
+    return tubes, ReadTips(tuple(index for index, _ in frames), tips), profile
 
 
 _SOURCE = "pipeline process: refined from the session's silhouettes"

@@ -298,11 +298,12 @@ def run_live(
 
 
 def _model(rig: Session, sources: Sequence[Source]) -> tuple[Any, str, str]:
-    """The per-session model; a replay chooses its tube end from its videos, as ``process``
-    does where it keeps the given cameras. With it, why every frame's tip is in doubt (""
-    where it is not: see :attr:`pipeline.reconstruct.tip_shape.TipChoice.doubt`), and the
-    end assumed and how it was chosen (for the recordings' metadata)."""
-    from ..calibrate.refine import sample_session, sample_tips
+    """The per-session model; a replay chooses its tube end and reads the tube's radius along
+    it from its videos, as ``process`` does where it keeps the given cameras. With it, why
+    every frame's tip is in doubt ("" where it is not: see
+    :attr:`pipeline.reconstruct.tip_shape.TipChoice.doubt`), and the end assumed and how it
+    was chosen (for the recordings' metadata)."""
+    from ..calibrate.refine import sample_evidence, sample_session
     from ..calibrate.video_order import check_video_order
     from ..reconstruct.frame import check_declared_radius
     from ..reconstruct.model import build_model
@@ -323,7 +324,9 @@ def _model(rig: Session, sources: Sequence[Source]) -> tuple[Any, str, str]:
         samples = sample_session(paths, 0, frames)
         check_video_order(model, samples, paths)
         check_declared_radius(model, samples, rig.directory / "session.toml")
-        model, choice = with_session_tip(model, paths, 0, frames, read=sample_tips(model, samples))
+        read, radii = sample_evidence(model, samples)
+        model, choice = with_session_tip(model, paths, 0, frames, read=read)
+        model = dataclasses.replace(model, radius_profile=radii)
         return model, choice.doubt if choice is not None else "", end_assumed(model, choice)
     return model, "", end_assumed(model, None)
 

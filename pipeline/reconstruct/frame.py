@@ -335,6 +335,7 @@ def _curve_and_quality(
                 usual_misfit=usual,
                 length_mm=kept_length,
                 prediction_miss_mm=miss_mm,
+                session_radii=model.radius_profile,
             )
 
         held = None

@@ -18,6 +18,7 @@ from ..carve.hull import HullGrid, build_grid
 from ..geometry.camera import Camera
 from ..session.folder import Session
 from ..session.settings import Settings
+from .radius_profile import RadiusProfile
 
 
 @dataclass(frozen=True, eq=False)
@@ -31,6 +32,10 @@ class SessionModel:
     # The tube's end the fit assumes, "flat" or "round": the settings' choice, or
     # what pipeline.reconstruct.tip_shape chose from the session's frames for "auto".
     tip: str = "flat"
+    # The radius along the tube read on the session's sample frames, for the stretches a
+    # frame's own views do not read (pipeline.reconstruct.radius_profile); None: each
+    # frame's own profile alone.
+    radius_profile: RadiusProfile | None = None
 
 
 def build_model(session: Session) -> SessionModel:

@@ -28,6 +28,7 @@ from .profiles import (
     side_edges,
     theil_sen_slope,
 )
+from .radius_profile import RadiusProfile
 from .tube_tip import END_SPAN_MM, MIN_SIN_VIEW, tip_zone
 
 FloatArray = NDArray[np.float64]
@@ -80,7 +81,9 @@ class SideReadings:
     ``end_radius_mm`` the tube's own radius at its end (:func:`_end_radius`). ``rows`` (K, C, 3)
     maps a 3-D motion of the sample (mm) to the motion of its projection along
     the normal (mm); ``across`` (K, C, 2) maps a motion of its projection (px) to
-    that motion along the normal (mm), or is None.
+    that motion along the normal (mm), or is None. ``widths_mm`` (K, C): the
+    half-width of each view's two edges where no other part crowds them (NaN
+    elsewhere), which the radius along the tube is read from.
     """
 
     rows: FloatArray
@@ -92,6 +95,7 @@ class SideReadings:
     radii_mm: FloatArray
     across: FloatArray | None = None
     end_radius_mm: float = float("nan")
+    widths_mm: FloatArray | None = None
 
     @property
     def readings(self) -> int:
@@ -205,9 +209,12 @@ def read_sides(
     *,
     core: float = 0.6,
     crowd_margin_px: float = CROWD_MARGIN_PX,
+    session_radii: RadiusProfile | None = None,
 ) -> SideReadings:
     """Side readings at the K samples ``pts`` (mm) where the tube's radius is
-    ``radius_mm`` (one for all, or (K,) along the tube)."""
+    ``radius_mm`` (one for all, or (K,) along the tube); ``session_radii``: the radius
+    along the tube read on the session's frames, for the stretches no view of this
+    frame reads (:func:`_radius_profile`)."""
     tangents = unit_tangents(pts)
     arc = polyline_arclength(pts)
     expected = np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), arc.shape)
@@ -229,7 +236,7 @@ def read_sides(
     # expected, so they would keep a tapered or stepped tube's thinner part from
     # ever being read.
     uncrowded = (ok & ~crowd[..., 0] & ~crowd[..., 1]).T & interior[:, None]
-    radii = _radius_profile(arc, 0.5 * (right - left), uncrowded, expected)
+    radii = _radius_profile(arc, 0.5 * (right - left), uncrowded, expected, session_radii)
     # The end's radius from the uncrowded readings no narrower than the tube (a
     # taper's end is), whatever their width above it (see _end_radius).
     end_radius = _end_radius(arc, 0.5 * (right - left), uncrowded & ~narrow.T)
@@ -256,7 +263,27 @@ def read_sides(
         radii,
         e.across.transpose(1, 0, 2),
         end_radius,
+        np.where(uncrowded, 0.5 * (right - left), np.nan),
     )
+
+
+def read_radius_profile(
+    tubes: Sequence[tuple[FloatArray, FloatArray, Sequence[NDArray[np.float32]]]],
+    cameras: Sequence[Camera],
+    spacing_mm: float,
+) -> RadiusProfile | None:
+    """The tube's radius along it pooled over fitted frames (:class:`RadiusProfile`): each
+    frame's axis (K, 3) mm from the base, the radius along it (K,) mm and its per camera
+    (H, W) float32 foreground contrasts, its sides read along the axis every ~``spacing_mm``
+    (:func:`read_sides`); None where too few frames read it."""
+    readings = []
+    for axis_mm, radii_mm, contrasts in tubes:
+        widths = read_sides(axis_mm, cameras, contrasts, radii_mm, spacing_mm).widths_mm
+        if widths is None:
+            continue
+        sample, _ = np.nonzero(np.isfinite(widths))
+        readings.append((polyline_arclength(axis_mm)[sample], widths[np.isfinite(widths)]))
+    return RadiusProfile.pooled(readings)
 
 
 def width_ratios(
@@ -312,7 +339,11 @@ def width_ratios(
 # `process`, 2026-12-04): three-camera frames more than 2 mm off 334 -> 340 (stepped
 # tubes 125 -> 123), unflagged 224 -> 240; two-camera stepped tubes 329 -> 389.
 def _radius_profile(
-    arc_mm: FloatArray, half_mm: FloatArray, both: NDArray[np.bool_], expected_mm: FloatArray
+    arc_mm: FloatArray,
+    half_mm: FloatArray,
+    both: NDArray[np.bool_],
+    expected_mm: FloatArray,
+    session: RadiusProfile | None = None,
 ) -> FloatArray:
     """(K,) the tube's radius along it (mm), from the half-widths ``half_mm`` (K, C) of
     the two-edge readings ``both`` (K, C) at arc lengths ``arc_mm`` (K,).
@@ -320,7 +351,8 @@ def _radius_profile(
     The median of the readings of each sample and its neighbours within
     ``_PROFILE_HALF_SPAN`` samples, in every view (a disk or a stray reading is
     one sample, a taper or a step many); samples without readings take the
-    profile interpolated along the arc, ``expected_mm`` where there is none.
+    ``session`` profile where it reads them (:mod:`pipeline.reconstruct.radius_profile`),
+    else the profile interpolated along the arc, ``expected_mm`` where there is none.
     """
     readings = np.where(both, half_mm, np.nan)
     seen = np.flatnonzero(both.any(axis=1))
@@ -332,7 +364,12 @@ def _radius_profile(
     padded = np.pad(readings, ((_PROFILE_HALF_SPAN, _PROFILE_HALF_SPAN), (0, 0)), constant_values=np.nan)
     windows = np.lib.stride_tricks.sliding_window_view(padded, span, axis=0)  # (K, C, span)
     smoothed = nanmedian_rows(windows[seen].reshape(len(seen), -1))
-    return np.interp(arc_mm, arc_mm[seen], smoothed)
+    profile = np.interp(arc_mm, arc_mm[seen], smoothed)
+    if session is None:
+        return profile
+    pooled = session.at(arc_mm)
+    gap = ~both.any(axis=1) & np.isfinite(pooled)
+    return np.where(gap, pooled, profile)
 
 
 def _end_radius(arc_mm: FloatArray, half_mm: FloatArray, both: NDArray[np.bool_]) -> float:

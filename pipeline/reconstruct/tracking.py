@@ -30,6 +30,7 @@ from ..geometry.polyline import axis_gap_mm, by_fraction, self_intersects
 from .frame_result import FrameResult
 from .profiles import theil_sen_slope
 from .quality import tube_figures
+from .radius_profile import RadiusProfile
 from .spline import Centerline, smooth_curve
 from .tip_bend import REFINE_SPANS_RADII, refine_tip_to_pixels, tip_meets_tube
 from .tube_fit import TubeFit, fit_tube
@@ -367,6 +368,7 @@ def track_tube(
     usual_misfit: float = 0.0,
     length_mm: float = np.nan,
     prediction_miss_mm: float = 0.0,
+    session_radii: RadiusProfile | None = None,
 ) -> TrackedFit:
     """The tube fitted from its prediction (N, 3) mm, and whether the track holds.
 
@@ -385,7 +387,9 @@ def track_tube(
     (:func:`usual_misfit`), beyond which the misfit is judged; ``length_mm``: the
     length the tube keeps where no view reads its end (:func:`held_length`);
     ``prediction_miss_mm``: how far the track's last frames each lay, at least, from their
-    own predictions (:func:`prediction_miss_mm`), beyond which a jump is judged.
+    own predictions (:func:`prediction_miss_mm`), beyond which a jump is judged;
+    ``session_radii``: the radius along the tube read on the session's frames
+    (:mod:`pipeline.reconstruct.radius_profile`), where no view of this frame reads it.
     """
     if not (np.isfinite(radius_mm) and radius_mm > 0):
         return TrackedFit(None, lost="no radius to track")
@@ -404,6 +408,7 @@ def track_tube(
             seek_radii=TRACK_SEEK_RADII,
             crowd_margin_px=TRACK_CROWD_MARGIN_PX,
             unseen_length_mm=length_mm,
+            session_radii=session_radii,
         )
 
     def judged_with_tip(fit: TubeFit) -> TrackedFit:

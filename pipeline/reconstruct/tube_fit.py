@@ -39,6 +39,7 @@ from scipy.linalg import solveh_banded
 from ..geometry.camera import Camera, project_in_views
 from ..geometry.polyline import by_fraction, polyline_arclength, resample_polyline
 from .placement import Placement, normal_equations
+from .radius_profile import RadiusProfile
 from .side_readings import CROWD_MARGIN_PX, SideReadings, consistent_readings, read_sides
 from .tube_tip import refit_tip
 
@@ -131,6 +132,7 @@ def fit_tube(
     crowd_margin_px: float = CROWD_MARGIN_PX,
     radii_mm: FloatArray | None = None,
     unseen_length_mm: float = np.nan,
+    session_radii: RadiusProfile | None = None,
 ) -> TubeFit:
     """Move ``curve_mm`` so that the tube around it projects onto every silhouette.
 
@@ -164,6 +166,8 @@ def fit_tube(
         as the fit goes, and returned as ``TubeFit.radii_mm``.
     unseen_length_mm : the curve's length (mm) where no view reads its end (see
         :func:`pipeline.reconstruct.tube_tip.refit_tip`); NaN: as long as it is.
+    session_radii : the radius along the tube read on the session's frames, taken
+        where no view of this frame reads it (:mod:`pipeline.reconstruct.radius_profile`).
 
     Returns
     -------
@@ -193,6 +197,7 @@ def fit_tube(
             spacing_mm,
             core=seek_radii if i == 0 else _CORE,
             crowd_margin_px=crowd_margin_px,
+            session_radii=session_radii,
         )
         end_radius = float(local[-1])
         if obs.readings >= 6:
@@ -214,7 +219,8 @@ def fit_tube(
             unseen_length_mm=unseen_length_mm,
         )
     pts = _resampled(pts, spacing_mm)
-    obs = read_sides(pts, cameras, contrasts, np.interp(polyline_arclength(pts), along, radii), spacing_mm)
+    local = np.interp(polyline_arclength(pts), along, radii)
+    obs = read_sides(pts, cameras, contrasts, local, spacing_mm, session_radii=session_radii)
     if obs.readings == 0:
         return TubeFit(pts, float("nan"), float("nan"), 0)
     placement = Placement(pts, obs, base_fixed=base_fixed, smoothness=smoothness)

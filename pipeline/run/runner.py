@@ -361,11 +361,14 @@ def _run_with(
                 check_video_order(model, samples, paths)
                 check_declared_radius(model, samples, session.directory / "session.toml")
                 frames_of = functools.partial(camera_frames, paths)
-                cameras, refinement, tips = refined_cameras(model, samples, frame_map, frames_of)
+                cameras, refinement, tips, radii = refined_cameras(model, samples, frame_map, frames_of)
                 if cameras is not session.cameras:
                     session = dataclasses.replace(session, cameras=cameras)
                     model = build_model(session)
                 model, choice = with_session_tip(model, paths, start, stop, frame_map, tips)
+                # The end is chosen on frames fitted as the sample frames were, each with its
+                # own radius profile; the session's frames then read theirs with the samples'.
+                model = dataclasses.replace(model, radius_profile=radii)
                 tip = end_assumed(model, choice)
                 doubt = choice.doubt if choice is not None else ""
             else:

@@ -58,7 +58,7 @@ def _lags(
         moved = frames_of(camera, index, index + 1)
         if moved and moved[0] is not None:
             samples.append((index, [moved[0] if k == camera else image for k, image in enumerate(images)]))
-    cameras, report, _ = refined_cameras(model, samples, frames_of=frames_of)
+    cameras, report, _, _ = refined_cameras(model, samples, frames_of=frames_of)
     assert report is not None
     if report.lags:
         assert cameras is model.cameras and not report.changed  # the lag is not taken for a moved rig
@@ -124,8 +124,8 @@ def test_a_calibration_that_passes_for_a_lag_is_refined_not_named(tmp_path: Path
     model = build_model(session)
     samples = sample_session(session.video_paths, 0, session.frame_count)
     frames_of = functools.partial(camera_frames, session.video_paths)
-    indexed, _ = _sampled(model, samples, map_here)
+    indexed, _, _ = _sampled(model, samples, map_here)
     assert [lag.name for lag in camera_lags(model, indexed, frames_of)] == ["cam1"]
-    cameras, report, _ = refined_cameras(model, samples, frames_of=frames_of)
+    cameras, report, _, _ = refined_cameras(model, samples, frames_of=frames_of)
     assert report is not None and report.lags == () and report.applied
     assert cameras is not model.cameras and not report.problems()

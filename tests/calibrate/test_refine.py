@@ -267,7 +267,7 @@ def test_a_mount_set_far_from_the_base_is_named_where_nothing_is_refined(
             calibration=replace(session.settings.calibration, refine=kept_by == "two cameras"),
         )
         model = build_model(replace(session, settings=settings))
-        cameras, report, _ = refined_cameras(model, frames)
+        cameras, report, _, _ = refined_cameras(model, frames)
         assert cameras is model.cameras and report is not None and not report.applied
         assert report.describe().startswith("given (") and report.warnings() == []
         if off_mm:
@@ -450,7 +450,7 @@ def test_two_cameras_are_kept_and_the_summary_says_why(tmp_path: Path) -> None:
     )
     session = load_session(tmp_path / "two")
     model = build_model(session)
-    cameras, report, _ = refined_cameras(model, sample_session(session.video_paths, 0, 4))
+    cameras, report, _, _ = refined_cameras(model, sample_session(session.video_paths, 0, 4))
     assert cameras is model.cameras
     assert report is not None and not report.applied
     assert "three or more" in report.describe()
@@ -476,31 +476,35 @@ def test_two_cameras_are_kept_where_they_see_the_base_millimetres_off(tmp_path: 
     base = np.asarray(model.settings.manipulator.base_mm, dtype=np.float64)
     manipulator = replace(model.settings.manipulator, base_mm=tuple(base + np.array([2.5, 0.0, 0.0])))
     off = replace(model, settings=replace(model.settings, manipulator=manipulator))
-    cameras, report, _ = refined_cameras(off, sample_session(session.video_paths, 0, 8))
+    cameras, report, _, _ = refined_cameras(off, sample_session(session.video_paths, 0, 8))
     assert cameras is model.cameras and report is not None and not report.changed
     assert "three or more" in report.describe() and "to the mount" not in report.describe()
     assert report.warnings() == [] and report.problems() == []
 
 
 def test_the_tube_end_is_read_on_the_frames_of_cameras_kept(sessions: dict[float, Path]) -> None:
-    from pipeline.calibrate.refine import SAMPLE_FRAMES, refined_cameras, sample_tips
+    from pipeline.calibrate.refine import SAMPLE_FRAMES, refined_cameras, sample_evidence
     from pipeline.reconstruct.tip_shape import with_session_tip
 
     session = load_session(sessions[0.0])
     model = build_model(session)
     assert model.settings.manipulator.tip == "auto"
     samples = sample_session(session.video_paths, 0, FRAMES)
-    cameras, report, read = refined_cameras(model, samples)
+    cameras, report, read, radii = refined_cameras(model, samples)
     assert cameras is model.cameras and report is not None and not report.applied
     assert read is not None and list(read.frames) == sample_frames(0, FRAMES, SAMPLE_FRAMES)
     assert 3 <= len(read.tips) <= len(read.frames)
-    # Read alone (a live replay keeps its cameras as given), the same frames and ends.
-    alone = sample_tips(model, samples)
+    # Read alone (a live replay keeps its cameras as given), the same frames, ends and radii.
+    alone, alone_radii = sample_evidence(model, samples)
     assert alone is not None and alone.frames == read.frames
     for a, b in zip(alone.tips, read.tips, strict=True):
         np.testing.assert_array_equal(a.axis_mm, b.axis_mm)
+    assert radii is not None and alone_radii is not None
+    np.testing.assert_array_equal(alone_radii.radius_mm, radii.radius_mm)
+    # The radius along the tube, read on those frames: the uniform tube's 6 mm.
+    assert np.all(np.abs(radii.radius_mm - 6.0) < 0.3), radii.radius_mm
     unrefined = replace(model.settings, calibration=replace(model.settings.calibration, refine=False))
-    assert sample_tips(replace(model, settings=unrefined), samples) is None
+    assert sample_evidence(replace(model, settings=unrefined), samples) == (None, None)
     settled, choice = with_session_tip(model, session.video_paths, 0, FRAMES, read=read)
     # The synthetic tube's end is flat, and the frames read settle it: none is read again.
     assert choice is not None and settled.tip == choice.tip == "flat"
@@ -510,7 +514,7 @@ def test_the_tube_end_is_read_on_the_frames_of_cameras_kept(sessions: dict[float
     off = build_model(moved)
     calibration = replace(off.settings.calibration, refine=True)
     forced = replace(off, settings=replace(off.settings, calibration=calibration))
-    cameras, report, read = refined_cameras(forced, sample_session(moved.video_paths, 0, FRAMES))
+    cameras, report, read, _ = refined_cameras(forced, sample_session(moved.video_paths, 0, FRAMES))
     assert report is not None and report.applied and cameras is not forced.cameras
     assert read is None
 

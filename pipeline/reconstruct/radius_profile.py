@@ -1,0 +1,88 @@
+"""The tube's radius along it, pooled over the session's frames.
+
+One frame reads the tube's width only where a view sees both of its edges clear of
+the rest of the tube; where another part crowds a stretch in every view, that frame's
+profile is a line across the gap (:mod:`pipeline.reconstruct.side_readings`), and a
+step in the radius within the gap is smeared over all of it. The frames of a session
+show the tube in other poses, crowded elsewhere: their readings, pooled by arc length
+from the base, give the radius there. A one-edge reading is moved in by the radius
+(:meth:`~pipeline.reconstruct.side_readings.SideReadings.centres`), so a radius a
+millimetre off in a gap puts the axis a millimetre off: on a stepped random shape (r 5
+to 3.5 mm half way along, three cameras, 90 frames tracked) whose frames read both edges
+nowhere over 30-40 mm around the step, the true radius given there took the mean error
+from 0.34 to 0.22 mm.
+
+The session's profile is pooled over the sample frames the cameras are checked on
+(:func:`pipeline.calibrate.refine.refined_cameras`, rigs of three cameras or more).
+Measured on `accuracy_table --draw 2`, 409, 433, 439 and 443 (8 cases of 90 frames each,
+40 sessions; 2026-12-06), against each frame's own profile alone: three-camera sessions
+without disks, frames more than 2 mm off 30 -> 20, their means summed 2.97 -> 2.79 mm
+(stepped random shapes 0.337 -> 0.262, 0.408 -> 0.350 and 0.261 -> 0.246 mm; a tapered
+loop 0.197 -> 0.173 mm and 9 -> 4 frames off, another 4 -> 6); with spacer disks 261 ->
+243 (a random shape 0.730 -> 0.676 mm); median tips closer by 0.03 mm or more on four
+sessions, farther on none. Pooled on two cameras as well (16 frames fitted alone, the 14
+two-camera sessions without disks of those draws, same day), frames off went 74 -> 111.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+# Readings are pooled in bins of this length along the tube (mm) ...
+BIN_MM = 2.0
+# ... and a bin is kept where at least this many frames read it: one frame's stray
+# readings (another part's outline taken for an edge) do not make a bin.
+MIN_FRAMES = 3
+# The pooled profile is the median over this many bins either side (a window moved in from
+# the profile's ends, so that it is never cut short): spacer disks (a few mm thick, 13 mm
+# apart or more) stay a minority of the window, a step is kept where it is (as a running
+# median keeps a monotone step).
+HALF_WINDOW_BINS = 3
+
+
+@dataclass(frozen=True)
+class RadiusProfile:
+    """The tube's radius (B,) mm at arc lengths (B,) mm from its base, increasing."""
+
+    arc_mm: FloatArray
+    radius_mm: FloatArray
+
+    def at(self, arc_mm: FloatArray) -> FloatArray:
+        """(K,) the radius at arc lengths ``arc_mm`` (K,), interpolated; NaN outside the
+        stretch the frames read."""
+        arc = np.asarray(arc_mm, dtype=np.float64)
+        inside = (arc >= self.arc_mm[0]) & (arc <= self.arc_mm[-1])
+        return np.where(inside, np.interp(arc, self.arc_mm, self.radius_mm), np.nan)
+
+    @classmethod
+    def pooled(cls, readings: Sequence[tuple[FloatArray, FloatArray]]) -> RadiusProfile | None:
+        """The profile of the frames' ``readings``, each (arc lengths (R,) mm, half-widths
+        (R,) mm) of the two-edge readings of one frame; None where no bin is read by
+        ``MIN_FRAMES`` frames."""
+        frames = [(np.asarray(a, dtype=np.float64), np.asarray(h, dtype=np.float64)) for a, h in readings]
+        frames = [(a, h) for a, h in frames if len(a)]
+        if len(frames) < MIN_FRAMES:
+            return None
+        arc = np.concatenate([a for a, _ in frames])
+        half = np.concatenate([h for _, h in frames])
+        frame = np.concatenate([np.full(len(a), k) for k, (a, _) in enumerate(frames)])
+        bins = np.floor(np.maximum(arc, 0.0) / BIN_MM).astype(np.int64)
+        centres, medians = [], []
+        for b in np.unique(bins):
+            mine = bins == b
+            if len(np.unique(frame[mine])) >= MIN_FRAMES:
+                centres.append((b + 0.5) * BIN_MM)
+                medians.append(float(np.median(half[mine])))
+        if not centres:
+            return None
+        values = np.asarray(medians)
+        span = min(2 * HALF_WINDOW_BINS + 1, len(values))
+        first = np.clip(np.arange(len(values)) - HALF_WINDOW_BINS, 0, len(values) - span)
+        smoothed = np.array([np.median(values[f : f + span]) for f in first])
+        return cls(np.asarray(centres), smoothed)
