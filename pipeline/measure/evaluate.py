@@ -91,6 +91,11 @@ class EvaluationReport:
         "" when the recording does not say.
     tube_end : the tube end the recording's fit assumed, and how it was chosen; "" when
         the recording does not say.
+    radius : the tube's radius along it read from the session's frames (the recording's
+        :attr:`pipeline.record.load.Recording.radius_profile`, described); "" when the
+        recording does not say.
+    radius_error_mm : the median |radius read - true radius| over the stretch the recording
+        read, mm (spacer disks aside); NaN when the recording or the ground truth has none.
     complete : False where the recording ended before its footer (a run killed while
         writing), or is damaged: the figures are those of the frames it holds.
     damaged : True where bytes inside the recording are not its own (a disk or copy
@@ -120,6 +125,8 @@ class EvaluationReport:
     smoothed: EvaluationReport | None = None
     cameras: str = ""
     tube_end: str = ""
+    radius: str = ""
+    radius_error_mm: float = math.nan
     complete: bool = True
     damaged: bool = False
     other_session: str = ""
@@ -166,6 +173,8 @@ _RECORDING_FIELDS = (
     "smoothed",
     "cameras",
     "tube_end",
+    "radius",
+    "radius_error_mm",
     "complete",
     "damaged",
     "other_session",
@@ -467,6 +476,30 @@ def _truth_session(ground_truth: Path) -> str:
     return ground_truth.resolve().parent.name if ground_truth.name == "ground_truth.npz" else ""
 
 
+def _radius_error(profile: Any, ground_truth: Path) -> float:
+    """The median |radius read - true radius| (mm) of the recording's radius profile
+    (:class:`pipeline.reconstruct.radius_profile.RadiusProfile` or None) over the arc
+    lengths it read, the truth's radius taken along its first frame's centreline; NaN where
+    either has none (a ground truth rendered before it kept the radius)."""
+    if profile is None:
+        return math.nan
+    try:
+        with np.load(_truth_file(ground_truth), allow_pickle=False) as data:
+            radius_mm = np.asarray(data["radius_profile_mm"], dtype=np.float64)
+            line_mm = np.asarray(data["centerlines"][0], dtype=np.float64)
+    except (OSError, ValueError, KeyError, IndexError, zipfile.BadZipFile):
+        return math.nan
+    true_mm = radius_mm.reshape(-1, radius_mm.shape[-1])[0] if radius_mm.ndim else radius_mm
+    arc_mm = polyline_arclength(line_mm)
+    if true_mm.shape != arc_mm.shape:
+        return math.nan
+    inside = profile.arc_mm <= arc_mm[-1]
+    if not inside.any():
+        return math.nan
+    truth = np.interp(profile.arc_mm[inside], arc_mm, true_mm)
+    return float(np.median(np.abs(profile.radius_mm[inside] - truth)))
+
+
 def _why_no_frames(complete: bool, damaged: bool) -> str:
     """Why a recording holds no frames, for its error line: "" for a whole file."""
     from ..record.load import REWRITE, damage_line
@@ -578,6 +611,8 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
         good_flagged=len(suspect - off - set(report.failed_indices) - empty),
         cameras=rec.cameras,
         tube_end=rec.tube_end,
+        radius="" if rec.radius_profile is None else rec.radius_profile.describe(),
+        radius_error_mm=_radius_error(rec.radius_profile, Path(ground_truth)),
         complete=rec.complete,
         damaged=rec.damaged,
         other_session=other_session,
@@ -645,6 +680,13 @@ def format_report(report: EvaluationReport) -> str:
     lines = ["  ".join(_align(row, widths)) for row in rows]
     lines.insert(1, "-" * len(lines[0]))
     lines.insert(0, f"{report.frames} frame{'' if report.frames == 1 else 's'} evaluated")
+    if report.radius:
+        error = (
+            ""
+            if math.isnan(report.radius_error_mm)
+            else f"; {report.radius_error_mm:.3f} mm off the truth (median)"
+        )
+        lines.insert(1, f"tube radius: {report.radius}{error}")
     if report.tube_end:
         lines.insert(1, f"tube end: {report.tube_end}")
     if report.cameras:

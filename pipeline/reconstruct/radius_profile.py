@@ -26,6 +26,7 @@ two-camera sessions without disks of those draws, same day), frames off went 74 
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -59,6 +60,37 @@ class RadiusProfile:
         arc = np.asarray(arc_mm, dtype=np.float64)
         inside = (arc >= self.arc_mm[0]) & (arc <= self.arc_mm[-1])
         return np.where(inside, np.interp(arc, self.arc_mm, self.radius_mm), np.nan)
+
+    def describe(self) -> str:
+        """One line for the summary: the radius's range and the stretch of the tube read."""
+        low, high = float(self.radius_mm.min()), float(self.radius_mm.max())
+        radius = f"{low:.2f} mm" if f"{low:.2f}" == f"{high:.2f}" else f"{low:.2f}-{high:.2f} mm"
+        return (
+            f"{radius}, read {self.arc_mm[0] - BIN_MM / 2:.0f}-{self.arc_mm[-1] + BIN_MM / 2:.0f} mm "
+            "from the base on the session's sample frames"
+        )
+
+    def to_json(self) -> str:
+        """The profile as JSON (``{"arc_mm": [...], "radius_mm": [...]}``, to 0.001 mm): the
+        recordings' metadata."""
+        return json.dumps(
+            {"arc_mm": np.round(self.arc_mm, 3).tolist(), "radius_mm": np.round(self.radius_mm, 3).tolist()}
+        )
+
+    @classmethod
+    def from_json(cls, text: str) -> RadiusProfile | None:
+        """The profile :meth:`to_json` wrote; None where ``text`` is not one (empty, or
+        another program's)."""
+        try:
+            data = json.loads(text)
+            arc = np.asarray(data["arc_mm"], dtype=np.float64)
+            radius = np.asarray(data["radius_mm"], dtype=np.float64)
+        except (ValueError, TypeError, KeyError):
+            return None
+        ordered = arc.ndim == 1 and len(arc) > 0 and bool(np.all(np.diff(arc) > 0))
+        if not ordered or radius.shape != arc.shape or not np.all(np.isfinite(radius)):
+            return None
+        return cls(arc, radius)
 
     @classmethod
     def pooled(cls, readings: Sequence[tuple[FloatArray, FloatArray]]) -> RadiusProfile | None:

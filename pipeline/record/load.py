@@ -40,6 +40,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from numpy.typing import NDArray
 
 from ..errors import RecordingError, home_meant
+from ..reconstruct.radius_profile import RadiusProfile
 from ..session.toml_file import require_regular_file
 from .commit_marker import killed_commits
 from .mcap_log import (
@@ -75,6 +76,9 @@ class Recording:
         (the refinement's summary line); "" when the file does not say.
     tube_end : the tube end the fit assumed, "flat" or "round", and how it was chosen
         (the summary's "tube end" line); "" when the file does not say.
+    radius_profile : the tube's radius along it, read from the session's frames
+        (:class:`pipeline.reconstruct.radius_profile.RadiusProfile`); None when the file does
+        not say (each frame read its own).
     session : the name of the session recorded (its folder's); "" when the file does not say.
     damaged : True when the file ends whole (its closing magic) but bytes inside it are not
         the recording's (a disk or copy error, not a run stopped while writing): the frames
@@ -95,6 +99,7 @@ class Recording:
     complete: bool
     cameras: str = ""
     tube_end: str = ""
+    radius_profile: RadiusProfile | None = None
     session: str = ""
     damaged: bool = False
     videos: dict[str, str] = field(default_factory=dict)
@@ -533,6 +538,7 @@ def _assemble(
         complete=complete,
         cameras=metadata.get("cameras_used", ""),
         tube_end=metadata.get("tube_end", ""),
+        radius_profile=RadiusProfile.from_json(metadata.get("radius_profile", "")),
         session=metadata.get("session", ""),
         damaged=damaged,
         videos=_videos(metadata.get("videos", "")),

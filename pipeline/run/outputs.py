@@ -34,6 +34,7 @@ from ..reconstruct.quality import (
     reaches_walls,
     tube_width_px,
 )
+from ..reconstruct.radius_profile import RadiusProfile
 from ..session.folder import Session
 from ..session.video import video_fingerprint
 from .frame_log import FrameLog
@@ -149,7 +150,8 @@ class Writers:
     viewer at that gRPC address) and ``mirror`` (every MCAP message is also handed to it:
     the Foxglove server). ``cameras_used`` says in the MCAP's metadata which cameras the
     frames were reconstructed with (the summary's line of :mod:`pipeline.calibrate.refine`),
-    ``tube_end`` which end the fit assumed and how it was chosen.
+    ``tube_end`` which end the fit assumed and how it was chosen, ``radius_profile`` the
+    tube's radius along it read from the session's frames (None: each frame's own).
     """
 
     def __init__(
@@ -162,6 +164,7 @@ class Writers:
         mirror: MessageMirror | None = None,
         cameras_used: str = "",
         tube_end: str = "",
+        radius_profile: RadiusProfile | None = None,
         frame_doubt: str = "",
     ) -> None:
         # Imported here, not with this module: a run's parent opens its writers once
@@ -220,6 +223,8 @@ class Writers:
                 meta["cameras_used"] = cameras_used
             if tube_end:
                 meta["tube_end"] = tube_end
+            if radius_profile is not None:
+                meta["radius_profile"] = radius_profile.to_json()
             self.mcap = McapRecorder(
                 self._mcap_file, session.cameras, images=images, metadata=meta, mirror=mirror
             )

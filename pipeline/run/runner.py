@@ -324,6 +324,7 @@ def _run_with(
     done = 0
     tip = doubt = ""
     refinement = None
+    radii = None  # the tube's radius along it, read from the session (RadiusProfile)
     written: list[tuple[Path, int]] = []
     # Local workers tell the bar of each frame as they finish it (a range's results
     # come back whole): one byte each, appended to a file of this run's.
@@ -402,6 +403,7 @@ def _run_with(
                     images=images,
                     cameras_used="" if refinement is None else refinement.describe(),
                     tube_end=tip,
+                    radius_profile=radii,
                     frame_doubt=doubt,
                 )
                 given_up: list[str] = []  # why each range given up was
@@ -457,6 +459,7 @@ def _run_with(
     return dataclasses.replace(
         summary,
         tip=tip,
+        radius="" if radii is None else radii.describe(),
         cameras=refinement.describe() if refinement is not None else "",
         camera_warnings=refinement.warnings() if refinement is not None else [],
         session_problems=list(session.problems) + (refinement.problems() if refinement is not None else []),

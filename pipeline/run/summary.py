@@ -28,6 +28,9 @@ class RunSummary:
     frames_suspect : (frame index, reason) of "ok" frames whose curve may be wrong
         (``FrameResult.suspect_reason``), in order.
     tip : the tube end the fit assumed, and how it was chosen ("" when not told).
+    radius : the tube's radius along it as read from the session's frames
+        (:meth:`pipeline.reconstruct.radius_profile.RadiusProfile.describe`; "" when each
+        frame read its own).
     cameras : the cameras reconstructed with, given or refined, and why ("" when not told).
     camera_warnings : a line per camera that seems to have moved since its calibration.
     session_problems : a line per problem of the session that the run went on with
@@ -48,6 +51,7 @@ class RunSummary:
     frames_at_walls: list[int] = field(default_factory=list)
     frames_suspect: list[tuple[int, str]] = field(default_factory=list)
     tip: str = ""
+    radius: str = ""
     cameras: str = ""
     camera_warnings: list[str] = field(default_factory=list)
     session_problems: list[str] = field(default_factory=list)
@@ -91,6 +95,8 @@ class RunSummary:
         ]
         if self.tip:
             out.append(f"  tube end: {self.tip}")
+        if self.radius:
+            out.append(f"  tube radius: {self.radius}")
         if self.cameras:
             out.append(f"  cameras: {self.cameras}")
         out += self.problem_lines()
@@ -188,8 +194,8 @@ class RunSummary:
     def to_dict(self) -> dict[str, Any]:
         """The summary as JSON-ready data (``process --json``): the counts, the failed frames
         with their reasons, the suspect frames with theirs, the doubtful frames, those at
-        the walls and those a camera saw nothing in, the tube end assumed, the problem lines,
-        wall time (s), frames per second, the outputs (path, bytes) and the exit status."""
+        the walls and those a camera saw nothing in, the tube end assumed and the radius read,
+        the problem lines, wall time (s), frames per second, the outputs (path, bytes) and the exit status."""
         return {
             "frames": {
                 "processed": self.frames_total,
@@ -205,6 +211,7 @@ class RunSummary:
             "blind": list(self.frames_blind),
             "thin_cameras": dict(self.thin_cameras),
             "tip": self.tip,
+            "radius": self.radius,
             "cameras": self.cameras,
             "problems": [line.strip() for line in self.problem_lines()],
             "wall_s": self.wall_s,

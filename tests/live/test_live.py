@@ -535,6 +535,10 @@ def test_a_replay_records_what_process_records(
     assert live.tube_end == processed.tube_end != ""
     # ... and which cameras it used: the given ones, in the summary and the recording alike.
     assert f"  tube end: {live.tube_end}" in summary.lines()
+    # ... and reads the tube's radius along it from the same sample frames.
+    assert live.radius_profile is not None and processed.radius_profile is not None
+    np.testing.assert_allclose(live.radius_profile.radius_mm, processed.radius_profile.radius_mm)
+    assert f"  tube radius: {live.radius_profile.describe()}" in summary.lines()
     assert live.cameras.startswith("given") and f"  cameras: {live.cameras}" in summary.lines()
     assert live.smoothed_centerlines_m is not None
     _verify_rrd(tmp_path / "take.rrd")

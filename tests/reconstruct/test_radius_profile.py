@@ -115,3 +115,41 @@ def test_the_window_keeps_a_step_where_it_is() -> None:
     before = profile.arc_mm < 96.0
     np.testing.assert_allclose(profile.radius_mm[before], 6.0)
     np.testing.assert_allclose(profile.radius_mm[profile.arc_mm > 98.0], 4.0)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_profile_goes_through_the_recordings_metadata_whole(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    length, wide, thin, step, _ = _tube(rng, disks=False)
+    readings = [_frame_readings(rng, length, wide, thin, step, np.zeros(0)) for _ in range(12)]
+    profile = RadiusProfile.pooled(readings)
+    assert profile is not None
+    back = RadiusProfile.from_json(profile.to_json())
+    assert back is not None
+    np.testing.assert_allclose(back.arc_mm, profile.arc_mm, atol=5e-4)
+    np.testing.assert_allclose(back.radius_mm, profile.radius_mm, atol=5e-4)
+    # The summary's line names the radius's range and the stretch read.
+    low, high = profile.radius_mm.min(), profile.radius_mm.max()
+    assert profile.describe().startswith(f"{low:.2f}-{high:.2f} mm, read ")
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "",
+        "3.0",
+        "[1, 2]",
+        '{"arc_mm": [1, 2]}',
+        '{"arc_mm": [2, 1], "radius_mm": [3, 3]}',
+        '{"arc_mm": [1, 2], "radius_mm": [3]}',
+        '{"arc_mm": [1, 2], "radius_mm": [3, NaN]}',
+        '{"arc_mm": "x", "radius_mm": "y"}',
+    ],
+)
+def test_metadata_that_is_no_profile_reads_as_none(text: str) -> None:
+    assert RadiusProfile.from_json(text) is None
+
+
+def test_a_tube_of_one_radius_is_described_by_it() -> None:
+    profile = RadiusProfile(np.arange(1.0, 200.0, BIN_MM), np.full(100, 3.004))
+    assert profile.describe() == "3.00 mm, read 0-200 mm from the base on the session's sample frames"

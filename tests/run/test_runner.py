@@ -30,6 +30,7 @@ import pytest
 from conftest import build_session, write_video
 
 from pipeline.errors import OutputError, SessionError
+from pipeline.measure.evaluate import evaluate_recording
 from pipeline.reconstruct import frame_task
 from pipeline.reconstruct.frame_result import FrameResult
 from pipeline.record.load import load_recording
@@ -429,6 +430,12 @@ def test_end_to_end_centrelines_match_the_ground_truth(e2e: tuple[Path, Path, st
     # The recording says which tube end its fit assumed, as the summary did.
     assert rec.tube_end.split(" ")[0] in ("flat", "round")
     assert f"tube end: {rec.tube_end}" in stdout
+    # ... and the tube's radius along it, read from the session's frames (the demo's tube is
+    # of one radius).
+    true_radius_mm = float(np.load(session / "ground_truth.npz")["radius_profile_mm"].max())
+    assert rec.radius_profile is not None
+    assert np.abs(rec.radius_profile.radius_mm - true_radius_mm).max() < 0.3
+    assert f"tube radius: {rec.radius_profile.describe()}" in stdout
     # Every stage of the worker's frame path is timed, silhouettes included.
     stages = {"decode", "silhouette", "carve", "centerline", "quality", "encode"}
     assert all(stages <= set(m["timings_s"]) for m in rec.metrics)
@@ -454,6 +461,11 @@ def test_end_to_end_evaluation_names_the_cameras_and_the_tube_end_used(e2e: tupl
     rec = load_recording(out / "demo.mcap")
     lines = stdout.getvalue().splitlines()
     assert f"cameras: {rec.cameras}" in lines and f"tube end: {rec.tube_end}" in lines
+    # The radius read, against the truth's along the tube.
+    report = evaluate_recording(out / "demo.mcap", session)
+    assert rec.radius_profile is not None and report.radius == rec.radius_profile.describe()
+    assert 0.0 <= report.radius_error_mm < 0.15
+    assert f"tube radius: {report.radius}; {report.radius_error_mm:.3f} mm off the truth (median)" in lines
 
 
 @pytest.mark.slow
