@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import importlib.metadata
 import json
 import os
@@ -292,6 +293,32 @@ def test_failures_and_warnings_go_to_stderr_the_rest_to_stdout(
     )
     assert captured.out.splitlines() == [line for line in FAILED_RUN.lines() if line not in captured.err]
     assert captured.out.startswith("frames: 4 processed") and "wrote out/s.mcap" in captured.out
+
+
+@pytest.mark.parametrize(
+    ("px", "radii", "said"),
+    [(0.6, 0.2, True), (0.2, 0.2, False), (0.6, 0.05, False), (float("nan"), float("nan"), False)],
+)
+def test_edges_the_tube_does_not_explain_are_said_on_stderr_and_the_run_still_succeeds(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], px: float, radii: float, said: bool
+) -> None:
+    # Said only where the edges lie beyond both bars: a pixel's noise, a share of the radius.
+    summary = dataclasses.replace(OK_RUN, edge_residual_px=px, edge_residual_radii=radii)
+    _fake_run(monkeypatch, summary)
+    assert main(["process", "s"]) == 0
+    captured = capsys.readouterr()
+    assert ("unexplained: the silhouettes' edges lie" in captured.err) is said
+    assert "unexplained" not in captured.out
+    if said:
+        assert (
+            f"{px:.2f} px ({radii:.2f} radii)" in captured.err
+            and "spacer disks" in captured.err
+            and "cameras that disagree" in captured.err
+        )
+    # The JSON summary holds the figures, None for none (strict JSON).
+    data = json.loads(json.dumps(summary.to_dict(), allow_nan=False))
+    assert data["edge_residual_px"] == (None if px != px else px)
+    assert any(line.startswith("unexplained") for line in data["problems"]) is said
 
 
 def test_a_run_without_any_tube_exits_1_with_the_reason_on_stderr(

@@ -117,6 +117,32 @@ _DISC_SPACING = 0.5
 # (R = 2) and wider, curves as close as the thicker tubes' (0.11 mm mean).
 THIN_TUBE_PX = 2.0
 
+# A session's tube fits explain its views where their edges lie near a tube whose radius
+# varies smoothly along it: the fit's residual (the RMS distance of the trusted edges from
+# the tube's, FrameResult.fit_residual_mm) is the edges' own noise. Where, in median over
+# the ok frames, it exceeds both of these (in pixels of the images, and as a share of the
+# tube's radius), the robot has parts the tube does not draw (spacer disks, a gripper), whose
+# edges pull the fit, or the cameras disagree, and the summary says so. On the 40 sessions
+# of `accuracy_table --draw 2`, 409, 433, 439 and 443 (8 cases of 90 frames each,
+# 2026-12-06): the 30 without spacer disks (uniform, tapered and stepped tubes, loops among
+# them) 0.08-0.15 px and 0.02-0.07 radii; the 10 with them 0.32-1.11 px and 0.12-0.29
+# radii, 8 of which had frames more than 2 mm off that the suspect flag left unflagged, or
+# every frame off. With the calibration 0.15 deg off and kept as given (draw 409, `--refine
+# false`), a three-camera random shape 0.88 px and 0.29 radii (0.09 px refined); on two
+# cameras, which leave no edge over to disagree, 0.08-0.18 px.
+UNEXPLAINED_PX = 0.25
+UNEXPLAINED_RADII = 0.1
+
+
+def edge_residual(widths_px: FloatArray, radius_mm: float, residual_mm: float) -> tuple[float, float]:
+    """A frame's fit residual ``residual_mm`` in pixels of the images (by the tube's width
+    (C,) ``widths_px`` in each camera, :func:`tube_width_px`, averaged over those that see
+    it) and as a share of the tube's ``radius_mm``; NaN where either is unknown."""
+    seen = widths_px[np.isfinite(widths_px)]
+    if not (len(seen) and np.isfinite(residual_mm) and np.isfinite(radius_mm) and radius_mm > 0):
+        return math.nan, math.nan
+    return residual_mm * float(np.mean(seen)) / (2.0 * radius_mm), residual_mm / radius_mm
+
 
 def tube_width_px(cameras: Sequence[Camera], points_mm: FloatArray, radius_mm: float) -> FloatArray:
     """(C,) how many pixels across each camera sees the tube of ``radius_mm`` around (N, 3)

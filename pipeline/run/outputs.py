@@ -29,6 +29,7 @@ from ..reconstruct.frame_task import FrameOutput
 from ..reconstruct.quality import (
     SUSPECT_SMOOTHED_MM,
     THIN_TUBE_PX,
+    edge_residual,
     is_doubtful,
     off_smoothed,
     reaches_walls,
@@ -202,6 +203,9 @@ class Writers:
         self.width_px_sums = np.zeros(len(session.cameras))
         self.width_frames = 0
         self.thin_frames = np.zeros(len(session.cameras), dtype=np.int64)
+        # Per ok frame, its fit's residual in pixels and in radii (quality.edge_residual).
+        self.residual_px: list[float] = []
+        self.residual_radii: list[float] = []
         # A reason every ok frame is suspect for, written with its own (the tube's end a
         # close call: pipeline.reconstruct.tip_shape.TIP_DOUBT).
         self.frame_doubt = frame_doubt
@@ -302,11 +306,15 @@ class Writers:
         if curve is not None and len(curve):
             if reaches_walls(result.points_mm, self.session.settings.workspace, curve[0]):
                 self.at_walls.append(result.index)
-            self._add_widths(curve, result.radius_mm)
+            widths = self._add_widths(curve, result.radius_mm)
+            px, radii = edge_residual(widths, result.radius_mm, result.fit_residual_mm)
+            if np.isfinite(px):
+                self.residual_px.append(px)
+                self.residual_radii.append(radii)
 
-    def _add_widths(self, curve_mm: NDArray[np.float64], radius_mm: float) -> None:
+    def _add_widths(self, curve_mm: NDArray[np.float64], radius_mm: float) -> NDArray[np.float64]:
         """Count an ok frame's tube width in each camera's images (its radius, or the declared
-        one where the frame read none)."""
+        one where the frame read none); the (C,) widths (px)."""
         if not np.isfinite(radius_mm):
             radius_mm = self.session.settings.manipulator.radius_mm or float("nan")
         widths = tube_width_px(self.session.cameras, curve_mm, radius_mm)
@@ -314,6 +322,7 @@ class Writers:
             self.width_px_sums += widths
             self.width_frames += 1
             self.thin_frames += widths < THIN_TUBE_PX
+        return widths
 
     def _smoothed(self, stacked: NDArray[np.float64]) -> NDArray[np.float64] | None:
         times_ns = np.asarray(self.log.times_ns, dtype=np.int64)
@@ -467,6 +476,10 @@ class Writers:
             frames_at_walls=list(self.at_walls),
             frames_suspect=list(self.suspect),
             thin_cameras=self._thin_cameras(),
+            edge_residual_px=float(np.median(self.residual_px)) if self.residual_px else float("nan"),
+            edge_residual_radii=float(np.median(self.residual_radii))
+            if self.residual_radii
+            else float("nan"),
         )
 
     def _thin_cameras(self) -> dict[str, float]:

@@ -6,12 +6,13 @@ by :func:`pipeline.process_session`; ``to_dict`` is its ``--json`` form.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..reconstruct.quality import DOUBTFUL_IOU, THIN_TUBE_PX
+from ..reconstruct.quality import DOUBTFUL_IOU, THIN_TUBE_PX, UNEXPLAINED_PX, UNEXPLAINED_RADII
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,9 @@ class RunSummary:
     session_problems : a line per problem of the session that the run went on with
         (``Session.problems``: a video much shorter than the others; a mount set far from
         where the cameras see the tube's base, :meth:`pipeline.calibrate.refine.Refinement.problems`).
+    edge_residual_px, edge_residual_radii : the median over the ok frames of the fit's
+        residual in pixels and in radii (:func:`pipeline.reconstruct.quality.edge_residual`);
+        NaN without any.
     exit_code : 0 when every frame is ok or empty, 1 when some failed, none holds a tube,
         most ok frames are doubtful, or the session has problems.
     """
@@ -65,6 +69,8 @@ class RunSummary:
     # camera -> the tube's mean width in its images (px), where most ok frames show it thinner
     # than THIN_TUBE_PX (with no ok frame: the declared radius's, mid-workspace)
     thin_cameras: dict[str, float] = field(default_factory=dict)
+    edge_residual_px: float = math.nan
+    edge_residual_radii: float = math.nan
 
     @property
     def frames_total(self) -> int:
@@ -76,6 +82,14 @@ class RunSummary:
         silhouette settings are wrong, not a frame here and there (on 124 rendered sessions,
         2026-12-05, at most 25 of 90 frames of a session were doubtful)."""
         return 2 * len(self.frames_doubtful) > self.frames_ok > 0
+
+    @property
+    def unexplained(self) -> bool:
+        """The views' edges lie farther from the fitted tubes than their noise, in pixels and
+        in radii (``UNEXPLAINED_PX``, ``UNEXPLAINED_RADII``): the robot has parts the tube
+        does not draw, or the cameras disagree. Said, not failed: the curves are there, less
+        sure."""
+        return self.edge_residual_px > UNEXPLAINED_PX and self.edge_residual_radii > UNEXPLAINED_RADII
 
     @property
     def exit_code(self) -> int:
@@ -133,8 +147,9 @@ class RunSummary:
 
     def problem_lines(self) -> list[str]:
         """The summary's failure and warning lines: the session's problems (a video much
-        shorter than the others), failed frames, moved cameras, suspect frames, doubtful
-        frames, frames at the walls, no tube found."""
+        shorter than the others), failed frames, moved cameras, a tube too thin, blind
+        cameras, edges the tube does not explain, suspect frames, doubtful frames, frames at
+        the walls, no tube found."""
         out = [f"  {line}" for line in self.session_problems]
         out += [f"  failed {span}: {reason}" for span, reason in compress_failures(self.frames_failed)]
         out += [f"  {line}" for line in self.camera_warnings]
@@ -142,6 +157,15 @@ class RunSummary:
             out.append(self.thin_line())
         if self.blind_line():
             out.append(self.blind_line())
+        if self.unexplained:
+            out.append(
+                f"  unexplained: the silhouettes' edges lie {self.edge_residual_px:.2f} px "
+                f"({self.edge_residual_radii:.2f} radii) from the tubes fitted, in median over the ok "
+                f"frames, where a tube's own edges lie within {UNEXPLAINED_PX:g} px: parts of the robot "
+                "that the tube model does not draw (spacer disks, a gripper), or cameras that disagree "
+                "(a calibration off, kept as given), pull its curves, perhaps by millimetres; compare "
+                "the tube drawn with the camera views in the .rrd"
+            )
         if self.frames_suspect:
             first, why = self.frames_suspect[0]
             frames = [i for i, _ in self.frames_suspect]
@@ -195,7 +219,8 @@ class RunSummary:
         """The summary as JSON-ready data (``process --json``): the counts, the failed frames
         with their reasons, the suspect frames with theirs, the doubtful frames, those at
         the walls and those a camera saw nothing in, the tube end assumed and the radius read,
-        the problem lines, wall time (s), frames per second, the outputs (path, bytes) and the exit status."""
+        the fits' residual (px, radii), the problem lines, wall time (s), frames per second,
+        the outputs (path, bytes) and the exit status."""
         return {
             "frames": {
                 "processed": self.frames_total,
@@ -210,6 +235,8 @@ class RunSummary:
             "at_walls": list(self.frames_at_walls),
             "blind": list(self.frames_blind),
             "thin_cameras": dict(self.thin_cameras),
+            "edge_residual_px": _finite_or_none(self.edge_residual_px),
+            "edge_residual_radii": _finite_or_none(self.edge_residual_radii),
             "tip": self.tip,
             "radius": self.radius,
             "cameras": self.cameras,
@@ -240,6 +267,11 @@ def compress_failures(failed: Sequence[tuple[int, str]]) -> list[tuple[str, str]
         else:
             spans.append((index, index, reason))
     return [(f"{a}" if a == b else f"{a}-{b}", reason) for a, b, reason in spans]
+
+
+def _finite_or_none(value: float) -> float | None:
+    """``value``, or None for NaN (strict JSON has no NaN)."""
+    return value if math.isfinite(value) else None
 
 
 def _human_size(size: int) -> str:

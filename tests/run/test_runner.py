@@ -38,6 +38,7 @@ from pipeline.run import outputs, runner
 from pipeline.session.folder import load_session
 from pipeline.session.video import read_frames
 from pipeline.synth import render_session
+from pipeline.synth.variety import draw_cases, render_case
 
 RERUN = Path(sys.executable).parent / "rerun"  # the CLI installed with rerun-sdk
 RERUN_ENV = {**os.environ, "RERUN_ANALYTICS": "off"}
@@ -394,6 +395,28 @@ def test_a_worker_that_dies_once_is_retried_and_nothing_is_lost(short_session: P
 
 
 # --- the real pipeline, end to end -------------------------------------------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [3, 4])
+def test_spacer_disks_the_tube_does_not_draw_are_named_and_a_plain_tube_is_not(
+    seed: int, tmp_path: Path
+) -> None:
+    # Of a seeded draw of the synthetic variety, its first three-camera case with spacer
+    # disks (made at least 1.6 times the tube's radius) and its first without.
+    cases = [c for c in draw_cases(seed, 14) if c.cameras == 3]
+    disks = next(c for c in cases if c.profile == "disks")
+    plain = next(c for c in cases if c.profile != "disks")
+    disks = dataclasses.replace(disks, disk_ratio=max(disks.disk_ratio, 1.6))
+    for case, named in ((disks, True), (plain, False)):
+        session = load_session(render_case(case, tmp_path / case.profile, 12, jobs=1))
+        summary = runner.process_session(
+            session, out_dir=tmp_path / "out", jobs=1, backend="threading", images=False, progress=False
+        )
+        assert summary.unexplained is named, (case.describe(), summary.edge_residual_px)
+        assert summary.exit_code == 0  # said, not failed
+        assert any(line.startswith("  unexplained") for line in summary.problem_lines()) is named
+
 
 E2E_FRAMES = 8
 
