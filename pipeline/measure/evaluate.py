@@ -20,7 +20,7 @@ import math
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -28,6 +28,9 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import EvaluationError, refuse_unfinished_render
 from ..geometry.polyline import polyline_arclength
 from ..session.folder import check_not_dangling
+
+if TYPE_CHECKING:
+    from ..reconstruct.radius_profile import RadiusProfile
 
 log = logging.getLogger(__name__)
 
@@ -476,10 +479,9 @@ def _truth_session(ground_truth: Path) -> str:
     return ground_truth.resolve().parent.name if ground_truth.name == "ground_truth.npz" else ""
 
 
-def _radius_error(profile: Any, ground_truth: Path) -> float:
-    """The median |radius read - true radius| (mm) of the recording's radius profile
-    (:class:`pipeline.reconstruct.radius_profile.RadiusProfile` or None) over the arc
-    lengths it read, the truth's radius taken along its first frame's centreline; NaN where
+def _radius_error(profile: RadiusProfile | None, ground_truth: Path) -> float:
+    """The median |radius read - true radius| (mm) of the recording's radius profile over
+    the arc lengths it read, the truth's radius taken along its first frame's centreline; NaN where
     either has none (a ground truth rendered before it kept the radius)."""
     if profile is None:
         return math.nan

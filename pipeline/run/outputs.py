@@ -12,6 +12,7 @@ import contextlib
 import dataclasses
 import json
 import logging
+import math
 import os
 import threading
 import uuid
@@ -204,8 +205,7 @@ class Writers:
         self.width_frames = 0
         self.thin_frames = np.zeros(len(session.cameras), dtype=np.int64)
         # Per ok frame, its fit's residual in pixels and in radii (quality.edge_residual).
-        self.residual_px: list[float] = []
-        self.residual_radii: list[float] = []
+        self.residuals: list[tuple[float, float]] = []
         # A reason every ok frame is suspect for, written with its own (the tube's end a
         # close call: pipeline.reconstruct.tip_shape.TIP_DOUBT).
         self.frame_doubt = frame_doubt
@@ -307,10 +307,9 @@ class Writers:
             if reaches_walls(result.points_mm, self.session.settings.workspace, curve[0]):
                 self.at_walls.append(result.index)
             widths = self._add_widths(curve, result.radius_mm)
-            px, radii = edge_residual(widths, result.radius_mm, result.fit_residual_mm)
-            if np.isfinite(px):
-                self.residual_px.append(px)
-                self.residual_radii.append(radii)
+            residual = edge_residual(widths, result.radius_mm, result.fit_residual_mm)
+            if np.isfinite(residual).all():
+                self.residuals.append(residual)
 
     def _add_widths(self, curve_mm: NDArray[np.float64], radius_mm: float) -> NDArray[np.float64]:
         """Count an ok frame's tube width in each camera's images (its radius, or the declared
@@ -460,6 +459,7 @@ class Writers:
         after :meth:`abort`)."""
         n = len(self.log)
         written = (self.mcap_path, self.rrd_path) if self.committed else ()
+        px, radii = np.median(self.residuals, axis=0).tolist() if self.residuals else (math.nan, math.nan)
         return RunSummary(
             frames_ok=self.counts.get("ok", 0),
             frames_empty=self.counts.get("empty", 0),
@@ -476,10 +476,8 @@ class Writers:
             frames_at_walls=list(self.at_walls),
             frames_suspect=list(self.suspect),
             thin_cameras=self._thin_cameras(),
-            edge_residual_px=float(np.median(self.residual_px)) if self.residual_px else float("nan"),
-            edge_residual_radii=float(np.median(self.residual_radii))
-            if self.residual_radii
-            else float("nan"),
+            edge_residual_px=px,
+            edge_residual_radii=radii,
         )
 
     def _thin_cameras(self) -> dict[str, float]:
