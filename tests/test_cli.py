@@ -319,6 +319,11 @@ def test_edges_the_tube_does_not_explain_are_said_on_stderr_and_the_run_still_su
     data = json.loads(json.dumps(summary.to_dict(), allow_nan=False))
     assert data["edge_residual_px"] == (None if px != px else px)
     assert any(line.startswith("unexplained") for line in data["problems"]) is said
+    # Cameras refined on such edges are named as moved, and doubted with them.
+    moved = dataclasses.replace(summary, camera_warnings=["camera cam1 seems to have moved ..."])
+    doubted = [line for line in moved.problem_lines() if "the cameras' corrections above" in line]
+    assert len(doubted) == said
+    assert "corrections above" not in " ".join(summary.problem_lines())
 
 
 def test_a_run_without_any_tube_exits_1_with_the_reason_on_stderr(

@@ -158,13 +158,24 @@ class RunSummary:
         if self.blind_line():
             out.append(self.blind_line())
         if self.unexplained:
+            # Refined on those edges, the cameras take the parts' pull for their own error:
+            # spacer disks 1.9 times a helix's radius had its exact cameras "moved" by 1.7-2.9
+            # px (`accuracy_table --draw 439 --cases 8 --frames 90`, 2026-12-06). Kept as given
+            # instead, calibrations 0.15 deg off came out worse (docs/accuracy.md): the
+            # corrections stand, doubted.
+            doubted = (
+                "; the cameras' corrections above were read from these edges too, and may be the "
+                "parts' pull rather than the cameras' error"
+                if self.camera_warnings
+                else ""
+            )
             out.append(
                 f"  unexplained: the silhouettes' edges lie {self.edge_residual_px:.2f} px "
                 f"({self.edge_residual_radii:.2f} radii) from the tubes fitted, in median over the ok "
                 f"frames, where a tube's own edges lie within {UNEXPLAINED_PX:g} px: parts of the robot "
                 "that the tube model does not draw (spacer disks, a gripper), or cameras that disagree "
                 "(a calibration off, kept as given), pull its curves, perhaps by millimetres; compare "
-                "the tube drawn with the camera views in the .rrd"
+                f"the tube drawn with the camera views in the .rrd{doubted}"
             )
         if self.frames_suspect:
             first, why = self.frames_suspect[0]
