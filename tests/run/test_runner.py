@@ -409,7 +409,7 @@ def test_spacer_disks_the_tube_does_not_draw_are_named_and_a_plain_tube_is_not(
     plain = next(c for c in cases if c.profile != "disks")
     disks = dataclasses.replace(disks, disk_ratio=max(disks.disk_ratio, 1.6))
     for case, named in ((disks, True), (plain, False)):
-        session = load_session(render_case(case, tmp_path / case.profile, 12, jobs=1))
+        session = load_session(render_case(case, tmp_path / case.profile, 8, jobs=1))
         summary = runner.process_session(
             session, out_dir=tmp_path / "out", jobs=1, backend="threading", images=False, progress=False
         )
