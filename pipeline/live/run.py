@@ -435,12 +435,7 @@ def _run(
         if server is not None:
             server.stop()
     return LiveSummary(
-        run=dataclasses.replace(
-            writer.summary(time.perf_counter() - t0),
-            tip=tube_end,
-            radius="" if model.radius_profile is None else model.radius_profile.describe(),
-            cameras=LIVE_CAMERAS,
-        ),
+        run=dataclasses.replace(writer.summary(time.perf_counter() - t0), tip=tube_end, cameras=LIVE_CAMERAS),
         latencies_ms=np.asarray(latencies, dtype=np.float64),
         dropped=queue.dropped,
         stopped_by=stopped_by,

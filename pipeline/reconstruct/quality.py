@@ -127,9 +127,11 @@ THIN_TUBE_PX = 2.0
 # 2026-12-06): the 30 without spacer disks (uniform, tapered and stepped tubes, loops among
 # them) 0.08-0.15 px and 0.02-0.07 radii; the 10 with them 0.32-1.11 px and 0.12-0.29
 # radii, 8 of which had frames more than 2 mm off that the suspect flag left unflagged, or
-# every frame off. With the calibration 0.15 deg off and kept as given (draw 409, `--refine
-# false`), a three-camera random shape 0.88 px and 0.29 radii (0.09 px refined); on two
-# cameras, which leave no edge over to disagree, 0.08-0.18 px.
+# every frame off. On the fresh draws 701 and 703 (same day), 0.08-0.14 px and 0.02-0.05
+# radii without disks (12 sessions), 0.32-1.07 px and 0.11-0.24 radii with them (4). With
+# the calibration 0.15 deg off and kept as given (draw 409, `--refine false`), a
+# three-camera random shape 0.88 px and 0.29 radii (0.09 px refined); on two cameras,
+# which leave no edge over to disagree, 0.08-0.18 px.
 UNEXPLAINED_PX = 0.25
 UNEXPLAINED_RADII = 0.1
 

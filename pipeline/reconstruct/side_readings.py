@@ -279,10 +279,10 @@ def read_radius_profile(
     readings = []
     for axis_mm, radii_mm, contrasts in tubes:
         widths = read_sides(axis_mm, cameras, contrasts, radii_mm, spacing_mm).widths_mm
-        if widths is None:
-            continue
-        sample, _ = np.nonzero(np.isfinite(widths))
-        readings.append((polyline_arclength(axis_mm)[sample], widths[np.isfinite(widths)]))
+        assert widths is not None  # read_sides reads them
+        read = np.isfinite(widths)
+        sample, _ = np.nonzero(read)
+        readings.append((polyline_arclength(axis_mm)[sample], widths[read]))
     return RadiusProfile.pooled(readings)
 
 

@@ -209,6 +209,7 @@ class Writers:
         # A reason every ok frame is suspect for, written with its own (the tube's end a
         # close call: pipeline.reconstruct.tip_shape.TIP_DOUBT).
         self.frame_doubt = frame_doubt
+        self.radius_profile = radius_profile  # in the metadata and the summary
         try:
             self._mcap_file = _open_partial(target.partial(self.mcap_path))
             meta = {
@@ -476,6 +477,7 @@ class Writers:
             frames_at_walls=list(self.at_walls),
             frames_suspect=list(self.suspect),
             thin_cameras=self._thin_cameras(),
+            radius="" if self.radius_profile is None else self.radius_profile.describe(),
             edge_residual_px=px,
             edge_residual_radii=radii,
         )

@@ -459,7 +459,6 @@ def _run_with(
     return dataclasses.replace(
         summary,
         tip=tip,
-        radius="" if radii is None else radii.describe(),
         cameras=refinement.describe() if refinement is not None else "",
         camera_warnings=refinement.warnings() if refinement is not None else [],
         session_problems=list(session.problems) + (refinement.problems() if refinement is not None else []),
