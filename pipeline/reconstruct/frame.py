@@ -28,7 +28,7 @@ from .frame_result import NO_SHARED_VOXEL, FrameResult, nothing_seen
 from .model import SessionModel
 from .model import build_model as build_model  # re-exported: build the model, then reconstruct frames
 from .ordering import infer_base
-from .quality import suspect_reason, tube_figures, tube_masks
+from .quality import suspect_reason, tube_figures, tube_masks, unexplained_reason
 from .side_readings import REDUNDANT_VIEWS
 from .spline import smooth_curve
 from .tracking import (
@@ -429,6 +429,7 @@ def _curve_and_quality(
     if lost:
         reason = "; ".join(filter(None, [f"its track was lost here ({lost})", reason]))
     loose = placement.loose_reason(draw_radius) if placement is not None else ""
+    doubt = "; ".join(filter(None, [loose, unexplained_reason(cameras, curve.points_mm, radius, residual)]))
     timings["quality"] = time.perf_counter() - start
     return FrameResult(
         index=index,
@@ -447,7 +448,7 @@ def _curve_and_quality(
         lost=lost,
         jump_mm=jump,
         suspect_reason=reason,
-        loose_reason=loose,
+        doubt_reason=doubt,
         timings_s=timings,
     )
 

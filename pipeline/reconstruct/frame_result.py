@@ -64,10 +64,12 @@ class FrameResult:
         carried no velocity.
     suspect_reason : why the curve may be wrong, judged without ground truth
         (:func:`pipeline.reconstruct.quality.suspect_reason`); "" when nothing says so.
-    loose_reason : where the views barely fix the curve's course across it, as a suspect
-        reason (:meth:`pipeline.reconstruct.placement.Placement.loose_reason`); "" where they
-        fix it throughout. Written with ``suspect_reason``, but not one the track treats as
-        a wrong curve: the course there is the one the track carried, and its velocity holds.
+    doubt_reason : why the curve may be off where the track has no better one, as suspect
+        reasons: the views barely fix its course across a stretch
+        (:meth:`pipeline.reconstruct.placement.Placement.loose_reason`), its edges lie off its
+        tube (:func:`pipeline.reconstruct.quality.unexplained_reason`); "" where neither.
+        Written with ``suspect_reason``, but not one the track treats as a wrong curve: the
+        course is the one the track carried, and its velocity holds.
     timings_s : stage name -> seconds spent on this frame.
     """
 
@@ -89,7 +91,7 @@ class FrameResult:
     lost: str = ""
     jump_mm: float = float("nan")
     suspect_reason: str = ""
-    loose_reason: str = ""
+    doubt_reason: str = ""
     timings_s: dict[str, float] = field(default_factory=dict)
 
     @property

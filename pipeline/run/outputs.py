@@ -271,7 +271,7 @@ class Writers:
         its index); ``extra_metrics``: figures its metrics gain (a live run's latency)."""
         result = out.result
         # The reasons the track does not treat as a wrong curve join the frame's own here.
-        doubts = (result.loose_reason, self.frame_doubt) if result.status == "ok" else ()
+        doubts = (result.doubt_reason, self.frame_doubt) if result.status == "ok" else ()
         if any(doubts):
             why = "; ".join(part for part in (result.suspect_reason, *doubts) if part)
             result = dataclasses.replace(result, suspect_reason=why)

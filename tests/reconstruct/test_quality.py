@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -83,6 +84,28 @@ def test_a_tubes_width_in_pixels_is_its_drawn_masks_area_over_its_length(seed: i
         assert width == pytest.approx(drawn, rel=0.15, abs=0.3)
     behind = tube_width_px(cams, rod - 1e4 * cams[0].camera_from_world[2], radius)
     assert np.isnan(behind[0])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_frame_whose_edges_lie_off_its_tube_beyond_both_bars_is_unexplained(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    cams = rig_cameras(["oblique", "ninety"][seed % 2])
+    radius = float(rng.uniform(2.0, 8.0))
+    rod = rng.uniform(100.0, 156.0, 3) + np.outer(np.linspace(-40.0, 40.0, 20), [0.0, 0.0, 1.0])
+    # The residual at which each bar is met: in pixels (by the tube's mean width) and radii.
+    width_px = float(np.mean(tube_width_px(cams, rod, radius)))
+    at_px = quality.UNEXPLAINED_FRAME_PX * 2.0 * radius / width_px
+    at_radii = quality.UNEXPLAINED_RADII * radius
+    bar = max(at_px, at_radii)
+    assert quality.unexplained_reason(cams, rod, radius, 0.98 * bar) == ""
+    reason = quality.unexplained_reason(cams, rod, radius, 1.02 * bar)
+    px, radii = (float(v) for v in re.findall(r"([\d.]+) (?:px|radii)", reason))
+    assert px == pytest.approx(1.02 * bar * width_px / (2.0 * radius), abs=0.006)
+    assert radii == pytest.approx(1.02 * bar / radius, abs=0.006)
+    # Beyond one bar alone, nothing: a thin tube's fraction of a pixel, a thick one's sliver.
+    assert quality.unexplained_reason(cams, rod, radius, (at_px + at_radii) / 2.0) == ""
+    assert quality.unexplained_reason(cams, rod, radius, np.nan) == ""
+    assert quality.unexplained_reason(cams, rod, np.nan, 1.0) == ""
 
 
 def test_a_tube_thinner_than_a_pixel_draws_at_most_a_line() -> None:

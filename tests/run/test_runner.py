@@ -33,6 +33,7 @@ from pipeline.errors import OutputError, SessionError
 from pipeline.measure.evaluate import evaluate_recording
 from pipeline.reconstruct import frame_task
 from pipeline.reconstruct.frame_result import FrameResult
+from pipeline.reconstruct.quality import UNEXPLAINED_FRAME_PX, UNEXPLAINED_RADII
 from pipeline.record.load import load_recording
 from pipeline.run import outputs, runner
 from pipeline.session.folder import load_session
@@ -416,6 +417,13 @@ def test_spacer_disks_the_tube_does_not_draw_are_named_and_a_plain_tube_is_not(
         assert summary.unexplained is named, (case.describe(), summary.edge_residual_px)
         assert summary.exit_code == 0  # said, not failed
         assert any(line.startswith("  unexplained") for line in summary.problem_lines()) is named
+        # ... and each frame whose own edges are so is suspect for it, with its figures.
+        recording = load_recording(tmp_path / "out" / f"{session.name}.mcap")
+        reasons = [m["suspect_reason"] for m in recording.metrics]
+        flagged = [re.search(r"edges lie (\S+) px \((\S+) radii\)", reason) for reason in reasons]
+        assert all(flagged) if named else not any(flagged), reasons
+        for found in filter(None, flagged):
+            assert float(found[1]) > UNEXPLAINED_FRAME_PX and float(found[2]) > UNEXPLAINED_RADII
 
 
 E2E_FRAMES = 8

@@ -299,7 +299,7 @@ def test_a_loosely_placed_course_is_written_suspect_but_leaves_the_track_alone(t
         for index in range(30):
             result, _ = _swaying_rod(index, None, None)
             if index in (11, 12):
-                result = dataclasses.replace(result, loose_reason=loose)
+                result = dataclasses.replace(result, doubt_reason=loose)
             results.append(result)
             writer.write(FrameOutput(result=result, jpegs=None, silhouettes_png=None))
         writer.finish()
