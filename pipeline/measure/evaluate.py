@@ -18,9 +18,10 @@ import json
 import logging
 import math
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -356,18 +357,39 @@ def _truth_file(path: Path) -> Path:
     return path / "ground_truth.npz" if path.is_dir() else path
 
 
-def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
-    """Read the true centrelines of a synthetic session.
+@dataclass(frozen=True)
+class GroundTruth:
+    """What a synthetic session's ground_truth.npz holds that evaluate compares with.
 
-    Parameters
-    ----------
-    path : ground_truth.npz, or a session directory holding one.
-
-    Returns
-    -------
     centerlines_mm : (F, M, 3) float64, base -> tip, world frame, mm.
     timestamps_s : (F,) float64, s, or None if the file has none.
+    video_fingerprints : video file name -> fingerprint of the videos rendered with it
+        (empty where the file does not say).
+    radius_mm : (M,) float64, the tube's radius along its first frame's centreline, mm;
+        None where the file does not hold it (rendered before it kept the radius).
     """
+
+    centerlines_mm: FloatArray
+    timestamps_s: FloatArray | None = None
+    video_fingerprints: dict[str, str] = dataclasses.field(default_factory=dict)
+    radius_mm: FloatArray | None = None
+
+
+_T = TypeVar("_T")
+
+
+def _optional(data: Any, key: str, convert: Callable[[Any], _T]) -> _T | None:
+    """``convert(data[key])`` from an open .npz; None where it is missing or unreadable."""
+    try:
+        return convert(data[key]) if key in data else None
+    except (ValueError, TypeError):
+        return None
+
+
+def load_ground_truth(path: Path | str) -> GroundTruth:
+    """Read a synthetic session's ground truth: ``path`` is its ground_truth.npz, or the
+    session directory holding one. EvaluationError, naming the file, where it cannot be read
+    or holds no centrelines in millimetres."""
     path = Path(path)
     file = _truth_file(path)
     refuse_unfinished_render(file.parent, EvaluationError)
@@ -401,6 +423,9 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
                 if "timestamps_s" in data
                 else None
             )
+            # What only adds to the comparison: where unreadable, as though not there.
+            named = _optional(data, "video_fingerprints", lambda a: [str(e) for e in a]) or []
+            radius = _optional(data, "radius_profile_mm", lambda a: np.asarray(a, dtype=np.float64))
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # cut short or damaged
         raise EvaluationError(f"{file}: not a readable .npz file ({exc})") from None
     if centerlines.ndim != 3 or centerlines.shape[2] != 3:
@@ -431,7 +456,14 @@ def load_ground_truth(path: Path | str) -> tuple[FloatArray, FloatArray | None]:
             f"{file}: its centrelines are {length:.3g} mm long (the median); ground truths are in "
             "millimetres: is this one in metres? render the session again (pipeline synth)"
         )
-    return centerlines, timestamps
+    if radius is not None:  # one profile, or one a frame: the first frame's
+        radius = radius.reshape(-1, radius.shape[-1])[0] if radius.ndim else None
+    return GroundTruth(
+        centerlines,
+        timestamps,
+        dict(entry.partition("=")[::2] for entry in named),
+        radius if radius is not None and radius.shape == centerlines.shape[1:2] else None,
+    )
 
 
 def _changed_videos(recorded: dict[str, str], ground_truth: Path) -> str:
@@ -448,19 +480,10 @@ def _changed_videos(recorded: dict[str, str], ground_truth: Path) -> str:
     return ", ".join(changed)
 
 
-def _not_rendered_with(recorded: dict[str, str], ground_truth: Path) -> str:
-    """The videos (comma-separated names) the ground truth names as rendered with it
-    (``video_fingerprints``, wherever the file was copied) whose fingerprints are not the
+def _not_rendered_with(recorded: dict[str, str], rendered: dict[str, str]) -> str:
+    """The videos (comma-separated names) the ground truth names as ``rendered`` with it (file
+    name -> fingerprint, wherever the file was copied) whose fingerprints are not the
     ``recorded`` ones; "" where they match, or the truth does not say."""
-    file = _truth_file(ground_truth)
-    try:
-        with np.load(file, allow_pickle=False) as data:
-            named = (
-                [str(entry) for entry in data["video_fingerprints"]] if "video_fingerprints" in data else []
-            )
-    except (OSError, ValueError):  # read whole a moment ago: a truth that says nothing here
-        return ""
-    rendered = dict(entry.partition("=")[::2] for entry in named)
     # A camera's video recorded under another name (cam0.avi for the cam0.mp4 rendered: a
     # copy re-encoded) is another video too.
     by_camera = {Path(name).stem: fingerprint for name, fingerprint in recorded.items()}
@@ -479,27 +502,18 @@ def _truth_session(ground_truth: Path) -> str:
     return ground_truth.resolve().parent.name if ground_truth.name == "ground_truth.npz" else ""
 
 
-def _radius_error(profile: RadiusProfile | None, ground_truth: Path) -> float:
+def _radius_error(profile: RadiusProfile | None, truth: GroundTruth) -> float:
     """The median |radius read - true radius| (mm) of the recording's radius profile over
-    the arc lengths it read, the truth's radius taken along its first frame's centreline; NaN where
-    either has none (a ground truth rendered before it kept the radius)."""
-    if profile is None:
+    the arc lengths it read, the truth's radius taken along its first frame's centreline; NaN
+    where either has none."""
+    if profile is None or truth.radius_mm is None:
         return math.nan
-    try:
-        with np.load(_truth_file(ground_truth), allow_pickle=False) as data:
-            radius_mm = np.asarray(data["radius_profile_mm"], dtype=np.float64)
-            line_mm = np.asarray(data["centerlines"][0], dtype=np.float64)
-    except (OSError, ValueError, KeyError, IndexError, zipfile.BadZipFile):
-        return math.nan
-    true_mm = radius_mm.reshape(-1, radius_mm.shape[-1])[0] if radius_mm.ndim else radius_mm
-    arc_mm = polyline_arclength(line_mm)
-    if true_mm.shape != arc_mm.shape:
-        return math.nan
+    arc_mm = polyline_arclength(truth.centerlines_mm[0])
     inside = profile.arc_mm <= arc_mm[-1]
     if not inside.any():
         return math.nan
-    truth = np.interp(profile.arc_mm[inside], arc_mm, true_mm)
-    return float(np.median(np.abs(profile.radius_mm[inside] - truth)))
+    true_mm = np.interp(profile.arc_mm[inside], arc_mm, truth.radius_mm)
+    return float(np.median(np.abs(profile.radius_mm[inside] - true_mm)))
 
 
 def _why_no_frames(complete: bool, damaged: bool) -> str:
@@ -545,7 +559,8 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
         )
     if not recording.exists():  # anything else there (a named pipe) is named by load_recording
         raise EvaluationError(f"recording {recording} does not exist; run `python -m pipeline process` first")
-    truth_mm, truth_times = load_ground_truth(ground_truth)
+    ground = load_ground_truth(ground_truth)
+    truth_mm, truth_times = ground.centerlines_mm, ground.timestamps_s
     # The recording's warnings, said once it is known to hold frames; without frames, the
     # error's line says why instead (_why_no_frames).
     held: list[str] = []
@@ -580,7 +595,7 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
             recording,
             other_videos,
         )
-    elif other_videos := _not_rendered_with(rec.videos, Path(ground_truth)):
+    elif other_videos := _not_rendered_with(rec.videos, ground.video_fingerprints):
         log.warning(
             "%s was made from other videos than those the ground truth was rendered with (%s): "
             "compare a recording with its own session's ground truth",
@@ -614,7 +629,7 @@ def evaluate_recording(recording: Path | str, ground_truth: Path | str) -> Evalu
         cameras=rec.cameras,
         tube_end=rec.tube_end,
         radius="" if rec.radius_profile is None else rec.radius_profile.describe(),
-        radius_error_mm=_radius_error(rec.radius_profile, Path(ground_truth)),
+        radius_error_mm=_radius_error(rec.radius_profile, ground),
         complete=rec.complete,
         damaged=rec.damaged,
         other_session=other_session,

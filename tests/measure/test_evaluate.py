@@ -190,9 +190,10 @@ def test_format_report_shows_figures_targets_and_failed_frames() -> None:
 def test_ground_truth_from_a_session_directory(tmp_path: Path) -> None:
     centerlines = np.stack([line(20)] * 3)
     np.savez(tmp_path / "ground_truth.npz", centerlines=centerlines, timestamps_s=np.arange(3) / 30.0)
-    loaded, times = load_ground_truth(tmp_path)
-    np.testing.assert_array_equal(loaded, centerlines)
-    assert times is not None and len(times) == 3
+    loaded = load_ground_truth(tmp_path)
+    np.testing.assert_array_equal(loaded.centerlines_mm, centerlines)
+    assert loaded.timestamps_s is not None and len(loaded.timestamps_s) == 3
+    assert loaded.video_fingerprints == {} and loaded.radius_mm is None
 
 
 def test_missing_inputs_are_user_errors(tmp_path: Path) -> None:
