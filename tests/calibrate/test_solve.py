@@ -744,11 +744,19 @@ def test_a_calibration_whose_images_do_not_fit_one_rig_says_so_and_exits_1(
     assert (tmp_path / "reprojection_errors.png").is_file()
 
 
+@pytest.fixture(scope="module")
+def three_cameras(tmp_path_factory) -> Path:
+    """Three cameras' views (the oblique rig, seed 11, 6 intrinsics views each), rendered once."""
+    root = tmp_path_factory.mktemp("calib_three")
+    render_calibration_views(root, arrangement="oblique", seed=11, views=6, progress=False)
+    return root
+
+
 @pytest.mark.parametrize(
     ("odd", "turn"), [("cam0", "turned"), ("cam2", "mirrored"), ("cam1", "another rig's")]
 )
 def test_the_one_world_image_that_disagrees_with_the_others_is_named_and_left_out(
-    tmp_path, capsys: pytest.CaptureFixture[str], odd: str, turn: str
+    three_cameras: Path, tmp_path, capsys: pytest.CaptureFixture[str], odd: str, turn: str
 ) -> None:
     """A world image turned 180 degrees, mirrored, or of another placement of the board moves
     the board of the world frame in that camera; against the other cameras' world images and
@@ -759,8 +767,7 @@ def test_the_one_world_image_that_disagrees_with_the_others_is_named_and_left_ou
     out."""
     from pipeline.cli import main
 
-    root = tmp_path / "calib"
-    render_calibration_views(root, arrangement="oblique", seed=11, views=6, progress=False)
+    root = _copy(three_cameras, tmp_path)
     world = root / odd / "world.png"
     if turn == "another rig's":
         render_calibration_views(tmp_path / "other", arrangement="ninety", seed=12, views=1, progress=False)
