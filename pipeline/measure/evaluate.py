@@ -457,7 +457,7 @@ def load_ground_truth(path: Path | str) -> GroundTruth:
             "millimetres: is this one in metres? render the session again (pipeline synth)"
         )
     if radius is not None:  # one profile, or one a frame: the first frame's
-        radius = radius.reshape(-1, radius.shape[-1])[0] if radius.ndim else None
+        radius = radius.reshape(-1, radius.shape[-1])[0] if radius.ndim and radius.size else None
     return GroundTruth(
         centerlines,
         timestamps,
