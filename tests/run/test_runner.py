@@ -417,7 +417,7 @@ def test_spacer_disks_the_tube_does_not_draw_are_named_and_a_plain_tube_is_not(
         assert summary.unexplained is named, (case.describe(), summary.edge_residual_px)
         assert summary.exit_code == 0  # said, not failed
         assert any(line.startswith("  unexplained") for line in summary.problem_lines()) is named
-        # ... and each frame whose own edges are so is suspect for it, with its figures.
+        # ... and every frame of the disks, its own edges as far off, is suspect for it.
         recording = load_recording(tmp_path / "out" / f"{session.name}.mcap")
         reasons = [m["suspect_reason"] for m in recording.metrics]
         flagged = [re.search(r"edges lie (\S+) px \((\S+) radii\)", reason) for reason in reasons]
