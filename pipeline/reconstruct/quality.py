@@ -102,6 +102,17 @@ SUSPECT_LENGTH_MM = 3.0
 # beside which the smoothed curve is off too: 43 and 44 % to 65 and 60 %, 14.1 and 15.6 %
 # to 24.8 and 17.4 %. 1.5 and 1 mm bars name more of both.
 SUSPECT_SMOOTHED_MM = 2.0
+# After the last frame, too, where the run's curves agree on the tube's length (half of
+# them within this of their median: a backbone that keeps its length), a frame whose
+# length lies more than SUSPECT_LENGTH_MM from that median is suspect (off_length): a
+# tip cut short or run on, or two views' depth taken wrong by a drift too slow for the
+# track's own length to notice. A robot whose length changes through the run (one that
+# extends) has no one length: none is judged so. On the 72 sessions of `accuracy_table`
+# draws 2, 409, 433, 439, 443, 701, 703, 709 and 711 (8 cases, 90 frames, 2026-12-06),
+# it flagged 36 more of the 1,376 frames more than 2 mm off (1,262 -> 1,298) and none
+# more of the 5,104 good ones; at 1 mm of agreement 25 more, at 2 mm from the median
+# (1.5 of agreement) 58 and 7.
+RUN_LENGTH_AGREE_MM = 1.5
 
 # cv2 drawing takes fixed-point coordinates with this many fractional bits.
 _SHIFT = 4
@@ -466,6 +477,22 @@ def suspect_reason(
     if abs(length - expected_length_mm) > SUSPECT_LENGTH_MM:
         reasons.append(f"length {length:.1f} mm, {length - expected_length_mm:+.1f} mm from its track's")
     return "; ".join(reasons)
+
+
+def off_length(lengths_mm: FloatArray) -> FloatArray:
+    """(F,) mm: how much longer each frame's curve, of (F,) ``lengths_mm`` (NaN where it has
+    none: 0 here), is than the run's median, where the run's lengths agree on one
+    (``RUN_LENGTH_AGREE_MM``, their median absolute deviation); 0 throughout where they do
+    not."""
+    lengths = np.asarray(lengths_mm, dtype=np.float64)
+    known = lengths[np.isfinite(lengths)]
+    if not len(known):
+        return np.zeros(len(lengths))
+    median = float(np.median(known))
+    if float(np.median(np.abs(known - median))) > RUN_LENGTH_AGREE_MM:
+        return np.zeros(len(lengths))
+    gaps = lengths - median
+    return np.where(np.isfinite(gaps), gaps, 0.0)
 
 
 def off_smoothed(curves_mm: FloatArray, smoothed_mm: FloatArray) -> FloatArray:

@@ -28,10 +28,12 @@ from ..errors import OutputError
 from ..reconstruct.frame_result import NO_SHARED_VOXEL
 from ..reconstruct.frame_task import FrameOutput
 from ..reconstruct.quality import (
+    SUSPECT_LENGTH_MM,
     SUSPECT_SMOOTHED_MM,
     THIN_TUBE_PX,
     edge_residual,
     is_doubtful,
+    off_length,
     off_smoothed,
     reaches_walls,
     tube_width_px,
@@ -206,6 +208,8 @@ class Writers:
         self.thin_frames = np.zeros(len(session.cameras), dtype=np.int64)
         # Per ok frame, its fit's residual in pixels and in radii (quality.edge_residual).
         self.residuals: list[tuple[float, float]] = []
+        # Per frame of the log, its curve's length (mm; NaN where it has none).
+        self.lengths_mm: list[float] = []
         # A reason every ok frame is suspect for, written with its own (the tube's end a
         # close call: pipeline.reconstruct.tip_shape.TIP_DOUBT).
         self.frame_doubt = frame_doubt
@@ -281,6 +285,7 @@ class Writers:
         try:
             metrics = self.mcap.write_frame(result, time_ns, jpegs=out.jpegs, extra_metrics=extra_metrics)
             self.log.add(result.index, time_ns, curve, metrics)
+            self.lengths_mm.append(result.length_mm if curve is not None else float("nan"))
         except OSError as exc:
             raise output_error(self.target.out_dir, exc) from None
         self.rerun.write_frame(result, time_ns, jpegs=out.jpegs, silhouettes_png=out.silhouettes_png)
@@ -328,18 +333,24 @@ class Writers:
         times_ns = np.asarray(self.log.times_ns, dtype=np.int64)
         return _smooth(stacked, (times_ns - times_ns[0]).astype(np.float64) * 1e-9)
 
-    def _flag_off_smoothed(self, stacked: NDArray[np.float64], smoothed: NDArray[np.float64]) -> None:
-        """The frames whose curves lie far from the smoothed ones
-        (:data:`pipeline.reconstruct.quality.SUSPECT_SMOOTHED_MM`) and were not suspect yet:
+    def _flag_after_run(self, smoothed_gaps_mm: NDArray[np.float64] | None) -> None:
+        """The frames that the whole run shows may be wrong, and were not suspect yet: whose
+        curves lie far from the smoothed ones (``smoothed_gaps_mm``, per frame of the log,
+        where smoothed; :data:`pipeline.reconstruct.quality.SUSPECT_SMOOTHED_MM`), or whose
+        lengths lie far from the run's (:func:`pipeline.reconstruct.quality.off_length`):
         their metrics written again, suspect, and their suspect plots set."""
-        gaps = off_smoothed(stacked, smoothed)
+        longer = off_length(np.asarray(self.lengths_mm, dtype=np.float64))
         already = {frame for frame, _ in self.suspect}
-        for row in np.flatnonzero(gaps > SUSPECT_SMOOTHED_MM):
-            frame, time_ns = self.log.frames[row], self.log.times_ns[row]
-            if frame in already:
+        for row, frame in enumerate(self.log.frames):
+            reasons = []
+            if smoothed_gaps_mm is not None and smoothed_gaps_mm[row] > SUSPECT_SMOOTHED_MM:
+                reasons.append(f"{smoothed_gaps_mm[row]:.1f} mm from the smoothed curve")
+            if abs(longer[row]) > SUSPECT_LENGTH_MM:
+                reasons.append(f"length {self.lengths_mm[row]:.1f} mm, {longer[row]:+.1f} mm from the run's")
+            if frame in already or not reasons:
                 continue
-            reason = f"{gaps[row]:.1f} mm from the smoothed curve"
-            figures = json.loads(self.log.metrics(int(row))) | {"suspect": True, "suspect_reason": reason}
+            reason, time_ns = "; ".join(reasons), self.log.times_ns[row]
+            figures = json.loads(self.log.metrics(row)) | {"suspect": True, "suspect_reason": reason}
             self.mcap.write_metrics(json.dumps(figures, allow_nan=False).encode(), time_ns)
             self.rerun.mark_suspect(frame, time_ns)
             if self.viewer is not None:
@@ -358,8 +369,10 @@ class Writers:
         wanted = len(self.log) and self.session.settings.centerline.smooth
         stacked = self.log.stacked_curves() if wanted else None
         smoothed = self._smoothed(stacked) if stacked is not None else None
+        self._flag_after_run(
+            off_smoothed(stacked, smoothed) if stacked is not None and smoothed is not None else None
+        )
         if stacked is not None and smoothed is not None:
-            self._flag_off_smoothed(stacked, smoothed)
             frames, times_ns = list(self.log.frames), list(self.log.times_ns)
             self.mcap.write_smoothed(smoothed, times_ns)
             self.rerun.write_smoothed(smoothed, frames, times_ns)

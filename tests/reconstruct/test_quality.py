@@ -335,6 +335,27 @@ def test_a_silhouette_left_unexplained_counts_beyond_what_the_track_usually_leav
 
 
 @pytest.mark.parametrize("seed", range(4))
+def test_a_length_is_judged_against_the_runs_where_the_run_agrees_on_one(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    frames = 60
+    length = rng.uniform(100.0, 300.0)
+    lengths = length + rng.normal(0.0, 0.5, frames)
+    off = rng.choice(frames, 5, replace=False)
+    lengths[off] += rng.choice([-1.0, 1.0], 5) * rng.uniform(4.0, 20.0, 5)
+    lengths[off[0]] = np.nan  # a frame without a curve is no distance off
+    gaps = quality.off_length(lengths)
+    median = np.nanmedian(lengths)
+    np.testing.assert_allclose(gaps[off[1:]], lengths[off[1:]] - median)
+    assert gaps[off[0]] == 0.0
+    flagged = np.flatnonzero(np.abs(gaps) > quality.SUSPECT_LENGTH_MM)
+    assert sorted(flagged) == sorted(off[1:])
+    # A robot that extends through the run has no one length: nothing is judged.
+    extending = np.linspace(length, 1.3 * length, frames)
+    assert not quality.off_length(extending).any()
+    assert len(quality.off_length(np.full(3, np.nan))) == 3
+
+
+@pytest.mark.parametrize("seed", range(4))
 def test_a_curve_is_as_far_from_its_smoothed_one_as_its_farthest_sample(seed: int) -> None:
     rng = np.random.default_rng(seed)
     frames, n = 12, 64

@@ -255,6 +255,29 @@ def test_a_frame_far_from_its_smoothed_curve_is_flagged_suspect_in_the_recording
     assert wrong["length_m"] == pytest.approx(0.16) and wrong["status"] == "ok"
 
 
+def test_a_frame_whose_length_is_not_the_runs_is_flagged_after_the_run(tmp_path: Path) -> None:
+    # A curve a few mm short over a few frames whose course the smoothed curve follows (a
+    # slow drift): the run's length, not the track's, says so.
+    short = range(20, 26)
+
+    def shortened(index: int, images: object, model: object) -> tuple[FrameResult, None]:
+        result, _ = _swaying_rod(index, images, model)
+        if index == _WRONG_FRAME:  # back on the sway: only the lengths tell
+            result = dataclasses.replace(
+                result, centerline_mm=_swaying_rod(index - 1, None, None)[0].centerline_mm
+            )
+        return (dataclasses.replace(result, length_mm=155.0) if index in short else result), None
+
+    session = load_session(build_session(tmp_path / "session", frames=60))
+    summary = process_session(
+        session, out_dir=tmp_path / "out", jobs=1, images=False, progress=False, frame_fn=shortened
+    )
+    assert [frame for frame, _ in summary.frames_suspect] == list(short)
+    recording = load_recording(tmp_path / "out" / f"{session.name}.mcap")
+    flagged = {m["frame"]: m["suspect_reason"] for m in recording.metrics if m["suspect"]}
+    assert all(flagged[i] == "length 155.0 mm, -5.0 mm from the run's" for i in short), flagged
+
+
 def test_a_doubt_over_the_tube_end_makes_every_written_frame_suspect(tmp_path: Path) -> None:
     from pipeline.reconstruct.frame_task import FrameOutput
     from pipeline.reconstruct.tip_shape import TIP_DOUBT
