@@ -153,8 +153,8 @@ UNEXPLAINED_RADII = 0.1
 # (same day), the flag named, of the 961 frames more than 2 mm off, 760 without this
 # reason, 920 with it at this bar, 927 at the run's; of the 4,079 good ones, 520, 732 and
 # 1,008 (all 505 good frames of the tubes with disks at the run's bar, 234 at this one).
-# On draws 709 and 711, drawn after the bar was set: 342 of 415 frames off (217 without
-# the reason), 182 of 1,025 good ones (152).
+# On draws 709 and 711, not among those the bar was chosen on: 342 of 415 frames off
+# (217 without the reason), 182 of 1,025 good ones (152).
 UNEXPLAINED_FRAME_PX = 0.4
 
 
