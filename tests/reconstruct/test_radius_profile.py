@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from pipeline.reconstruct.radius_profile import BIN_MM, MIN_FRAMES, RadiusProfile
+from pipeline.reconstruct.radius_profile import BIN_MM, HALF_WINDOW_BINS, MIN_FRAMES, RadiusProfile
 from pipeline.reconstruct.side_readings import _radius_profile
 
 FloatArray = NDArray[np.float64]
@@ -153,3 +153,23 @@ def test_metadata_that_is_no_profile_reads_as_none(text: str) -> None:
 def test_a_tube_of_one_radius_is_described_by_it() -> None:
     profile = RadiusProfile(np.arange(1.0, 200.0, BIN_MM), np.full(100, 3.004))
     assert profile.describe() == "3.00 mm, read 0-200 mm from the base on the session's sample frames"
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_taper_read_with_noise_is_followed_along_the_tube(seed: int) -> None:
+    """The bins' running median follows a taper (its window is symmetric about each bin),
+    and keeps every bin read by enough frames."""
+    rng = np.random.default_rng(seed)
+    length, base = float(rng.uniform(180.0, 260.0)), float(rng.uniform(5.0, 8.0))
+    end = base * float(rng.uniform(0.5, 0.9))
+    frames = []
+    for _ in range(16):
+        arc = np.arange(6.0, length - 8.0, 4.0) + rng.uniform(0.0, 4.0)
+        frames.append((arc, base + (end - base) * arc / length + rng.normal(0.0, 0.08, len(arc))))
+    profile = RadiusProfile.pooled(frames)
+    assert profile is not None
+    assert len(profile.arc_mm) >= int((length - 16.0) / BIN_MM) - 2
+    truth = base + (end - base) * profile.arc_mm / length
+    # Away from the ends, where the window is moved in (and reads the taper a few mm in).
+    inner = slice(HALF_WINDOW_BINS, -HALF_WINDOW_BINS)
+    np.testing.assert_allclose(profile.radius_mm[inner], truth[inner], atol=0.1)
