@@ -28,7 +28,15 @@ from .frame_result import NO_SHARED_VOXEL, FrameResult, nothing_seen
 from .model import SessionModel
 from .model import build_model as build_model  # re-exported: build the model, then reconstruct frames
 from .ordering import infer_base
-from .quality import suspect_reason, tube_figures, tube_masks, unexplained_reason
+from .quality import (
+    BARELY_MEET_SHARE,
+    SILHOUETTES_APART,
+    hull_shares,
+    suspect_reason,
+    tube_figures,
+    tube_masks,
+    unexplained_reason,
+)
 from .side_readings import REDUNDANT_VIEWS
 from .spline import smooth_curve
 from .tracking import (
@@ -187,11 +195,8 @@ def reconstruct_from_silhouettes(
             timings_s=timings,
         )
     if len(points) < MIN_VOXELS:
-        return FrameResult.failed(
-            index,
-            f"only {len(points)} occupied voxels, too few for a curve",
-            points_mm=points,
-            timings_s=timings,
+        return _failed(
+            index, f"only {len(points)} occupied voxels, too few for a curve", points, masks, model, timings
         )
     # The fit and the quality figures see only the tube's blobs (see tube_blobs): those the
     # hull supports, and where a track predicts this frame's tube, those along it.
@@ -206,9 +211,24 @@ def reconstruct_from_silhouettes(
         # Numerical trouble with this frame's data (OpenCV's included: a drawing
         # asked for an impossible disc) is a failed frame, not a crash; on one line.
         reason = " ".join(str(exc).split())
-        return FrameResult.failed(
-            index, f"centreline fit failed: {reason}", points_mm=points, timings_s=timings
-        )
+        return _failed(index, f"centreline fit failed: {reason}", points, masks, model, timings)
+
+
+def _failed(
+    index: int,
+    reason: str,
+    points_mm: NDArray[np.floating],
+    masks: Sequence[NDArray[np.bool_]],
+    model: SessionModel,
+    timings: dict[str, float],
+) -> FrameResult:
+    """A failed frame with its ``reason``, and where the cameras' silhouettes barely meet
+    around the hull's voxels (Q, 3) ``points_mm`` (:func:`~.quality.hull_shares`), that too:
+    cameras that look at different places are the cause to mend, not the fit."""
+    shares = hull_shares(points_mm, masks, model.cameras, model.settings.workspace.voxel_mm)
+    if len(shares) and float(shares.min()) < BARELY_MEET_SHARE:
+        reason = f"{reason}; {SILHOUETTES_APART}"
+    return FrameResult.failed(index, reason, points_mm=points_mm, timings_s=timings)
 
 
 def hull_but_one_view(model: SessionModel, masks: Sequence[NDArray[np.bool_]]) -> NDArray[np.float64]:

@@ -196,6 +196,50 @@ def tube_width_px(cameras: Sequence[Camera], points_mm: FloatArray, radius_mm: f
     return out
 
 
+# A frame whose fit fails where some view's silhouette is less than this share within a
+# voxel of the hull's voxels (hull_shares) has cameras that do not look at one place: its
+# reason says so (SILHOUETTES_APART). On the first frame of `synth --shape random` renders
+# (2026-12-06), the least share of a frame was 0.42-1.0 with every camera 0.3 or 0.6 deg off
+# (`--calib-error 0.3`, `0.6`; refined, every frame ok) or one camera 1 deg off, 0.83 for a
+# tube 1.7 px wide (`--radius-mm 2`), 1.0 on the demo's; 0.05-0.09 with every camera 1 or 2
+# deg off (`--calib-error 1`, `2`), whose frames came out 13 mm off, or failed with `the
+# hull holds no tube near the base`.
+BARELY_MEET_SHARE = 0.25
+SILHOUETTES_APART = (
+    "the cameras' silhouettes barely meet in space: check that calibration.toml is this rig's, "
+    "and that no camera has moved since it was calibrated"
+)
+
+
+def hull_shares(
+    points_mm: NDArray[np.floating],
+    masks: Sequence[NDArray[np.bool_]],
+    cameras: Sequence[Camera],
+    voxel_mm: float,
+) -> FloatArray:
+    """(C,) the share of each camera's (H, W) bool silhouette ``masks`` within a voxel
+    (``voxel_mm`` across, projected at the hull's median depth) of the projections of the
+    hull's voxel centres (Q, 3) ``points_mm``: 1 where the cameras' cones meet around all
+    of what each one sees, near 0 where they meet only at their fringes (cameras that look
+    at different places)."""
+    points = np.asarray(points_mm, dtype=np.float64)
+    shares = np.zeros(len(cameras))
+    for c, (cam, mask) in enumerate(zip(cameras, masks, strict=True)):
+        seen = int(np.count_nonzero(mask))
+        depth = cam.to_camera(points)[:, 2]
+        if not seen or not np.any(depth > 0):
+            continue
+        reach = max(1, math.ceil(voxel_mm * cam.focal_px / float(np.median(depth[depth > 0]))))
+        h, w = mask.shape
+        px = np.round(cam.project(points[depth > 0])).astype(np.int64)
+        inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+        hit = np.zeros((h, w), np.uint8)
+        hit[px[inside, 1], px[inside, 0]] = 1
+        near = cv2.dilate(hit, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8)).view(bool)
+        shares[c] = np.count_nonzero(mask & near) / seen
+    return shares
+
+
 def is_doubtful(iou: Sequence[float]) -> bool:
     """Whether a frame's per-camera IoUs say its curve is not to be trusted (DOUBTFUL_IOU)."""
     return bool(iou) and min(iou) < DOUBTFUL_IOU

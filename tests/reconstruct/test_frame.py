@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from conftest import ROD_MM, rig_cameras
 
-from pipeline.carve.hull import build_grid
+from pipeline.carve.hull import build_grid, carve, voxel_centers_mm
 from pipeline.measure.evaluate import centerline_distances
 from pipeline.reconstruct import frame
 from pipeline.reconstruct.frame import (
@@ -23,6 +23,7 @@ from pipeline.reconstruct.frame import (
     tube_blobs,
 )
 from pipeline.reconstruct.frame_result import STATUSES
+from pipeline.reconstruct.quality import BARELY_MEET_SHARE, SILHOUETTES_APART, hull_shares
 from pipeline.session.folder import load_session
 from pipeline.session.settings import ManipulatorSettings, Settings, SilhouetteSettings
 from pipeline.session.video import read_frames
@@ -154,6 +155,7 @@ def test_a_drawing_that_fails_while_the_blobs_are_kept_fails_the_frame(
     monkeypatch.setattr(frame, "tube_blobs", impossible_disc)
     result = reconstruct_frame(0, images, model)
     assert result.status == "failed" and "circle: radius >= 0" in result.reason
+    assert SILHOUETTES_APART not in result.reason  # the rendered session's cameras agree
 
 
 def test_a_session_directory_round_trip(tmp_path: Path, make_session: Callable[..., Path]) -> None:
@@ -293,3 +295,49 @@ def test_a_part_one_view_does_not_show_is_found_from_the_others(
         assert alone.length_mm < 0.8 * truth_mm
     else:
         assert alone.status == "failed" and "the hull holds no tube near the base" in alone.reason
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_hull_explains_each_silhouette_where_the_cameras_agree(
+    model: SessionModel, tube: tuple, seed: int
+) -> None:
+    _, images = tube
+    masks = frame_silhouettes(images, model)
+    voxel = model.settings.workspace.voxel_mm
+    points = voxel_centers_mm(model.settings.workspace, carve(model.grid, masks))
+    assert np.all(hull_shares(points, masks, model.cameras, voxel) > 0.9)
+    # A view whose silhouette lies elsewhere (a camera that has turned): the others' cones
+    # meet around their tube, and its silhouette is not there.
+    rng = np.random.default_rng(seed)
+    moved = list(masks)
+    moved[seed] = np.roll(masks[seed], tuple(rng.integers(40, 60, 2)), axis=(0, 1))
+    points = voxel_centers_mm(model.settings.workspace, carve(model.grid, moved))
+    shares = hull_shares(points, moved, model.cameras, voxel)
+    assert shares[seed] < BARELY_MEET_SHARE
+
+
+def test_a_frame_that_fails_where_the_silhouettes_barely_meet_names_the_cameras(
+    model: SessionModel, tube: tuple, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A fit that fails on silhouettes whose cones meet only at their fringes (one view's
+    silhouette elsewhere, as a camera turned since calibration puts it) says that the
+    cameras are the cause; on silhouettes that agree it does not."""
+    _, images = tube
+    masks = frame_silhouettes(images, model)
+    moved = list(masks)
+    moved[0] = np.roll(masks[0], 16, axis=1)  # 16 px across the tube's middle, in cam0
+    assert len(carve(model.grid, moved)) >= frame.MIN_VOXELS  # the cones still meet somewhere
+
+    no_tube_reason = "the hull holds no tube near the base"
+
+    def no_tube(*_: object) -> None:
+        raise ValueError(no_tube_reason)
+
+    monkeypatch.setattr(frame, "tube_blobs", no_tube)
+    result = reconstruct_from_silhouettes(6, images, moved, model)
+    assert result.status == "failed"
+    assert (
+        result.reason == f"centreline fit failed: the hull holds no tube near the base; {SILHOUETTES_APART}"
+    )
+    result = reconstruct_from_silhouettes(6, images, masks, model)
+    assert result.status == "failed" and SILHOUETTES_APART not in result.reason
