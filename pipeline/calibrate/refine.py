@@ -483,7 +483,11 @@ def refined_cameras(
     indexed, read, profile = _sampled(model, frames, map_frames)
     tubes = [tube for _, tube in indexed]
     if len(tubes) < 3:
-        return model.cameras, None, read, profile
+        few = (
+            f"only {len(tubes)} of the {len(frames)} sample frames were reconstructed with them, "
+            "too few to refine on"
+        )
+        return model.cameras, Refinement(False, 0, float("nan"), float("nan"), (), few), read, profile
     lags = [] if frames_of is None else camera_lags(model, indexed, frames_of, map_frames)
     in_step: Adjustment | None = None  # the cameras adjusted to the frames as they are
     if lags:

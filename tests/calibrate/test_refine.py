@@ -540,3 +540,21 @@ def test_the_sample_frames_on_two_workers_give_the_same_tubes(sessions: dict[flo
     for a, b in zip(here, there, strict=True):
         np.testing.assert_array_equal(a.points_mm, b.points_mm)
         np.testing.assert_array_equal(a.radii_mm, b.radii_mm)
+
+
+def test_too_few_sample_frames_with_a_tube_keep_the_cameras_and_say_why(sessions: dict[float, Path]) -> None:
+    """Where the sample frames hold too few tubes to refine on (the tube out of view, or
+    cameras too far off for their cones to meet), the cameras are kept, and the summary's
+    line says why."""
+    session = load_session(sessions[0.15])
+    model = build_model(session)
+    frames = decode_frames(session.video_paths, sample_frames(0, FRAMES, 12))
+    # All but two frames show nothing: a uniform grey at each camera's median level leaves
+    # no silhouette.
+    blank = [np.full_like(image, int(np.median(image))) for image in frames[0][1]]
+    frames = [frames[0], frames[1]] + [(index, blank) for index, _ in frames[2:]]
+    cameras, report, _, _ = refined_cameras(model, frames)
+    assert cameras is model.cameras and report is not None and not report.applied
+    assert report.describe() == (
+        "given (only 2 of the 12 sample frames were reconstructed with them, too few to refine on)"
+    )
