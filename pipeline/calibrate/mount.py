@@ -52,12 +52,12 @@ FloatArray = NDArray[np.float64]
 _MAX_SPREAD_MM = 1.5
 # A base seen farther than this (mm) from base_mm is not the calibration's error but a
 # mount placed elsewhere. Three cameras 0.15 deg off put it up to 4 mm away, 0.3 deg off
-# 2.0-7.8 mm (`accuracy_table --frames 90 --calib-error 0.3`, five cases, and `synth
-# --shape random --seed 103 --calib-error 0.3 --frames 30`; 2026-12-06). Followed (with
-# this at 12 mm, not 6), a straight r 8 tube seen 6.3 mm off came 1.07 mm from the truth
-# (mean) instead of 5.14, the random shape seen 7.8 mm off 0.94 instead of 4.87 mm, the
-# other four as they were: held where the poses put them, every frame of those runs was
-# bent to start at base_mm.
+# 2.0-7.8 mm (`accuracy_table --frames 90 --no-polyfit --calib-error 0.3 --cases helix
+# ninety-s_curve-r9 ninety-three_segments-r5 oblique-bend-r4-bright oblique-straight-r8`,
+# and `synth --shape random --seed 103 --calib-error 0.3 --frames 30`; 2026-12-06). Moved there, a
+# straight r 8 tube seen 6.3 mm off came 1.07 mm from the truth (mean) and the random shape
+# seen 7.8 mm off 0.94 mm, against 5.14 and 4.87 mm held where the poses put them (every
+# frame then bent to start at base_mm).
 _MAX_SHIFT_MM = 12.0
 # Fewer frames than this give no median to trust.
 _MIN_FRAMES = 3
