@@ -344,7 +344,7 @@ def refine(
     cameras = list(adjustment.cameras)
     shift = None
     if applied and base is not None:
-        shift, held_by = mount_shift(cameras, refit(cameras), np.asarray(base))
+        shift, held_by = mount_shift(cameras, refit(cameras), np.asarray(base), refined=True)
         if alone and shift is not None and np.linalg.norm(shift) <= _AUTO_SHIFT_MM:
             # The world frame is the cameras' kept as given, which see the base where it is.
             shift = None
