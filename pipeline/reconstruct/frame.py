@@ -35,6 +35,7 @@ from .quality import (
     suspect_reason,
     tube_figures,
     tube_masks,
+    tube_width_px,
     unexplained_reason,
 )
 from .side_readings import REDUNDANT_VIEWS
@@ -226,7 +227,7 @@ def _failed(
     around the hull's voxels (Q, 3) ``points_mm`` (:func:`~.quality.hull_shares`), that too:
     cameras that look at different places are the cause to mend, not the fit."""
     shares = hull_shares(points_mm, masks, model.cameras, model.settings.workspace.voxel_mm)
-    if len(shares) and float(shares.min()) < BARELY_MEET_SHARE:
+    if float(shares.min()) < BARELY_MEET_SHARE:
         reason = f"{reason}; {SILHOUETTES_APART}"
     return FrameResult.failed(index, reason, points_mm=points_mm, timings_s=timings)
 
@@ -449,7 +450,8 @@ def _curve_and_quality(
     if lost:
         reason = "; ".join(filter(None, [f"its track was lost here ({lost})", reason]))
     loose = placement.loose_reason(draw_radius) if placement is not None else ""
-    doubt = "; ".join(filter(None, [loose, unexplained_reason(cameras, curve.points_mm, radius, residual)]))
+    widths = tube_width_px(cameras, curve.points_mm, radius)
+    doubt = "; ".join(filter(None, [loose, unexplained_reason(widths, radius, residual)]))
     timings["quality"] = time.perf_counter() - start
     return FrameResult(
         index=index,
@@ -462,6 +464,7 @@ def _curve_and_quality(
         radius_mm=float(radius),
         radii_mm=radii,
         fit_residual_mm=float(residual),
+        tube_width_px=tuple(widths.tolist()),
         iou=iou,
         misfits=tuple(misfits),
         tracked=tracked,

@@ -50,6 +50,9 @@ class FrameResult:
     radii_mm : (N,) float64 the radius at each centreline point (a tapered or stepped
         tube), mm, or None.
     fit_residual_mm : RMS residual of the curve fit, NaN when unknown.
+    tube_width_px : (C,) how many pixels across each camera sees the tube at the frame's
+        radius (:func:`pipeline.reconstruct.quality.tube_width_px`); empty where the frame
+        has no curve, NaN where it has no radius.
     iou : per-camera IoU of the re-projected tube with the silhouette (camera order).
     misfits : per camera, the share of its silhouette the re-projected tube leaves
         unexplained (:func:`pipeline.reconstruct.quality.misfit_fractions`).
@@ -85,6 +88,7 @@ class FrameResult:
     radius_mm: float = float("nan")
     radii_mm: NDArray[np.float64] | None = None
     fit_residual_mm: float = float("nan")
+    tube_width_px: tuple[float, ...] = ()
     iou: tuple[float, ...] = ()
     misfits: tuple[float, ...] = ()
     tracked: bool = False

@@ -168,13 +168,12 @@ def edge_residual(widths_px: FloatArray, radius_mm: float, residual_mm: float) -
     return residual_mm * float(np.mean(seen)) / (2.0 * radius_mm), residual_mm / radius_mm
 
 
-def unexplained_reason(
-    cameras: Sequence[Camera], centerline_mm: FloatArray, radius_mm: float, residual_mm: float
-) -> str:
-    """Why a frame's curve (N, 3) mm may be off where its fit's residual ``residual_mm`` (by
-    its tube of ``radius_mm``) exceeds both ``UNEXPLAINED_FRAME_PX`` and ``UNEXPLAINED_RADII``:
-    its silhouettes' edges are not all its tube's; "" where they are, or either is unknown."""
-    px, radii = edge_residual(tube_width_px(cameras, centerline_mm, radius_mm), radius_mm, residual_mm)
+def unexplained_reason(widths_px: FloatArray, radius_mm: float, residual_mm: float) -> str:
+    """Why a frame's curve may be off where its fit's residual ``residual_mm`` (by its tube
+    of ``radius_mm``, (C,) ``widths_px`` across in the cameras, :func:`tube_width_px`)
+    exceeds both ``UNEXPLAINED_FRAME_PX`` and ``UNEXPLAINED_RADII``: its silhouettes' edges
+    are not all its tube's; "" where they are, or either is unknown."""
+    px, radii = edge_residual(widths_px, radius_mm, residual_mm)
     if not (px > UNEXPLAINED_FRAME_PX and radii > UNEXPLAINED_RADII):
         return ""
     return (

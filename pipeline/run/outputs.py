@@ -17,7 +17,7 @@ import os
 import threading
 import uuid
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
@@ -312,17 +312,22 @@ class Writers:
         if curve is not None and len(curve):
             if reaches_walls(result.points_mm, self.session.settings.workspace, curve[0]):
                 self.at_walls.append(result.index)
-            widths = self._add_widths(curve, result.radius_mm)
+            widths = self._add_widths(curve, result.radius_mm, result.tube_width_px)
             residual = edge_residual(widths, result.radius_mm, result.fit_residual_mm)
             if np.isfinite(residual).all():
                 self.residuals.append(residual)
 
-    def _add_widths(self, curve_mm: NDArray[np.float64], radius_mm: float) -> NDArray[np.float64]:
-        """Count an ok frame's tube width in each camera's images (its radius, or the declared
-        one where the frame read none); the (C,) widths (px)."""
-        if not np.isfinite(radius_mm):
-            radius_mm = self.session.settings.manipulator.radius_mm or float("nan")
-        widths = tube_width_px(self.session.cameras, curve_mm, radius_mm)
+    def _add_widths(
+        self, curve_mm: NDArray[np.float64], radius_mm: float, known_px: Sequence[float] = ()
+    ) -> NDArray[np.float64]:
+        """Count an ok frame's tube width in each camera's images: ``known_px`` (C,), the widths
+        its reconstruction found at its radius, where they are all known; else at its radius,
+        or the declared one where the frame read none. The (C,) widths (px)."""
+        widths = np.asarray(known_px, dtype=np.float64)
+        if len(widths) != len(self.session.cameras) or not np.isfinite(widths).all():
+            if not np.isfinite(radius_mm):
+                radius_mm = self.session.settings.manipulator.radius_mm or float("nan")
+            widths = tube_width_px(self.session.cameras, curve_mm, radius_mm)
         if np.isfinite(widths).all():
             self.width_px_sums += widths
             self.width_frames += 1

@@ -23,7 +23,7 @@ from pipeline.reconstruct.frame import (
     tube_blobs,
 )
 from pipeline.reconstruct.frame_result import STATUSES
-from pipeline.reconstruct.quality import BARELY_MEET_SHARE, SILHOUETTES_APART, hull_shares
+from pipeline.reconstruct.quality import BARELY_MEET_SHARE, SILHOUETTES_APART, hull_shares, tube_width_px
 from pipeline.session.folder import load_session
 from pipeline.session.settings import ManipulatorSettings, Settings, SilhouetteSettings
 from pipeline.session.video import read_frames
@@ -77,6 +77,11 @@ def test_a_rendered_tube_is_reconstructed(model: SessionModel, tube: tuple) -> N
     # Radius from the silhouette widths: measured 6.1 mm (the rim's anti-aliasing).
     assert result.radius_mm == pytest.approx(RADIUS, abs=0.3)
     assert 0 < result.fit_residual_mm < 0.5
+    # The tube's width in each view, at its radius: what the writers count thin tubes by.
+    np.testing.assert_allclose(
+        result.tube_width_px, tube_width_px(model.cameras, result.centerline_mm, result.radius_mm)
+    )
+    assert all(4.0 < w < 12.0 for w in result.tube_width_px)  # 12 mm across at ~0.6 px/mm
     assert len(result.iou) == 3 and min(result.iou) > 0.85
     assert result.voxel_count > 500
     assert set(result.timings_s) == {"silhouette", "carve", "centerline", "quality"}

@@ -92,20 +92,24 @@ def test_a_frame_whose_edges_lie_off_its_tube_beyond_both_bars_is_unexplained(se
     cams = rig_cameras(["oblique", "ninety"][seed % 2])
     radius = float(rng.uniform(2.0, 8.0))
     rod = rng.uniform(100.0, 156.0, 3) + np.outer(np.linspace(-40.0, 40.0, 20), [0.0, 0.0, 1.0])
+
+    def widths_at(radius_mm: float) -> np.ndarray:
+        return tube_width_px(cams, rod, radius_mm)
+
     # The residual at which each bar is met: in pixels (by the tube's mean width) and radii.
-    width_px = float(np.mean(tube_width_px(cams, rod, radius)))
+    width_px = float(np.mean(widths_at(radius)))
     at_px = quality.UNEXPLAINED_FRAME_PX * 2.0 * radius / width_px
     at_radii = quality.UNEXPLAINED_RADII * radius
     bar = max(at_px, at_radii)
-    assert quality.unexplained_reason(cams, rod, radius, 0.98 * bar) == ""
-    reason = quality.unexplained_reason(cams, rod, radius, 1.02 * bar)
+    assert quality.unexplained_reason(widths_at(radius), radius, 0.98 * bar) == ""
+    reason = quality.unexplained_reason(widths_at(radius), radius, 1.02 * bar)
     px, radii = (float(v) for v in re.findall(r"([\d.]+) (?:px|radii)", reason))
     assert px == pytest.approx(1.02 * bar * width_px / (2.0 * radius), abs=0.006)
     assert radii == pytest.approx(1.02 * bar / radius, abs=0.006)
     # Beyond one bar alone, nothing: a thin tube's fraction of a pixel, a thick one's sliver.
-    assert quality.unexplained_reason(cams, rod, radius, (at_px + at_radii) / 2.0) == ""
-    assert quality.unexplained_reason(cams, rod, radius, np.nan) == ""
-    assert quality.unexplained_reason(cams, rod, np.nan, 1.0) == ""
+    assert quality.unexplained_reason(widths_at(radius), radius, (at_px + at_radii) / 2.0) == ""
+    assert quality.unexplained_reason(widths_at(radius), radius, np.nan) == ""
+    assert quality.unexplained_reason(widths_at(np.nan), np.nan, 1.0) == ""
 
 
 def test_a_tube_thinner_than_a_pixel_draws_at_most_a_line() -> None:
