@@ -147,6 +147,11 @@ class Refinement:
     lags: tuple[CameraLag, ...] = ()
     alone: str = ""
 
+    @classmethod
+    def kept(cls, reason: str, *, mount_note: str = "", lags: tuple[CameraLag, ...] = ()) -> Refinement:
+        """The given cameras kept without a refinement, for ``reason``."""
+        return cls(False, 0, float("nan"), float("nan"), (), reason, mount_note=mount_note, lags=lags)
+
     def describe(self) -> str:
         """One line for the summary."""
         moved = f"; {self._moved_to_mount()}" if self.mount_shift_mm is not None else ""
@@ -487,7 +492,7 @@ def refined_cameras(
             f"only {len(tubes)} of the {len(frames)} sample frames were reconstructed with them, "
             "too few to refine on"
         )
-        return model.cameras, Refinement(False, 0, float("nan"), float("nan"), (), few), read, profile
+        return model.cameras, Refinement.kept(few), read, profile
     lags = [] if frames_of is None else camera_lags(model, indexed, frames_of, map_frames)
     in_step: Adjustment | None = None  # the cameras adjusted to the frames as they are
     if lags:
@@ -504,7 +509,7 @@ def refined_cameras(
         # The tubes were fitted to views of two moments: adjusted to them, the cameras would
         # take the difference for cameras that moved.
         reason = "a camera's video is out of step with the others'"
-        report = Refinement(False, 0, float("nan"), float("nan"), (), reason, lags=tuple(lags))
+        report = Refinement.kept(reason, lags=tuple(lags))
         report = dataclasses.replace(report, seconds=time.perf_counter() - started)
         return model.cameras, report, read, profile
     cameras, report = refine(model, tubes, mode, refitter(model, frames, map_frames), in_step)
@@ -571,7 +576,7 @@ def _kept_as_given(
             _, note = _given_at_mount(
                 model.cameras, tubes, model.settings.manipulator.base_mm, to_mount=False
             )
-    return Refinement(False, 0, float("nan"), float("nan"), (), reason, mount_note=note)
+    return Refinement.kept(reason, mount_note=note)
 
 
 def sample_evidence(
