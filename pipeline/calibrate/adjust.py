@@ -38,7 +38,9 @@ from scipy.optimize import least_squares
 
 from ..geometry.camera import Camera
 from ..geometry.polyline import by_fraction, polyline_arclength, resample_polyline
+from ..reconstruct.disks import Disks
 from ..reconstruct.placement import normal_equations
+from ..reconstruct.radius_profile import RadiusProfile
 from ..reconstruct.side_readings import SideReadings, consistent_readings, read_sides
 
 FloatArray = NDArray[np.float64]
@@ -113,13 +115,20 @@ class Tube:
 
     points_mm : (K, 3) axis samples base -> tip, mm; radii_mm : (K,) radius along it, mm;
     contrasts : per camera (H, W) float32 (:func:`pipeline.reconstruct.tube_fit.foreground_contrast`);
-    masks : per camera (H, W) bool, the silhouettes.
+    masks : per camera (H, W) bool, the silhouettes; disks : the tube's spacer disks, if
+    it has any (drawn into the outline its sides are read against).
     """
 
     points_mm: FloatArray
     radii_mm: FloatArray
     contrasts: tuple[NDArray[np.float32], ...]
     masks: tuple[NDArray[np.bool_], ...]
+    disks: Disks | None = None
+
+    def outline(self) -> RadiusProfile | None:
+        """The tube's disks as :func:`~pipeline.reconstruct.side_readings.read_sides` draws
+        them (None without)."""
+        return None if self.disks is None else RadiusProfile(np.zeros(0), np.zeros(0), self.disks)
 
 
 def resampled_tube(
@@ -190,7 +199,13 @@ def _frame_system(
     """The frame's part of the normal equations (the cameras ``held`` given no part: their
     parameters stay); None without enough readings."""
     obs = read_sides(
-        tube.points_mm, cameras, tube.contrasts, tube.radii_mm, SPACING_MM, crowd_margin_px=_CROWD_MARGIN_PX
+        tube.points_mm,
+        cameras,
+        tube.contrasts,
+        tube.radii_mm,
+        SPACING_MM,
+        crowd_margin_px=_CROWD_MARGIN_PX,
+        session_radii=tube.outline(),
     )
     across = obs.across
     if obs.readings < 6 or across is None:

@@ -34,12 +34,14 @@ the rig where the poses hold it, and the report says why.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..geometry.camera import Camera
+from ..geometry.polyline import polyline_arclength
 from ..reconstruct.side_readings import read_sides
 from ..reconstruct.tip_bend import refine_tip_to_pixels
 from ..reconstruct.tube_tip import refit_tip
@@ -98,7 +100,14 @@ def base_ends(cameras: Sequence[Camera], tubes: Sequence[Tube]) -> FloatArray:
         # The tube's own radius at its base (a tapered tube's is its widest), read as a tip's
         # is, on the axis run backwards (see _BASE_SAMPLES).
         axis, radii = tube.points_mm[::-1], tube.radii_mm[::-1]
-        radius = read_sides(axis, cameras, tube.contrasts, radii, SPACING_MM).end_radius_mm
+        outline = tube.outline()
+        if outline is not None and outline.disks is not None:  # the disks' places from the tip
+            length = float(polyline_arclength(axis)[-1])
+            disks = dataclasses.replace(outline.disks, arc_mm=(length - outline.disks.arc_mm)[::-1])
+            outline = dataclasses.replace(outline, disks=disks)
+        radius = read_sides(
+            axis, cameras, tube.contrasts, radii, SPACING_MM, session_radii=outline
+        ).end_radius_mm
         if not np.isfinite(radius):
             radius = float(np.median(tube.radii_mm[:_BASE_SAMPLES]))
         backwards = refit_tip(axis, cameras, tube.contrasts, radius, cap="flat")

@@ -239,7 +239,8 @@ def sample_tubes(
     Held at the mount, which is known in the given rig's world only, each tube would
     bend near its base by the calibration's error; free, its base is where the views
     see it, which is what holds the refined rig to the mount (:mod:`.mount`)."""
-    return [tube for tube, _ in map_frames(_sample, frames, _base_free(model)) if tube is not None]
+    samples = map_frames(_sample, frames, _base_free(model))
+    return [_drawn_with(tube, model) for tube, _ in samples if tube is not None]
 
 
 def refitter(
@@ -255,6 +256,14 @@ def refitter(
         return sample_tubes(dataclasses.replace(model, cameras=tuple(cameras), grid=grid), frames, map_frames)
 
     return refit
+
+
+def _drawn_with(tube: Tube, model: SessionModel) -> Tube:
+    """``tube`` with ``model``'s spacer disks, which it was fitted with. Set here, not where
+    the frame was fitted: a worker's model is mapped from a file that is gone once the
+    frames are in, and the disks sent on from there would point at it."""
+    disks = model.disks
+    return tube if disks is None else dataclasses.replace(tube, disks=disks)
 
 
 def _base_free(model: SessionModel) -> SessionModel:
@@ -484,9 +493,14 @@ def refined_cameras(
         # a disk tube's base 1.98 mm off along it, and moved there it came out 4.14 mm off
         # against 2.14 kept), though they gained where the calibration was off (a straight
         # tube 0.15 deg off, 2.75 -> 0.21 mm).
-        return model.cameras, _kept_as_given(model, frames, map_frames, reason), None, None
+        tubes = sample_tubes(model, frames, map_frames)
+        report = _kept_as_given(model, frames, map_frames, reason, tubes)
+        return model.cameras, report, None, _two_view_disks(model, tubes)
     indexed, read, profile = _sampled(model, frames, map_frames)
     tubes = [tube for _, tube in indexed]
+    if profile is not None and profile.disks is not None:
+        # The cameras are judged, and the frames fitted again, with the tube's disks drawn.
+        model = dataclasses.replace(model, radius_profile=profile.disks_alone())
     if len(tubes) < 3:
         few = (
             f"only {len(tubes)} of the {len(frames)} sample frames were reconstructed with them, "
@@ -561,22 +575,35 @@ def _kept_as_given(
     frames: Sequence[tuple[int, Sequence[NDArray[np.uint8]]]],
     map_frames: FrameMap,
     reason: str,
+    tubes: Sequence[Tube] | None = None,
 ) -> Refinement:
     """The report of cameras kept as given without a refinement (for ``reason``), with where
     they see the tube's base against ``[manipulator] base_mm``, read on the tubes of the
     sample ``frames`` as where a refinement keeps them (:func:`_given_at_mount`). On the
     51 two-camera sessions of ``accuracy_table`` draws 2, 191-231 and 307 (2026-12-05), the
     true base_mm was never called wrong (41 seen there, 10 whose base end the frames see
-    unalike), and base_mm 15 mm off in x or z, or 8 mm in y, was named in those 41."""
+    unalike), and base_mm 15 mm off in x or z, or 8 mm in y, was named in those 41.
+    ``tubes``: the sample frames' tubes (:func:`sample_tubes`), if fitted already."""
     note = ""
     if model.settings.manipulator.base_mm is not None:
-        samples = map_frames(_sample, frames, _base_free(model))
-        tubes = [tube for tube, _ in samples if tube is not None]
+        if tubes is None:
+            tubes = sample_tubes(model, frames, map_frames)
         if len(tubes) >= 3:
             _, note = _given_at_mount(
                 model.cameras, tubes, model.settings.manipulator.base_mm, to_mount=False
             )
     return Refinement.kept(reason, mount_note=note)
+
+
+def _two_view_disks(model: SessionModel, tubes: Sequence[Tube]) -> RadiusProfile | None:
+    """The spacer disks of the tube read on a two-camera rig's sample ``tubes``, as a
+    profile of them alone (None without): two views read disks as three do, but the radius
+    along the tube less surely than each frame's own (see
+    :mod:`pipeline.reconstruct.radius_profile`)."""
+    profile = read_radius_profile(
+        [(tube.points_mm, tube.radii_mm, tube.contrasts) for tube in tubes], model.cameras, FIT_SPACING_MM
+    )
+    return None if profile is None else profile.disks_alone()
 
 
 def sample_evidence(
@@ -587,8 +614,13 @@ def sample_evidence(
     """The tube ends and the radius along the tube that :func:`refined_cameras` reads where
     it keeps the given cameras, read the same way on the sample ``frames`` without refining:
     a run that keeps its cameras as given (a live replay) then reconstructs as ``process``
-    does. Each None where it reads none (fewer than three cameras, ``[calibration] refine =
-    false``; the ends where session.toml sets the end)."""
+    does. Each None where it reads none (``[calibration] refine = false``; the ends where
+    session.toml sets the end, or on fewer than three cameras, where the radius is the
+    spacer disks alone)."""
+    settings = model.settings
+    two_views = settings.calibration.refine is not False and settings.centerline.method == "fit"
+    if two_views and len(model.cameras) < 3:
+        return None, _two_view_disks(model, sample_tubes(model, frames, map_frames))
     if not _samples_frames(model):
         return None, None
     _, read, profile = _sampled(model, frames, map_frames)
@@ -617,11 +649,28 @@ def _sampled(
     the session reads its tube end from them (:func:`_reads_tips`), their ends read on the same
     reconstructions (else None); and the radius along the tube read on them."""
     read_tips = _reads_tips(model)
-    samples = map_frames(functools.partial(_sample, tip=read_tips), frames, _base_free(model))
-    tubes = [(index, tube) for (index, _), (tube, _) in zip(frames, samples, strict=True) if tube is not None]
-    profile = read_radius_profile(
-        [(tube.points_mm, tube.radii_mm, tube.contrasts) for _, tube in tubes], model.cameras, FIT_SPACING_MM
-    )
+
+    def fitted(
+        model: SessionModel,
+    ) -> tuple[list[tuple[Tube | None, FrameTip | None]], list[tuple[int, Tube]], RadiusProfile | None]:
+        samples = map_frames(functools.partial(_sample, tip=read_tips), frames, _base_free(model))
+        tubes = [
+            (index, _drawn_with(tube, model))
+            for (index, _), (tube, _) in zip(frames, samples, strict=True)
+            if tube is not None
+        ]
+        profile = read_radius_profile(
+            [(tube.points_mm, tube.radii_mm, tube.contrasts) for _, tube in tubes],
+            model.cameras,
+            FIT_SPACING_MM,
+        )
+        return samples, tubes, profile
+
+    samples, tubes, profile = fitted(model)
+    if profile is not None and profile.disks is not None:
+        # Fitted without them, a tube with spacer disks is bent by their outlines: the
+        # frames are fitted again with the disks drawn, and the disks read again on them.
+        samples, tubes, profile = fitted(dataclasses.replace(model, radius_profile=profile.disks_alone()))
     if not read_tips:
         return tubes, None, profile
     tips = tuple(tip for _, tip in samples if tip is not None)

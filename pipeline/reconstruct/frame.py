@@ -306,6 +306,7 @@ def _curve_and_quality(
 ) -> FrameResult:
     settings = model.settings
     cameras = model.cameras
+    disks = model.disks
     start = time.perf_counter()
     pts = points.astype(np.float64)
     radius_guess = settings.manipulator.radius_mm or radius_from_silhouettes(cameras, masks, pts.mean(axis=0))
@@ -371,6 +372,7 @@ def _curve_and_quality(
                     masks,
                     contrasts,
                     n_points=n_points,
+                    disks=disks,
                 )
                 if others is not None:
                     held, odd_view = others
@@ -408,11 +410,19 @@ def _curve_and_quality(
                 if held is not None:
                     options.append(held)
                 if np.isfinite(init.radius_mm) and init.radius_mm > 0:
-                    options.append(judge_fit(init, cameras, masks, n_points=n_points, contrasts=contrasts))
+                    options.append(
+                        judge_fit(init, cameras, masks, n_points=n_points, contrasts=contrasts, disks=disks)
+                    )
                 best = min(options, key=lambda o: o.misfit)
                 if best.curve is None:  # no fit read a tube: the hull's, drawn at the radius guessed
                     best = judge_fit(
-                        init, cameras, masks, n_points=n_points, radius_mm=radius_guess, contrasts=contrasts
+                        init,
+                        cameras,
+                        masks,
+                        n_points=n_points,
+                        radius_mm=radius_guess,
+                        contrasts=contrasts,
+                        disks=disks,
                     )
         if best.fit is None or best.curve is None:
             raise ValueError("the fit gave no curve")
@@ -425,7 +435,9 @@ def _curve_and_quality(
     start = time.perf_counter()
     if not np.all(np.isfinite(curve.points_mm)):
         raise ValueError("the curve has non-finite points")
-    iou, misfits = figures if figures is not None else tube_figures(cameras, masks, curve.points_mm, radius)
+    iou, misfits = (
+        figures if figures is not None else tube_figures(cameras, masks, curve.points_mm, radius, disks=disks)
+    )
     draw_radius = radius if np.isfinite(radius) else radius_guess
     drawn = radii if radii is not None and np.isfinite(radii).all() else draw_radius
     # Only a prediction that carries the track's velocity says where this frame's tube

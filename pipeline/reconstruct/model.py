@@ -18,6 +18,7 @@ from ..carve.hull import HullGrid, build_grid
 from ..geometry.camera import Camera
 from ..session.folder import Session
 from ..session.settings import Settings
+from .disks import Disks
 from .radius_profile import RadiusProfile
 
 
@@ -36,6 +37,11 @@ class SessionModel:
     # frame's own views do not read (pipeline.reconstruct.radius_profile); None: each
     # frame's own profile alone.
     radius_profile: RadiusProfile | None = None
+
+    @property
+    def disks(self) -> Disks | None:
+        """The tube's spacer disks, drawn with it (in ``radius_profile``), or None."""
+        return None if self.radius_profile is None else self.radius_profile.disks
 
 
 def build_model(session: Session) -> SessionModel:

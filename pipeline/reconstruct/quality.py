@@ -23,7 +23,8 @@ from ..geometry.polyline import (
     vector_norms,
 )
 from ..session.settings import Workspace
-from .tube_drawing import Window, pixel_coverages
+from .disks import Disks, rim_pixels, rims
+from .tube_drawing import DRAW_SHIFT, Window, fill_hull, pixel_coverages
 
 FloatArray = NDArray[np.float64]
 
@@ -36,8 +37,8 @@ DOUBTFUL_IOU = 0.7
 
 # A frame is suspect (see suspect_reason) where its tube leaves more than this
 # fraction of some silhouette unexplained (misfit_fractions), beyond what its track's
-# frames usually leave (pipeline.reconstruct.tracking.usual_misfit: spacer disks, which
-# the drawn tube does not have, leave 1-2.5 % of every frame). On two seeded draws
+# frames usually leave (pipeline.reconstruct.tracking.usual_misfit: spacer disks the tube
+# is drawn without leave 1-2.5 % of every frame). On two seeded draws
 # (`accuracy_table --draw 2 --cases 10 --frames 150` and `--draw 7 --cases 8 --frames
 # 120`, 2026-12-02) that took the three-camera good frames flagged from 88 of 549 to 81
 # and from 29 of 415 to 7, and their frames more than 2 mm off flagged from 160 of 201
@@ -132,7 +133,7 @@ THIN_TUBE_PX = 2.0
 # varies smoothly along it: the fit's residual (the RMS distance of the trusted edges from
 # the tube's, FrameResult.fit_residual_mm) is the edges' own noise. Where, in median over
 # the ok frames, it exceeds both of these (in pixels of the images, and as a share of the
-# tube's radius), the robot has parts the tube does not draw (spacer disks, a gripper), whose
+# tube's radius), the robot has parts the tube does not draw (a gripper, spacer disks not found), whose
 # edges pull the fit, or the cameras disagree, and the summary says so. On the 40 sessions
 # of `accuracy_table --draw 2`, 409, 433, 439 and 443 (8 cases of 90 frames each,
 # 2026-12-06): the 30 without spacer disks (uniform, tapered and stepped tubes, loops among
@@ -294,15 +295,34 @@ def tube_mask(
 
 
 def tube_masks(
-    cameras: Sequence[Camera], centerline_mm: FloatArray, radius_mm: float | FloatArray
+    cameras: Sequence[Camera],
+    centerline_mm: FloatArray,
+    radius_mm: float | FloatArray,
+    disks: Disks | None = None,
 ) -> list[NDArray[np.bool_]]:
     """:func:`tube_mask` in each camera (the same masks): the discs' centres found
-    once and projected in all views at once."""
+    once and projected in all views at once; with its spacer ``disks`` drawn too (the
+    axis running from the base)."""
     dense, radii = _disc_centres(centerline_mm, radius_mm)
-    return [
+    masks = [
         _draw_tube(cam, dense, px, radii, supersample=1)
         for cam, px in zip(cameras, project_in_views(cameras, dense), strict=True)
     ]
+    if disks is not None:
+        pts = np.asarray(centerline_mm, dtype=np.float64)
+        _draw_disks(masks, cameras, rims(pts, polyline_arclength(pts), disks))
+    return masks
+
+
+def _draw_disks(masks: list[NDArray[np.bool_]], cameras: Sequence[Camera], rims_mm: FloatArray) -> None:
+    """Draw (True) the disks whose rims are ``rims_mm`` (D, F, R, 3) into each camera's
+    (H, W) mask: each the convex hull of its rims' pixels."""
+    if len(rims_mm) == 0:
+        return
+    for mask, disks_px in zip(masks, rim_pixels(cameras, rims_mm), strict=True):
+        for disk_px in disks_px:
+            if np.isfinite(disk_px).all() and (np.abs(disk_px) < 1e5).all():
+                fill_hull(mask.view(np.uint8), disk_px * (1 << DRAW_SHIFT), 1)
 
 
 def _disc_centres(centerline_mm: FloatArray, radius_mm: float | FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -416,11 +436,12 @@ def tube_figures(
     centerline_mm: FloatArray,
     radius_mm: float | FloatArray,
     contrasts: Sequence[NDArray[np.float32]] | None = None,
+    disks: Disks | None = None,
 ) -> tuple[tuple[float, ...], tuple[float, ...]]:
     """Per camera, :func:`reprojection_iou` and :func:`misfit_fractions` of one tube,
-    drawn once (``contrasts``: see :func:`misfit_fractions`)."""
+    drawn once (``contrasts``: see :func:`misfit_fractions`; with its spacer ``disks``)."""
     pts = np.asarray(centerline_mm, dtype=np.float64)
-    tubes = tube_masks(cameras, pts, radius_mm)
+    tubes = tube_masks(cameras, pts, radius_mm, disks)
     along = np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), (len(pts),))
     ends = (float(along[0]), float(along[-1]))
     views = list(zip(cameras, masks, tubes, strict=True))

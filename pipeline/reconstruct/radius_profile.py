@@ -33,6 +33,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from .disks import Disks
+from .width_bins import binned_medians
+
 FloatArray = NDArray[np.float64]
 
 # Readings are pooled in bins of this length along the tube (mm) ...
@@ -46,51 +49,62 @@ MIN_FRAMES = 3
 # median keeps a monotone step).
 HALF_WINDOW_BINS = 3
 # Disks seen at an angle widen the outline over as much of the tube as they reach along it
-# in the view, often over most of a window: the profile reads them (the spacer-disk
-# sessions of `accuracy_table` draws 2, 409, 433, 439 and 443, three cameras, were read
-# 0.17-3.7 mm wide of their tube, median). Leaving out every bin more than 12 % above the
-# bins' grey opening over 16 mm (which keeps a step or a taper and takes away any shorter
-# bump) read those four 0.15-1.5 mm wide, and left out of the others' profiles nothing or
-# one to three bins of a stepped tube (read at the true axes); but the curves are fitted
-# with the profile in the gaps, without drawing the disks, and came out worse (2026-12-06,
-# the same 40 sessions): the disk sessions' means 0.676 -> 0.718, 0.325 -> 0.330, 1.052 ->
-# 1.060 and 4.043 -> 4.085 mm, a stepped shape's 0.350 -> 0.384 mm, frames more than 2 mm
-# off 679 -> 696. The same on each frame's own profile
-# (pipeline.reconstruct.side_readings._radius_profile) as well, on draws 2 and 409: three
-# of their four disk sessions worse again (a two-camera one 0.307 -> 0.789 mm), the fourth
-# as before, and a tapered tube's end a close call where it had been clearly flat.
-# Left out: a profile that reads the disks apart needs a tube model that draws them.
+# in the view, often over most of a window, and the median reads them. A tube with disks
+# has them drawn (pipeline.reconstruct.disks): the readings their outline reaches are left
+# out of its radius, and the profile is the tube's own between them. Leaving out instead
+# every bin more than 12 % above the bins' grey opening over 16 mm (a step or a taper kept,
+# any shorter bump taken away), with the disks not drawn, read the tubes' radius but fitted
+# worse curves (2026-12-06, `accuracy_table --draw 2`, 409, 433, 439 and 443: frames more
+# than 2 mm off 679 -> 696).
 
 
 @dataclass(frozen=True)
 class RadiusProfile:
-    """The tube's radius (B,) mm at arc lengths (B,) mm from its base, increasing."""
+    """The tube's radius (B,) mm at arc lengths (B,) mm from its base, increasing (B may be
+    0: none read), and its spacer disks, if it has any (:mod:`pipeline.reconstruct.disks`)."""
 
     arc_mm: FloatArray
     radius_mm: FloatArray
+    disks: Disks | None = None
 
     def at(self, arc_mm: FloatArray) -> FloatArray:
         """(K,) the radius at arc lengths ``arc_mm`` (K,), interpolated; NaN outside the
         stretch the frames read."""
         arc = np.asarray(arc_mm, dtype=np.float64)
+        if len(self.arc_mm) == 0:
+            return np.full(arc.shape, np.nan)
         inside = (arc >= self.arc_mm[0]) & (arc <= self.arc_mm[-1])
         return np.where(inside, np.interp(arc, self.arc_mm, self.radius_mm), np.nan)
 
+    def disks_alone(self) -> RadiusProfile | None:
+        """The profile's disks without its radius (which the frames read for themselves),
+        or None without disks."""
+        return None if self.disks is None else RadiusProfile(np.zeros(0), np.zeros(0), self.disks)
+
     def describe(self) -> str:
-        """One line for the summary: the radius's range and the stretch of the tube read."""
+        """One line for the summary: the radius's range and the stretch of the tube read, and
+        its disks."""
+        disks = "" if self.disks is None else self.disks.describe()
+        if len(self.arc_mm) == 0:
+            return disks
         low, high = float(self.radius_mm.min()), float(self.radius_mm.max())
         radius = f"{low:.2f} mm" if f"{low:.2f}" == f"{high:.2f}" else f"{low:.2f}-{high:.2f} mm"
-        return (
+        read = (
             f"{radius}, read {self.arc_mm[0] - BIN_MM / 2:.0f}-{self.arc_mm[-1] + BIN_MM / 2:.0f} mm "
             "from the base on the session's sample frames"
         )
+        return f"{read}; {disks}" if disks else read
 
     def to_json(self) -> str:
-        """The profile as JSON (``{"arc_mm": [...], "radius_mm": [...]}``, to 0.001 mm): the
-        recordings' metadata."""
-        return json.dumps(
-            {"arc_mm": np.round(self.arc_mm, 3).tolist(), "radius_mm": np.round(self.radius_mm, 3).tolist()}
-        )
+        """The profile as JSON (``{"arc_mm": [...], "radius_mm": [...]}``, to 0.001 mm, and
+        ``"disks"`` where it has them): the recordings' metadata."""
+        data: dict[str, object] = {
+            "arc_mm": np.round(self.arc_mm, 3).tolist(),
+            "radius_mm": np.round(self.radius_mm, 3).tolist(),
+        }
+        if self.disks is not None:
+            data["disks"] = self.disks.to_dict()
+        return json.dumps(data)
 
     @classmethod
     def from_json(cls, text: str) -> RadiusProfile | None:
@@ -102,34 +116,23 @@ class RadiusProfile:
             radius = np.asarray(data["radius_mm"], dtype=np.float64)
         except (ValueError, TypeError, KeyError):
             return None
-        ordered = arc.ndim == 1 and len(arc) > 0 and bool(np.all(np.diff(arc) > 0))
+        disks = Disks.from_dict(data["disks"]) if "disks" in data else None
+        ordered = arc.ndim == 1 and (len(arc) > 0 or disks is not None) and bool(np.all(np.diff(arc) > 0))
         if not ordered or radius.shape != arc.shape or not np.all(np.isfinite(radius)):
             return None
-        return cls(arc, radius)
+        return cls(arc, radius, disks)
 
     @classmethod
     def pooled(cls, readings: Sequence[tuple[FloatArray, FloatArray]]) -> RadiusProfile | None:
         """The profile of the frames' ``readings``, each (arc lengths (R,) mm, half-widths
         (R,) mm) of the two-edge readings of one frame; None where no bin is read by
         ``MIN_FRAMES`` frames."""
-        frames = [(np.asarray(a, dtype=np.float64), np.asarray(h, dtype=np.float64)) for a, h in readings]
-        frames = [(a, h) for a, h in frames if len(a)]
-        if len(frames) < MIN_FRAMES:
+        profile = binned_medians(readings, BIN_MM, MIN_FRAMES)
+        if profile is None or not np.isfinite(profile).any():
             return None
-        arc = np.concatenate([a for a, _ in frames])
-        half = np.concatenate([h for _, h in frames])
-        frame = np.concatenate([np.full(len(a), k) for k, (a, _) in enumerate(frames)])
-        bins = np.floor(np.maximum(arc, 0.0) / BIN_MM).astype(np.int64)
-        centres, medians = [], []
-        for b in np.unique(bins):
-            mine = bins == b
-            if len(np.unique(frame[mine])) >= MIN_FRAMES:
-                centres.append((b + 0.5) * BIN_MM)
-                medians.append(float(np.median(half[mine])))
-        if not centres:
-            return None
-        values = np.asarray(medians)
+        read = np.flatnonzero(np.isfinite(profile))
+        values = profile[read]
         span = min(2 * HALF_WINDOW_BINS + 1, len(values))
         first = np.clip(np.arange(len(values)) - HALF_WINDOW_BINS, 0, len(values) - span)
         smoothed = np.array([np.median(values[f : f + span]) for f in first])
-        return cls(np.asarray(centres), smoothed)
+        return cls((read + 0.5).astype(np.float64) * BIN_MM, smoothed)

@@ -18,7 +18,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..geometry.camera import Camera
-from ..geometry.polyline import polyline_arclength, unit_tangents, vector_norms
+from ..geometry.polyline import (
+    by_fraction,
+    polyline_arclength,
+    resample_polyline,
+    unit_tangents,
+    vector_norms,
+)
+from .disks import Disks, outline_along, read_disks, rims, spans_along
 from .profiles import (
     median_1d,
     nanmedian_rows,
@@ -63,6 +70,14 @@ _PROFILE_HALF_SPAN = 4
 # bench's loop's median tip 0.43 against 0.50 mm. On two-camera rigs the limit lost tracks
 # (a tapered r 5 tube 1.03 against 1.29 mm mean). 1.2 and 1.15 kept less of the gain.
 _END_TOLERANCE = 1.12
+# A spacer disk's outline this close to the tube's edge (px) is read as one with it (the
+# gap blurred over) ...
+_DISK_GAP_PX = 0.5
+# ... and this close, the reading says nothing of the tube's own radius.
+_DISK_NEAR_PX = 1.5
+# Spacing (mm) of the side readings a session's spacer disks are read from (see
+# read_radius_profile): a disk 1-4 mm thick seen edge-on is one to four readings.
+DISK_SPACING_MM = 1.0
 # Rigs of this many views or more read each sample more often than it has unknowns
 # across (two): only there may one view's edges be doubted, dropped or outvoted. Two
 # views' readings are exactly the two numbers that place each sample.
@@ -141,6 +156,9 @@ class _CameraEdges:
     limit: FloatArray  # farthest an edge may sit from the axis, mm
     floor: FloatArray  # least half-width of a reading of the tube alone, mm
     px_per_mm: FloatArray  # image px per mm across the tube (1 where the view has none)
+    # (C, K) a spacer disk carries either edge out: the reading places the axis, but says
+    # nothing of the tube's own radius
+    on_disk: NDArray[np.bool_]
 
 
 def _camera_edges(
@@ -151,8 +169,11 @@ def _camera_edges(
     radius_mm: float | FloatArray,
     *,
     core: float = 0.6,
+    disks: Disks | None = None,
 ) -> _CameraEdges:
-    """Read the silhouette's two edges across the tube at each point, in each view.
+    """Read the silhouette's two edges across the tube at each point, in each view; with
+    ``disks``, each taken against the outline the disks draw on its line (the points being
+    the whole axis from the base): an edge a disk carries out reads as the tube's would.
 
     All views are handled as one (C, K) batch and share one set of profile
     offsets, so that the edge search runs once over all of them (it is a dozen
@@ -174,12 +195,19 @@ def _camera_edges(
     lo: FloatArray = np.zeros(scale.shape)
     hi: FloatArray = np.zeros(scale.shape)
     found: NDArray[np.bool_] = np.zeros(scale.shape, dtype=bool)
+    on_disk: NDArray[np.bool_] = np.zeros(scale.shape, dtype=bool)
     if ok.any():
         reach = float(np.max(2.5 * r_px[ok] + 3.0))
         steps = np.arange(-reach, reach + 1e-9, _PROFILE_STEP_PX)
         profiles = sample_lines_in(contrasts, px, normal, steps).reshape(-1, len(steps))
         left, right, both = side_edges(profiles, steps, r_px.ravel(), core=core)
         lo, hi, found = left.reshape(scale.shape), right.reshape(scale.shape), both.reshape(scale.shape)
+        if disks is not None:
+            spans = spans_along(cameras, rims(pts, polyline_arclength(pts), disks), px, normal)
+            outline_lo, outline_hi = outline_along(r_px, spans, gap_px=_DISK_GAP_PX)
+            lo, hi = lo - (outline_lo + r_px), hi - (outline_hi - r_px)
+            near_lo, near_hi = outline_along(r_px, spans, gap_px=_DISK_NEAR_PX)
+            on_disk = (near_lo < -r_px) | (near_hi > r_px)
     safe = np.where(scale > 0, scale, 1.0)
     # An edge may sit no farther from the axis than the radius allows (by 30 %,
     # +0.5 px of edge blur).
@@ -197,6 +225,7 @@ def _camera_edges(
         limit,
         floor,
         safe,
+        on_disk,
     )
 
 
@@ -223,7 +252,8 @@ def read_sides(
     # profile's direction) is the least certain: see refit_tip.
     interior = (arc > expected) & (arc < arc[-1] - expected)
     sides_seen = arc < arc[-1] - tip_zone(float(expected[-1]))
-    e = _camera_edges(pts, tangents, cameras, contrasts, expected, core=core)
+    disks = None if session_radii is None else session_radii.disks
+    e = _camera_edges(pts, tangents, cameras, contrasts, expected, core=core, disks=disks)
     ok = e.ok & sides_seen  # (C, K)
     apart_mm = 2.5 * float(expected.max()) + spacing_mm
     crowd = _crowded(e.px, e.t_hat, e.r_px, arc, apart_mm, margin_px=crowd_margin_px)
@@ -235,7 +265,7 @@ def read_sides(
     # whatever its width: the width tests below judge widths by the radius
     # expected, so they would keep a tapered or stepped tube's thinner part from
     # ever being read.
-    uncrowded = (ok & ~crowd[..., 0] & ~crowd[..., 1]).T & interior[:, None]
+    uncrowded = (ok & ~crowd[..., 0] & ~crowd[..., 1] & ~e.on_disk).T & interior[:, None]
     radii = _radius_profile(arc, 0.5 * (right - left), uncrowded, expected, session_radii)
     # The end's radius from the uncrowded readings no narrower than the tube (a
     # taper's end is), whatever their width above it (see _end_radius).
@@ -247,7 +277,7 @@ def read_sides(
     use_hi = ok & ~crowd[..., 1] & ~narrow & (e.hi < limit + np.maximum(0.0, -e.lo))
     keep = ~(use_lo & use_hi & (e.hi - e.lo > 2.0 * limit))
     use = np.stack([use_lo & keep, use_hi & keep], axis=-1).transpose(1, 0, 2)  # (K, C, 2)
-    both = use[..., 0] & use[..., 1] & interior[:, None]
+    both = use[..., 0] & use[..., 1] & interior[:, None] & ~e.on_disk.T
     half = 0.5 * (right - left)[both]
     radius = median_1d(half) if half.size >= 3 else float(np.median(expected))
     # One edge places the axis a half-width in from it: the half-width as this
@@ -272,18 +302,44 @@ def read_radius_profile(
     cameras: Sequence[Camera],
     spacing_mm: float,
 ) -> RadiusProfile | None:
-    """The tube's radius along it pooled over fitted frames (:class:`RadiusProfile`): each
-    frame's axis (K, 3) mm from the base, the radius along it (K,) mm and its per camera
-    (H, W) float32 foreground contrasts, its sides read along the axis every ~``spacing_mm``
-    (:func:`read_sides`); None where too few frames read it."""
+    """The tube's radius along it pooled over fitted frames (:class:`RadiusProfile`), with
+    its spacer disks if it has any: each frame's axis (K, 3) mm from the base, sampled every
+    ~``spacing_mm``, the radius along it (K,) mm and its per camera (H, W) float32
+    foreground contrasts. The disks are read from the half-widths every
+    ``DISK_SPACING_MM`` (:func:`pipeline.reconstruct.disks.read_disks`), the radius from
+    those at the axes' samples with the disks drawn; None where too few frames read either."""
+    dense = []
+    for axis_mm, radii_mm, contrasts in tubes:
+        arc = polyline_arclength(axis_mm)
+        n = max(round(float(arc[-1]) / DISK_SPACING_MM) + 1, 2)
+        dense.append((resample_polyline(axis_mm, n, arclength_mm=arc), by_fraction(radii_mm, n), contrasts))
+    disks = read_disks(side_widths(dense, cameras, DISK_SPACING_MM))
+    if disks is None:
+        return RadiusProfile.pooled(side_widths(tubes, cameras, spacing_mm))
+    drawn = RadiusProfile(np.zeros(0), np.zeros(0), disks)
+    profile = RadiusProfile.pooled(side_widths(tubes, cameras, spacing_mm, drawn))
+    return drawn if profile is None else replace(profile, disks=disks)
+
+
+def side_widths(
+    tubes: Sequence[tuple[FloatArray, FloatArray, Sequence[NDArray[np.float32]]]],
+    cameras: Sequence[Camera],
+    spacing_mm: float,
+    session_radii: RadiusProfile | None = None,
+) -> list[tuple[FloatArray, FloatArray]]:
+    """Each tube's two-edge half-widths (mm) clear of its other parts, with their arc lengths
+    from the base (mm), read at its axis' samples, ~``spacing_mm`` apart (:func:`read_sides`;
+    tubes as for :func:`read_radius_profile`)."""
     readings = []
     for axis_mm, radii_mm, contrasts in tubes:
-        widths = read_sides(axis_mm, cameras, contrasts, radii_mm, spacing_mm).widths_mm
+        widths = read_sides(
+            axis_mm, cameras, contrasts, radii_mm, spacing_mm, session_radii=session_radii
+        ).widths_mm
         assert widths is not None  # read_sides reads them
         read = np.isfinite(widths)
         sample, _ = np.nonzero(read)
         readings.append((polyline_arclength(axis_mm)[sample], widths[read]))
-    return RadiusProfile.pooled(readings)
+    return readings
 
 
 def width_ratios(
@@ -429,8 +485,9 @@ def _end_radius(arc_mm: FloatArray, half_mm: FloatArray, both: NDArray[np.bool_]
 # 300 -> 361 (shorth) and 362 (lower quartile). At the true axis of a coiled r 6 tube with
 # r 9 disks every 20 mm (draw 97), even at its true radius, readings 3-10 mm from a disk
 # put the axis 0.3-0.5 mm off (median): between the disk and the sample the tube turns
-# by up to 20 degrees, tilting the disk's ellipse across the sample's profile. Only a
-# drawing of the disks would read such a tube's edges. Left out. Dropping instead every
+# by up to 20 degrees, tilting the disk's ellipse across the sample's profile. Left out:
+# a tube whose disks are found has them drawn (pipeline.reconstruct.disks), and this limit
+# holds where they are not. Dropping instead every
 # reading whose profile line crosses a disk where it reaches past the tube, with the
 # disks' true places and sizes from the renderer's ground truth (the best case of a model
 # that only masks them), was measured too (2026-12-03): at the true axes of four of those

@@ -19,6 +19,7 @@ levels first, its middle free of its tip.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -29,9 +30,11 @@ from numpy.typing import NDArray
 
 from ..geometry.camera import Camera, project_in_views
 from ..geometry.polyline import by_fraction, cut_polyline, polyline_arclength, unit_tangents
+from .disks import Disks, rim_pixels, rims
 from .tube_drawing import (
     SUPERSAMPLE,
     canvas_levels,
+    draw_disks,
     draw_tube,
     level_difference,
     level_residuals,
@@ -175,6 +178,7 @@ def bend_tip_to_pixels(
     rejects: Callable[[FloatArray], bool] | None = None,
     coverages: Sequence[NDArray[np.float32]] | None = None,
     cap: str = "flat",
+    disks: Disks | None = None,
 ) -> FloatArray:
     """The curve with its last few radii bent and lengthened to match the views' pixels.
 
@@ -207,6 +211,7 @@ def bend_tip_to_pixels(
         that passes through itself, say).
     coverages : the views' :func:`pixel_coverages`, if already read.
     cap : the tube's end, "flat" or "round" (a hemisphere around the axis' end).
+    disks : the tube's spacer disks, drawn with it.
 
     Returns
     -------
@@ -217,7 +222,7 @@ def bend_tip_to_pixels(
     seen = pixel_coverages(contrasts, masks) if coverages is None else coverages
     for span in spans_radii:
         pts = _bend_once(
-            pts, cameras, seen, radius_mm, span * radius_mm, rejects, steps_mm, then_fit, cap == "flat"
+            pts, cameras, seen, radius_mm, span * radius_mm, rejects, steps_mm, then_fit, cap == "flat", disks
         )
     return pts
 
@@ -231,6 +236,8 @@ class _Drawn(NamedTuple):
     radii_mm: float | FloatArray
     outline_mm: FloatArray
     pixels: FloatArray
+    # (V, D, P, 2) the rims' pixels of the spacer disks on the end part, in each view
+    disks_px: FloatArray | None = None
 
 
 class _TipDrawing:
@@ -257,6 +264,7 @@ class _TipDrawing:
         radii_mm: FloatArray | None = None,
         *,
         middle: bool = False,
+        disks: Disks | None = None,
     ) -> None:
         arc = polyline_arclength(pts)
         start = max(float(arc[-1]) - span_mm, 0.5 * float(arc[-1]))
@@ -296,8 +304,20 @@ class _TipDrawing:
             fixed = np.zeros(((y1 - y0) * SUPERSAMPLE, (x1 - x0) * SUPERSAMPLE), np.uint8)
             draw_tube(fixed, cam, body, np.zeros((0, 3)), body_radii, (x0, y0))
             self.windows.append((cam, coverage[y0:y1, x0:x1], fixed, (x0, y0)))
-        self.fixed_levels = [canvas_levels(window[2]) for window in self.windows]
         self.cameras = [window[0] for window in self.windows]
+        # Spacer disks: those before the bent part drawn with the body, the others with
+        # each bend (they move with it).
+        self.bent_disks: Disks | None = None
+        if disks is not None and self.windows:
+            still = dataclasses.replace(disks, arc_mm=disks.arc_mm[disks.arc_mm < start])
+            self.bent_disks = dataclasses.replace(disks, arc_mm=disks.arc_mm[disks.arc_mm >= start])
+            held = rims(pts, arc, still)
+            if len(held):
+                for (_, _, fixed, origin), disks_px in zip(
+                    self.windows, rim_pixels(self.cameras, held), strict=True
+                ):
+                    draw_disks(fixed, disks_px, origin)
+        self.fixed_levels = [canvas_levels(window[2]) for window in self.windows]
 
     def draw(self, p: FloatArray) -> tuple[FloatArray, _Drawn]:
         """The bend ``p`` (see :func:`_end_bender`): its axis, and what is drawn of its end part."""
@@ -306,8 +326,13 @@ class _TipDrawing:
         radii: float | FloatArray = self.radius_mm
         if self.part_radii is not None:
             radii = np.interp(polyline_arclength(discs), *self.part_radii)
+        disks_px = None
+        if self.bent_disks is not None and len(self.bent_disks.arc_mm):
+            moved = rims(bent, polyline_arclength(bent), self.bent_disks)
+            if len(moved):
+                disks_px = rim_pixels(self.cameras, moved)
         return bent, _Drawn(
-            discs, radii, outline, project_in_views(self.cameras, np.vstack([discs, outline]))
+            discs, radii, outline, project_in_views(self.cameras, np.vstack([discs, outline])), disks_px
         )
 
     def levels(self, view: int, drawn: _Drawn) -> NDArray[np.uint8]:
@@ -317,6 +342,10 @@ class _TipDrawing:
         x0, y0, x1, y1 = draw_tube(
             canvas, cam, drawn.discs_mm, drawn.outline_mm, drawn.radii_mm, origin, pixels=drawn.pixels[view]
         )
+        if drawn.disks_px is not None:
+            d0, e0, d1, e1 = draw_disks(canvas, drawn.disks_px[view], origin)
+            if d1 > d0:
+                x0, y0, x1, y1 = min(x0, d0), min(y0, e0), max(x1, d1), max(y1, e1)
         levels = self.fixed_levels[view].copy()
         x0, y0 = x0 // SUPERSAMPLE, y0 // SUPERSAMPLE
         x1, y1 = -(-x1 // SUPERSAMPLE), -(-y1 // SUPERSAMPLE)
@@ -344,6 +373,7 @@ def refine_tip_to_pixels(
     cap: str = "flat",
     radii_mm: FloatArray | None = None,
     loose_span_radii: float = 0.0,
+    disks: Disks | None = None,
 ) -> FloatArray:
     """The bends of :func:`bend_tip_to_pixels` (its arguments but the search's
     steps), fitted from the curve's own tip by damped Gauss-Newton on each view's
@@ -377,7 +407,7 @@ def refine_tip_to_pixels(
         # The radii follow a bent tip by sample fraction (a bend may add or drop samples).
         radii = None if radii_mm is None else by_fraction(radii_mm, len(pts))
         drawing = _TipDrawing(
-            pts, cameras, seen, radius_mm, span * radius_mm, cap == "flat", radii, middle=middle
+            pts, cameras, seen, radius_mm, span * radius_mm, cap == "flat", radii, middle=middle, disks=disks
         )
         if drawing.windows:
             p = _fit_bend(
@@ -450,10 +480,11 @@ def _bend_once(
     steps_mm: Sequence[float],
     then_fit: bool,
     flat_end: bool,
+    disks: Disks | None = None,
 ) -> FloatArray:
     """One search (and fit) of :func:`bend_tip_to_pixels`, bending the last ``span_mm``;
     ``coverages``: per camera, (H, W) float32 from :func:`_coverage`."""
-    drawing = _TipDrawing(pts, cameras, coverages, radius_mm, span_mm, flat_end)
+    drawing = _TipDrawing(pts, cameras, coverages, radius_mm, span_mm, flat_end, disks=disks)
     if not drawing.windows:
         return pts
 

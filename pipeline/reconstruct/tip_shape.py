@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 
 from ..geometry.camera import Camera
 from ..geometry.polyline import polyline_arclength
+from .disks import Disks
 from .frame import frame_contrasts, reconstruct_with_silhouettes
 from .frame_result import FrameResult
 from .frame_task import FrameMap, decode_frames, map_here
@@ -332,17 +333,19 @@ def _choice(model: SessionModel, tips: Sequence[FrameTip], map_frames: FrameMap 
     if not readings:
         return TipChoice("flat", 0)
     radius = float(np.median(readings))
-    evidence = [e for e in map_frames(_evidence, list(enumerate(tips)), (model.cameras, radius)) if e.views]
+    disks = model.disks
+    rig = (model.cameras, radius, disks)
+    evidence = [e for e in map_frames(_evidence, list(enumerate(tips)), rig) if e.views]
     if not evidence:
         return TipChoice("flat", 0, radius_mm=radius)
     return TipChoice.from_votes([e.vote for e in evidence], radius)
 
 
-def _evidence(_: int, tip: FrameTip, rig: tuple[Sequence[Camera], float]) -> FrameEvidence:
-    """:func:`frame_evidence` of one tip, for a :data:`FrameMap` (``rig``: the cameras and
-    the end's radius, mm)."""
-    cameras, radius_mm = rig
-    return frame_evidence(tip, cameras, radius_mm)
+def _evidence(_: int, tip: FrameTip, rig: tuple[Sequence[Camera], float, Disks | None]) -> FrameEvidence:
+    """:func:`frame_evidence` of one tip, for a :data:`FrameMap` (``rig``: the cameras, the
+    end's radius, mm, and the tube's spacer disks)."""
+    cameras, radius_mm, disks = rig
+    return frame_evidence(tip, cameras, radius_mm, disks)
 
 
 def _frame_tip(index: int, images: Sequence[NDArray[np.uint8]], model: SessionModel) -> FrameTip | None:
@@ -369,10 +372,18 @@ def frame_tip(
         return None
     coverages = pixel_coverages(contrasts, masks)
     radii = result.radii_mm if result.radii_mm is not None else result.radius_mm
-    sides = read_sides(result.centerline_mm, model.cameras, contrasts, radii, FIT_SPACING_MM)
+    sides = read_sides(
+        result.centerline_mm,
+        model.cameras,
+        contrasts,
+        radii,
+        FIT_SPACING_MM,
+        session_radii=model.radius_profile,
+    )
     band_radius_mm = sides.end_radius_mm if np.isfinite(sides.end_radius_mm) else float(np.ravel(radii)[-1])
+    disks = model.disks
     readings = end_radius_readings(
-        result.centerline_mm, model.cameras, coverages, band_radius_mm, radii_mm=result.radii_mm
+        result.centerline_mm, model.cameras, coverages, band_radius_mm, radii_mm=result.radii_mm, disks=disks
     )
     return FrameTip(result.centerline_mm, list(masks), list(contrasts), coverages, tuple(readings))
 
@@ -384,6 +395,7 @@ def end_radius_readings(
     radius_mm: float,
     *,
     radii_mm: FloatArray | None = None,
+    disks: Disks | None = None,
 ) -> list[float]:
     """Each view's reading of the tube's radius just behind its end, from its pixels (mm).
 
@@ -413,7 +425,11 @@ def end_radius_readings(
         (x0, y0), (x1, y1) = window
         seen = float(coverage[y0:y1, x0:x1][band].sum())
         drawn = [
-            float(drawn_coverage(cam, axis_mm, radius_mm * float(scale), window, cap="round")[band].sum())
+            float(
+                drawn_coverage(cam, axis_mm, radius_mm * float(scale), window, cap="round", disks=disks)[
+                    band
+                ].sum()
+            )
             for scale in _RADIUS_SCALES
         ]
         # The drawn sum grows with the radius: where it meets the seen one (clamped to the scales).
@@ -423,12 +439,14 @@ def end_radius_readings(
     return readings
 
 
-def frame_evidence(tip: FrameTip, cameras: Sequence[Camera], radius_mm: float) -> FrameEvidence:
+def frame_evidence(
+    tip: FrameTip, cameras: Sequence[Camera], radius_mm: float, disks: Disks | None = None
+) -> FrameEvidence:
     """Each end's mismatch with one frame's pixels around its tip, the tip placed
     under each by :func:`pipeline.reconstruct.tip_bend.bend_tip_to_pixels` with the end's
     radius ``radius_mm`` and drawn at the radius near it that matches best
-    (``_DRAWN_SCALES``); no view at all (``views`` 0) where the two tips went
-    to different places (see ``_MAX_SEPARATION``)."""
+    (``_DRAWN_SCALES``), with the tube's spacer ``disks``; no view at all (``views`` 0)
+    where the two tips went to different places (see ``_MAX_SEPARATION``)."""
     axes = [
         bend_tip_to_pixels(
             tip.axis_mm,
@@ -441,6 +459,7 @@ def frame_evidence(tip: FrameTip, cameras: Sequence[Camera], radius_mm: float) -
             then_fit=False,
             coverages=tip.coverages,
             cap=cap,
+            disks=disks,
         )
         for cap in CAPS
     ]
@@ -456,7 +475,10 @@ def frame_evidence(tip: FrameTip, cameras: Sequence[Camera], radius_mm: float) -
         pixels = coverage[y0:y1, x0:x1]
         # Per end, per scale; the ends are told apart at the radius read.
         drawn = [
-            [drawn_coverage(cam, axis, radius_mm * scale, window, cap=cap) for scale in _DRAWN_SCALES]
+            [
+                drawn_coverage(cam, axis, radius_mm * scale, window, cap=cap, disks=disks)
+                for scale in _DRAWN_SCALES
+            ]
             for axis, cap in zip(axes, CAPS, strict=True)
         ]
         apart = float(np.square(drawn[0][_AT_READING] - drawn[1][_AT_READING]).sum())

@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from ..geometry.camera import Camera
 from ..geometry.polyline import axis_gap_mm, by_fraction, self_intersects
+from .disks import Disks
 from .frame_result import FrameResult
 from .profiles import theil_sen_slope
 from .quality import tube_figures
@@ -65,7 +66,7 @@ TRACK_CROWD_MARGIN_PX = 4.0
 # pipeline.reconstruct.quality.misfit_fractions; the initialisation's bar,
 # pipeline.reconstruct.tube_scores.MISFIT, is the same 1 % without the usual share),
 # after as many rounds of the fit again from where the first left it ...
-# - Spacer disks, which the tube drawn does not have, leave 1-2.5 % of every frame:
+# - Spacer disks the tube is drawn without leave 1-2.5 % of every frame:
 #   judged against 1 % alone, their tracks were lost at up to 63 of 150 frames. Beyond
 #   the usual share, on 12 rendered sessions with loops or disks (150 frames each,
 #   tracked from frame 0, 2026-12-02) the disks' tracks started again from the hull
@@ -164,7 +165,7 @@ LOOSE_END_WITHIN_RADII = 16.0
 # 1.9-63 mm from the fit to every view or a start from the hull, which named another
 # camera on two; the ninth odd picture was explained, and its frame 1.97 mm off, as
 # before. The tube fitted to the others left none of their silhouettes unexplained and
-# 6-134 % of the odd view's; on a tube with spacer disks, which the drawn tube lacks, a
+# 6-134 % of the odd view's; on a tube with spacer disks, drawn without them, a
 # clean view left 5-10 % where the others left 0.5-2.7 %. On 29 rendered sessions without
 # such a fault (draws 353 and 359, 11 of 40-60 frames, a loop and a disk tube of 150;
 # 2026-12-06) no view was left out, and every curve stayed as it was.
@@ -295,8 +296,8 @@ def _last_lengths(previous: Sequence[FrameResult]) -> tuple[FloatArray, FloatArr
 def usual_misfit(previous: Sequence[FrameResult]) -> float:
     """The share of a silhouette the track's last ``LENGTH_FRAMES`` frames (``previous``,
     oldest first) usually leave unexplained: the median of their worst views', at most
-    ``USUAL_MISFIT_MAX``; 0 without any. Spacer disks, which the tube drawn does not
-    have, leave 1-2.5 % of every frame unexplained."""
+    ``USUAL_MISFIT_MAX``; 0 without any. Spacer disks the tube is drawn without leave
+    1-2.5 % of every frame unexplained."""
     worst = [max(r.misfits) for r in previous[-LENGTH_FRAMES:] if r.misfits]
     return min(float(np.median(worst)), USUAL_MISFIT_MAX) if worst else 0.0
 
@@ -337,11 +338,12 @@ def judge_fit(
     n_points: int,
     radius_mm: float = np.nan,
     contrasts: Sequence[NDArray[np.float32]] | None = None,
+    disks: Disks | None = None,
 ) -> TrackedFit:
     """``fit`` as the curve of ``n_points`` a frame writes, its tube drawn once in every
     view against the silhouettes (and ``contrasts``, see
-    :func:`pipeline.reconstruct.quality.misfit_fractions`); ``radius_mm`` draws it where the
-    fit read no radius.
+    :func:`pipeline.reconstruct.quality.misfit_fractions`), with its spacer ``disks``;
+    ``radius_mm`` draws it where the fit read no radius.
     A curve with non-finite points is never the best (misfit inf)."""
     curve = smooth_curve(fit.points_mm, n_points=n_points)
     # The fit's samples and the curve's are both uniform in arc length, end to end.
@@ -350,7 +352,7 @@ def judge_fit(
     drawn = radii if radii is not None and np.isfinite(radii).all() else radius
     if not np.isfinite(curve.points_mm).all():
         return TrackedFit(fit, curve, radii)
-    iou, misfits = tube_figures(cameras, masks, curve.points_mm, drawn, contrasts)
+    iou, misfits = tube_figures(cameras, masks, curve.points_mm, drawn, contrasts, disks)
     return TrackedFit(fit, curve, radii, iou, misfits)
 
 
@@ -393,6 +395,7 @@ def track_tube(
     """
     if not (np.isfinite(radius_mm) and radius_mm > 0):
         return TrackedFit(None, lost="no radius to track")
+    disks = None if session_radii is None else session_radii.disks
 
     def rounds(start_mm: FloatArray, radius: float, radii: FloatArray | None) -> TubeFit:
         return fit_tube(
@@ -431,13 +434,14 @@ def track_tube(
             cap=cap,
             radii_mm=fit.radii_mm,
             loose_span_radii=loose if loose >= LOOSE_END_RADII else 0.0,
+            disks=disks,
         )
         fit = replace(
             fit,
             points_mm=bent,
             radii_mm=None if fit.radii_mm is None else by_fraction(fit.radii_mm, len(bent)),
         )
-        return judge_fit(fit, cameras, masks, n_points=n_points, contrasts=contrasts)
+        return judge_fit(fit, cameras, masks, n_points=n_points, contrasts=contrasts, disks=disks)
 
     def read_a_tube(fit: TubeFit) -> bool:
         return bool(np.isfinite(fit.radius_mm) and fit.radius_mm > 0 and len(fit.points_mm) >= 3)
@@ -480,6 +484,7 @@ def track_without_odd_view(
     contrasts: Sequence[NDArray[np.float32]],
     *,
     n_points: int,
+    disks: Disks | None = None,
 ) -> tuple[TrackedFit, int] | None:
     """A lost track held by the views but one: the fit, and the view that disagrees.
 
@@ -497,7 +502,7 @@ def track_without_odd_view(
     fitted = track([view for view in range(len(cameras)) if view != odd])
     if fitted.fit is None or fitted.curve is None or fitted.lost:
         return None
-    judged = judge_fit(fitted.fit, cameras, masks, n_points=n_points, contrasts=contrasts)
+    judged = judge_fit(fitted.fit, cameras, masks, n_points=n_points, contrasts=contrasts, disks=disks)
     others = max(judged.misfits[view] for view in range(len(cameras)) if view != odd)
     far_off = judged.misfits[odd] > ODD_VIEW_MISFIT + ODD_VIEW_CONTRAST * others
     return (judged, odd) if far_off else None

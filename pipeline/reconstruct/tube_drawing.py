@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from ..geometry.camera import Camera
 from ..geometry.polyline import polyline_arclength
+from .disks import Disks, rim_pixels, rims
 from .profiles import MIN_CONTRAST
 
 FloatArray = NDArray[np.float64]
@@ -124,14 +125,20 @@ def drawn_coverage(
     window: Window,
     *,
     cap: str,
+    disks: Disks | None = None,
 ) -> NDArray[np.float32]:
     """(y1 - y0, x1 - x0) float32 in [0, 1]: how much of each pixel of the image
     window ((x0, y0), (x1, y1)) the tube of radius ``radius_mm`` around (K, 3)
-    ``axis_mm`` (world frame, mm) with end ``cap`` covers (:func:`draw_tube`, averaged by
-    :func:`canvas_levels`): comparable with :func:`pixel_coverages`."""
+    ``axis_mm`` (world frame, mm, from the base) with end ``cap`` and spacer ``disks``
+    covers (:func:`draw_tube`, averaged by :func:`canvas_levels`): comparable with
+    :func:`pixel_coverages`."""
     (x0, y0), (x1, y1) = window
     canvas = np.zeros(((y1 - y0) * SUPERSAMPLE, (x1 - x0) * SUPERSAMPLE), np.uint8)
     draw_tube(canvas, camera, *tube_points(axis_mm, radius_mm, flat_end=cap == "flat"), radius_mm, (x0, y0))
+    if disks is not None:
+        disk_rims = rims(axis_mm, polyline_arclength(axis_mm), disks)
+        if len(disk_rims):
+            draw_disks(canvas, rim_pixels([camera], disk_rims)[0], (x0, y0))
     return _LEVELS[canvas_levels(canvas)]
 
 
@@ -345,12 +352,16 @@ def draw_tube(
         if cy + r > box[3]:
             box[3] = cy + r
     if len(outline_mm):
-        hull = cv2.convexHull(px[len(discs_mm) :].astype(np.float32))[:, 0, :].astype(np.float64)
-        hull = _shrink_convex(hull, _POLYGON_BIAS * (1 << DRAW_SHIFT)).round().astype(np.int32)
-        cv2.fillConvexPoly(canvas, hull, 255, cv2.LINE_8, DRAW_SHIFT)
+        hull = fill_hull(canvas, px[len(discs_mm) :], 255)
         x, y, w, h = cv2.boundingRect(hull)
         box = [min(box[0], x), min(box[1], y), max(box[2], x + w), max(box[3], y + h)]
-    # In canvas pixels, two more on each side: cv2 fills what its outlines touch.
+    return _canvas_rectangle(canvas, box)
+
+
+def _canvas_rectangle(canvas: NDArray[np.uint8], box: list[int]) -> tuple[int, int, int, int]:
+    """The canvas rectangle (x0, y0, x1, y1), half-open, that holds the fixed-point ``box``
+    drawn in (x0, y0, x1, y1, inclusive), and two canvas pixels more on each side: cv2 fills
+    what its outlines touch."""
     height, width = canvas.shape
     return (
         max((box[0] >> DRAW_SHIFT) - 2, 0),
@@ -358,6 +369,36 @@ def draw_tube(
         min((box[2] >> DRAW_SHIFT) + 3, width),
         min((box[3] >> DRAW_SHIFT) + 3, height),
     )
+
+
+def fill_hull(canvas: NDArray[np.uint8], points: FloatArray, colour: int) -> NDArray[np.int32]:
+    """Fill (``colour``) the convex hull of ``points`` (P, 2), in ``DRAW_SHIFT`` fixed point
+    of the canvas' pixels, drawn smaller by cv2's bias (see ``_POLYGON_BIAS``); returns the
+    hull drawn, (H, 2) fixed point."""
+    hull = cv2.convexHull(points.astype(np.float32))[:, 0, :].astype(np.float64)
+    hull = _shrink_convex(hull, _POLYGON_BIAS * (1 << DRAW_SHIFT)).round().astype(np.int32)
+    cv2.fillConvexPoly(canvas, hull, colour, cv2.LINE_8, DRAW_SHIFT)
+    return np.asarray(hull)
+
+
+def draw_disks(
+    canvas: NDArray[np.uint8], disks_px: FloatArray, origin: tuple[int, int]
+) -> tuple[int, int, int, int]:
+    """Draw (255) spacer disks on a canvas as :func:`draw_tube` does, each the convex hull of
+    its rims' pixels ``disks_px`` (D, P, 2) in the image (:func:`pipeline.reconstruct.disks.rims`,
+    projected); returns the canvas rectangle drawn, as :func:`draw_tube` does (empty:
+    (0, 0, 0, 0))."""
+    one = SUPERSAMPLE * (1 << DRAW_SHIFT)
+    offset = np.asarray(origin, dtype=np.float64) - (SUPERSAMPLE - 1) / (2 * SUPERSAMPLE)
+    far = 1 << 62
+    box = [far, far, -far, -far]
+    for disk_px in disks_px:
+        if not np.isfinite(disk_px).all():
+            continue
+        hull = fill_hull(canvas, (disk_px - offset) * one, 255)
+        x, y, w, h = cv2.boundingRect(hull)
+        box = [min(box[0], x), min(box[1], y), max(box[2], x + w), max(box[3], y + h)]
+    return (0, 0, 0, 0) if box[0] > box[2] else _canvas_rectangle(canvas, box)
 
 
 def canvas_levels(canvas: NDArray[np.uint8]) -> NDArray[np.uint8]:

@@ -173,9 +173,9 @@ class RunSummary:
                 f"  unexplained: the silhouettes' edges lie {self.edge_residual_px:.2f} px "
                 f"({self.edge_residual_radii:.2f} radii) from the tubes fitted, in median over the ok "
                 f"frames, where a tube's own edges lie within {UNEXPLAINED_PX:g} px: parts of the robot "
-                "that the tube model does not draw (spacer disks, a gripper), or cameras that disagree "
-                "(a calibration off, kept as given), pull its curves, perhaps by millimetres; compare "
-                f"the tube drawn with the camera views in the .rrd{doubted}"
+                "that the tube model does not draw (a gripper, spacer disks not found), or cameras that "
+                "disagree (a calibration off, kept as given), pull its curves, perhaps by millimetres; "
+                f"compare the tube drawn with the camera views in the .rrd{doubted}"
             )
         if self.frames_suspect:
             first, why = self.frames_suspect[0]

@@ -400,30 +400,46 @@ def test_a_worker_that_dies_once_is_retried_and_nothing_is_lost(short_session: P
 
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [3])
-def test_spacer_disks_the_tube_does_not_draw_are_named_and_a_plain_tube_is_not(
-    seed: int, tmp_path: Path
-) -> None:
+def test_spacer_disks_are_drawn_and_cameras_that_disagree_are_named(seed: int, tmp_path: Path) -> None:
     # Of a seeded draw of the synthetic variety, its first three-camera case with spacer
-    # disks (made at least 1.6 times the tube's radius) and its first without.
+    # disks (made at least 1.6 times the tube's radius) and its first without; and that one
+    # again with its cameras 0.15 deg off and kept as given (refine = false). The disks are
+    # found and drawn, so their edges are the tube's; the cameras' disagreement is named.
     cases = [c for c in draw_cases(seed, 14) if c.cameras == 3]
     disks = next(c for c in cases if c.profile == "disks")
     plain = next(c for c in cases if c.profile != "disks")
     disks = dataclasses.replace(disks, disk_ratio=max(disks.disk_ratio, 1.6))
-    for case, named in ((disks, True), (plain, False)):
-        session = load_session(render_case(case, tmp_path / case.profile, 8, jobs=1))
+    off = dataclasses.replace(plain, calib_error_deg=0.15)
+    two = dataclasses.replace(disks, cameras=2)  # disks read on two views too, alone
+    for case, named in ((disks, False), (two, False), (plain, False), (off, True)):
+        session = load_session(render_case(case, tmp_path / case.name, 8, jobs=1))
+        if case is off:
+            calibration = dataclasses.replace(session.settings.calibration, refine=False)
+            session = dataclasses.replace(
+                session, settings=dataclasses.replace(session.settings, calibration=calibration)
+            )
         summary = runner.process_session(
             session, out_dir=tmp_path / "out", jobs=1, backend="threading", images=False, progress=False
         )
         assert summary.unexplained is named, (case.describe(), summary.edge_residual_px)
+        assert ("spacer disks" in summary.radius) is (case in (disks, two)), summary.radius
+        if case in (disks, two):  # the radius read on three views, each frame's own on two
+            assert ("from the base" in summary.radius) is (case is disks), summary.radius
         assert summary.exit_code == 0  # said, not failed
         assert any(line.startswith("  unexplained") for line in summary.problem_lines()) is named
-        # ... and every frame of the disks, its own edges as far off, is suspect for it.
+        # ... and most frames of the cameras that disagree, their own edges as far off, are
+        # suspect for it; of the disks' (the thickness drawn is not read), at most half.
         recording = load_recording(tmp_path / "out" / f"{session.name}.mcap")
         reasons = [m["suspect_reason"] for m in recording.metrics]
         flagged = [re.search(r"edges lie (\S+) px \((\S+) radii\)", reason) for reason in reasons]
-        assert all(flagged) if named else not any(flagged), reasons
-        for found in filter(None, flagged):
-            assert float(found[1]) > UNEXPLAINED_FRAME_PX and float(found[2]) > UNEXPLAINED_RADII
+        count = sum(map(bool, flagged))
+        if named:
+            assert count >= 0.75 * len(flagged), reasons
+        else:
+            assert count <= (len(flagged) // 2 if case in (disks, two) else 0), reasons
+        for found in filter(None, flagged):  # (as printed, to 0.01)
+            assert float(found[1]) >= UNEXPLAINED_FRAME_PX - 0.005
+            assert float(found[2]) >= UNEXPLAINED_RADII - 0.005
 
 
 E2E_FRAMES = 8
