@@ -18,7 +18,6 @@ axis), between disks farther apart than their radius the tube's own.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -64,6 +63,8 @@ class Disks:
         return f"{len(self.arc_mm)} spacer disks of radius {self.radius_mm:.1f} mm{spacing}"
 
     def to_dict(self) -> dict[str, Any]:
+        """The disks for the recordings' metadata (in the radius profile's JSON), to 0.001 mm;
+        the thickness drawn is not read, and not written."""
         return {"arc_mm": np.round(self.arc_mm, 3).tolist(), "radius_mm": round(self.radius_mm, 3)}
 
     @classmethod
@@ -76,9 +77,6 @@ class Disks:
             return None
         ordered = arc.ndim == 1 and len(arc) > 0 and bool(np.all(np.diff(arc) > 0))
         return cls(arc, radius) if ordered and np.isfinite(radius) and radius > 0 else None
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict())
 
 
 def rims(axis_mm: FloatArray, arc_mm: FloatArray, disks: Disks) -> FloatArray:
