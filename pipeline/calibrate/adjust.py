@@ -128,7 +128,7 @@ class Tube:
     def outline(self) -> RadiusProfile | None:
         """The tube's disks as :func:`~pipeline.reconstruct.side_readings.read_sides` draws
         them (None without)."""
-        return None if self.disks is None else RadiusProfile(np.zeros(0), np.zeros(0), self.disks)
+        return RadiusProfile.of_disks(self.disks)
 
 
 def resampled_tube(

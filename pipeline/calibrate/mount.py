@@ -34,7 +34,6 @@ the rig where the poses hold it, and the report says why.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
@@ -42,6 +41,7 @@ from numpy.typing import NDArray
 
 from ..geometry.camera import Camera
 from ..geometry.polyline import polyline_arclength
+from ..reconstruct.radius_profile import RadiusProfile
 from ..reconstruct.side_readings import read_sides
 from ..reconstruct.tip_bend import refine_tip_to_pixels
 from ..reconstruct.tube_tip import refit_tip
@@ -100,13 +100,9 @@ def base_ends(cameras: Sequence[Camera], tubes: Sequence[Tube]) -> FloatArray:
         # The tube's own radius at its base (a tapered tube's is its widest), read as a tip's
         # is, on the axis run backwards (see _BASE_SAMPLES).
         axis, radii = tube.points_mm[::-1], tube.radii_mm[::-1]
-        outline = tube.outline()
-        if outline is not None and outline.disks is not None:  # the disks' places from the tip
-            length = float(polyline_arclength(axis)[-1])
-            disks = dataclasses.replace(outline.disks, arc_mm=(length - outline.disks.arc_mm)[::-1])
-            outline = dataclasses.replace(outline, disks=disks)
+        disks = None if tube.disks is None else tube.disks.from_tip(float(polyline_arclength(axis)[-1]))
         radius = read_sides(
-            axis, cameras, tube.contrasts, radii, SPACING_MM, session_radii=outline
+            axis, cameras, tube.contrasts, radii, SPACING_MM, session_radii=RadiusProfile.of_disks(disks)
         ).end_radius_mm
         if not np.isfinite(radius):
             radius = float(np.median(tube.radii_mm[:_BASE_SAMPLES]))

@@ -62,6 +62,11 @@ class Disks:
         spacing = f", {np.median(np.diff(self.arc_mm)):.1f} mm apart" if len(self.arc_mm) > 1 else ""
         return f"{len(self.arc_mm)} spacer disks of radius {self.radius_mm:.1f} mm{spacing}"
 
+    def from_tip(self, length_mm: float) -> Disks:
+        """The same disks placed by arc length from the tip of a tube ``length_mm`` long
+        (its axis run backwards), increasing."""
+        return Disks((length_mm - self.arc_mm)[::-1], self.radius_mm, self.thickness_mm)
+
     def to_dict(self) -> dict[str, Any]:
         """The disks for the recordings' metadata (in the radius profile's JSON), to 0.001 mm;
         the thickness drawn is not read, and not written."""

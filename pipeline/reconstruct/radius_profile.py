@@ -76,10 +76,15 @@ class RadiusProfile:
         inside = (arc >= self.arc_mm[0]) & (arc <= self.arc_mm[-1])
         return np.where(inside, np.interp(arc, self.arc_mm, self.radius_mm), np.nan)
 
+    @classmethod
+    def of_disks(cls, disks: Disks | None) -> RadiusProfile | None:
+        """A profile of spacer ``disks`` alone, no radius read (the frames read their own),
+        as :func:`pipeline.reconstruct.side_readings.read_sides` draws them; None without."""
+        return None if disks is None else cls(np.zeros(0), np.zeros(0), disks)
+
     def disks_alone(self) -> RadiusProfile | None:
-        """The profile's disks without its radius (which the frames read for themselves),
-        or None without disks."""
-        return None if self.disks is None else RadiusProfile(np.zeros(0), np.zeros(0), self.disks)
+        """This profile's disks without its radius (:meth:`of_disks`)."""
+        return RadiusProfile.of_disks(self.disks)
 
     def describe(self) -> str:
         """One line for the summary: the radius's range and the stretch of the tube read, and

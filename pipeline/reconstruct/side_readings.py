@@ -316,7 +316,7 @@ def read_radius_profile(
     disks = read_disks(side_widths(dense, cameras, DISK_SPACING_MM))
     if disks is None:
         return RadiusProfile.pooled(side_widths(tubes, cameras, spacing_mm))
-    drawn = RadiusProfile(np.zeros(0), np.zeros(0), disks)
+    drawn = RadiusProfile.of_disks(disks)
     profile = RadiusProfile.pooled(side_widths(tubes, cameras, spacing_mm, drawn))
     return drawn if profile is None else replace(profile, disks=disks)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 from numpy.typing import NDArray
@@ -15,7 +17,7 @@ FloatArray = NDArray[np.float64]
 
 def _widths(
     rng: np.random.Generator,
-    radius_of: object,
+    radius_of: Callable[[FloatArray], FloatArray],
     disks: tuple[FloatArray, float, float] | None,
     *,
     frames: int = 16,
@@ -29,7 +31,7 @@ def _widths(
         arcs, halves = [], []
         for _ in range(3):
             arc = np.arange(rng.uniform(0.0, 1.0), length, 1.0)
-            half = radius_of(arc) + rng.normal(0.0, 0.05, len(arc))  # type: ignore[operator]
+            half = radius_of(arc) + rng.normal(0.0, 0.05, len(arc))
             if disks is not None:
                 centres, big, thick = disks
                 along = big * rng.uniform(0.05, 1.0)  # the ellipse's half-length along the tube
@@ -176,7 +178,7 @@ def test_drawn_disks_put_the_sides_mid_points_on_the_axis(rendered_disk_tube: tu
     curve, cameras, contrasts, _, disks = rendered_disk_tube
     pts = resample_polyline(curve, 56)
     offsets = {}
-    for name, drawn in (("plain", None), ("drawn", RadiusProfile(np.zeros(0), np.zeros(0), disks))):
+    for name, drawn in (("plain", None), ("drawn", RadiusProfile.of_disks(disks))):
         obs = read_sides(pts, cameras, contrasts, 5.0, 4.0, session_radii=drawn)
         centre, weight = obs.centres()
         offsets[name] = np.abs(centre[weight > 0])
@@ -215,3 +217,13 @@ def test_a_profile_with_disks_goes_through_json() -> None:
     assert np.isnan(alone.at(np.array([10.0]))).all()
     assert "2 spacer disks of radius 8.2 mm" in alone.describe()
     assert RadiusProfile.from_json('{"arc_mm": [], "radius_mm": []}') is None
+
+
+def test_disks_from_the_tip_are_the_same_disks() -> None:
+    # A tube 200 mm long, its axis run backwards: the disk 30 mm from the base is 170 mm
+    # from the tip, and the order along the axis stays increasing.
+    disks = Disks(np.array([30.0, 80.0, 150.0]), 9.0, 2.5)
+    back = disks.from_tip(200.0)
+    np.testing.assert_allclose(back.arc_mm, [50.0, 120.0, 170.0])
+    assert (back.radius_mm, back.thickness_mm) == (9.0, 2.5)
+    np.testing.assert_allclose(back.from_tip(200.0).arc_mm, disks.arc_mm)
