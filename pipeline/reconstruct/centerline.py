@@ -59,6 +59,7 @@ from ..geometry.polyline import cut_polyline, polyline_arclength, self_intersect
 from .loop_tip import HELD_TIP_RADII, bridge_under_tip, continue_tip, free_tip_from_stem
 from .ordering import March, march_hull
 from .quality import tube_mask
+from .radius_profile import RadiusProfile
 from .side_readings import centre_across
 from .spline import Centerline, robust_track, smooth_curve
 from .tip_bend import BEND_SPANS_RADII, bend_tip_to_pixels, refine_tip_to_pixels, tip_meets_tube
@@ -94,6 +95,7 @@ def fit_centerline(
     n_points: int = 64,
     cap: str = "flat",
     wider_hull: Callable[[], FloatArray] | None = None,
+    session_radii: RadiusProfile | None = None,
 ) -> tuple[Centerline, TubeFit]:
     """The whole centreline step: hull -> ordered polyline -> tube fit -> spline.
 
@@ -112,6 +114,8 @@ def fit_centerline(
     wider_hull : () -> (Q, 3) mm, the voxel centres that every view but one sees
         (:func:`pipeline.reconstruct.frame.hull_but_one_view`), asked for only where the
         fitted tube leaves part of a silhouette unexplained.
+    session_radii : the spacer disks (and the radius along the tube) read on the session's
+        frames (:mod:`pipeline.reconstruct.radius_profile`), drawn in every fit.
 
     Returns
     -------
@@ -124,7 +128,16 @@ def fit_centerline(
 
     def fit(march: March, robust: bool = True) -> TubeFit:
         return _fit_march(
-            march.points_mm, cameras, masks, contrasts, radius_mm, voxel_mm, base_known, robust, cap
+            march.points_mm,
+            cameras,
+            masks,
+            contrasts,
+            radius_mm,
+            voxel_mm,
+            base_known,
+            robust,
+            cap,
+            session_radii,
         )
 
     scores: dict[int, tuple[TubeFit, float]] = {}
@@ -304,7 +317,14 @@ def fit_centerline(
         def refit(axis_mm: FloatArray) -> FloatArray:
             track = robust_track(axis_mm)
             tube = fit_tube(
-                track, cameras, contrasts, radius_mm=radius, base_fixed=base_known, masks=masks, cap=cap
+                track,
+                cameras,
+                contrasts,
+                radius_mm=radius,
+                base_fixed=base_known,
+                masks=masks,
+                cap=cap,
+                session_radii=session_radii,
             )
             return tube.points_mm
 
@@ -445,6 +465,7 @@ def _fit_march(
     base_known: bool,
     robust: bool = True,
     cap: str = "flat",
+    session_radii: RadiusProfile | None = None,
 ) -> TubeFit:
     """A march's polyline -> trimmed, cut before the hull's overshoot, fitted tube."""
     if len(track) < 3:
@@ -470,4 +491,5 @@ def _fit_march(
         max_length_mm=hull_end,
         robust=robust,
         cap=cap,
+        session_radii=session_radii,
     )

@@ -38,6 +38,7 @@ from .quality import (
     tube_width_px,
     unexplained_reason,
 )
+from .radius_profile import RadiusProfile
 from .side_readings import REDUNDANT_VIEWS
 from .spline import smooth_curve
 from .tracking import (
@@ -385,6 +386,16 @@ def _curve_and_quality(
             # silhouettes unexplained.
             _check_declared_radius(settings.manipulator.radius_mm, cameras, masks, pts)
             lost_fit = held if held is not None and held.curve is not None else None
+            # The start draws the tube's spacer disks, as the track does, on three cameras
+            # or more: fitted without them, dense disks widen the tube's radius by half and
+            # bend the curve by their outlines. On the 16 three-camera disk sessions of
+            # `accuracy_table --draw 2`, 409, 433, 439 and 443 and of
+            # pipeline.synth.variety.draw_cases from seed 700 (90 frames, 2026-12-07), 4 came
+            # out better by more than 0.01 mm (mean 0.870 -> 0.759 mm and 86 -> 54 frames more
+            # than 2 mm off; 2.005 -> 1.730, 0.935 -> 0.827, 0.324 -> 0.283), 2 worse (0.400 ->
+            # 0.457, 1.407 -> 1.473), and frames off over all 52 sessions went 887 -> 838. On
+            # two cameras (draw 2, 150 frames, 2026-12-06) a disk session went 0.61 -> 0.84 mm.
+            disks_drawn = RadiusProfile.of_disks(disks) if len(cameras) >= REDUNDANT_VIEWS else None
             try:
                 _, init = fit_centerline(
                     pts,
@@ -398,6 +409,7 @@ def _curve_and_quality(
                     n_points=n_points,
                     cap=model.tip,
                     wider_hull=(lambda: hull_but_one_view(model, masks)) if len(cameras) > 2 else None,
+                    session_radii=disks_drawn,
                 )
             except ValueError as exc:
                 if lost_fit is None:

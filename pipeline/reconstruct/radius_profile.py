@@ -46,7 +46,16 @@ MIN_FRAMES = 3
 # The pooled profile is the median over this many bins either side (a window moved in from
 # the profile's ends, so that it is never cut short): spacer disks (a few mm thick, 13 mm
 # apart or more) stay a minority of the window, a step is kept where it is (as a running
-# median keeps a monotone step).
+# median keeps a monotone step). The window counts bins read, so across a stretch that no
+# frame reads it reaches the far side. The bins beside such a stretch read narrow (another
+# part a few pixels beyond an edge raises the background the edge is read against: 3.9-4.4
+# mm of 4.5 at the true axes of a stepped random shape), and the far side's bins pull them
+# back up. Read 4 px clear of other parts instead, those bins are left out, and a step
+# inside a 60 mm gap becomes a ramp across it: on the two stepped random shapes of
+# `accuracy_table --draw 439` (90 frames, 2026-12-07) 0.262 -> 0.299 and 0.350 -> 0.318 mm
+# mean (three-camera means over draws 2, 409, 433, 439 and 443 summed 4.58 -> 4.56 mm);
+# with a window of arc as well, 0.311 and 0.344 mm (4.62 mm); a window of arc alone, 0.266
+# and 0.397 mm. Left as it is.
 HALF_WINDOW_BINS = 3
 # Disks seen at an angle widen the outline over as much of the tube as they reach along it
 # in the view, often over most of a window, and the median reads them. A tube with disks

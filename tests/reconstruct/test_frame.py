@@ -346,3 +346,34 @@ def test_a_frame_that_fails_where_the_silhouettes_barely_meet_names_the_cameras(
     assert result.reason == f"centreline fit failed: {no_tube_reason}; {SILHOUETTES_APART}"
     result = reconstruct_from_silhouettes(6, images, masks, model)
     assert result.status == "failed" and SILHOUETTES_APART not in result.reason
+
+
+def test_a_start_from_the_hull_draws_the_disks_on_three_cameras_only(
+    model: SessionModel, tube: tuple, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from pipeline.reconstruct.disks import Disks
+    from pipeline.reconstruct.radius_profile import RadiusProfile as SessionRadii
+
+    disks = Disks(np.array([40.0, 80.0, 120.0]), 9.0)
+    drawn: list[object] = []
+    fit_centerline = frame.fit_centerline
+
+    def spy(*args: object, **kwargs: object) -> object:
+        drawn.append(kwargs.get("session_radii"))
+        return fit_centerline(*args, **kwargs)
+
+    monkeypatch.setattr(frame, "fit_centerline", spy)
+    _, images = tube
+    with_disks = replace(model, radius_profile=SessionRadii.of_disks(disks))
+    cameras = with_disks.cameras[:2]
+    two = replace(
+        with_disks,
+        cameras=cameras,
+        grid=build_grid(cameras, with_disks.settings.workspace),
+        backgrounds=with_disks.backgrounds[:2],
+    )
+    reconstruct_frame(0, images, with_disks)
+    reconstruct_frame(0, images[:2], two)
+    # Two views' readings are exactly the two numbers that place each sample: the disks
+    # stay out of their start (they go into the track's fit on both rigs).
+    assert [None if d is None else d.disks for d in drawn] == [disks, None]
