@@ -640,11 +640,12 @@ def consistent_readings(obs: SideReadings, step: FloatArray) -> SideReadings:
 # A reading whose residual after a first solve exceeds this many radii (or this
 # many robust standard deviations of all residuals, if larger) is an outlier.
 # The last reading before an end that no view reads decides much of its own place (its
-# leverage, 0.7-1 against 0.4-0.5 for a sample that three views read), so a wrong one
-# leaves little residual and swings the end after it: on the bench's thicker loop, started
-# on the true axis, one such reading took the tip 12.9 mm off in two rounds. Judging each
-# reading by its residual over 1 - leverage (the others' account of its place) kept those
-# ends, and took that loop's frames more than 2 mm off 90 -> 75 (900 frames); but over the
+# leverage in the solve, 0.6-0.8 against 0.3-0.5 where three views read the tube), so a
+# wrong one leaves little residual and swings the end after it: on the bench's thicker
+# loop, started on the true axis, one such reading took the tip 12.9 mm off in two rounds.
+# Judging a reading of leverage h above 0.5 by its residual times 0.5 / (1 - h) (towards
+# the others' account of its place) kept those ends, and took that loop's frames more
+# than 2 mm off 90 -> 75 (900 frames); but over the
 # 40 sessions of `accuracy_table --draw 2`, 409, 433, 439 and 443 (90 frames, 2026-12-07),
 # frames off went 581 -> 596 and two-camera means summed 14.69 -> 15.80 mm (a tapered shape
 # 0.55 -> 1.22), three-camera ones 4.58 -> 4.61: left out.
