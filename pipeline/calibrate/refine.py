@@ -618,8 +618,8 @@ def sample_evidence(
     session.toml sets the end, or on fewer than three cameras, where the radius is the
     spacer disks alone)."""
     settings = model.settings
-    two_views = settings.calibration.refine is not False and settings.centerline.method == "fit"
-    if two_views and len(model.cameras) < 3:
+    refines = settings.calibration.refine is not False and settings.centerline.method == "fit"
+    if refines and len(model.cameras) < 3:
         return None, _two_view_disks(model, sample_tubes(model, frames, map_frames))
     if not _samples_frames(model):
         return None, None

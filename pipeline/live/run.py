@@ -325,10 +325,7 @@ def _model(rig: Session, sources: Sequence[Source]) -> tuple[Any, str, str]:
         check_video_order(model, samples, paths)
         check_declared_radius(model, samples, rig.directory / "session.toml")
         read, radii = sample_evidence(model, samples)
-        # Its spacer disks are drawn into the frames the end is read on.
-        model = dataclasses.replace(model, radius_profile=None if radii is None else radii.disks_alone())
-        model, choice = with_session_tip(model, paths, 0, frames, read=read)
-        model = dataclasses.replace(model, radius_profile=radii)
+        model, choice = with_session_tip(model, paths, 0, frames, read=read, session_radii=radii)
         return model, choice.doubt if choice is not None else "", end_assumed(model, choice)
     return model, "", end_assumed(model, None)
 

@@ -43,6 +43,7 @@ from .frame import frame_contrasts, reconstruct_with_silhouettes
 from .frame_result import FrameResult
 from .frame_task import FrameMap, decode_frames, map_here
 from .model import SessionModel
+from .radius_profile import RadiusProfile
 from .side_readings import read_sides
 from .tip_bend import bend_tip_to_pixels
 from .tube_drawing import Window, drawn_coverage, pixel_coverages
@@ -586,15 +587,22 @@ def with_session_tip(
     stop: int,
     map_frames: FrameMap = map_here,
     read: ReadTips | None = None,
+    session_radii: RadiusProfile | None = None,
 ) -> tuple[SessionModel, TipChoice | None]:
-    """``model`` with its tube end settled: the settings' "flat" or "round" as they are;
-    for "auto", the end :func:`choose_tip` finds on frames spread over ``[start, stop)``
-    of the videos (and that choice, for the summary). ``read``: tips read already with
-    ``model``'s cameras, which take the first round's place: the later rounds, where
-    asked for, read frames between them."""
+    """``model`` with its tube end settled and the radius along the tube read on the
+    session's sample frames, ``session_radii``, to fit the frames with: the settings' "flat"
+    or "round" as they are; for "auto", the end :func:`choose_tip` finds on frames spread
+    over ``[start, stop)`` of the videos (and that choice, for the summary). Those frames
+    are fitted as the sample frames were: with the spacer disks drawn, each reading its own
+    radius. ``read``: tips read already with ``model``'s cameras, which take the first
+    round's place: the later rounds, where asked for, read frames between them."""
     settings = model.settings
+    settled = dataclasses.replace(model, radius_profile=session_radii)
     if settings.manipulator.tip != "auto" or settings.centerline.method != "fit":
-        return model, None
+        return settled, None
+    model = dataclasses.replace(
+        model, radius_profile=None if session_radii is None else session_radii.disks_alone()
+    )
     known: Sequence[FrameTip] = ()
     if read is None:
         rounds = sample_rounds(start, stop)
@@ -609,4 +617,4 @@ def with_session_tip(
         more=[functools.partial(decode_frames, video_paths, frames) for frames in rounds[1:]],
         known=known,
     )
-    return dataclasses.replace(model, tip=choice.tip), choice
+    return dataclasses.replace(settled, tip=choice.tip), choice

@@ -366,14 +366,9 @@ def _run_with(
                 if cameras is not session.cameras:
                     session = dataclasses.replace(session, cameras=cameras)
                     model = build_model(session)
-                # Its spacer disks are drawn into the frames the end is read on.
-                model = dataclasses.replace(
-                    model, radius_profile=None if radii is None else radii.disks_alone()
+                model, choice = with_session_tip(
+                    model, paths, start, stop, frame_map, tips, session_radii=radii
                 )
-                model, choice = with_session_tip(model, paths, start, stop, frame_map, tips)
-                # The end is chosen on frames fitted as the sample frames were, each with its
-                # own radius profile; the session's frames then read theirs with the samples'.
-                model = dataclasses.replace(model, radius_profile=radii)
                 tip = end_assumed(model, choice)
                 doubt = choice.doubt if choice is not None else ""
             else:
