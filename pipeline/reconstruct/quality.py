@@ -24,7 +24,7 @@ from ..geometry.polyline import (
 )
 from ..session.settings import Workspace
 from .disks import Disks, rim_pixels, rims
-from .tube_drawing import DRAW_SHIFT, Window, fill_hull, pixel_coverages
+from .tube_drawing import DRAW_SHIFT, DRAWABLE_PX, Window, fill_hull, pixel_coverages
 
 FloatArray = NDArray[np.float64]
 
@@ -321,7 +321,7 @@ def _draw_disks(masks: list[NDArray[np.bool_]], cameras: Sequence[Camera], rims_
         return
     for mask, disks_px in zip(masks, rim_pixels(cameras, rims_mm), strict=True):
         for disk_px in disks_px:
-            if np.isfinite(disk_px).all() and (np.abs(disk_px) < 1e5).all():
+            if np.isfinite(disk_px).all() and (np.abs(disk_px) < DRAWABLE_PX).all():
                 fill_hull(mask.view(np.uint8), disk_px * (1 << DRAW_SHIFT), 1)
 
 
@@ -475,7 +475,7 @@ def _misfit(
     depth = camera.to_camera(pts[[0, -1]])[:, 2]
     focal = camera.focal_px
     for (x, y), z, r in zip(px.tolist(), depth.tolist(), end_radii_mm, strict=True):
-        if math.isfinite(x) and math.isfinite(y) and z > r and abs(x) < 1e5 and abs(y) < 1e5:
+        if math.isfinite(x) and math.isfinite(y) and z > r and abs(x) < DRAWABLE_PX and abs(y) < DRAWABLE_PX:
             radius_px = focal * r / z + 1.5  # the disc, its outline and a pixel of rounding
             cv2.circle(ends, (round(x * 16), round(y * 16)), round(radius_px * 16), 1, -1, cv2.LINE_8, 4)
     stray &= ends == 0

@@ -32,6 +32,9 @@ _QUARTER_LEFT = np.array([-1.0, 1.0])
 _LEVELS = np.arange(256, dtype=np.float32) / 255.0
 # cv2 drawing takes fixed-point coordinates with this many fractional bits.
 DRAW_SHIFT = 4
+# Shapes are drawn only where their pixels lie within this of the image origin: a point
+# near a camera's plane projects arbitrarily far, past what fixed point holds in 32 bits.
+DRAWABLE_PX = 1e5
 # cv2's filled circles and polygons take in every pixel their outline touches:
 # a circle comes out 0.42 (fine) pixel wider in radius than the pixel centres
 # it should hold (mean over 200 random circles, r 4-30 px; spread 0.08), a
@@ -393,7 +396,7 @@ def draw_disks(
     far = 1 << 62
     box = [far, far, -far, -far]
     for disk_px in disks_px:
-        if not np.isfinite(disk_px).all():
+        if not (np.isfinite(disk_px).all() and (np.abs(disk_px) < DRAWABLE_PX).all()):
             continue
         hull = fill_hull(canvas, (disk_px - offset) * one, 255)
         x, y, w, h = cv2.boundingRect(hull)

@@ -278,3 +278,22 @@ def test_disks_from_the_tip_are_the_same_disks() -> None:
     np.testing.assert_allclose(back.arc_mm, [50.0, 120.0, 170.0])
     assert (back.radius_mm, back.thickness_mm) == (9.0, 2.5)
     np.testing.assert_allclose(back.from_tip(200.0).arc_mm, disks.arc_mm)
+
+
+def test_a_disk_projected_past_what_fixed_point_holds_is_not_drawn() -> None:
+    from pipeline.reconstruct.tube_drawing import SUPERSAMPLE, draw_disks
+
+    angle = np.linspace(0.0, 2.0 * np.pi, 24, endpoint=False)
+    ring = np.column_stack([np.cos(angle), np.sin(angle)])
+    near = 10.0 + 4.0 * ring  # a disk of 4 px radius round pixel (10, 10)
+    far = 5e7 + 4.0 * ring  # near a camera's plane: 5e7 px out, past int32 in fixed point
+    canvas = np.zeros((20 * SUPERSAMPLE, 20 * SUPERSAMPLE), np.uint8)
+    assert draw_disks(canvas, far[None], (0, 0)) == (0, 0, 0, 0)
+    assert not canvas.any()
+    x0, y0, x1, y1 = draw_disks(canvas, np.stack([near, far]), (0, 0))
+    drawn = canvas > 0
+    # pi 4^2 px of the image, SUPERSAMPLE^2 canvas pixels each.
+    assert abs(drawn.sum() / SUPERSAMPLE**2 - np.pi * 16.0) < 3.0
+    assert (
+        not drawn[:y0].any() and not drawn[y1:].any() and not drawn[:, :x0].any() and not drawn[:, x1:].any()
+    )
