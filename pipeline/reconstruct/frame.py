@@ -393,8 +393,10 @@ def _curve_and_quality(
             # pipeline.synth.variety.draw_cases from seed 700 (90 frames, 2026-12-07), 4 came
             # out better by more than 0.01 mm (mean 0.870 -> 0.759 mm and 86 -> 54 frames more
             # than 2 mm off; 2.005 -> 1.730, 0.935 -> 0.827, 0.324 -> 0.283), 2 worse (0.400 ->
-            # 0.457, 1.407 -> 1.473), and frames off over all 52 sessions went 887 -> 838. On
-            # two cameras (draw 2, 150 frames, 2026-12-06) a disk session went 0.61 -> 0.84 mm.
+            # 0.457, 1.407 -> 1.473), and frames off over all 52 sessions went 887 -> 838; on
+            # ten fresh ones (draw_cases from seed 1000, same day), 4 better, 2 worse, means
+            # summed 5.87 -> 5.67 mm (docs/accuracy.md). On two cameras (draw 2, 150 frames,
+            # 2026-12-06) a disk session went 0.61 -> 0.84 mm.
             disks_drawn = RadiusProfile.of_disks(disks) if len(cameras) >= REDUNDANT_VIEWS else None
             try:
                 _, init = fit_centerline(
